@@ -1,0 +1,118 @@
+"""The normalised model every part of the gateway speaks: series, readings, capabilities.
+
+Units: degrees for angles, g for acceleration, deg/s for angular rate, gauss for the
+magnetic field, a unit quaternion (q0 the scalar part).  Those are the sensors' own
+units in both protocols, so no conversion happens between the wire and a client.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, fields
+from typing import Any
+
+
+class Series(enum.Enum):
+    """Sensor families.  The value is the code of the Modbus TCP map's register 6."""
+
+    IMU = 1
+    VG = 2
+    AH = 3
+    MINS = 4
+
+
+class Protocol(enum.Enum):
+    """What the sensor speaks on the serial line.  The value is register 7's code."""
+
+    NATIVE = 0
+    MODBUS = 1
+
+
+class Group(enum.Enum):
+    """The value groups of a reading, named as in the reading JSON (SPEC.md §4)."""
+
+    ANGLES = "angles"
+    ACCEL = "accel"
+    GYRO = "gyro"
+    MAG = "mag"
+    QUATERNION = "quaternion"
+
+
+@dataclass(frozen=True, slots=True)
+class Angles:
+    pitch: float
+    roll: float
+    yaw: float
+
+
+@dataclass(frozen=True, slots=True)
+class Vector3:
+    x: float
+    y: float
+    z: float
+
+
+@dataclass(frozen=True, slots=True)
+class Quaternion:
+    q0: float
+    q1: float
+    q2: float
+    q3: float
+
+
+@dataclass(frozen=True, slots=True)
+class Reading:
+    """One sample.  A group the answer did not carry is ``None`` (absent, not zero)."""
+
+    angles: Angles | None = None
+    accel: Vector3 | None = None
+    gyro: Vector3 | None = None
+    mag: Vector3 | None = None
+    quaternion: Quaternion | None = None
+
+    def groups(self) -> frozenset[Group]:
+        return frozenset(g for g in Group if getattr(self, g.value) is not None)
+
+    def only(self, groups: frozenset[Group]) -> Reading:
+        """The same reading with every group outside ``groups`` dropped."""
+        return Reading(**{g.value: getattr(self, g.value) for g in groups})
+
+    def to_json_groups(self) -> dict[str, dict[str, float]]:
+        """The value groups of the reading JSON of SPEC.md §4, absent groups left out."""
+        out: dict[str, dict[str, float]] = {}
+        for group in Group:
+            value: Any = getattr(self, group.value)
+            if value is not None:
+                out[group.value] = {f.name: getattr(value, f.name) for f in fields(value)}
+        return out
+
+
+@dataclass(frozen=True, slots=True)
+class Capabilities:
+    """What a series measures and which series-specific commands it has."""
+
+    groups: frozenset[Group]
+    commands: frozenset[str]
+
+
+# Commands every series has (SPEC.md §5); the series-specific ones are listed per row.
+COMMON_COMMANDS = frozenset(
+    {"set_zero_type", "save", "calibrate_gyro", "set_address", "set_baudrate", "read_settings"}
+)
+
+# The one table of per-series capabilities.  The native document says which series
+# answer which data command (2.13-2.15, 2.19-2.26); the Modbus map is the same for all
+# series, and a series simply leaves the registers it lacks at zero.
+CAPABILITIES: dict[Series, Capabilities] = {
+    Series.IMU: Capabilities(frozenset({Group.ACCEL, Group.GYRO}), COMMON_COMMANDS),
+    Series.VG: Capabilities(
+        frozenset({Group.ANGLES, Group.ACCEL, Group.GYRO, Group.QUATERNION}), COMMON_COMMANDS
+    ),
+    Series.AH: Capabilities(
+        frozenset(Group), COMMON_COMMANDS | {"set_declination", "mag_calibration"}
+    ),
+    Series.MINS: Capabilities(
+        frozenset({Group.ANGLES, Group.ACCEL, Group.GYRO, Group.QUATERNION}),
+        COMMON_COMMANDS | {"clear_heading", "set_relative_heading"},
+    ),
+}

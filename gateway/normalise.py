@@ -1,0 +1,75 @@
+"""Data answers of both protocols to the normalised ``Reading``.
+
+Both protocol modules name the values they decode with the per-field names of
+SPEC.md §4 (``pitch``, ``accel_x``, ``q0`` …), so normalising is one table from field
+name to (group, member) and no per-command code.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from .model import CAPABILITIES, Angles, Group, Quaternion, Reading, Series, Vector3
+
+_XYZ = ("x", "y", "z")
+#: group -> (its dataclass, the per-field name of each member in order)
+GROUP_FIELDS: dict[Group, tuple[type, tuple[str, ...]]] = {
+    Group.ANGLES: (Angles, ("pitch", "roll", "yaw")),
+    Group.ACCEL: (Vector3, tuple(f"accel_{a}" for a in _XYZ)),
+    Group.GYRO: (Vector3, tuple(f"gyro_{a}" for a in _XYZ)),
+    Group.MAG: (Vector3, tuple(f"mag_{a}" for a in _XYZ)),
+    Group.QUATERNION: (Quaternion, ("q0", "q1", "q2", "q3")),
+}
+#: every per-field name (SPEC.md §4's list, in order)
+FIELD_NAMES: tuple[str, ...] = tuple(n for _, names in GROUP_FIELDS.values() for n in names)
+
+
+def member_name(group: Group, field_name: str) -> str:
+    """``accel_x`` -> ``x``; angle and quaternion names are their own member names."""
+    return field_name.split("_", 1)[1] if group in (Group.ACCEL, Group.GYRO, Group.MAG) \
+        else field_name
+
+
+def group_values(values: Mapping[str, Any]) -> dict[str, dict[str, float]]:
+    """The measured values among ``values``, grouped as in the reading JSON.
+
+    Partial groups stay partial (a 2.1 answer carries the pitch alone): this is the view
+    for a person reading one frame; ``to_reading`` is the one for the cache.
+    """
+    out: dict[str, dict[str, float]] = {}
+    for group, (_, names) in GROUP_FIELDS.items():
+        members = {member_name(group, n): float(values[n]) for n in names if n in values}
+        if members:
+            out[group.value] = members
+    return out
+
+
+def to_reading(
+    values: Mapping[str, Any], series: Series, previous: Reading | None = None
+) -> Reading | None:
+    """A ``Reading`` from decoded values, or ``None`` if they measure nothing.
+
+    A group the answer covers only in part (pitch alone) is completed from
+    ``previous``, or left out when there is none.  Groups the series does not measure
+    are dropped: a Modbus VG leaves the magnetometer registers at zero, which is
+    "not measured", not "zero gauss".
+    """
+    groups: dict[str, Any] = {}
+    for group, (cls, names) in GROUP_FIELDS.items():
+        present = [n for n in names if n in values]
+        if not present:
+            continue
+        old = getattr(previous, group.value) if previous is not None else None
+        if len(present) < len(names) and old is None:
+            continue
+        groups[group.value] = cls(
+            *(
+                float(values[n]) if n in values else getattr(old, member_name(group, n))
+                for n in names
+            )
+        )
+    # Groups this answer does not carry stay absent rather than copied from ``previous``:
+    # an old value dressed up with a new timestamp would lie about its age.
+    reading = Reading(**groups).only(CAPABILITIES[series].groups)
+    return reading if reading.groups() else None

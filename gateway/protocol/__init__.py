@@ -1,0 +1,1 @@
+"""Sans-IO protocol code: no asyncio, no serial port, no clock."""
