@@ -73,3 +73,14 @@ def to_reading(
     # an old value dressed up with a new timestamp would lie about its age.
     reading = Reading(**groups).only(CAPABILITIES[series].groups)
     return reading if reading.groups() else None
+
+
+def field_values(reading: Reading) -> dict[str, float]:
+    """The inverse view: a reading's measured values by per-field name."""
+    out: dict[str, float] = {}
+    for group, (_, names) in GROUP_FIELDS.items():
+        value = getattr(reading, group.value)
+        if value is not None:
+            for name in names:
+                out[name] = getattr(value, member_name(group, name))
+    return out

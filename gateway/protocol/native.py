@@ -412,7 +412,7 @@ def interpret(frame: NativeFrame, series: Series | None = None) -> NativeMessage
     if series is not None and series not in shape.series:
         allowed = "/".join(sorted(s.name for s in shape.series))
         raise UnknownFrame(
-            f"{shape.name} ({shape.section}) is a {allowed} frame, not {series.name}"
+            f"this {shape.name} frame ({shape.section}) comes from {allowed}, not {series.name}"
         )
     values: dict[str, Any] = {}
     offset = 0

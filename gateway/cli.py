@@ -1,0 +1,216 @@
+"""The ``imu-gateway`` command line (SPEC.md §1).
+
+Every bad input ends in one line on stderr and exit status 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import signal
+import sys
+from collections.abc import Sequence
+
+from . import __version__
+from .decode import decode_all, to_json_line
+from .model import Protocol, Series
+from .protocol.native import BAUD_CODES
+
+EXIT_BAD_INPUT = 2
+
+
+def _series(text: str) -> Series:
+    try:
+        return Series[text.upper()]
+    except KeyError:
+        raise argparse.ArgumentTypeError(
+            f"series must be one of {', '.join(s.name for s in Series)}, not {text!r}"
+        ) from None
+
+
+def _protocol(text: str) -> Protocol:
+    try:
+        return Protocol[text.upper()]
+    except KeyError:
+        raise argparse.ArgumentTypeError(f"protocol must be native or modbus, not {text!r}") \
+            from None
+
+
+def _baud(text: str) -> int:
+    if not text.isdigit() or int(text) not in BAUD_CODES.values():
+        raise argparse.ArgumentTypeError(
+            f"baud rate must be one of {sorted(BAUD_CODES.values())}, not {text!r}"
+        )
+    return int(text)
+
+
+def _address(text: str) -> int:
+    if not text.isdigit() or not 0 <= int(text) <= 255:
+        raise argparse.ArgumentTypeError(f"address must be 0-255, not {text!r}")
+    return int(text)
+
+
+def _register(text: str) -> int:
+    try:
+        value = int(text, 0)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= 0xFFFF:
+        raise argparse.ArgumentTypeError(f"register must be 0-65535 (0x.. allowed), not {text!r}")
+    return value
+
+
+def _probability(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be a probability 0-1, not {text!r}")
+    return value
+
+
+def _non_negative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be a number >= 0, not {text!r}")
+    return value
+
+
+def _sensor_spec(text: str) -> tuple[Protocol, Series, int | None, int]:
+    """``PROTOCOL:SERIES[:ADDRESS[:BAUD]]``, e.g. ``modbus:VG:2:19200``."""
+    parts = text.split(":")
+    if not 2 <= len(parts) <= 4:
+        raise argparse.ArgumentTypeError(
+            f"sensor must be PROTOCOL:SERIES[:ADDRESS[:BAUD]], not {text!r}"
+        )
+    protocol, series = _protocol(parts[0]), _series(parts[1])
+    address = _address(parts[2]) if len(parts) > 2 and parts[2] else None
+    baud = _baud(parts[3]) if len(parts) > 3 else 9600
+    return protocol, series, address, baud
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="imu-gateway",
+        description="One owner per serial bus of IMU/VG/AH/MINS attitude sensors.",
+    )
+    parser.add_argument("--version", action="version", version=f"imu-gateway {__version__}")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    decode = commands.add_parser(
+        "decode",
+        help="decode captured frames to JSON lines",
+        description="Decode captured frames (hex, spaces allowed) to one JSON object per line. "
+        "A data answer prints as the reading JSON's value groups, any other frame as "
+        "its command name and fields. A bad frame exits 2 with the reason on stderr.",
+    )
+    decode.add_argument("frames", nargs="+", metavar="FRAME")
+    decode.add_argument("--protocol", type=_protocol, help="native or modbus (default: guess)")
+    decode.add_argument("--series", type=_series, help="IMU, VG, AH or MINS")
+    decode.add_argument(
+        "--start", type=_register,
+        help="first register of the read a Modbus answer answers (when its request "
+        "is not given before it)",
+    )
+
+    sim = commands.add_parser(
+        "simulate",
+        help="simulated sensors on a pseudo-terminal",
+        description="Simulated sensors on one pseudo-terminal. The first stdout line is "
+        "'PTY <path>'. Wire time is honoured. Stop with Ctrl-C.",
+    )
+    sim.add_argument("--protocol", type=_protocol, help="native or modbus")
+    sim.add_argument("--series", type=_series, help="IMU, VG, AH or MINS")
+    sim.add_argument("--address", type=_address,
+                     help="bus address (default 0 native, 1 modbus)")
+    sim.add_argument("--baud", type=_baud, default=9600, help="the sensor's baud rate")
+    sim.add_argument(
+        "--sensor", type=_sensor_spec, action="append", default=[],
+        metavar="PROTOCOL:SERIES[:ADDRESS[:BAUD]]",
+        help="another sensor on the same line (repeatable)",
+    )
+    sim.add_argument("--answer-delay-ms", type=_non_negative, default=2.0,
+                     help="the sensors' turnaround before answering (default 2)")
+    sim.add_argument("--save-ms", type=_non_negative, default=4000.0,
+                     help="save's deaf period (default 4000; the document says 3-5 s)")
+    sim.add_argument("--drop", type=_probability, default=0.0,
+                     help="probability that an answer is dropped")
+    sim.add_argument("--corrupt", type=_probability, default=0.0,
+                     help="probability that a frame has a flipped bit")
+    sim.add_argument("--noise", type=_non_negative, default=0.0,
+                     help="bursts of line noise per second, while the line is idle")
+    sim.add_argument("--seed", type=int, default=0, help="seed of motion and faults")
+    sim.add_argument("--link", help="also make the pty reachable at this path (a symlink)")
+    sim.add_argument("-v", "--verbose", action="store_true", help="log every frame to stderr")
+    return parser
+
+
+def cmd_decode(args: argparse.Namespace) -> int:
+    status = 0
+    for index, item in enumerate(decode_all(args.frames, args.protocol, args.series, args.start)):
+        if item.result is not None:
+            print(to_json_line(item.result), flush=True)
+        else:
+            print(f"imu-gateway decode: frame {index + 1} ({item.text.strip()}): {item.error}",
+                  file=sys.stderr)
+            status = EXIT_BAD_INPUT
+    return status
+
+
+def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    from .simulator import Faults, PtyBus, make_sensor
+    from .simulator.motion import Motion
+
+    specs = list(args.sensor)
+    if args.protocol or args.series:
+        if not (args.protocol and args.series):
+            parser.error("simulate: --protocol and --series go together")
+        specs.insert(0, (args.protocol, args.series, args.address, args.baud))
+    if not specs:
+        parser.error("simulate: give --protocol and --series, or --sensor")
+    sensors = [
+        make_sensor(
+            protocol, series, address, baud,
+            source=Motion.from_seed(args.seed + i),
+            answer_delay=args.answer_delay_ms / 1000,
+            save_duration=args.save_ms / 1000,
+            faults=Faults(drop_rate=args.drop, corrupt_rate=args.corrupt),
+            seed=args.seed + i,
+        )
+        for i, (protocol, series, address, baud) in enumerate(specs)
+    ]
+    names = [s.address for s in sensors]
+    if len(set(zip(names, [s.protocol for s in sensors], strict=True))) < len(sensors):
+        parser.error("simulate: two sensors of one protocol share an address")
+    bus = PtyBus(sensors, noise_rate=args.noise, seed=args.seed, link=args.link,
+                 verbose=args.verbose)
+
+    async def main() -> None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        path = bus.open()
+        print(f"PTY {path}", flush=True)
+        for sensor in sensors:
+            print(f"sensor {sensor.name} at {sensor.baud} baud", file=sys.stderr, flush=True)
+        await bus.serve(stop)
+
+    asyncio.run(main())
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command == "decode":
+        return cmd_decode(args)
+    return cmd_simulate(args, parser)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,304 @@
+"""The simulated RS-485 line: sensors behind a pseudo-terminal, at the wire's pace.
+
+The gateway (or a test with pyserial) opens the pty's slave side like a serial port;
+this module holds the master side.  A pty moves bytes instantly, so the wire is
+modelled here:
+
+* a request of n bytes written at t is heard by the sensors at t + n·10/baud;
+* an answer starts no earlier than the sensor says (its answer delay, plus the RTU
+  silent interval) and its bytes are released one by one as each would finish on the
+  wire, so a frame of n bytes takes n·10/baud seconds to arrive and arrives in
+  realistic pieces;
+* the line's baud rate is the one the client set on the slave (read back with
+  ``termios``): a sensor at another rate hears noise, and is heard as noise;
+* bytes from the master while a sensor is answering, or about to, are an **overlap**:
+  counted, reported, and the test that drives a bus master asserts there are none;
+* two sensors answering at once (the 2.6 address query with several sensors on a
+  line) **collide**: the bytes are mixed and counted.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import random
+import sys
+import termios
+import threading
+import tty
+from collections import deque
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+
+from .sensor import Outgoing, SimSensor, char_time
+
+_SPEEDS = {
+    getattr(termios, f"B{rate}"): rate
+    for rate in (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
+    if hasattr(termios, f"B{rate}")
+}
+
+
+@dataclass(slots=True)
+class BusStats:
+    requests_bytes: int = 0
+    answer_frames: int = 0
+    overlaps: int = 0
+    collisions: int = 0
+    noise_bytes: int = 0
+    overrun_bytes: int = 0  # the client did not read and the pty buffer was full
+    events: deque[str] = field(default_factory=lambda: deque(maxlen=200))
+
+
+class PtyBus:
+    """Several simulated sensors on one pseudo-terminal."""
+
+    def __init__(
+        self,
+        sensors: Sequence[SimSensor],
+        *,
+        noise_rate: float = 0.0,
+        seed: int = 0,
+        link: str | None = None,
+        verbose: bool = False,
+    ) -> None:
+        self.sensors = list(sensors)
+        self.noise_rate = noise_rate  # bursts of line noise per second, while idle
+        self.link = link
+        self.verbose = verbose
+        self.stats = BusStats()
+        self.rng = random.Random(seed)
+        self._master = -1
+        self._slave = -1
+        self.path = ""
+        self._queue: list[Outgoing] = []
+        self._rx_wire_end = 0.0
+        self._tx_end = 0.0
+        self._wakeup: asyncio.Event | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+    # ------------------------------------------------------------ the pty
+
+    def open(self) -> str:
+        """Create the pseudo-terminal; returns the path clients open."""
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        os.set_blocking(self._master, False)
+        self.path = os.ttyname(self._slave)
+        if self.link:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.link)
+            os.symlink(self.path, self.link)
+        if self._loop is not None:
+            self._loop.add_reader(self._master, self._on_readable)
+        return self.path
+
+    def close(self) -> None:
+        if self._master < 0:
+            return
+        if self._loop is not None:
+            self._loop.remove_reader(self._master)
+        os.close(self._master)
+        os.close(self._slave)
+        self._master = self._slave = -1
+        if self.link:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.link)
+
+    def unplug(self) -> None:
+        """The USB adapter is pulled: the device (and ``link``) disappears."""
+        self.close()
+        self._queue.clear()
+
+    def replug(self) -> str:
+        """The adapter is back; with ``link`` set it is at the same path."""
+        return self.open()
+
+    def line_baud(self) -> int:
+        """The rate the client set on its side of the line."""
+        return _SPEEDS.get(termios.tcgetattr(self._slave)[5], 0)
+
+    # ------------------------------------------------------------ the wire
+
+    def _note(self, text: str) -> None:
+        self.stats.events.append(text)
+        if self.verbose:
+            print(f"sim: {text}", file=sys.stderr, flush=True)
+
+    def _noise(self, count: int) -> bytes:
+        return bytes(self.rng.randrange(256) for _ in range(count))
+
+    def _on_readable(self) -> None:
+        try:
+            data = os.read(self._master, 4096)
+        except (BlockingIOError, OSError):
+            return
+        if not data:
+            return
+        assert self._loop is not None
+        now = self._loop.time()
+        baud = self.line_baud()
+        pending_answer = any(o.solicited for o in self._queue)
+        if now < self._tx_end or pending_answer:
+            self.stats.overlaps += 1
+            self._note(f"OVERLAP: master sent {data.hex(' ')} while a sensor was answering")
+        self.stats.requests_bytes += len(data)
+        self._rx_wire_end = max(now, self._rx_wire_end) + len(data) * char_time(baud or 9600)
+        for sensor in self.sensors:
+            heard = data if sensor.baud == baud else self._noise(len(data))
+            self._queue.extend(sensor.hear(heard, self._rx_wire_end))
+        if self._wakeup is not None:
+            self._wakeup.set()
+
+    async def _transmit(self, out: Outgoing) -> None:
+        assert self._loop is not None
+        loop = self._loop
+        frame = out.frame
+        # Anything else due before this frame would be off the wire collides with it.
+        duration = len(frame) * char_time(out.baud)
+        start = max(loop.time(), out.not_before, self._rx_wire_end, self._tx_end)
+        for other in [o for o in self._queue if o.not_before < start + duration]:
+            if other.sender != out.sender:
+                self._queue.remove(other)
+                self.stats.collisions += 1
+                self._note(f"COLLISION: {out.sender} and {other.sender}")
+                frame = bytes(a ^ b for a, b in zip(frame.ljust(len(other.frame), b"\0"),
+                                                    other.frame.ljust(len(frame), b"\0"),
+                                                    strict=True))
+        if out.baud != self.line_baud():
+            frame = self._noise(len(frame))  # heard at the wrong rate: garbage
+        c = char_time(out.baud)
+        self._tx_end = start + len(frame) * c
+        written = 0
+        while written < len(frame) and self._master >= 0:
+            # A byte is released when its stop bit would have left the wire.
+            done = min(len(frame), int((loop.time() - start) / c + 1e-9))
+            if done > written:
+                try:
+                    os.write(self._master, frame[written:done])
+                except BlockingIOError:
+                    self.stats.overrun_bytes += done - written
+                written = done
+            if written < len(frame):
+                await asyncio.sleep(max(0.0, start + (written + 1) * c - loop.time()))
+        self.stats.answer_frames += 1
+        self._note(f"{out.sender} -> {out.frame.hex(' ')}")
+
+    def _inject_noise(self) -> None:
+        burst = self._noise(self.rng.randint(1, 8))
+        self.stats.noise_bytes += len(burst)
+        with contextlib.suppress(BlockingIOError):
+            os.write(self._master, burst)
+        for sensor in self.sensors:
+            self._queue.extend(sensor.hear(burst, self._loop.time() if self._loop else 0.0))
+
+    async def serve(self, stop: asyncio.Event | None = None) -> None:
+        """Run the line until ``stop`` is set (or forever)."""
+        self._loop = asyncio.get_running_loop()
+        self._wakeup = asyncio.Event()
+        if self._master < 0:
+            self.open()
+        else:
+            self._loop.add_reader(self._master, self._on_readable)
+        stop = stop or asyncio.Event()
+        next_noise = self._loop.time() + self._noise_gap()
+        try:
+            while not stop.is_set():
+                now = self._loop.time()
+                if self._master < 0:  # unplugged
+                    await self._sleep(stop, 0.05)
+                    continue
+                for sensor in self.sensors:
+                    self._queue.extend(sensor.due(now))
+                ready = [o for o in self._queue if o.not_before <= now]
+                if ready:
+                    first = min(ready, key=lambda o: o.not_before)
+                    self._queue.remove(first)
+                    await self._transmit(first)
+                    continue
+                if self.noise_rate and now >= next_noise:
+                    if now >= self._tx_end and not self._queue:
+                        self._inject_noise()
+                    next_noise = now + self._noise_gap()
+                wakeups = [o.not_before for o in self._queue]
+                wakeups += [t for s in self.sensors if (t := s.next_wakeup()) is not None]
+                if self.noise_rate:
+                    wakeups.append(next_noise)
+                await self._sleep(stop, min(wakeups) - now if wakeups else None)
+        finally:
+            self.close()
+
+    def _noise_gap(self) -> float:
+        return self.rng.expovariate(self.noise_rate) if self.noise_rate else float("inf")
+
+    async def _sleep(self, stop: asyncio.Event, timeout: float | None) -> None:
+        assert self._wakeup is not None
+        self._wakeup.clear()
+        waiters = [asyncio.ensure_future(self._wakeup.wait()), asyncio.ensure_future(stop.wait())]
+        try:
+            await asyncio.wait(waiters, timeout=timeout if timeout is None else max(0, timeout),
+                               return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for waiter in waiters:
+                waiter.cancel()
+
+
+class SimulatorThread:
+    """Run a ``PtyBus`` on its own event loop in a background thread.
+
+    For tests and benchmarks: the simulator keeps its own timing whatever the code
+    under test does with its loop.  ``with SimulatorThread(sensors) as sim: sim.path``.
+    Sensor faults and settings may be changed from the test thread between requests.
+    """
+
+    def __init__(self, sensors: Sequence[SimSensor], **options: object) -> None:
+        self.bus = PtyBus(sensors, **options)  # type: ignore[arg-type]
+        self._thread = threading.Thread(target=self._run, name="simulator", daemon=True)
+        self._ready = threading.Event()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop: asyncio.Event | None = None
+        self._error: BaseException | None = None
+
+    @property
+    def path(self) -> str:
+        return self.bus.path
+
+    def _run(self) -> None:
+        async def main() -> None:
+            self._loop = asyncio.get_running_loop()
+            self._stop = asyncio.Event()
+            self.bus.open()
+            self._ready.set()
+            await self.bus.serve(self._stop)
+
+        try:
+            asyncio.run(main())
+        except BaseException as exc:  # surfaced in __exit__
+            self._error = exc
+            self._ready.set()
+
+    def call(self, fn: object, *args: object) -> None:
+        """Run ``fn(*args)`` on the simulator's loop (for unplug/replug)."""
+        assert self._loop is not None
+        self._loop.call_soon_threadsafe(fn, *args)  # type: ignore[arg-type]
+
+    def __enter__(self) -> SimulatorThread:
+        self._thread.start()
+        self._ready.wait(10)
+        if self._error is not None:
+            raise self._error
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        if self._loop is not None and self._stop is not None:
+            self._loop.call_soon_threadsafe(self._stop.set)
+        self._thread.join(10)
+        if self._error is not None:
+            raise self._error
+
+
+@contextlib.contextmanager
+def simulated(sensors: Sequence[SimSensor], **options: object) -> Iterator[SimulatorThread]:
+    with SimulatorThread(sensors, **options) as sim:
+        yield sim

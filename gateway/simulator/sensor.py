@@ -1,0 +1,448 @@
+"""Simulated sensors, sans-IO: bytes heard and the time in, frames to send out.
+
+A sensor never touches a port or a clock.  ``hear(data, now)`` is called with the
+master's bytes and the moment their last byte finished on the wire; it returns
+``Outgoing`` frames with the earliest time each may start.  ``due(now)`` returns
+what the sensor sends on its own (auto-output, the "done" of a gyro calibration).
+``bus.PtyBus`` turns that into bytes on a pseudo-terminal at the wire's pace.
+
+Both protocols are built on the same protocol modules the gateway uses, so the
+simulator can only say what the documents let it say.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+from ..model import CAPABILITIES, Angles, Protocol, Reading, Series
+from ..normalise import field_values
+from ..protocol import bcd, native
+from ..protocol import modbus_rtu as rtu
+from ..protocol.errors import FrameError, UsageError
+from .motion import Motion, Source
+
+
+def char_time(baud: int) -> float:
+    """Seconds one character takes at 8N1: a start bit, 8 data bits, a stop bit."""
+    return 10 / baud
+
+
+def rtu_silence(baud: int) -> float:
+    """The 3.5-character gap Modbus RTU requires before a frame (1.75 ms above 19200)."""
+    return 3.5 * char_time(baud) if baud <= 19200 else 0.00175
+
+
+@dataclass(slots=True)
+class Faults:
+    """Misbehaviour a test can switch on at any time (also from another thread)."""
+
+    drop_rate: float = 0.0  # probability that an answer is not sent at all
+    corrupt_rate: float = 0.0  # probability that one byte of a frame is flipped
+    stalled: bool = False  # hears nothing, says nothing (a dead or unplugged sensor)
+
+
+@dataclass(frozen=True, slots=True)
+class Outgoing:
+    frame: bytes
+    not_before: float
+    baud: int  # the rate it is sent at (a native baud change answers at the old rate)
+    solicited: bool  # an answer to a request (vs. auto-output)
+    sender: str
+
+
+@dataclass(slots=True)
+class Settings:
+    """What a sensor would keep after a save."""
+
+    address: int
+    baud: int
+    zero_type: str = "absolute"
+    declination: float = 0.0
+
+
+@dataclass(slots=True)
+class SimSensor(ABC):
+    """State and behaviour common to both protocols."""
+
+    series: Series
+    settings: Settings
+    source: Source = field(default_factory=Motion)
+    answer_delay: float = 0.002
+    save_duration: float = 4.0
+    gyro_cal_duration: float = 2.0
+    faults: Faults = field(default_factory=Faults)
+    seed: int = 0
+    # live state
+    busy_until: float = 0.0
+    zero_offset: tuple[float, float] = (0.0, 0.0)  # pitch, roll at the relative zero
+    heading_offset: float = 0.0
+    stream_interval: float = 0.0  # seconds between auto-output frames, 0 = off
+    next_stream: float = 0.0
+    gyro_cal_done_at: float | None = None
+    mag_calibrating: bool = False
+    requests_heard: int = 0
+    log: list[str] = field(default_factory=list)
+    rng: random.Random = field(init=False)
+
+    protocol: Protocol = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.rng = random.Random(self.seed)
+
+    @property
+    def name(self) -> str:
+        return f"{self.protocol.name.lower()}:{self.series.name}@{self.settings.address}"
+
+    @property
+    def address(self) -> int:
+        return self.settings.address
+
+    @property
+    def baud(self) -> int:
+        return self.settings.baud
+
+    def busy(self, now: float) -> bool:
+        """Within save's deaf period."""
+        return now < self.busy_until
+
+    # ------------------------------------------------------------ the measured values
+
+    def measure(self, now: float) -> Reading:
+        """What the sensor reports at ``now``: its source through the zero type and the
+        heading settings, limited to what the series measures."""
+        raw = self.source.sample(now)
+        reading = raw.only(CAPABILITIES[self.series].groups)
+        if reading.angles is not None:
+            a = reading.angles
+            yaw = a.yaw - self.heading_offset + self.settings.declination
+            reading = replace(
+                reading,
+                angles=Angles(
+                    a.pitch - self.zero_offset[0],
+                    a.roll - self.zero_offset[1],
+                    yaw % 360.0 if math.isfinite(yaw) else yaw,
+                ),
+            )
+        return reading
+
+    def set_zero_type(self, zero_type: str, now: float) -> None:
+        self.settings.zero_type = zero_type
+        if zero_type == "relative":
+            angles = self.source.sample(now).angles
+            self.zero_offset = (angles.pitch, angles.roll) if angles else (0.0, 0.0)
+        else:
+            self.zero_offset = (0.0, 0.0)
+
+    def set_heading(self, degrees: float, now: float) -> None:
+        """Make the yaw read ``degrees`` from now on (clear heading is ``0``)."""
+        angles = self.source.sample(now).angles
+        raw_yaw = angles.yaw if angles else 0.0
+        self.heading_offset = raw_yaw + self.settings.declination - degrees
+
+    # ------------------------------------------------------------ the bus interface
+
+    def hear(self, data: bytes, now: float) -> list[Outgoing]:
+        """Bytes from the master whose last byte left the wire at ``now``."""
+        if self.faults.stalled:
+            return []
+        out: list[Outgoing] = []
+        for message in self._feed(data):
+            if self.busy(now):
+                continue  # save in progress: deaf
+            self.requests_heard += 1
+            out.extend(self._handle(message, now))
+        return [o for o in out if not (o.solicited and self.rng.random() < self.faults.drop_rate)]
+
+    def due(self, now: float) -> list[Outgoing]:
+        """Frames the sensor sends on its own by ``now``."""
+        if self.faults.stalled:
+            return []
+        out: list[Outgoing] = []
+        if self.gyro_cal_done_at is not None and now >= self.gyro_cal_done_at:
+            self.gyro_cal_done_at = None
+            out.extend(self._gyro_cal_done(now))
+        if self.stream_interval and now >= self.next_stream and not self.busy(now):
+            # Catch up by skipping, not bursting: a sensor that fell behind sends the
+            # current sample, not a backlog.
+            self.next_stream = max(self.next_stream + self.stream_interval, now)
+            out.extend(self._stream_frame(now))
+        return out
+
+    def next_wakeup(self) -> float | None:
+        times = [t for t in (self.gyro_cal_done_at,) if t is not None]
+        if self.stream_interval:
+            times.append(max(self.next_stream, self.busy_until))
+        return min(times) if times else None
+
+    def _send(self, frame: bytes, at: float, *, solicited: bool = True,
+              baud: int | None = None) -> Outgoing:
+        if self.faults.corrupt_rate and self.rng.random() < self.faults.corrupt_rate:
+            i = self.rng.randrange(len(frame))
+            frame = frame[:i] + bytes([frame[i] ^ (1 << self.rng.randrange(8))]) + frame[i + 1 :]
+        return Outgoing(frame, at, baud or self.baud, solicited, self.name)
+
+    @abstractmethod
+    def _feed(self, data: bytes) -> list[Any]: ...
+
+    @abstractmethod
+    def _handle(self, message: Any, now: float) -> list[Outgoing]: ...
+
+    @abstractmethod
+    def _stream_frame(self, now: float) -> list[Outgoing]: ...
+
+    @abstractmethod
+    def _gyro_cal_done(self, now: float) -> list[Outgoing]: ...
+
+
+def _bcd_formats() -> dict[str, bcd.BcdFormat]:
+    """Data field name -> its BCD format (the AH combined answer has every data field)."""
+    shape = native.COMMANDS_BY_NAME["read_all"].answer_for(Series.AH)
+    assert shape is not None
+    return {f.name: f.codec.fmt for f in shape.fields if isinstance(f.codec, native.Bcd)}
+
+
+_DATA_FORMATS = _bcd_formats()
+
+
+def _clamp(name: str, value: float) -> float:
+    """A value a BCD field cannot carry saturates, as a sensor's output does."""
+    if not math.isfinite(value):
+        return 0.0
+    fmt = _DATA_FORMATS[name]
+    return max(-fmt.max_value, min(fmt.max_value, value))
+
+
+@dataclass(slots=True)
+class NativeSensor(SimSensor):
+    """A sensor speaking the native protocol (every command of sections 2.1-2.26)."""
+
+    output_type: int = 0  # 2.16: the default auto-output is the three angles
+    framer: native.NativeFramer = field(default_factory=native.NativeFramer)
+
+    def __post_init__(self) -> None:
+        SimSensor.__post_init__(self)
+        self.protocol = Protocol.NATIVE
+
+    def _feed(self, data: bytes) -> list[native.NativeMessage]:
+        messages = []
+        for frame in self.framer.feed(data):
+            try:
+                message = native.interpret(frame)
+            except FrameError:
+                continue
+            if message.shape.direction & native.Direction.REQUEST:
+                messages.append(message)
+        return messages
+
+    def _data_values(self, command: str, now: float) -> dict[str, float]:
+        """The values of the answer to a data read, by the answer shape's field names."""
+        shape = native.COMMANDS_BY_NAME[command].answer_for(self.series)
+        assert shape is not None
+        values = field_values(self.measure(now))
+        return {f.name: _clamp(f.name, values.get(f.name, 0.0)) for f in shape.fields}
+
+    def _handle(self, message: native.NativeMessage, now: float) -> list[Outgoing]:
+        command = _REQUESTS[message.shape.key]
+        if not command.any_address and message.address != self.address:
+            return []
+        if self.series not in command.request.series:
+            return []  # a command this series lacks goes unanswered
+        self.log.append(command.name)
+        old_baud = self.baud
+        args = message.values
+        answer: dict[str, Any] = {}
+        match command.name:
+            case "read_pitch" | "read_roll" | "read_angles" | "read_accel" | "read_gyro" \
+                    | "read_quaternion" | "read_mag" | "read_all":
+                answer = self._data_values(command.name, now)
+            case "set_baudrate":
+                self.settings.baud = args["baudrate"]  # 2.4: answers at the old rate
+                answer = {"result": "success"}
+            case "set_address":
+                self.settings.address = args["new_address"]  # 2.5: answers from the new one
+                answer = {"result": "success"}
+            case "read_address":
+                answer = {"address": self.address}
+            case "save":
+                self.busy_until = now + self.answer_delay + self.save_duration
+                answer = {"result": "success"}
+            case "set_zero_type":
+                self.set_zero_type(args["zero_type"], now)
+                answer = {"result": "success"}
+            case "read_zero_type":
+                answer = {"zero_type": self.settings.zero_type}
+            case "set_output_type":
+                if args["output_type"] in native.OUTPUT_TYPES[self.series]:
+                    self.output_type = args["output_type"]
+                answer = dict(args)
+            case "set_output_rate":
+                hz = args["rate_hz"]
+                self.stream_interval = 1 / hz if hz else 0.0
+                self.next_stream = now + self.answer_delay
+                answer = {"result": "success"}
+            case "calibrate_gyro":
+                answer = {"code": 1}
+            case "clear_heading":
+                self.set_heading(0.0, now)
+            case "set_relative_heading":
+                self.set_heading(args["degrees"], now)
+                answer = dict(args)
+            case "set_declination":
+                self.settings.declination = args["degrees"]
+                answer = dict(args)
+            case "read_declination":
+                answer = {"degrees": self.settings.declination}
+            case "start_mag_calibration":
+                self.mag_calibrating = True
+                answer = {"result": "success"}
+            case "finish_mag_calibration" | "clear_mag_calibration":
+                self.mag_calibrating = False
+                answer = {"result": "success"}
+        shape = command.answer_for(self.series)
+        assert shape is not None
+        frame = native.encode(shape, self.address, **answer)
+        return [self._send(frame, now + self.answer_delay, baud=old_baud)]
+
+    def _stream_frame(self, now: float) -> list[Outgoing]:
+        command = native.OUTPUT_TYPES[self.series][self.output_type]
+        shape = native.COMMANDS_BY_NAME[command].answer_for(self.series)
+        assert shape is not None
+        frame = native.encode(shape, self.address, **self._data_values(command, now))
+        return [self._send(frame, now, solicited=False)]
+
+    def _gyro_cal_done(self, now: float) -> list[Outgoing]:
+        return []  # the native answer (0xA5 01) is immediate; nothing follows
+
+
+_REQUESTS: dict[tuple[int, int], native.NativeCommand] = {
+    c.request.key: c for c in native.COMMANDS
+}
+
+_ILLEGAL_FUNCTION, _ILLEGAL_ADDRESS, _ILLEGAL_VALUE = 1, 2, 3
+
+
+@dataclass(slots=True)
+class ModbusSensor(SimSensor):
+    """A sensor speaking Modbus RTU: FC03 reads and FC06 writes of document 1.2.
+
+    FC04 and FC16 are not in the document; the simulator answers them with exception
+    01 (illegal function), which is what a Modbus device does with a function it lacks.
+    """
+
+    output_start: int = 0x01  # 2.13 defaults: register 0x01, two registers
+    output_count: int = 2
+    framer: rtu.RtuFramer = field(default_factory=lambda: rtu.RtuFramer(requests=True))
+
+    def __post_init__(self) -> None:
+        SimSensor.__post_init__(self)
+        self.protocol = Protocol.MODBUS
+
+    def _feed(self, data: bytes) -> list[rtu.RtuMessage]:
+        return self.framer.feed(data)
+
+    def registers(self, now: float) -> dict[int, int]:
+        """The register file as read now.  Registers of groups the series does not
+        measure read zero."""
+        values: dict[str, Any] = dict.fromkeys(rtu.REGISTERS_BY_NAME, 0.0)
+        values |= field_values(self.measure(now))
+        values["product_address"] = self.address
+        values["zero_type"] = self.settings.zero_type
+        return rtu.register_image(
+            {r.name: values[r.name] for r in rtu.READABLE}
+        )
+
+    def _answer_at(self, now: float) -> float:
+        return now + rtu_silence(self.baud) + self.answer_delay
+
+    def _handle(self, message: rtu.RtuMessage, now: float) -> list[Outgoing]:
+        if message.unit not in (self.address, 0):
+            return []
+        broadcast = message.unit == 0  # executed, never answered
+        self.log.append(type(message).__name__)
+        answer: rtu.RtuMessage | None
+        match message:
+            case rtu.ReadRequest(_, start, count, rtu.READ_HOLDING):
+                if not rtu.is_readable_span(start, count):
+                    answer = rtu.ExceptionAnswer(self.address, 3, _ILLEGAL_ADDRESS)
+                else:
+                    image = self.registers(now)
+                    answer = rtu.ReadResponse(
+                        self.address, tuple(image[a] for a in range(start, start + count))
+                    )
+            case rtu.WriteRegister(_, address, value):
+                answer = self._write(address, value, now)
+            case rtu.ReadRequest() | rtu.WriteRegisters():
+                function = rtu.READ_INPUT if isinstance(message, rtu.ReadRequest) \
+                    else rtu.WRITE_MULTIPLE
+                answer = rtu.ExceptionAnswer(self.address, function, _ILLEGAL_FUNCTION)
+            case _:
+                answer = None  # an answer from another device: not for us
+        if answer is None or broadcast:
+            return []
+        return [self._send(rtu.encode(answer), self._answer_at(now))]
+
+    def _write(self, address: int, value: int, now: float) -> rtu.RtuMessage | None:
+        """Carry out an FC06 and return its answer (``None``: none is sent)."""
+        reg = rtu.REGISTERS_BY_ADDRESS.get(address)
+        if reg is None or not reg.writable or self.series not in reg.series:
+            return rtu.ExceptionAnswer(self.address, 6, _ILLEGAL_ADDRESS)
+        try:
+            decoded = rtu.decode_value(reg, value)
+            if reg.kind is rtu.Kind.ZERO_TYPE and value > 1:
+                raise UsageError("zero type is 0 or 1")
+        except UsageError:
+            return rtu.ExceptionAnswer(self.address, 6, _ILLEGAL_VALUE)
+        echo = rtu.WriteRegister(self.address, address, value)
+        match reg.name:
+            case "set_zero_type":
+                self.set_zero_type(decoded, now)
+            case "set_baudrate":
+                self.settings.baud = decoded  # 2.3: no answer, effective at once
+                return None
+            case "set_address":
+                self.settings.address = value  # 2.7: the echo comes from the new address
+                return rtu.WriteRegister(self.address, address, value)
+            case "save":
+                self.busy_until = self._answer_at(now) + self.save_duration
+            case "calibrate_gyro":
+                self.gyro_cal_done_at = now + self.gyro_cal_duration
+                return rtu.WriteRegister(self.address, address, 0)  # 2.11: 0 = started
+            case "output_interval_ms":
+                if 0 < value < 10:
+                    return rtu.ExceptionAnswer(self.address, 6, _ILLEGAL_VALUE)
+                self.stream_interval = value / 1000
+                self.next_stream = self._answer_at(now)
+            case "output_registers":
+                start, count = decoded
+                if not (1 <= count <= rtu.MAX_READ and rtu.is_readable_span(start, count)):
+                    return rtu.ExceptionAnswer(self.address, 6, _ILLEGAL_VALUE)
+                self.output_start, self.output_count = start, count
+            case "clear_heading":
+                self.set_heading(0.0, now)
+            case "set_relative_heading":
+                self.set_heading(decoded, now)
+        return echo
+
+    def _stream_frame(self, now: float) -> list[Outgoing]:
+        image = self.registers(now)
+        span = range(self.output_start, self.output_start + self.output_count)
+        frame = rtu.encode(rtu.ReadResponse(self.address, tuple(image[a] for a in span)))
+        return [self._send(frame, now, solicited=False)]
+
+    def _gyro_cal_done(self, now: float) -> list[Outgoing]:
+        reg = rtu.REGISTERS_BY_NAME["calibrate_gyro"]
+        frame = rtu.encode(rtu.WriteRegister(self.address, reg.address, 1))  # 1 = done
+        return [self._send(frame, now, solicited=False)]
+
+
+def make_sensor(protocol: Protocol, series: Series, address: int | None = None,
+                baud: int = 9600, **options: Any) -> SimSensor:
+    """A simulated sensor with the protocol's default address (native 0, Modbus 1)."""
+    cls: type[SimSensor] = NativeSensor if protocol is Protocol.NATIVE else ModbusSensor
+    if address is None:
+        address = 0 if protocol is Protocol.NATIVE else 1
+    return cls(series, Settings(address, baud), **options)
