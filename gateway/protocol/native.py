@@ -431,8 +431,11 @@ def decode(raw: bytes, series: Series | None = None) -> NativeMessage:
     return interpret(parse_frame(raw), series)
 
 
-def encode(shape: Shape, address: int, **values: Any) -> bytes:
-    """Build a frame of ``shape`` carrying ``values`` (one per field, by name)."""
+def encode(shape: Shape, address: int, /, **values: Any) -> bytes:
+    """Build a frame of ``shape`` carrying ``values`` (one per field, by name).
+
+    ``address`` is positional-only because 2.6's answer has a field named address.
+    """
     missing = [f.name for f in shape.fields if f.name not in values]
     extra = sorted(set(values) - {f.name for f in shape.fields})
     if missing or extra:
@@ -443,7 +446,7 @@ def encode(shape: Shape, address: int, **values: Any) -> bytes:
     return NativeFrame(address, shape.command, data).encode()
 
 
-def encode_request(name: str, address: int = 0, **values: Any) -> bytes:
+def encode_request(name: str, address: int = 0, /, **values: Any) -> bytes:
     """The request frame of command ``name`` (a key of ``COMMANDS_BY_NAME``)."""
     try:
         command = COMMANDS_BY_NAME[name]
@@ -452,7 +455,7 @@ def encode_request(name: str, address: int = 0, **values: Any) -> bytes:
     return encode(command.request, 0 if command.any_address else address, **values)
 
 
-def encode_answer(name: str, series: Series, address: int, **values: Any) -> bytes:
+def encode_answer(name: str, series: Series, address: int, /, **values: Any) -> bytes:
     """The answer a ``series`` sensor gives to command ``name``."""
     shape = COMMANDS_BY_NAME[name].answer_for(series)
     if shape is None:

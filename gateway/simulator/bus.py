@@ -26,6 +26,7 @@ import random
 import sys
 import termios
 import threading
+import traceback
 import tty
 from collections import deque
 from collections.abc import Iterator, Sequence
@@ -48,6 +49,7 @@ class BusStats:
     collisions: int = 0
     noise_bytes: int = 0
     overrun_bytes: int = 0  # the client did not read and the pty buffer was full
+    internal_errors: int = 0  # a bug in a simulated sensor: logged, the line carries on
     events: deque[str] = field(default_factory=lambda: deque(maxlen=200))
 
 
@@ -147,7 +149,7 @@ class PtyBus:
         self._rx_wire_end = max(now, self._rx_wire_end) + len(data) * char_time(baud or 9600)
         for sensor in self.sensors:
             heard = data if sensor.baud == baud else self._noise(len(data))
-            self._queue.extend(sensor.hear(heard, self._rx_wire_end))
+            self._hear(sensor, heard, self._rx_wire_end)
         if self._wakeup is not None:
             self._wakeup.set()
 
@@ -191,7 +193,16 @@ class PtyBus:
         with contextlib.suppress(BlockingIOError):
             os.write(self._master, burst)
         for sensor in self.sensors:
-            self._queue.extend(sensor.hear(burst, self._loop.time() if self._loop else 0.0))
+            self._hear(sensor, burst, self._loop.time() if self._loop else 0.0)
+
+    def _hear(self, sensor: SimSensor, data: bytes, now: float) -> None:
+        try:
+            self._queue.extend(sensor.hear(data, now))
+        except Exception:
+            self.stats.internal_errors += 1
+            self._note(f"INTERNAL ERROR in {sensor.name}")
+            print(f"sim: internal error in {sensor.name}:\n{traceback.format_exc()}",
+                  file=sys.stderr, flush=True)
 
     async def serve(self, stop: asyncio.Event | None = None) -> None:
         """Run the line until ``stop`` is set (or forever)."""

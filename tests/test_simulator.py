@@ -1,0 +1,440 @@
+"""The simulator over real pseudo-terminals, driven with pyserial as a gateway would.
+
+Values set to the documents' examples must produce the documents' answers byte for
+byte; the wire's time must be honoured; the settings commands must change what the
+sensor does afterwards the way the documents say.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import pytest
+import serial
+
+from gateway.model import Angles, Protocol, Quaternion, Reading, Series, Vector3
+from gateway.protocol import modbus_rtu as rtu
+from gateway.protocol import native
+from gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
+
+ZERO = Reading(
+    Angles(0, 0, 0), Vector3(0, 0, 1), Vector3(0, 0, 0), Vector3(0, 0, 0), Quaternion(1, 0, 0, 0)
+)
+
+
+def reading_with(values: dict[str, float]) -> Reading:
+    """A complete reading holding ``values`` (per-field names), zeros elsewhere."""
+    from gateway.normalise import field_values, to_reading
+
+    return to_reading({**field_values(ZERO), **values}, Series.AH) or ZERO
+
+
+@contextmanager
+def line(*sensors: SimSensor, baud: int = 9600, **options: Any) -> Iterator[serial.Serial]:
+    with simulated(sensors, **options) as sim, serial.Serial(sim.path, baud, timeout=1) as port:
+        port.sim = sim  # type: ignore[attr-defined]
+        yield port
+    assert sim.bus.stats.internal_errors == 0
+
+
+def exchange(port: serial.Serial, request: bytes, answer_len: int) -> bytes:
+    port.reset_input_buffer()
+    port.write(request)
+    return bytes(port.read(answer_len))
+
+
+def silent(port: serial.Serial, request: bytes, wait: float = 0.25) -> bool:
+    """True when nothing at all comes back within ``wait`` seconds."""
+    port.reset_input_buffer()
+    port.write(request)
+    time.sleep(wait)
+    return port.in_waiting == 0
+
+
+def sensor(protocol: Protocol, series: Series, values: dict[str, float] | None = None,
+           **options: Any) -> SimSensor:
+    source = hold(reading_with(values or {}))
+    return make_sensor(protocol, series, source=source, **options)
+
+
+# ---------------------------------------------------------------- document answers
+
+NATIVE_DATA_EXAMPLES = [
+    # section, series, command, the document's answer
+    ("2.1", Series.VG, "read_pitch", "77 07 00 81 10 34 63 2F"),
+    ("2.2", Series.VG, "read_roll", "77 07 00 82 01 23 57 04"),
+    ("2.3", Series.VG, "read_angles", "77 0D 00 84 00 02 01 10 00 51 00 00 00 F5"),
+    ("2.10", Series.VG, "read_accel", "77 0D 00 54 00 01 07 00 94 21 10 06 30 64"),
+    ("2.11", Series.VG, "read_gyro", "77 0D 00 50 10 93 76 14 98 87 00 14 03 C0"),
+    ("2.12", Series.VG, "read_quaternion",
+     "77 14 00 57 00 99 99 96 00 00 02 90 10 00 26 73 10 00 00 01 7F"),
+    ("2.13", Series.IMU, "read_all",
+     "77 16 00 84 10 93 76 12 98 87 00 14 03 00 01 07 00 94 21 10 06 30 FE"),
+    ("2.14", Series.VG, "read_all",
+     "77 2F 00 59 10 00 60 10 03 06 00 00 00 10 01 07 10 05 43 01 01 54 10 00 13 10 00 04"
+     " 00 00 09 10 87 06 35 00 01 76 91 00 02 06 94 00 49 11 75 5C"),
+    ("2.15", Series.AH, "read_all",
+     "77 38 00 59 10 13 15 00 25 58 02 51 87 10 18 07 10 28 16 01 02 65 10 06 48 01 24 13"
+     " 00 03 88 01 59 62 01 63 91 14 14 58 10 22 83 75 10 18 33 49 10 16 55 78 00 93 99 14"
+     " 58"),
+    ("2.23", Series.AH, "read_mag", "77 0D 00 55 11 55 25 00 34 52 13 46 16 E2"),
+]
+
+
+@pytest.mark.parametrize(("section", "series", "command", "answer"), NATIVE_DATA_EXAMPLES,
+                         ids=[e[0] for e in NATIVE_DATA_EXAMPLES])
+def test_native_data_answer_equals_document(section: str, series: Series, command: str,
+                                            answer: str) -> None:
+    expected = bytes.fromhex(answer)
+    values = dict(native.decode(expected).values)
+    with line(sensor(Protocol.NATIVE, series, values)) as port:
+        assert exchange(port, native.encode_request(command), len(expected)) == expected
+
+
+NATIVE_SETTING_EXAMPLES = [
+    # section, series, request, answer (the document's bytes where it prints them)
+    ("2.8", Series.VG, "77 05 00 05 01 0B", "77 05 00 85 00 8A"),
+    ("2.9", Series.VG, "77 04 00 0D 11", "77 05 00 8D 00 92"),
+    ("2.6", Series.VG, "77 04 00 1F 23", "77 05 00 1F 00 24"),
+    ("2.16", Series.VG, "77 05 00 56 00 5B", "77 05 00 56 00 5B"),
+    ("2.17", Series.VG, "77 05 00 0C 00 11", "77 05 00 8C 00 91"),
+    ("2.18", Series.VG, "77 04 00 52 56", "77 05 00 A5 01 AB"),
+    ("2.19", Series.MINS, "77 04 00 82 86", "77 04 00 82 86"),
+    ("2.20", Series.MINS, "77 07 00 84 01 00 00 8C", "77 07 00 84 01 00 00 8C"),
+    ("2.21", Series.AH, "77 06 00 06 02 08 16", "77 06 00 86 02 08 96"),
+    ("2.22", Series.AH, "77 04 00 07 0B", "77 06 00 87 00 00 8D"),
+    ("2.24", Series.AH, "77 04 00 10 14", "77 05 00 90 00 95"),
+    ("2.25", Series.AH, "77 04 00 11 15", "77 05 00 91 00 96"),
+    ("2.26", Series.AH, "77 04 00 12 16", "77 05 00 92 00 97"),
+]
+
+
+@pytest.mark.parametrize(("section", "series", "request_hex", "answer_hex"),
+                         NATIVE_SETTING_EXAMPLES, ids=[e[0] for e in NATIVE_SETTING_EXAMPLES])
+def test_native_setting_answers(section: str, series: Series, request_hex: str,
+                                answer_hex: str) -> None:
+    expected = bytes.fromhex(answer_hex)
+    with line(sensor(Protocol.NATIVE, series)) as port:
+        assert exchange(port, bytes.fromhex(request_hex), len(expected)) == expected
+
+
+def test_native_zero_type_query_answers_ff_for_relative() -> None:
+    """2.8 sets relative with 0x01, but 2.9 reports it as 0xFF."""
+    with line(sensor(Protocol.NATIVE, Series.VG, {"pitch": 3.0, "roll": -4.0})) as port:
+        exchange(port, bytes.fromhex("77 05 00 05 01 0B"), 6)
+        assert exchange(port, bytes.fromhex("77 04 00 0D 11"), 6) == bytes.fromhex(
+            "77 05 00 8D FF 91")
+        # and the angles are now relative to where the sensor was
+        answer = native.decode(exchange(port, native.encode_request("read_angles"), 14))
+        assert (answer.values["pitch"], answer.values["roll"]) == (0.0, 0.0)
+
+
+MODBUS_EXAMPLES = [
+    # section, values the sensor holds, request, the document's answer
+    ("2.1", {"pitch": 0.93}, "01 03 00 01 00 01 D5 CA", "01 03 02 4E 7D 4D C5"),
+    ("2.2", {"pitch": 6.47, "roll": -3.06}, "01 03 00 01 00 02 95 CB",
+     "01 03 04 50 A7 4C EE EE 5C"),
+    ("2.8", {"accel_x": 0.011224, "accel_y": 0.026061, "accel_z": 0.986631},
+     "01 03 00 28 00 06 45 C0", "01 03 0C DE E4 37 3C E1 7D D5 3C D9 93 7C 3F C0 2C"),
+    ("2.9", {"gyro_x": 0.062761, "gyro_y": -0.033737, "gyro_z": -0.008332},
+     "01 03 00 2E 00 06 A5 C1", "01 03 0C D7 88 80 3D CF 2F 0A BD F1 82 08 BC 46 18"),
+    ("2.10", {"q0": 0.835558, "q1": 0.037995, "q2": -0.042994, "q3": -0.546398},
+     "01 03 00 3A 00 08 64 01",
+     "01 03 10 21 E7 55 3F A5 A0 1B 3D 7A 1A 30 BD BD E0 0B BF 5C B4"),
+    ("2.4 (typo fixed)", {}, "01 06 00 0F 00 00 B9 C9", "01 06 00 0F 00 00 B9 C9"),
+    ("2.5", {}, "01 06 00 0A 00 00 A9 C8", "01 06 00 0A 00 00 A9 C8"),
+    ("2.11", {}, "01 06 00 10 00 00 88 0F", "01 06 00 10 00 00 88 0F"),
+    ("2.12", {}, "01 06 00 1B 00 14 F9 C2", "01 06 00 1B 00 14 F9 C2"),
+    ("2.13", {}, "01 06 00 1C 01 04 48 5F", "01 06 00 1C 01 04 48 5F"),
+    ("2.7", {}, "01 06 00 0D 00 03 58 08", "03 06 00 0D 00 03 59 EA"),
+]
+
+
+@pytest.mark.parametrize(("section", "values", "request_hex", "answer_hex"), MODBUS_EXAMPLES,
+                         ids=[e[0] for e in MODBUS_EXAMPLES])
+def test_modbus_answer_equals_document(section: str, values: dict[str, float],
+                                       request_hex: str, answer_hex: str) -> None:
+    expected = bytes.fromhex(answer_hex)
+    with line(sensor(Protocol.MODBUS, Series.AH, values, save_duration=0.05)) as port:
+        assert exchange(port, bytes.fromhex(request_hex), len(expected)) == expected
+
+
+def test_modbus_zero_type_query() -> None:
+    """2.6: after setting relative zero (2.5 with 1), register 5 reads 1."""
+    with line(sensor(Protocol.MODBUS, Series.VG)) as port:
+        exchange(port, rtu.write_request(1, "set_zero_type", "relative"), 8)
+        assert exchange(port, bytes.fromhex("01 03 00 05 00 01 94 0B"), 7) == bytes.fromhex(
+            "01 03 02 00 01 79 84")
+
+
+def test_modbus_gyro_calibration_answers_started_then_done() -> None:
+    with line(sensor(Protocol.MODBUS, Series.VG, gyro_cal_duration=0.2)) as port:
+        port.timeout = 2
+        both = exchange(port, rtu.write_request(1, "calibrate_gyro", 0), 16)
+        assert both == bytes.fromhex("01 06 00 10 00 00 88 0F") + rtu.encode(
+            rtu.WriteRegister(1, 0x10, 1))
+
+
+def test_modbus_exceptions() -> None:
+    with line(sensor(Protocol.MODBUS, Series.VG)) as port:
+        # a read across the hole between 0x05 and 0x22: illegal data address
+        answer = rtu.decode_frame(exchange(port, rtu.read_request(1, 0x05, 2), 5))
+        assert answer == rtu.ExceptionAnswer(1, 3, 2)
+        # FC04 is not in the document: illegal function
+        answer = rtu.decode_frame(exchange(port, rtu.read_request(1, 0x22, 2, 4), 5))
+        assert answer == rtu.ExceptionAnswer(1, 4, 1)
+        # clear heading is MINS only
+        answer = rtu.decode_frame(exchange(port, rtu.write_request(1, "clear_heading", 0), 5))
+        assert answer == rtu.ExceptionAnswer(1, 6, 2)
+        # another unit's request goes unanswered
+        assert silent(port, rtu.read_request(7, 0x22, 2))
+
+
+# ---------------------------------------------------------------- wire time
+
+
+def _best_of(port: serial.Serial, request: bytes, answer_len: int, tries: int = 7) -> float:
+    """The fastest of several exchanges: load on the machine can only add time."""
+    best = float("inf")
+    for _ in range(tries):
+        port.reset_input_buffer()
+        start = time.monotonic()
+        port.write(request)
+        got = bytearray()
+        while len(got) < answer_len:
+            chunk = port.read(answer_len - len(got))
+            assert chunk, "no answer"
+            got += chunk
+        best = min(best, time.monotonic() - start)
+    return best
+
+
+@pytest.mark.parametrize("baud", [9600, 19200])
+def test_native_exchange_takes_the_wire_time(baud: int) -> None:
+    delay = 0.002
+    request = native.encode_request("read_all")
+    answer_len = 57
+    model = (len(request) + answer_len) * 10 / baud + delay
+    with line(make_sensor(Protocol.NATIVE, Series.AH, baud=baud, answer_delay=delay),
+              baud=baud) as port:
+        took = _best_of(port, request, answer_len)
+    assert model * 0.98 <= took <= model * 1.10, (took, model)
+
+
+def test_modbus_exchange_takes_the_wire_time_and_silent_interval() -> None:
+    delay, baud = 0.002, 9600
+    request = rtu.read_request(1, rtu.FLOAT_BLOCK_START, rtu.FLOAT_BLOCK_COUNT)
+    answer_len = 5 + 2 * rtu.FLOAT_BLOCK_COUNT
+    model = (len(request) + answer_len + 3.5) * 10 / baud + delay
+    with line(make_sensor(Protocol.MODBUS, Series.AH, answer_delay=delay)) as port:
+        took = _best_of(port, request, answer_len)
+    assert model * 0.98 <= took <= model * 1.10, (took, model)
+
+
+def test_answer_arrives_in_pieces_not_at_once() -> None:
+    """Bytes are released as each would leave the wire, so a reader sees them trickle."""
+    with line(make_sensor(Protocol.NATIVE, Series.AH, answer_delay=0)) as port:
+        port.write(native.encode_request("read_all"))
+        time.sleep(0.035)  # the request is 5.2 ms, the answer 59 ms on the wire
+        partial = port.in_waiting
+        time.sleep(0.1)
+        assert 0 < partial < 57 <= port.in_waiting
+
+
+# ---------------------------------------------------------------- settings
+
+
+def test_native_baud_change_answers_at_old_rate_then_switches() -> None:
+    with line(sensor(Protocol.NATIVE, Series.AH)) as port:
+        answer = exchange(port, native.encode_request("set_baudrate", baudrate=115200), 6)
+        assert native.decode(answer).values == {"result": "success"}
+        assert silent(port, native.encode_request("read_angles"))  # still 9600 here
+        port.baudrate = 115200
+        assert native.decode(exchange(port, native.encode_request("read_angles"), 14)).name \
+            == "read_angles"
+
+
+def test_modbus_baud_change_is_silent_and_immediate() -> None:
+    with line(sensor(Protocol.MODBUS, Series.VG)) as port:
+        assert silent(port, rtu.write_request(1, "set_baudrate", 19200))
+        port.baudrate = 19200
+        answer = rtu.decode_frame(exchange(port, rtu.read_request(1, 1, 3), 11))
+        assert isinstance(answer, rtu.ReadResponse)
+
+
+def test_native_address_change_answers_from_new_address() -> None:
+    with line(sensor(Protocol.NATIVE, Series.VG)) as port:
+        answer = native.decode(exchange(port, bytes.fromhex("77 05 00 0F 0A 1E"), 6))
+        assert (answer.address, answer.values["result"]) == (0x0A, "success")
+        assert silent(port, native.encode_request("read_angles", 0))
+        assert native.decode(exchange(port, native.encode_request("read_angles", 0x0A), 14)) \
+            .address == 0x0A
+        # 2.6: the address query is always sent to 00 and answered with the address
+        answer = native.decode(exchange(port, native.encode_request("read_address"), 6))
+        assert answer.values == {"address": 0x0A}
+
+
+def test_modbus_address_change() -> None:
+    with line(sensor(Protocol.MODBUS, Series.VG)) as port:
+        exchange(port, rtu.write_request(1, "set_address", 9), 8)
+        assert silent(port, rtu.read_request(1, 4, 1))
+        answer = rtu.decode_frame(exchange(port, rtu.read_request(9, 4, 1), 7))
+        assert answer == rtu.ReadResponse(9, (9,))
+
+
+@pytest.mark.parametrize("protocol", list(Protocol))
+def test_save_is_followed_by_a_deaf_period(protocol: Protocol) -> None:
+    if protocol is Protocol.NATIVE:
+        save, save_len = native.encode_request("save"), 6
+        probe, probe_len = native.encode_request("read_angles"), 14
+    else:
+        save, save_len = rtu.write_request(1, "save", 0), 8
+        probe, probe_len = rtu.read_request(1, 1, 3), 11
+    with line(sensor(protocol, Series.VG, save_duration=0.6)) as port:
+        assert len(exchange(port, save, save_len)) == save_len
+        assert silent(port, probe, wait=0.2)
+        time.sleep(0.5)
+        assert len(exchange(port, probe, probe_len)) == probe_len
+
+
+def test_native_heading_commands_mins() -> None:
+    with line(sensor(Protocol.NATIVE, Series.MINS, {"yaw": 123.45})) as port:
+        def yaw() -> float:
+            return float(native.decode(exchange(port, native.encode_request("read_angles"), 14))
+                         .values["yaw"])
+        assert yaw() == 123.45
+        exchange(port, native.encode_request("clear_heading"), 5)
+        assert yaw() == 0.0
+        exchange(port, native.encode_request("set_relative_heading", degrees=100.0), 8)
+        assert yaw() == 100.0
+
+
+def test_native_declination_ah() -> None:
+    with line(sensor(Protocol.NATIVE, Series.AH, {"yaw": 10.0})) as port:
+        exchange(port, native.encode_request("set_declination", degrees=-5.5), 7)
+        assert native.decode(exchange(port, native.encode_request("read_declination"), 7)) \
+            .values == {"degrees": -5.5}
+        angles = native.decode(exchange(port, native.encode_request("read_angles"), 14))
+        assert angles.values["yaw"] == 4.5
+
+
+def test_commands_a_series_lacks_go_unanswered() -> None:
+    with line(sensor(Protocol.NATIVE, Series.VG)) as port:
+        assert silent(port, native.encode_request("read_mag"))
+        assert silent(port, native.encode_request("clear_heading"))
+
+
+# ---------------------------------------------------------------- auto-output
+
+
+def test_native_auto_output_streams_the_chosen_frame() -> None:
+    with line(make_sensor(Protocol.NATIVE, Series.AH, baud=115200), baud=115200) as port:
+        exchange(port, native.encode_request("set_output_type", output_type=5), 6)
+        exchange(port, native.encode_request("set_output_rate", rate_hz=100), 6)
+        time.sleep(0.5)
+        framer = native.NativeFramer()
+        frames = framer.feed(port.read(port.in_waiting))
+        assert len(frames) >= 10
+        assert {native.interpret(f, Series.AH).name for f in frames} == {"read_all"}
+        # commands still work while it streams
+        exchange(port, native.encode_request("set_output_rate", rate_hz=0), 0)
+        time.sleep(0.1)
+        answer = exchange(port, native.encode_request("read_zero_type"), 6)
+        assert native.decode(answer).name == "read_zero_type"
+
+
+def test_modbus_auto_output_streams_the_chosen_registers() -> None:
+    with line(make_sensor(Protocol.MODBUS, Series.VG, baud=115200), baud=115200) as port:
+        exchange(port, rtu.write_request(1, "output_registers", (0x22, 32)), 8)
+        exchange(port, rtu.write_request(1, "output_interval_ms", 20), 8)
+        time.sleep(0.5)
+        framer = rtu.RtuFramer(requests=False)
+        messages = framer.feed(port.read(port.in_waiting))
+        assert len(messages) >= 10
+        assert all(isinstance(m, rtu.ReadResponse) and len(m.registers) == 32 for m in messages)
+
+
+# ---------------------------------------------------------------- faults and the line
+
+
+def test_several_sensors_of_both_protocols_share_a_line() -> None:
+    ah = sensor(Protocol.NATIVE, Series.AH, {"pitch": 1.0})
+    imu = make_sensor(Protocol.NATIVE, Series.IMU, 5)
+    vg = sensor(Protocol.MODBUS, Series.VG, {"pitch": 2.0}, address=3)
+    with line(ah, imu, vg) as port:
+        assert native.decode(exchange(port, native.encode_request("read_pitch", 0), 8)) \
+            .values == {"pitch": 1.0}
+        assert native.decode(exchange(port, native.encode_request("read_all", 5), 23)) \
+            .name == "read_all"
+        answer = rtu.decode_frame(exchange(port, rtu.read_request(3, 1, 1), 7))
+        assert answer == rtu.ReadResponse(3, (20200,))
+        assert port.sim.bus.stats.overlaps == 0
+
+
+def test_overlap_is_detected() -> None:
+    with line(make_sensor(Protocol.NATIVE, Series.AH)) as port:
+        port.write(native.encode_request("read_all"))
+        time.sleep(0.02)  # the answer is on its way: talking now is a collision
+        port.write(native.encode_request("read_all"))
+        time.sleep(0.2)
+        assert port.sim.bus.stats.overlaps >= 1
+
+
+def test_address_query_with_two_sensors_collides() -> None:
+    with line(make_sensor(Protocol.NATIVE, Series.AH, 1),
+              make_sensor(Protocol.NATIVE, Series.VG, 2)) as port:
+        port.write(native.encode_request("read_address"))
+        time.sleep(0.2)
+        assert port.sim.bus.stats.collisions == 1
+
+
+def test_client_at_the_wrong_baud_rate_hears_nothing_valid() -> None:
+    with line(make_sensor(Protocol.NATIVE, Series.AH), baud=19200) as port:
+        port.write(native.encode_request("read_all"))
+        time.sleep(0.2)
+        assert native.NativeFramer().feed(port.read(port.in_waiting)) == []
+
+
+def test_faults_drop_corrupt_stall_and_noise() -> None:
+    faults = Faults()
+    s = make_sensor(Protocol.NATIVE, Series.AH, faults=faults)
+    with line(s, noise_rate=50, seed=3) as port:
+        request = native.encode_request("read_angles")
+        faults.drop_rate = 1.0
+        assert silent(port, request) or not native.NativeFramer().feed(port.read(port.in_waiting))
+        faults.drop_rate, faults.corrupt_rate = 0.0, 1.0
+        framer = native.NativeFramer()
+        port.write(request)
+        time.sleep(0.1)
+        assert framer.feed(port.read(port.in_waiting)) == []
+        faults.corrupt_rate, faults.stalled = 0.0, True
+        port.write(request)
+        time.sleep(0.1)
+        assert framer.feed(port.read(port.in_waiting)) == []
+        faults.stalled = False
+        # through line noise (50 bursts/s) a clean answer still comes through the framer
+        found: list[native.NativeFrame] = []
+        for _ in range(10):
+            port.write(request)
+            time.sleep(0.05)
+            found += [f for f in framer.feed(port.read(port.in_waiting)) if f.command == 0x84]
+        assert found
+        assert port.sim.bus.stats.noise_bytes > 0
+
+
+def test_unplug_and_replug_keep_the_link_path(tmp_path: Any) -> None:
+    link = str(tmp_path / "ttyIMU0")
+    with simulated([make_sensor(Protocol.NATIVE, Series.AH)], link=link) as sim:
+        with serial.Serial(link, 9600, timeout=1) as port:
+            assert len(exchange(port, native.encode_request("read_angles"), 14)) == 14
+        sim.call(sim.bus.unplug)
+        time.sleep(0.1)
+        with pytest.raises(serial.SerialException):
+            serial.Serial(link, 9600)
+        sim.call(sim.bus.replug)
+        time.sleep(0.1)
+        with serial.Serial(link, 9600, timeout=1) as port:
+            assert len(exchange(port, native.encode_request("read_angles"), 14)) == 14
