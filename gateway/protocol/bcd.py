@@ -15,6 +15,7 @@ never drifts by a float ulp.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from .errors import BadBcd, BadLength, UsageError
@@ -54,8 +55,10 @@ class BcdFormat:
     def encode(self, value: float) -> bytes:
         """Encode ``value`` rounded to this format's resolution.
 
-        Raises ``UsageError`` when the rounded magnitude does not fit.
+        Raises ``UsageError`` when the rounded magnitude does not fit (or is not finite).
         """
+        if not math.isfinite(value):
+            raise UsageError(f"{value} cannot be sent as BCD {self.name}")
         counts = round(value * self.scale)
         return self.encode_counts(counts)
 

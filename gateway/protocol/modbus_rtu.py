@@ -51,7 +51,7 @@ from pymodbus.pdu.register_message import (
 )
 
 from ..model import Series
-from .errors import BadChecksum, BadLength, FrameError, UnknownFrame, UsageError
+from .errors import BadChecksum, BadLength, UnknownFrame, UsageError
 from .native import BAUD_CODES
 
 READ_HOLDING, READ_INPUT, WRITE_SINGLE, WRITE_MULTIPLE = 3, 4, 6, 16
@@ -69,6 +69,8 @@ def angle_from_register(raw: int) -> float:
 
 
 def angle_to_register(degrees: float) -> int:
+    if not math.isfinite(degrees):
+        raise UsageError(f"{degrees} deg is not a finite angle")
     raw = round(degrees * 100) + ANGLE_OFFSET
     if not 0 <= raw <= 0xFFFF:
         raise UsageError(f"{degrees} deg does not fit an angle register (-200 to 455.35)")
@@ -167,11 +169,15 @@ REGISTERS: tuple[SensorRegister, ...] = (
         for i, name in enumerate(_FLOAT_FIELDS)
     ),
 )
-REGISTERS_BY_NAME: Mapping[str, SensorRegister] = MappingProxyType({r.name: r for r in REGISTERS})
+READABLE: tuple[SensorRegister, ...] = tuple(r for r in REGISTERS if not r.writable)
+#: Writable registers by name.  (Readable names are not unique: ``pitch`` is both the
+#: 0x01 angle register and the 0x22 float, which is why there is no such map for them.)
+WRITABLE: Mapping[str, SensorRegister] = MappingProxyType(
+    {r.name: r for r in REGISTERS if r.writable}
+)
 REGISTERS_BY_ADDRESS: Mapping[int, SensorRegister] = MappingProxyType(
     {r.address: r for r in REGISTERS}
 )
-READABLE: tuple[SensorRegister, ...] = tuple(r for r in REGISTERS if not r.writable)
 
 
 def encode_value(register: SensorRegister, value: Any) -> int:
@@ -378,8 +384,8 @@ def read_request(unit: int, address: int, count: int, function: int = READ_HOLDI
 
 def write_request(unit: int, name: str, value: Any) -> bytes:
     """FC06 to the sensor's named writable register, the value converted by its kind."""
-    register = REGISTERS_BY_NAME.get(name)
-    if register is None or not register.writable:
+    register = WRITABLE.get(name)
+    if register is None:
         raise UsageError(f"no writable sensor register {name!r}")
     return encode(WriteRegister(unit, register.address, encode_value(register, value)))
 
@@ -528,9 +534,3 @@ def describe(message: RtuMessage, start: int | None = None) -> dict[str, Any]:
             out |= {"frame": "exception", "function": function, "code": code}
     return out
 
-
-__all__ = [
-    "REGISTERS", "ExceptionAnswer", "FrameError", "ReadRequest", "ReadResponse", "RtuFramer",
-    "RtuMessage", "WriteRegister", "WriteRegisters", "WriteRegistersResponse",
-    "decode_frame", "describe", "encode", "read_request", "read_values", "write_request",
-]

@@ -347,7 +347,7 @@ class ModbusSensor(SimSensor):
     def registers(self, now: float) -> dict[int, int]:
         """The register file as read now.  Registers of groups the series does not
         measure read zero."""
-        values: dict[str, Any] = dict.fromkeys(rtu.REGISTERS_BY_NAME, 0.0)
+        values: dict[str, Any] = {r.name: 0.0 for r in rtu.READABLE}
         values |= field_values(self.measure(now))
         values["product_address"] = self.address
         values["zero_type"] = self.settings.zero_type
@@ -434,7 +434,7 @@ class ModbusSensor(SimSensor):
         return [self._send(frame, now, solicited=False)]
 
     def _gyro_cal_done(self, now: float) -> list[Outgoing]:
-        reg = rtu.REGISTERS_BY_NAME["calibrate_gyro"]
+        reg = rtu.WRITABLE["calibrate_gyro"]
         frame = rtu.encode(rtu.WriteRegister(self.address, reg.address, 1))  # 1 = done
         return [self._send(frame, now, solicited=False)]
 

@@ -1,0 +1,67 @@
+"""The protocol layer stays sans-IO (DESIGN.md section 1).
+
+Every module of ``gateway/protocol`` may import only the standard library, pymodbus,
+``gateway.protocol`` and ``gateway.model``, and none of the standard library's I/O,
+clock or concurrency modules.  Checked on the source with ``ast``, so nothing is run.
+"""
+
+from __future__ import annotations
+
+import ast
+import sys
+from pathlib import Path
+
+import pytest
+
+PROTOCOL = Path(__file__).resolve().parents[1] / "gateway" / "protocol"
+PACKAGE = "gateway.protocol"
+ALLOWED_PROJECT = ("gateway.protocol", "gateway.model")
+ALLOWED_THIRD_PARTY = ("pymodbus",)
+FORBIDDEN = frozenset(
+    {"asyncio", "serial", "time", "socket", "threading", "selectors", "subprocess",
+     "multiprocessing", "concurrent"}
+)
+MODULES = sorted(PROTOCOL.glob("*.py"))
+
+
+def imported_names(path: Path) -> list[str]:
+    """Absolute dotted names of everything ``path`` imports (relative ones resolved)."""
+    package = PACKAGE.split(".")
+    names: list[str] = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names += [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package[: len(package) - (node.level - 1)]
+                if node.module:
+                    names.append(".".join([*base, node.module]))
+                else:  # from . import bcd
+                    names += [".".join([*base, alias.name]) for alias in node.names]
+            else:
+                names.append(node.module or "")
+    return names
+
+
+def _within(name: str, prefix: str) -> bool:
+    return name == prefix or name.startswith(prefix + ".")
+
+
+def test_protocol_modules_found() -> None:
+    assert {p.name for p in MODULES} >= {"errors.py", "bcd.py", "native.py", "modbus_rtu.py"}
+
+
+def test_resolver() -> None:
+    assert imported_names(PROTOCOL / "native.py").count("gateway.model") == 1
+
+
+@pytest.mark.parametrize("path", MODULES, ids=lambda p: p.name)
+def test_protocol_imports_only_allowed(path: Path) -> None:
+    for name in imported_names(path):
+        top = name.split(".")[0]
+        assert top not in FORBIDDEN, f"{path.name} imports {name}: protocol code does no I/O"
+        allowed = (
+            top in sys.stdlib_module_names
+            or any(_within(name, p) for p in ALLOWED_THIRD_PARTY + ALLOWED_PROJECT)
+        )
+        assert allowed, f"{path.name} imports {name}"
