@@ -7,9 +7,10 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import math
 import signal
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from . import __version__
 from .decode import decode_all, to_json_line
@@ -60,24 +61,23 @@ def _register(text: str) -> int:
     return value
 
 
-def _probability(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = -1.0
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"must be a probability 0-1, not {text!r}")
-    return value
+def _float_in(low: float, high: float, what: str) -> Callable[[str], float]:
+    """An argparse type: a float within [low, high], else one clear error naming ``what``."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not low <= value <= high:  # NaN fails this too
+            raise argparse.ArgumentTypeError(f"must be {what}, not {text!r}")
+        return value
+
+    return parse
 
 
-def _non_negative(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = -1.0
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be a number >= 0, not {text!r}")
-    return value
+_probability = _float_in(0.0, 1.0, "a probability 0-1")
+_non_negative = _float_in(0.0, math.inf, "a number >= 0")
 
 
 def _sensor_spec(text: str) -> tuple[Protocol, Series, int | None, int]:

@@ -29,8 +29,9 @@ import threading
 import traceback
 import tty
 from collections import deque
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 from .sensor import Outgoing, SimSensor, char_time
 
@@ -263,8 +264,9 @@ class SimulatorThread:
     Sensor faults and settings may be changed from the test thread between requests.
     """
 
-    def __init__(self, sensors: Sequence[SimSensor], **options: object) -> None:
-        self.bus = PtyBus(sensors, **options)  # type: ignore[arg-type]
+    def __init__(self, sensors: Sequence[SimSensor], *, noise_rate: float = 0.0, seed: int = 0,
+                 link: str | None = None, verbose: bool = False) -> None:
+        self.bus = PtyBus(sensors, noise_rate=noise_rate, seed=seed, link=link, verbose=verbose)
         self._thread = threading.Thread(target=self._run, name="simulator", daemon=True)
         self._ready = threading.Event()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -289,10 +291,10 @@ class SimulatorThread:
             self._error = exc
             self._ready.set()
 
-    def call(self, fn: object, *args: object) -> None:
+    def call(self, fn: Callable[..., object], *args: object) -> None:
         """Run ``fn(*args)`` on the simulator's loop (for unplug/replug)."""
         assert self._loop is not None
-        self._loop.call_soon_threadsafe(fn, *args)  # type: ignore[arg-type]
+        self._loop.call_soon_threadsafe(fn, *args)
 
     def __enter__(self) -> SimulatorThread:
         self._thread.start()
@@ -310,6 +312,7 @@ class SimulatorThread:
 
 
 @contextlib.contextmanager
-def simulated(sensors: Sequence[SimSensor], **options: object) -> Iterator[SimulatorThread]:
+def simulated(sensors: Sequence[SimSensor], **options: Any) -> Iterator[SimulatorThread]:
+    """``SimulatorThread`` as a context manager; ``options`` are ``PtyBus``'s."""
     with SimulatorThread(sensors, **options) as sim:
         yield sim
