@@ -41,17 +41,20 @@ def parse_hex(text: str) -> bytes:
         raise BadInput(f"not a hex string: {text!r}") from None
 
 
-def _data_or_fields(
-    values: dict[str, Any], series: Series | None, header: dict[str, Any]
+def _groups_or_fields(
+    values: dict[str, Any], series: Series | None, header: dict[str, Any],
+    fields: dict[str, Any],
 ) -> dict[str, Any]:
-    """Groups when every value is a measurement, the command form otherwise."""
+    """The reading JSON's value groups when ``values`` are all measurements (and the
+    series measures some of them), else the command form with ``fields``."""
     if values and all(name in FIELD_NAMES for name in values):
         groups = group_values(values)
         if series is not None:
             keep = {g.value for g in CAPABILITIES[series].groups}
             groups = {name: v for name, v in groups.items() if name in keep}
-        return dict(groups)
-    return {**header, "fields": values}
+        if groups:
+            return dict(groups)
+    return {**header, "fields": fields}
 
 
 def _native(raw: bytes, series: Series | None) -> dict[str, Any]:
@@ -65,7 +68,7 @@ def _native(raw: bytes, series: Series | None) -> dict[str, Any]:
               "section": message.shape.section}
     values = dict(message.values)
     if message.shape.direction is native.Direction.ANSWER:
-        return _data_or_fields(values, series, header)
+        return _groups_or_fields(values, series, header, values)
     return {**header, "fields": values}
 
 
@@ -78,9 +81,7 @@ def _modbus(
     header = {"command": described.pop("frame"), "address": described.pop("unit")}
     if isinstance(message, rtu.ReadRequest):
         return {**header, "fields": described}, message.address
-    if isinstance(message, rtu.ReadResponse) and "values" in described:
-        return _data_or_fields(described["values"], series, header), None
-    return {**header, "fields": described}, None
+    return _groups_or_fields(described.get("values", {}), series, header, described), None
 
 
 def _guess_protocol(raw: bytes) -> Protocol:

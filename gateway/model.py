@@ -116,3 +116,15 @@ CAPABILITIES: dict[Series, Capabilities] = {
         COMMON_COMMANDS | {"clear_heading", "set_relative_heading"},
     ),
 }
+
+#: Commands a protocol cannot carry at all: the Modbus register list has nothing for the
+#: magnetic declination or the magnetometer calibration (native 2.21-2.26 only).
+PROTOCOL_LACKS: dict[Protocol, frozenset[str]] = {
+    Protocol.NATIVE: frozenset(),
+    Protocol.MODBUS: frozenset({"set_declination", "mag_calibration"}),
+}
+
+
+def commands_for(series: Series, protocol: Protocol) -> frozenset[str]:
+    """The commands a sensor of this series, speaking this protocol, can carry out."""
+    return CAPABILITIES[series].commands - PROTOCOL_LACKS[protocol]

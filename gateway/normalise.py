@@ -45,32 +45,19 @@ def group_values(values: Mapping[str, Any]) -> dict[str, dict[str, float]]:
     return out
 
 
-def to_reading(
-    values: Mapping[str, Any], series: Series, previous: Reading | None = None
-) -> Reading | None:
+def to_reading(values: Mapping[str, Any], series: Series) -> Reading | None:
     """A ``Reading`` from decoded values, or ``None`` if they measure nothing.
 
-    A group the answer covers only in part (pitch alone) is completed from
-    ``previous``, or left out when there is none.  Groups the series does not measure
-    are dropped: a Modbus VG leaves the magnetometer registers at zero, which is
-    "not measured", not "zero gauss".
+    Only whole groups are kept: a group the answer covers in part (a 2.1 answer has
+    the pitch alone) is left out rather than completed from an older reading, because
+    an old value under a new timestamp would lie about its age.  Groups the series
+    does not measure are dropped too: a Modbus VG leaves the magnetometer registers
+    at zero, which is "not measured", not "zero gauss".
     """
     groups: dict[str, Any] = {}
     for group, (cls, names) in GROUP_FIELDS.items():
-        present = [n for n in names if n in values]
-        if not present:
-            continue
-        old = getattr(previous, group.value) if previous is not None else None
-        if len(present) < len(names) and old is None:
-            continue
-        groups[group.value] = cls(
-            *(
-                float(values[n]) if n in values else getattr(old, member_name(group, n))
-                for n in names
-            )
-        )
-    # Groups this answer does not carry stay absent rather than copied from ``previous``:
-    # an old value dressed up with a new timestamp would lie about its age.
+        if all(n in values for n in names):
+            groups[group.value] = cls(*(float(values[n]) for n in names))
     reading = Reading(**groups).only(CAPABILITIES[series].groups)
     return reading if reading.groups() else None
 

@@ -188,10 +188,12 @@ def test_bad_frame_raises_frame_error(raw: bytes, error: type[FrameError]) -> No
         native.decode(raw)
 
 
-def test_result_byte_other_than_documented_is_failure() -> None:
+def test_result_byte_other_than_documented_is_passed_on_as_its_number() -> None:
+    """Only 00 (success) and FF (failure) are documented; 2.18 answers 01 for success,
+    so an unnamed code is reported as it is rather than guessed to be a failure."""
     assert native.decode(_frame("05 00 8A 00")).values["result"] == "success"
     assert native.decode(_frame("05 00 8A FF")).values["result"] == "failure"
-    assert native.decode(_frame("05 00 8A 01")).values["result"] == "failure"
+    assert native.decode(_frame("05 00 8A 01")).values["result"] == 1
 
 
 def test_zero_type_query_reads_ff_and_01_as_relative() -> None:

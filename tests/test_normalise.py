@@ -1,9 +1,8 @@
 """Decoded values to the normalised ``Reading`` (``gateway.normalise``).
 
 A reading carries exactly the groups the series measures (``model.CAPABILITIES``),
-whichever protocol the values came from; partial groups are completed from the
-previous reading or left out; the AH example of the native document gives exactly the
-value groups of SPEC.md section 4's reading JSON.
+whichever protocol the values came from; partial groups are left out; the AH
+example of the native document gives exactly the value groups of SPEC.md section 4's reading JSON.
 """
 
 from __future__ import annotations
@@ -84,21 +83,17 @@ def test_modbus_zero_mag_registers_of_vg_are_not_measured() -> None:
     assert reading is not None and Group.MAG not in reading.groups()
 
 
-def test_partial_group_without_previous_is_left_out() -> None:
+def test_partial_group_is_left_out() -> None:
+    """A 2.1 answer carries the pitch alone: no whole angle group, so no reading.  The
+    cache never mixes it with an older roll and yaw under a new timestamp."""
     assert decoded("2.1") == {"pitch": -34.63}
     assert to_reading(decoded("2.1"), Series.VG) is None
+    assert to_reading({**decoded("2.1"), **decoded("2.10")}, Series.VG) == Reading(
+        accel=Vector3(0.0107, 0.9421, -0.063)
+    )
 
 
-def test_partial_group_completed_from_previous() -> None:
-    previous = Reading(angles=Angles(1.0, 2.0, 3.0), accel=Vector3(0.0, 0.0, 1.0))
-    reading = to_reading(decoded("2.1"), Series.VG, previous)
-    # only the group the answer touched; accel is not copied with a new timestamp
-    assert reading == Reading(angles=Angles(-34.63, 2.0, 3.0))
-    roll = to_reading(decoded("2.2"), Series.VG, reading)
-    assert roll == Reading(angles=Angles(-34.63, 123.57, 3.0))
-
-
-def test_whole_group_needs_no_previous() -> None:
+def test_whole_group_gives_a_reading() -> None:
     assert to_reading(decoded("2.3"), Series.MINS) == Reading(angles=Angles(2.01, -0.51, 0.0))
     assert to_reading(decoded("2.12"), Series.VG) == Reading(
         quaternion=Quaternion(0.999996, 0.000290, -0.002673, -0.000001)

@@ -438,3 +438,25 @@ def test_unplug_and_replug_keep_the_link_path(tmp_path: Any) -> None:
         time.sleep(0.1)
         with serial.Serial(link, 9600, timeout=1) as port:
             assert len(exchange(port, native.encode_request("read_angles"), 14)) == 14
+
+
+def test_noise_that_looks_like_a_request_start_does_not_deafen_a_sensor() -> None:
+    """A partial frame from noise is dropped when the line goes quiet, as a sensor's
+    inter-character timeout would, so the next real request is answered at once."""
+    with line(sensor(Protocol.NATIVE, Series.AH), sensor(Protocol.MODBUS, Series.VG,
+                                                          address=5)) as port:
+        port.write(bytes.fromhex("77 05 00 0B"))  # set_baudrate, 2 bytes short
+        port.write(bytes.fromhex("05 10 00 00 00 78 F0"))  # an FC16 header, no data
+        time.sleep(0.05)
+        assert len(exchange(port, native.encode_request("read_angles"), 14)) == 14
+        answer = rtu.decode_frame(exchange(port, rtu.read_request(5, 1, 1), 7))
+        assert isinstance(answer, rtu.ReadResponse)
+
+
+def test_modbus_address_outside_1_to_247_is_refused_and_the_line_lives() -> None:
+    with line(sensor(Protocol.MODBUS, Series.VG)) as port:
+        for bad in (0, 248, 0x0100):
+            raw = rtu.encode(rtu.WriteRegister(1, 0x0D, bad))
+            assert rtu.decode_frame(exchange(port, raw, 5)) == rtu.ExceptionAnswer(1, 6, 3)
+        assert rtu.decode_frame(exchange(port, rtu.read_request(1, 4, 1), 7)) == \
+            rtu.ReadResponse(1, (1,))

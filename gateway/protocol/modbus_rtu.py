@@ -51,7 +51,7 @@ from pymodbus.pdu.register_message import (
 )
 
 from ..model import Series
-from .errors import BadChecksum, BadLength, UnknownFrame, UsageError
+from .errors import BadChecksum, BadLength, FrameError, UnknownFrame, UsageError
 from .native import BAUD_CODES
 
 READ_HOLDING, READ_INPUT, WRITE_SINGLE, WRITE_MULTIPLE = 3, 4, 6, 16
@@ -59,6 +59,7 @@ FUNCTIONS = frozenset({READ_HOLDING, READ_INPUT, WRITE_SINGLE, WRITE_MULTIPLE})
 MAX_READ = 125
 MAX_WRITE = 123
 ANGLE_OFFSET = 20000  # angle registers: raw = deg * 100 + 20000
+UNIT_IDS = range(1, 248)  # addressable Modbus devices (0 is broadcast, 248-255 reserved)
 
 
 # --------------------------------------------------------------------------- values
@@ -127,6 +128,8 @@ class SensorRegister:
     kind: Kind
     writable: bool = False
     answer: WriteAnswer = WriteAnswer.ECHO
+    #: values a write accepts, where narrower than the kind's (None: the kind decides)
+    accepts: range | None = None
     series: frozenset[Series] = frozenset(Series)
     section: str = "1.2"
 
@@ -151,10 +154,13 @@ REGISTERS: tuple[SensorRegister, ...] = (
     SensorRegister("yaw", 0x03, Kind.ANGLE),
     SensorRegister("product_address", 0x04, Kind.U16),
     SensorRegister("zero_type", 0x05, Kind.ZERO_TYPE, section="2.6"),
-    SensorRegister("set_zero_type", 0x0A, Kind.ZERO_TYPE, True, section="2.5"),
+    SensorRegister("set_zero_type", 0x0A, Kind.ZERO_TYPE, True, section="2.5",
+                   accepts=range(2)),
     SensorRegister("set_baudrate", 0x0B, Kind.BAUD_CODE, True, WriteAnswer.NONE, section="2.3"),
+    # The document allows 0x00-0xFF; Modbus reserves 0 for broadcast and 248-255, so a
+    # sensor given one of those could never be talked to alone: we accept 1-247.
     SensorRegister("set_address", 0x0D, Kind.U16, True, WriteAnswer.ECHO_FROM_NEW_ADDRESS,
-                   section="2.7"),
+                   section="2.7", accepts=UNIT_IDS),
     SensorRegister("save", 0x0F, Kind.U16, True, section="2.4"),
     SensorRegister("calibrate_gyro", 0x10, Kind.U16, True, WriteAnswer.STARTED_THEN_DONE,
                    section="2.11"),
@@ -200,9 +206,12 @@ def encode_value(register: SensorRegister, value: Any) -> int:
         if not (0 <= start <= 0xFF and 0 <= count <= 0xFF):
             raise UsageError(f"auto-output start and count are one byte each, not {value}")
         return int(start) << 8 | int(count)
-    if not 0 <= int(value) <= 0xFFFF:
-        raise UsageError(f"{register.name}: {value} does not fit 16 bits")
-    return int(value)
+    if not isinstance(value, int) or not 0 <= value <= 0xFFFF:
+        raise UsageError(f"{register.name}: {value!r} is not a 16-bit value")
+    if register.accepts is not None and value not in register.accepts:
+        limits = register.accepts
+        raise UsageError(f"{register.name}: {value} is not {limits.start}-{limits.stop - 1}")
+    return value
 
 
 def decode_value(register: SensorRegister, raw: int) -> Any:
@@ -439,8 +448,9 @@ class RtuFramer:
                 self.stats.bad_crcs += 1
                 self._skip(1)
                 continue
-            pdu = self._decoder.decode(frame[1:-2])
-            if pdu is None:  # pymodbus refused the content (count out of range, ...)
+            # Content pymodbus would refuse (and log a warning about) is refused here.
+            pdu = self._decoder.decode(frame[1:-2]) if content_problem(frame) is None else None
+            if pdu is None:
                 self._skip(1)
                 continue
             found.append(_from_pdu(frame[0], pdu))
@@ -484,6 +494,21 @@ class RtuFramer:
         del self._buf[:count]
 
 
+def content_problem(frame: bytes) -> str | None:
+    """What is wrong with a CRC-valid frame's content, in words, or None.  Only the
+    counts pymodbus checks when decoding need checking: they are in the request."""
+    function = frame[1]
+    if function in (READ_HOLDING, READ_INPUT) and len(frame) == 8:
+        count = int.from_bytes(frame[4:6], "big")
+        if not 1 <= count <= MAX_READ:
+            return f"read count {count} is not 1-{MAX_READ}"
+    if function == WRITE_MULTIPLE and len(frame) > 8:
+        count, byte_count = int.from_bytes(frame[4:6], "big"), frame[6]
+        if not 1 <= count <= MAX_WRITE or byte_count != 2 * count:
+            return f"write of {count} registers with {byte_count} data bytes"
+    return None
+
+
 def decode_frame(raw: bytes) -> RtuMessage:
     """One whole captured frame, request or answer, to a message.
 
@@ -501,6 +526,14 @@ def decode_frame(raw: bytes) -> RtuMessage:
             return messages[0]
     if raw[1] & 0x7F not in FUNCTIONS:
         raise UnknownFrame(f"function code {raw[1]:02X} is not one the sensors use")
+    if not (raw[0] in UNIT_IDS or raw[0] == 0):
+        raise UnknownFrame(f"unit {raw[0]} is not a Modbus device address (1-247, 0 broadcast)")
+    byte_count = raw[2] if len(raw) > 2 else 0
+    if raw[1] in (READ_HOLDING, READ_INPUT) and byte_count and byte_count % 2 == 0:
+        raise BadLength(f"an FC{raw[1]:02d} answer of {byte_count} data bytes is "
+                        f"{byte_count + 5} bytes, not {len(raw)}")
+    if (problem := content_problem(raw)) is not None:
+        raise FrameError(problem)
     raise BadLength(f"{len(raw)} bytes are not one whole FC{raw[1] & 0x7F:02d} frame")
 
 

@@ -86,8 +86,8 @@ class Byte:
     size = 1
 
     def encode(self, value: int) -> bytes:
-        if not 0 <= value <= 0xFF:
-            raise UsageError(f"{value} does not fit one byte")
+        if not isinstance(value, int) or not 0 <= value <= 0xFF:
+            raise UsageError(f"{value!r} is not a byte (0-255)")
         return bytes([value])
 
     def decode(self, data: bytes) -> int:
@@ -98,14 +98,13 @@ class Byte:
 class Choice:
     """A byte code with a documented meaning per value.
 
-    ``aliases`` are extra codes accepted when decoding only.  ``default`` (if set) is
-    what any other code decodes to, for result bytes where the document names only one
-    "success" value and a careful reader takes anything else as failure.
+    ``aliases`` are extra codes accepted when decoding only.  With ``raw_others`` a code
+    the document does not name decodes to the plain integer instead of being an error.
     """
 
     meanings: Mapping[int, Any]
     aliases: Mapping[int, Any] = field(default_factory=dict)
-    default: Any = None
+    raw_others: bool = False
 
     size = 1
 
@@ -113,6 +112,8 @@ class Choice:
         for code, meaning in self.meanings.items():
             if meaning == value:
                 return bytes([code])
+        if self.raw_others and isinstance(value, int) and 0 <= value <= 0xFF:
+            return bytes([value])
         raise UsageError(f"{value!r} is not one of {sorted(map(str, self.meanings.values()))}")
 
     def decode(self, data: bytes) -> Any:
@@ -121,8 +122,8 @@ class Choice:
             return self.meanings[code]
         if code in self.aliases:
             return self.aliases[code]
-        if self.default is not None:
-            return self.default
+        if self.raw_others:
+            return code
         raise FrameError(f"code 0x{code:02X} is not one of {sorted(self.meanings)}")
 
 
@@ -144,8 +145,10 @@ DECL = Bcd(bcd.DECLINATION)
 BAUD = Choice(BAUD_CODES)
 OUTPUT_RATE = Choice(OUTPUT_RATE_CODES)
 # 2.4, 2.5, 2.7: 0x00 success, 0xFF failure.  Answers whose byte the document shows
-# only as 0x00 (2.8, 2.17, 2.24-2.26) use the same codec: any other value is a failure.
-RESULT = Choice({0x00: "success", 0xFF: "failure"}, default="failure")
+# only as 0x00 (2.8, 2.17, 2.24-2.26) use the same codec.  A code no document names is
+# passed on as its number rather than guessed to be a failure (2.18 answers 0x01 for
+# success, so a sensor might well echo other codes).
+RESULT = Choice({0x00: "success", 0xFF: "failure"}, raw_others=True)
 # 2.8 sets 0x01 for relative, but 2.9 answers 0xFF for relative: accept both on decode.
 ZERO_TYPE_SET = Choice({0x00: "absolute", 0x01: "relative"})
 ZERO_TYPE_QUERY = Choice({0x00: "absolute", 0xFF: "relative"}, aliases={0x01: "relative"})
@@ -341,6 +344,13 @@ def _index_shapes(commands: Iterable[NativeCommand]) -> dict[tuple[int, int], Sh
 
 #: Every frame the documents describe, by (command word, LEN byte).
 SHAPES: Mapping[tuple[int, int], Shape] = MappingProxyType(_index_shapes(COMMANDS))
+#: What a sensor may hear, and what a master may hear (echo shapes are in both).
+REQUEST_SHAPES: Mapping[tuple[int, int], Shape] = MappingProxyType(
+    {k: s for k, s in SHAPES.items() if s.direction & Direction.REQUEST}
+)
+ANSWER_SHAPES: Mapping[tuple[int, int], Shape] = MappingProxyType(
+    {k: s for k, s in SHAPES.items() if s.direction & Direction.ANSWER}
+)
 _LENGTHS = frozenset(length for _, length in SHAPES)
 MAX_FRAME = max(_LENGTHS) + 1
 
@@ -457,7 +467,10 @@ def encode_request(name: str, address: int = 0, /, **values: Any) -> bytes:
 
 def encode_answer(name: str, series: Series, address: int, /, **values: Any) -> bytes:
     """The answer a ``series`` sensor gives to command ``name``."""
-    shape = COMMANDS_BY_NAME[name].answer_for(series)
+    command = COMMANDS_BY_NAME.get(name)
+    if command is None:
+        raise UsageError(f"no native command {name!r}")
+    shape = command.answer_for(series)
     if shape is None:
         raise UsageError(f"{series.name} sends no answer to {name}")
     return encode(shape, address, **values)
@@ -476,11 +489,15 @@ class FramerStats:
 class NativeFramer:
     """Turns a byte stream, in any chunking, into checksum-valid frames.
 
-    A candidate frame starts at 0x77 and must have a (command, LEN) pair some document
-    describes; that check rejects most noise after two to four bytes, so a stray 0x77
-    cannot make the framer wait for 56 bytes that never come while a real answer sits
-    behind it.  On a bad checksum only the candidate's 0x77 is dropped and the search
-    goes on from the next byte, because a real frame may start inside the rejected one
+    A candidate frame starts at 0x77 and must have a (command, LEN) pair of the shapes
+    it is given; that check rejects most noise after two to four bytes.  A stray prefix
+    that happens to be a known pair (``77 38 00 59``) still makes it wait for the rest:
+    the caller ends that with ``expire()`` when the line goes quiet.  A sensor's framer
+    knows only request shapes (at most 8 bytes), a master's only answers, which
+    narrows the pairs noise can hit.
+
+    On a bad checksum only the candidate's 0x77 is dropped and the search goes on from
+    the next byte, because a real frame may start inside the rejected one
     (0x77 is a valid BCD byte: 077.xx degrees).  The buffer never holds more than one
     candidate, so it is bounded by ``MAX_FRAME``.
 

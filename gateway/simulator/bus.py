@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import os
 import random
 import sys
@@ -33,7 +34,8 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from .sensor import Outgoing, SimSensor, char_time
+from ..protocol.exchanges import char_time
+from .sensor import Outgoing, SimSensor
 
 _SPEEDS = {
     getattr(termios, f"B{rate}"): rate
@@ -84,7 +86,13 @@ class PtyBus:
     # ------------------------------------------------------------ the pty
 
     def open(self) -> str:
-        """Create the pseudo-terminal; returns the path clients open."""
+        """Create the pseudo-terminal; returns the path clients open.
+
+        Raises ``OSError`` when ``link`` cannot be made (a file that is not our old
+        link is in the way, or its folder is missing); nothing is deleted but links.
+        """
+        if self.link and os.path.lexists(self.link) and not os.path.islink(self.link):
+            raise FileExistsError(f"{self.link} exists and is not a symlink; not replacing it")
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)
         os.set_blocking(self._master, False)
@@ -92,7 +100,11 @@ class PtyBus:
         if self.link:
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(self.link)
-            os.symlink(self.path, self.link)
+            try:
+                os.symlink(self.path, self.link)
+            except OSError:
+                self.close()
+                raise
         if self._loop is not None:
             self._loop.add_reader(self._master, self._on_readable)
         return self.path
@@ -147,10 +159,13 @@ class PtyBus:
             self.stats.overlaps += 1
             self._note(f"OVERLAP: master sent {data.hex(' ')} while a sensor was answering")
         self.stats.requests_bytes += len(data)
+        # A gap of more than 3.5 characters ends any frame in progress (RTU's rule; the
+        # native sensors' own inter-character timeout is modelled the same way).
+        after_silence = now - self._rx_wire_end > 3.5 * char_time(baud or 9600)
         self._rx_wire_end = max(now, self._rx_wire_end) + len(data) * char_time(baud or 9600)
         for sensor in self.sensors:
             heard = data if sensor.baud == baud else self._noise(len(data))
-            self._hear(sensor, heard, self._rx_wire_end)
+            self._hear(sensor, heard, self._rx_wire_end, after_silence)
         if self._wakeup is not None:
             self._wakeup.set()
 
@@ -196,23 +211,32 @@ class PtyBus:
         for sensor in self.sensors:
             self._hear(sensor, burst, self._loop.time() if self._loop else 0.0)
 
-    def _hear(self, sensor: SimSensor, data: bytes, now: float) -> None:
+    def _hear(self, sensor: SimSensor, data: bytes, now: float,
+              after_silence: bool = False) -> None:
+        self._guarded(sensor, lambda: sensor.hear(data, now, after_silence=after_silence))
+
+    def _guarded(self, sensor: SimSensor, act: Callable[[], list[Outgoing]]) -> None:
+        """Queue what a sensor sends; a bug in it is reported, and the line lives on."""
         try:
-            self._queue.extend(sensor.hear(data, now))
+            self._queue.extend(act())
         except Exception:
             self.stats.internal_errors += 1
             self._note(f"INTERNAL ERROR in {sensor.name}")
             print(f"sim: internal error in {sensor.name}:\n{traceback.format_exc()}",
                   file=sys.stderr, flush=True)
 
-    async def serve(self, stop: asyncio.Event | None = None) -> None:
-        """Run the line until ``stop`` is set (or forever)."""
+    async def serve(self, stop: asyncio.Event | None = None,
+                    on_ready: Callable[[], None] | None = None) -> None:
+        """Run the line until ``stop`` is set (or forever).  ``on_ready`` is called once
+        bytes written to the pty are being listened to."""
         self._loop = asyncio.get_running_loop()
         self._wakeup = asyncio.Event()
         if self._master < 0:
             self.open()
         else:
             self._loop.add_reader(self._master, self._on_readable)
+        if on_ready is not None:
+            on_ready()
         stop = stop or asyncio.Event()
         next_noise = self._loop.time() + self._noise_gap()
         try:
@@ -222,7 +246,7 @@ class PtyBus:
                     await self._sleep(stop, 0.05)
                     continue
                 for sensor in self.sensors:
-                    self._queue.extend(sensor.due(now))
+                    self._guarded(sensor, functools.partial(sensor.due, now))
                 ready = [o for o in self._queue if o.not_before <= now]
                 if ready:
                     first = min(ready, key=lambda o: o.not_before)
@@ -281,9 +305,7 @@ class SimulatorThread:
         async def main() -> None:
             self._loop = asyncio.get_running_loop()
             self._stop = asyncio.Event()
-            self.bus.open()
-            self._ready.set()
-            await self.bus.serve(self._stop)
+            await self.bus.serve(self._stop, on_ready=self._ready.set)
 
         try:
             asyncio.run(main())
@@ -298,7 +320,8 @@ class SimulatorThread:
 
     def __enter__(self) -> SimulatorThread:
         self._thread.start()
-        self._ready.wait(10)
+        if not self._ready.wait(10):
+            raise TimeoutError("the simulator did not start within 10 s")
         if self._error is not None:
             raise self._error
         return self

@@ -22,18 +22,9 @@ from ..model import CAPABILITIES, Angles, Protocol, Reading, Series
 from ..normalise import field_values
 from ..protocol import bcd, native
 from ..protocol import modbus_rtu as rtu
-from ..protocol.errors import FrameError, UsageError
+from ..protocol.errors import FrameError
+from ..protocol.exchanges import Framer, rtu_silence
 from .motion import Motion, Source
-
-
-def char_time(baud: int) -> float:
-    """Seconds one character takes at 8N1: a start bit, 8 data bits, a stop bit."""
-    return 10 / baud
-
-
-def rtu_silence(baud: int) -> float:
-    """The 3.5-character gap Modbus RTU requires before a frame (1.75 ms above 19200)."""
-    return 3.5 * char_time(baud) if baud <= 19200 else 0.00175
 
 
 @dataclass(slots=True)
@@ -83,9 +74,7 @@ class SimSensor(ABC):
     stream_interval: float = 0.0  # seconds between auto-output frames, 0 = off
     next_stream: float = 0.0
     gyro_cal_done_at: float | None = None
-    mag_calibrating: bool = False
     requests_heard: int = 0
-    log: list[str] = field(default_factory=list)
     rng: random.Random = field(init=False)
 
     protocol: Protocol = field(init=False)
@@ -145,12 +134,21 @@ class SimSensor(ABC):
 
     # ------------------------------------------------------------ the bus interface
 
-    def hear(self, data: bytes, now: float) -> list[Outgoing]:
-        """Bytes from the master whose last byte left the wire at ``now``."""
+    def hear(self, data: bytes, now: float, *, after_silence: bool = False) -> list[Outgoing]:
+        """Bytes from the master whose last byte left the wire at ``now``.
+
+        ``after_silence``: the line was quiet before them, so a partial frame left from
+        earlier noise will never complete and is dropped first (what a real sensor's
+        inter-character timeout does).
+        """
         if self.faults.stalled:
             return []
+        frames: list[Any] = []
+        while after_silence and self.framer.pending:
+            frames += self.framer.expire()
+        frames += self.framer.feed(data)
         out: list[Outgoing] = []
-        for message in self._feed(data):
+        for message in self._messages(frames):
             if self.busy(now):
                 continue  # save in progress: deaf
             self.requests_heard += 1
@@ -185,8 +183,12 @@ class SimSensor(ABC):
             frame = frame[:i] + bytes([frame[i] ^ (1 << self.rng.randrange(8))]) + frame[i + 1 :]
         return Outgoing(frame, at, baud or self.baud, solicited, self.name)
 
+    @property
     @abstractmethod
-    def _feed(self, data: bytes) -> list[Any]: ...
+    def framer(self) -> Framer: ...
+
+    @abstractmethod
+    def _messages(self, frames: list[Any]) -> list[Any]: ...
 
     @abstractmethod
     def _handle(self, message: Any, now: float) -> list[Outgoing]: ...
@@ -221,21 +223,25 @@ class NativeSensor(SimSensor):
     """A sensor speaking the native protocol (every command of sections 2.1-2.26)."""
 
     output_type: int = 0  # 2.16: the default auto-output is the three angles
-    framer: native.NativeFramer = field(default_factory=native.NativeFramer)
+    _framer: native.NativeFramer = field(
+        default_factory=lambda: native.NativeFramer(native.REQUEST_SHAPES))
 
     def __post_init__(self) -> None:
         SimSensor.__post_init__(self)
         self.protocol = Protocol.NATIVE
 
-    def _feed(self, data: bytes) -> list[native.NativeMessage]:
+    @property
+    def framer(self) -> native.NativeFramer:
+        return self._framer
+
+    def _messages(self, frames: list[Any]) -> list[native.NativeMessage]:
         messages = []
-        for frame in self.framer.feed(data):
+        for frame in frames:
             try:
                 message = native.interpret(frame)
             except FrameError:
                 continue
-            if message.shape.direction & native.Direction.REQUEST:
-                messages.append(message)
+            messages.append(message)
         return messages
 
     def _data_values(self, command: str, now: float) -> dict[str, float]:
@@ -251,7 +257,6 @@ class NativeSensor(SimSensor):
             return []
         if self.series not in command.request.series:
             return []  # a command this series lacks goes unanswered
-        self.log.append(command.name)
         old_baud = self.baud
         args = message.values
         answer: dict[str, Any] = {}
@@ -296,11 +301,7 @@ class NativeSensor(SimSensor):
                 answer = dict(args)
             case "read_declination":
                 answer = {"degrees": self.settings.declination}
-            case "start_mag_calibration":
-                self.mag_calibrating = True
-                answer = {"result": "success"}
-            case "finish_mag_calibration" | "clear_mag_calibration":
-                self.mag_calibrating = False
+            case "start_mag_calibration" | "finish_mag_calibration" | "clear_mag_calibration":
                 answer = {"result": "success"}
         shape = command.answer_for(self.series)
         assert shape is not None
@@ -335,14 +336,18 @@ class ModbusSensor(SimSensor):
 
     output_start: int = 0x01  # 2.13 defaults: register 0x01, two registers
     output_count: int = 2
-    framer: rtu.RtuFramer = field(default_factory=lambda: rtu.RtuFramer(requests=True))
+    _framer: rtu.RtuFramer = field(default_factory=lambda: rtu.RtuFramer(requests=True))
 
     def __post_init__(self) -> None:
         SimSensor.__post_init__(self)
         self.protocol = Protocol.MODBUS
 
-    def _feed(self, data: bytes) -> list[rtu.RtuMessage]:
-        return self.framer.feed(data)
+    @property
+    def framer(self) -> rtu.RtuFramer:
+        return self._framer
+
+    def _messages(self, frames: list[Any]) -> list[rtu.RtuMessage]:
+        return frames
 
     def registers(self, now: float) -> dict[int, int]:
         """The register file as read now.  Registers of groups the series does not
@@ -362,7 +367,6 @@ class ModbusSensor(SimSensor):
         if message.unit not in (self.address, 0):
             return []
         broadcast = message.unit == 0  # executed, never answered
-        self.log.append(type(message).__name__)
         answer: rtu.RtuMessage | None
         match message:
             case rtu.ReadRequest(_, start, count, rtu.READ_HOLDING):
@@ -390,12 +394,9 @@ class ModbusSensor(SimSensor):
         reg = rtu.REGISTERS_BY_ADDRESS.get(address)
         if reg is None or not reg.writable or self.series not in reg.series:
             return rtu.ExceptionAnswer(self.address, 6, _ILLEGAL_ADDRESS)
-        try:
-            decoded = rtu.decode_value(reg, value)
-            if reg.kind is rtu.Kind.ZERO_TYPE and value > 1:
-                raise UsageError("zero type is 0 or 1")
-        except UsageError:
+        if reg.accepts is not None and value not in reg.accepts:
             return rtu.ExceptionAnswer(self.address, 6, _ILLEGAL_VALUE)
+        decoded = rtu.decode_value(reg, value)
         echo = rtu.WriteRegister(self.address, address, value)
         match reg.name:
             case "set_zero_type":
