@@ -1,0 +1,348 @@
+"""Request/answer pairing for the bus master, sans-IO.
+
+An ``Exchange`` is one request on the wire and the rule that recognises its answer
+among whatever frames arrive.  A command is a short list of exchanges; each may carry
+an ``Effect`` the bus master must apply once it succeeds (follow a new baud rate, use
+a new address, keep out of a sensor's way while it saves).  The protocol quirks that
+decide those effects live here, next to the frames, not in the bus master:
+
+* native baud change: answered at the old rate, then the line must switch (2.4);
+* Modbus baud change: never answered, effective at once (2.3): switch, then verify;
+* address change: answered from the *new* address, in both protocols;
+* save: 3-5 s during which the sensor does not answer; we keep away for 5 s;
+* Modbus gyro calibration: "started" now, an unsolicited "done" later.
+
+``ProtocolAdapter`` gives the bus master one face for both protocols: its framer,
+the poll of a series, the exchanges of a command, the auto-output set-up, and the
+reading of unsolicited (streamed) frames.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from ..model import Protocol as Wire
+from ..model import Series
+from . import modbus_rtu as rtu
+from . import native
+from .errors import FrameError, UsageError
+
+#: Save lasts 3-5 s (native 2.7); we wait for the upper bound before talking again.
+SAVE_SECONDS = 5.0
+#: How long a Modbus gyro calibration may take before we stop waiting for "done".
+GYRO_CAL_SECONDS = 10.0
+
+
+def char_time(baud: int) -> float:
+    """Seconds per character at 8N1 (start bit, 8 data bits, stop bit)."""
+    return 10 / baud
+
+
+def rtu_silence(baud: int) -> float:
+    """The 3.5-character gap Modbus RTU requires before a frame (1.75 ms above 19200)."""
+    return 3.5 * char_time(baud) if baud <= 19200 else 0.00175
+
+
+@dataclass(frozen=True, slots=True)
+class Effect:
+    """What the bus master must do once an exchange succeeded."""
+
+    new_baud: int | None = None  # switch the line to this rate
+    new_address: int | None = None  # the sensor now answers here
+    busy_for: float = 0.0  # keep the sensor out of the schedule this long
+    busy_until_done: bool = False  # busy until an unsolicited "done" (Modbus gyro cal)
+
+
+@dataclass(frozen=True, slots=True)
+class Answer:
+    """A recognised answer: its decoded values, and whether the sensor said "ok"."""
+
+    values: Mapping[str, Any]
+    ok: bool = True
+    detail: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class Exchange:
+    label: str
+    request: bytes
+    #: the answer's length in bytes (for the wire-time budget); 0: no answer comes
+    answer_bytes: int
+    #: frame -> its Answer when it answers this request, else None (someone else's)
+    match: Callable[[Any], Answer | None] = field(repr=False)
+    effect: Effect = Effect()
+
+
+class Framer(Protocol):
+    def feed(self, data: bytes) -> list[Any]: ...
+
+    def expire(self) -> list[Any]: ...
+
+    @property
+    def pending(self) -> int: ...
+
+
+class ProtocolAdapter(Protocol):
+    """What the bus master needs to know about one protocol."""
+
+    wire: Wire
+
+    def new_framer(self) -> Framer: ...
+
+    def garbage_seen(self, framer: Framer) -> int:
+        """Skipped bytes plus bad checksums so far (to tell noise from silence)."""
+        ...
+
+    def gap_before_request(self, baud: int) -> float: ...
+
+    def poll(self, series: Series, address: int) -> Exchange: ...
+
+    def command(self, series: Series, address: int, name: str,
+                args: Mapping[str, Any]) -> list[Exchange]: ...
+
+    def stream_start(self, series: Series, address: int, hz: float) -> list[Exchange]: ...
+
+    def stream_stop(self, series: Series, address: int) -> list[Exchange]: ...
+
+    def unsolicited(self, frame: Any, series: Series, address: int) -> Answer | None:
+        """A frame nobody asked for, if it is this sensor's data (auto-output) or its
+        "done" (Modbus gyro calibration, values ``{"done": True}``)."""
+        ...
+
+
+class Unsupported(UsageError):
+    """The command does not exist for this protocol or series."""
+
+
+# --------------------------------------------------------------------------- native
+
+
+def _native_match(shape: native.Shape, address: int) -> Callable[[Any], Answer | None]:
+    def match(frame: Any) -> Answer | None:
+        if not isinstance(frame, native.NativeFrame) or frame.address != address:
+            return None
+        if (frame.command, len(frame.data) + 4) != shape.key:
+            return None
+        try:
+            values = native.interpret(frame).values
+        except FrameError as exc:
+            return Answer({}, ok=False, detail=f"bad frame: {exc}")
+        ok = values.get("result", "success") != "failure"
+        return Answer(values, ok, "" if ok else "the sensor answered failure")
+
+    return match
+
+
+class NativeAdapter:
+    wire = Wire.NATIVE
+
+    def new_framer(self) -> native.NativeFramer:
+        return native.NativeFramer()
+
+    def garbage_seen(self, framer: Framer) -> int:
+        assert isinstance(framer, native.NativeFramer)
+        return framer.stats.garbage_bytes + framer.stats.bad_checksums
+
+    def gap_before_request(self, baud: int) -> float:
+        return 0.0  # the native protocol frames by its sync byte and length
+
+    def _exchange(self, series: Series, address: int, name: str, effect: Effect = Effect(),
+                  answer_address: int | None = None, **values: Any) -> Exchange:
+        command = native.COMMANDS_BY_NAME[name]
+        if series not in command.request.series:
+            raise Unsupported(f"{series.name} has no {name} ({command.section})")
+        shape = command.answer_for(series)
+        assert shape is not None
+        request = native.encode_request(name, address, **values)
+        match = _native_match(shape, address if answer_address is None else answer_address)
+        return Exchange(name, request, shape.length_byte + 1, match, effect)
+
+    def poll(self, series: Series, address: int) -> Exchange:
+        return self._exchange(series, address, "read_all")
+
+    def command(self, series: Series, address: int, name: str,
+                args: Mapping[str, Any]) -> list[Exchange]:
+        ex = self._exchange
+        match name:
+            case "set_zero_type":
+                return [ex(series, address, name, zero_type=args["type"])]
+            case "save":
+                return [ex(series, address, name, Effect(busy_for=SAVE_SECONDS))]
+            case "calibrate_gyro" | "clear_heading":
+                return [ex(series, address, name)]
+            case "set_relative_heading" | "set_declination":
+                return [ex(series, address, name, degrees=args["degrees"])]
+            case "mag_calibration":
+                action = {"start": "start_mag_calibration", "finish": "finish_mag_calibration",
+                          "clear": "clear_mag_calibration"}[args["action"]]
+                return [ex(series, address, action)]
+            case "set_address":
+                new = args["address"]
+                return [ex(series, address, name, Effect(new_address=new), answer_address=new,
+                           new_address=new)]
+            case "set_baudrate":
+                baud = args["baudrate"]
+                return [ex(series, address, name, Effect(new_baud=baud), baudrate=baud)]
+            case "read_settings":
+                reads = [ex(series, address, "read_zero_type")]
+                if series is Series.AH:
+                    reads.append(ex(series, address, "read_declination"))
+                return reads
+        raise Unsupported(f"no native command {name!r}")
+
+    def _output_codes(self, series: Series, hz: float) -> tuple[int, int]:
+        type_code = next(c for c, cmd in native.OUTPUT_TYPES[series].items() if cmd == "read_all")
+        for code, rate in native.OUTPUT_RATE_CODES.items():
+            if rate == hz:
+                return type_code, code
+        rates = sorted(native.OUTPUT_RATE_CODES.values())
+        raise Unsupported(f"native auto-output rates are {rates}, not {hz}")
+
+    def stream_start(self, series: Series, address: int, hz: float) -> list[Exchange]:
+        type_code, _ = self._output_codes(series, hz)
+        return [
+            self._exchange(series, address, "set_output_type", output_type=type_code),
+            self._exchange(series, address, "set_output_rate", rate_hz=int(hz)),
+        ]
+
+    def stream_stop(self, series: Series, address: int) -> list[Exchange]:
+        return [self._exchange(series, address, "set_output_rate", rate_hz=0)]
+
+    def unsolicited(self, frame: Any, series: Series, address: int) -> Answer | None:
+        shape = native.COMMANDS_BY_NAME["read_all"].answer_for(series)
+        assert shape is not None
+        return _native_match(shape, address)(frame)
+
+
+# --------------------------------------------------------------------------- Modbus
+
+
+def poll_span(series: Series) -> tuple[int, int]:
+    """The registers one poll reads: the IMU measures accel and gyro only (0x28-0x33),
+    every other series reads the whole float block (one FC03 of 32)."""
+    if series is Series.IMU:
+        return rtu.REGISTERS_BY_ADDRESS[0x28].address, 12
+    return rtu.FLOAT_BLOCK_START, rtu.FLOAT_BLOCK_COUNT
+
+
+def _exception_answer(msg: rtu.ExceptionAnswer) -> Answer:
+    return Answer({"exception": msg.code}, ok=False, detail=f"Modbus exception {msg.code:02X}")
+
+
+def _rtu_read_match(unit: int, start: int, count: int) -> Callable[[Any], Answer | None]:
+    def match(msg: Any) -> Answer | None:
+        if getattr(msg, "unit", None) != unit:
+            return None
+        if isinstance(msg, rtu.ReadResponse) and len(msg.registers) == count:
+            return Answer(rtu.read_values(start, msg.registers))
+        if isinstance(msg, rtu.ExceptionAnswer) and msg.function == rtu.READ_HOLDING:
+            return _exception_answer(msg)
+        return None
+
+    return match
+
+
+def _rtu_write_match(unit: int, register: int) -> Callable[[Any], Answer | None]:
+    def match(msg: Any) -> Answer | None:
+        if getattr(msg, "unit", None) != unit:
+            return None
+        if isinstance(msg, rtu.WriteRegister) and msg.address == register:
+            reg = rtu.REGISTERS_BY_ADDRESS[register]
+            return Answer({"value": rtu.decode_value(reg, msg.value)})
+        if isinstance(msg, rtu.ExceptionAnswer) and msg.function == rtu.WRITE_SINGLE:
+            return _exception_answer(msg)
+        return None
+
+    return match
+
+
+def _never(_: Any) -> Answer | None:
+    return None
+
+
+class ModbusAdapter:
+    wire = Wire.MODBUS
+
+    def new_framer(self) -> rtu.RtuFramer:
+        return rtu.RtuFramer(requests=False)
+
+    def garbage_seen(self, framer: Framer) -> int:
+        assert isinstance(framer, rtu.RtuFramer)
+        return framer.stats.garbage_bytes + framer.stats.bad_crcs
+
+    def gap_before_request(self, baud: int) -> float:
+        return rtu_silence(baud)
+
+    def read(self, label: str, unit: int, start: int, count: int) -> Exchange:
+        return Exchange(label, rtu.read_request(unit, start, count), 5 + 2 * count,
+                        _rtu_read_match(unit, start, count))
+
+    def write(self, series: Series, unit: int, name: str, value: Any,
+              effect: Effect = Effect(), answer_unit: int | None = None) -> Exchange:
+        reg = rtu.WRITABLE.get(name)
+        if reg is None or series not in reg.series:
+            raise Unsupported(f"{series.name} over Modbus has no {name} register")
+        request = rtu.write_request(unit, name, value)
+        if reg.answer is rtu.WriteAnswer.NONE:
+            return Exchange(name, request, 0, _never, effect)
+        match = _rtu_write_match(unit if answer_unit is None else answer_unit, reg.address)
+        return Exchange(name, request, len(request), match, effect)
+
+    def poll(self, series: Series, address: int) -> Exchange:
+        start, count = poll_span(series)
+        return self.read("poll", address, start, count)
+
+    def command(self, series: Series, address: int, name: str,
+                args: Mapping[str, Any]) -> list[Exchange]:
+        w = self.write
+        match name:
+            case "set_zero_type":
+                return [w(series, address, name, args["type"])]
+            case "save":
+                return [w(series, address, name, 0, Effect(busy_for=SAVE_SECONDS))]
+            case "calibrate_gyro":
+                return [w(series, address, name, 0, Effect(busy_until_done=True))]
+            case "clear_heading":
+                return [w(series, address, name, 0)]
+            case "set_relative_heading":
+                return [w(series, address, name, args["degrees"])]
+            case "set_address":
+                new = args["address"]
+                return [w(series, address, name, new, Effect(new_address=new), answer_unit=new)]
+            case "set_baudrate":
+                # No answer (2.3): switch the line, then prove the sensor is there.
+                return [w(series, address, name, args["baudrate"],
+                          Effect(new_baud=args["baudrate"])),
+                        self.read("verify", address, 0x04, 1)]
+            case "read_settings":
+                return [self.read(name, address, 0x04, 2)]
+            case "set_declination" | "mag_calibration":
+                raise Unsupported(f"{name} has no Modbus register (the native protocol has it)")
+        raise Unsupported(f"no Modbus command {name!r}")
+
+    def stream_start(self, series: Series, address: int, hz: float) -> list[Exchange]:
+        interval = round(1000 / hz)
+        if not 10 <= interval <= 0xFFFF:
+            raise Unsupported(f"{hz} Hz is an auto-output interval of {interval} ms, not 10-65535")
+        return [
+            self.write(series, address, "output_registers", poll_span(series)),
+            self.write(series, address, "output_interval_ms", interval),
+        ]
+
+    def stream_stop(self, series: Series, address: int) -> list[Exchange]:
+        return [self.write(series, address, "output_interval_ms", 0)]
+
+    def unsolicited(self, frame: Any, series: Series, address: int) -> Answer | None:
+        if getattr(frame, "unit", None) != address:
+            return None
+        if isinstance(frame, rtu.WriteRegister) and frame.address == \
+                rtu.WRITABLE["calibrate_gyro"].address and frame.value == 1:
+            return Answer({"done": True})
+        start, count = poll_span(series)
+        return _rtu_read_match(address, start, count)(frame)
+
+
+def adapter_for(wire: Wire) -> ProtocolAdapter:
+    return NativeAdapter() if wire is Wire.NATIVE else ModbusAdapter()
