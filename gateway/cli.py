@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 from . import __version__
 from .decode import decode_all, to_json_line
 from .model import Protocol, Series
+from .protocol.modbus_rtu import UNIT_IDS
 from .protocol.native import BAUD_CODES
 
 EXIT_BAD_INPUT = 2
@@ -146,6 +147,15 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--seed", type=int, default=0, help="seed of motion and faults")
     sim.add_argument("--link", help="also make the pty reachable at this path (a symlink)")
     sim.add_argument("-v", "--verbose", action="store_true", help="log every frame to stderr")
+
+    check = commands.add_parser(
+        "check-config",
+        help="validate a config file",
+        description="Validate a config file: exit 0 with a one-line summary, or print each "
+        "problem with its YAML path on stderr and exit 2.",
+    )
+    check.add_argument("-c", "--config", required=True, metavar="FILE",
+                       help="the YAML config file")
     return parser
 
 
@@ -183,8 +193,10 @@ def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
         )
         for i, (protocol, series, address, baud) in enumerate(specs)
     ]
-    names = [s.address for s in sensors]
-    if len(set(zip(names, [s.protocol for s in sensors], strict=True))) < len(sensors):
+    for sensor in sensors:
+        if sensor.protocol is Protocol.MODBUS and sensor.address not in UNIT_IDS:
+            parser.error(f"simulate: a Modbus address is 1-247, not {sensor.address}")
+    if len({(s.protocol, s.address) for s in sensors}) < len(sensors):
         parser.error("simulate: two sensors of one protocol share an address")
     bus = PtyBus(sensors, noise_rate=args.noise, seed=args.seed, link=args.link,
                  verbose=args.verbose)
@@ -194,7 +206,12 @@ def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
-        path = bus.open()
+        try:
+            path = bus.open()
+        except OSError as exc:
+            print(f"imu-gateway simulate: error: --link {args.link}: {exc.strerror or exc}",
+                  file=sys.stderr)
+            raise SystemExit(EXIT_BAD_INPUT) from None
         print(f"PTY {path}", flush=True)
         for sensor in sensors:
             print(f"sensor {sensor.name} at {sensor.baud} baud", file=sys.stderr, flush=True)
@@ -204,11 +221,26 @@ def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
     return 0
 
 
+def cmd_check_config(args: argparse.Namespace) -> int:
+    from .config import ConfigError, load_config
+
+    try:
+        config = load_config(args.config)
+    except ConfigError as exc:
+        for problem in exc.problems:
+            print(problem, file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(f"config OK: {config.summary()}")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command == "decode":
         return cmd_decode(args)
+    if args.command == "check-config":
+        return cmd_check_config(args)
     return cmd_simulate(args, parser)
 
 

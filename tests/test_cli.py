@@ -6,6 +6,7 @@ import json
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import serial
@@ -129,3 +130,37 @@ def test_simulate_prints_pty_first_and_stops_cleanly_on_sigint() -> None:
             assert proc.wait(10) == 0, proc.stderr.read() if proc.stderr else ""
         finally:
             proc.kill()
+
+
+def test_decode_bad_read_count_is_one_clear_line() -> None:
+    """pymodbus would log its own warning for this; decode says one thing, correctly."""
+    frame = rtu.encode(rtu.WriteRegister(1, 1, 0xFFFF)).hex()  # FC06 bytes, then made FC03
+    raw = bytes.fromhex("0103" + frame[4:12])
+    done = cli("decode", (raw + rtu_crc(raw)).hex())
+    assert done.returncode == 2
+    assert done.stderr.count("\n") == 1 and "read count 65535" in done.stderr
+
+
+def test_decode_answer_with_no_whole_register_keeps_the_registers() -> None:
+    one = rtu.encode(rtu.ReadResponse(1, (0x1234,))).hex()
+    done = cli("decode", "--start", "0x22", one)  # half a float
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["fields"]["registers"] == [0x1234]
+
+
+def test_simulate_link_refuses_to_replace_a_file(tmp_path: Path) -> None:
+    victim = tmp_path / "precious.txt"
+    victim.write_text("keep me")
+    done = cli("simulate", "--protocol", "native", "--series", "AH", "--link", str(victim))
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert "not a symlink" in done.stderr
+    assert victim.read_text() == "keep me"
+    missing = cli("simulate", "--protocol", "native", "--series", "AH", "--link",
+                  str(tmp_path / "no" / "such" / "dir"))
+    assert missing.returncode == 2 and "Traceback" not in missing.stderr
+
+
+def rtu_crc(raw: bytes) -> bytes:
+    from pymodbus.framer import FramerRTU
+
+    return FramerRTU.compute_CRC(raw).to_bytes(2, "big")
