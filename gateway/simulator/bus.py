@@ -24,6 +24,7 @@ import contextlib
 import functools
 import os
 import random
+import select
 import sys
 import termios
 import threading
@@ -36,6 +37,10 @@ from typing import Any
 
 from ..protocol.exchanges import char_time
 from .sensor import Outgoing, SimSensor
+
+#: The event loop's timers are good to about a millisecond (epoll); waits shorter than
+#: this are done in select(), which keeps the simulated wire's timing to microseconds.
+PRECISE = 0.002
 
 _SPEEDS = {
     getattr(termios, f"B{rate}"): rate
@@ -199,7 +204,7 @@ class PtyBus:
                     self.stats.overrun_bytes += done - written
                 written = done
             if written < len(frame):
-                await asyncio.sleep(max(0.0, start + (written + 1) * c - loop.time()))
+                await self._pause(start + (written + 1) * c - loop.time())
         self.stats.answer_frames += 1
         self._note(f"{out.sender} -> {out.frame.hex(' ')}")
 
@@ -268,12 +273,31 @@ class PtyBus:
     def _noise_gap(self) -> float:
         return self.rng.expovariate(self.noise_rate) if self.noise_rate else float("inf")
 
+    async def _pause(self, seconds: float) -> None:
+        if seconds > PRECISE:
+            await asyncio.sleep(seconds - PRECISE)
+        else:
+            self._precise_wait(seconds)
+
+    def _precise_wait(self, seconds: float) -> None:
+        """Wait in ``select()`` on the pty: microsecond timing where the event loop's
+        timers round up to a millisecond, and the master's bytes are still handled the
+        moment they arrive (so an overlap is seen when it happens)."""
+        if seconds > 0 and self._master >= 0:
+            ready, _, _ = select.select([self._master], [], [], seconds)
+            if ready:
+                self._on_readable()
+
     async def _sleep(self, stop: asyncio.Event, timeout: float | None) -> None:
+        if timeout is not None and timeout <= PRECISE:
+            self._precise_wait(timeout)
+            return
         assert self._wakeup is not None
         self._wakeup.clear()
         waiters = [asyncio.ensure_future(self._wakeup.wait()), asyncio.ensure_future(stop.wait())]
         try:
-            await asyncio.wait(waiters, timeout=timeout if timeout is None else max(0, timeout),
+            # Wake a little early; the caller's next, short wait is a precise one.
+            await asyncio.wait(waiters, timeout=None if timeout is None else timeout - PRECISE,
                                return_when=asyncio.FIRST_COMPLETED)
         finally:
             for waiter in waiters:

@@ -1,0 +1,1 @@
+"""The serial side: the link (bytes only) and the bus master (the only writer)."""

@@ -1,0 +1,104 @@
+"""The serial link: bytes in, bytes out, nothing else.
+
+pyserial opens device paths and URLs alike (``/dev/ttyUSB0``, ``socket://host:4001``,
+``rfc2217://…``, ``loop://``).  Not every one of those has a file descriptor an event
+loop could watch, so a small reader thread does blocking reads and hands each chunk
+to the loop; writes are short (a request is 5-8 bytes) and go straight out from the
+loop.  A read or write failure means the port is gone (USB adapter pulled, socket
+closed): it is reported once through ``on_lost`` and the link is closed; reopening is
+the bus master's decision.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import threading
+from collections.abc import Callable
+
+import serial
+import serial.rs485
+
+
+class LinkError(Exception):
+    """The port cannot be opened, or is gone."""
+
+
+class SerialLink:
+    def __init__(self, port: str, baudrate: int, *, rs485: bool = False) -> None:
+        self.port = port
+        self.baudrate = baudrate
+        self.rs485 = rs485
+        self._serial: serial.Serial | None = None
+        self._thread: threading.Thread | None = None
+        self._closing = False
+
+    @property
+    def is_open(self) -> bool:
+        return self._serial is not None
+
+    async def open(
+        self, on_bytes: Callable[[bytes], None], on_lost: Callable[[Exception], None]
+    ) -> None:
+        """Open the port and start delivering received bytes to ``on_bytes`` in the loop."""
+        loop = asyncio.get_running_loop()
+        try:
+            ser = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.1,
+                                        do_not_open=True)
+            if self.rs485:
+                # Kernel RS-485 mode: the UART driver switches the transceiver's direction.
+                ser.rs485_mode = serial.rs485.RS485Settings()
+            # Opening a network URL may block on connect: keep it off the loop.
+            await loop.run_in_executor(None, ser.open)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise LinkError(f"cannot open {self.port}: {exc}") from None
+        self._serial = ser
+        self._closing = False
+
+        def reader() -> None:
+            while not self._closing:
+                try:
+                    data = ser.read(max(1, ser.in_waiting))
+                except Exception as exc:  # any failure of the device means it is gone
+                    if not self._closing:
+                        loop.call_soon_threadsafe(self._lost, on_lost, exc)
+                    return
+                if data:
+                    loop.call_soon_threadsafe(on_bytes, data)
+
+        self._thread = threading.Thread(target=reader, name=f"serial {self.port}", daemon=True)
+        self._thread.start()
+
+    def _lost(self, on_lost: Callable[[Exception], None], exc: Exception) -> None:
+        if self._serial is None:
+            return
+        self.close()
+        on_lost(exc)
+
+    def write(self, data: bytes) -> None:
+        if self._serial is None:
+            raise LinkError(f"{self.port} is not open")
+        try:
+            self._serial.write(data)
+        except (serial.SerialException, OSError) as exc:
+            raise LinkError(f"writing to {self.port}: {exc}") from None
+
+    def set_baudrate(self, baudrate: int) -> None:
+        self.baudrate = baudrate
+        if self._serial is not None:
+            try:
+                self._serial.baudrate = baudrate
+            except (serial.SerialException, OSError, ValueError) as exc:
+                raise LinkError(f"setting {self.port} to {baudrate} baud: {exc}") from None
+
+    def close(self) -> None:
+        ser, self._serial = self._serial, None
+        if ser is None:
+            return
+        self._closing = True
+        with contextlib.suppress(Exception):
+            ser.cancel_read()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(1.0)
+        with contextlib.suppress(Exception):
+            ser.close()

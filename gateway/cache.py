@@ -1,0 +1,192 @@
+"""The latest reading of every sensor, and how fresh it is.
+
+The bus masters write here; the front ends only read here and listen for changes,
+so a hundred clients cost the serial bus nothing.  ``fresh()`` is the one way a front
+end can cause bus traffic: it asks the sensor's bus master for a reading no older
+than N ms, and identical requests share one transaction.
+
+Status, as clients see it:
+
+* ``offline`` - the bus master cannot reach the sensor (or has not yet);
+* ``stale``   - it is online but its latest reading is older than ``stale_after_ms``;
+* ``ok``      - otherwise.
+
+Staleness changes with time alone, so ``check_staleness()`` is called periodically
+(the app does it) to turn that into status events.
+"""
+
+from __future__ import annotations
+
+import enum
+import time
+from collections.abc import Awaitable, Callable, Iterable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+
+from .model import Reading
+
+
+class Status(enum.Enum):
+    OK = "ok"
+    STALE = "stale"
+    OFFLINE = "offline"
+
+
+@dataclass(frozen=True, slots=True)
+class Snapshot:
+    """One sensor as a client sees it at one moment."""
+
+    name: str
+    reading: Reading | None
+    seq: int
+    timestamp: datetime | None  # wall-clock time of the sample
+    age_ms: float | None
+    status: Status
+    online: bool
+    busy: bool  # a save or calibration is running
+    streaming: bool  # the sensor's own auto-output feeds this reading
+    errors: int  # timeouts, bad checksums, bad frames
+
+    @property
+    def has_reading(self) -> bool:
+        return self.reading is not None
+
+
+class EventKind(enum.Enum):
+    READING = "reading"  # a new sample
+    STATUS = "status"  # status, busy or streaming changed
+
+
+Listener = Callable[[EventKind, Snapshot], None]
+#: asks a bus master for a new reading of the named sensor; resolves when it is in
+Requester = Callable[[str], Awaitable[None]]
+
+
+class UnknownSensor(KeyError):
+    pass
+
+
+@dataclass(slots=True)
+class _Entry:
+    stale_after: float  # seconds
+    reading: Reading | None = None
+    seq: int = 0
+    received: float = 0.0  # monotonic
+    timestamp: datetime | None = None
+    online: bool = False
+    busy: bool = False
+    streaming: bool = False
+    errors: int = 0
+    reported: tuple[Status, bool, bool] | None = None  # last status event sent
+
+
+class Cache:
+    def __init__(
+        self,
+        sensors: Iterable[tuple[str, float]],
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        """``sensors``: (name, stale_after_ms) pairs.  ``clock`` must be the clock the
+        bus masters time their readings with (the event loop's, by default monotonic)."""
+        self._entries = {name: _Entry(stale_ms / 1000) for name, stale_ms in sensors}
+        self._clock = clock
+        self._listeners: list[Listener] = []
+        self._requesters: dict[str, Requester] = {}
+
+    @property
+    def names(self) -> list[str]:
+        return list(self._entries)
+
+    def _entry(self, name: str) -> _Entry:
+        try:
+            return self._entries[name]
+        except KeyError:
+            raise UnknownSensor(name) from None
+
+    # ------------------------------------------------------------ reading
+
+    def snapshot(self, name: str) -> Snapshot:
+        e = self._entry(name)
+        now = self._clock()
+        age = (now - e.received) * 1000 if e.reading is not None else None
+        if not e.online:
+            status = Status.OFFLINE
+        elif e.reading is None or now - e.received > e.stale_after:
+            status = Status.STALE
+        else:
+            status = Status.OK
+        return Snapshot(name, e.reading, e.seq, e.timestamp, age, status, e.online, e.busy,
+                        e.streaming, e.errors)
+
+    def snapshots(self) -> list[Snapshot]:
+        return [self.snapshot(name) for name in self._entries]
+
+    def subscribe(self, listener: Listener) -> Callable[[], None]:
+        """Call ``listener(kind, snapshot)`` on every change; returns the unsubscriber.
+        Listeners run in the event loop and must not block."""
+        self._listeners.append(listener)
+        return lambda: self._listeners.remove(listener) if listener in self._listeners else None
+
+    def set_requester(self, name: str, requester: Requester) -> None:
+        self._entry(name)
+        self._requesters[name] = requester
+
+    async def fresh(self, name: str, max_age_ms: float) -> Snapshot:
+        """A snapshot whose reading is at most ``max_age_ms`` old, reading the bus if
+        the cached one is older.  Raises what the bus master raises when it cannot."""
+        snap = self.snapshot(name)
+        if snap.age_ms is not None and snap.age_ms <= max_age_ms:
+            return snap
+        requester = self._requesters.get(name)
+        if requester is None:
+            return snap
+        await requester(name)
+        return self.snapshot(name)
+
+    # ------------------------------------------------------------ writing (bus masters)
+
+    def publish(self, name: str, reading: Reading, at: float | None = None) -> int:
+        """A new sample, received at monotonic time ``at``; returns its sequence number."""
+        e = self._entry(name)
+        e.reading = reading
+        e.seq += 1
+        e.received = self._clock() if at is None else at
+        e.timestamp = datetime.now(UTC)
+        e.online = True
+        self._emit(EventKind.READING, name)
+        self._check(name)
+        return e.seq
+
+    def set_state(self, name: str, *, online: bool | None = None, busy: bool | None = None,
+                  streaming: bool | None = None) -> None:
+        e = self._entry(name)
+        if online is not None:
+            e.online = online
+        if busy is not None:
+            e.busy = busy
+        if streaming is not None:
+            e.streaming = streaming
+        self._check(name)
+
+    def count_error(self, name: str) -> None:
+        self._entry(name).errors += 1
+
+    def check_staleness(self) -> None:
+        for name in self._entries:
+            self._check(name)
+
+    def _check(self, name: str) -> None:
+        snap = self.snapshot(name)
+        state = (snap.status, snap.busy, snap.streaming)
+        e = self._entries[name]
+        if state != e.reported:
+            e.reported = state
+            self._notify(EventKind.STATUS, snap)
+
+    def _emit(self, kind: EventKind, name: str) -> None:
+        self._notify(kind, self.snapshot(name))
+
+    def _notify(self, kind: EventKind, snap: Snapshot) -> None:
+        for listener in list(self._listeners):
+            listener(kind, snap)
+

@@ -1,0 +1,173 @@
+"""The command catalogue (SPEC.md §5): the same names on REST, MQTT, Modbus TCP and CLI.
+
+One table: each command's argument model (pydantic, so every front end gets the same
+validation and the same messages) and its summary.  Which series has which command
+comes from the capability table in ``model``; which protocol can carry it is the
+protocol adapter's business (``protocol.exchanges``), since that is where the frames
+are.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from .model import CAPABILITIES, Protocol, Series, commands_for
+from .protocol.native import BAUD_CODES
+
+
+class _Args(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class NoArgs(_Args):
+    pass
+
+
+class ZeroTypeArgs(_Args):
+    type: Literal["absolute", "relative"]
+
+
+class HeadingArgs(_Args):
+    degrees: float = Field(ge=0, lt=360, description="heading start point, degrees")
+
+
+class DeclinationArgs(_Args):
+    # 2.21 sends SXX.Y: two integer digits and one decimal.
+    degrees: float = Field(ge=-99.9, le=99.9, description="magnetic declination, degrees")
+
+    @field_validator("degrees")
+    @classmethod
+    def _finite(cls, value: float) -> float:
+        if not math.isfinite(value):
+            raise ValueError("must be a finite number")
+        return value
+
+
+class MagCalibrationArgs(_Args):
+    action: Literal["start", "finish", "clear"]
+
+
+class AddressArgs(_Args):
+    address: int = Field(ge=0, le=255, description="native 0-255, Modbus 1-247")
+
+
+class BaudrateArgs(_Args):
+    baudrate: int
+
+    @field_validator("baudrate")
+    @classmethod
+    def _known(cls, value: int) -> int:
+        if value not in BAUD_CODES.values():
+            raise ValueError(f"must be one of {sorted(BAUD_CODES.values())}")
+        return value
+
+
+@dataclass(frozen=True, slots=True)
+class CommandSpec:
+    name: str
+    args: type[_Args]
+    summary: str
+
+
+CATALOGUE: Mapping[str, CommandSpec] = {
+    spec.name: spec
+    for spec in (
+        CommandSpec("set_zero_type", ZeroTypeArgs, "absolute or relative zero point"),
+        CommandSpec("save", NoArgs, "save the settings (3-5 s, the sensor does not answer)"),
+        CommandSpec("calibrate_gyro", NoArgs, "gyro zero-offset calibration (keep still)"),
+        CommandSpec("clear_heading", NoArgs, "clear the heading angle (MINS)"),
+        CommandSpec("set_relative_heading", HeadingArgs, "heading start point (MINS)"),
+        CommandSpec("set_declination", DeclinationArgs, "magnetic declination (AH)"),
+        CommandSpec("mag_calibration", MagCalibrationArgs,
+                    "plane circumference calibration: start, finish, clear (AH)"),
+        CommandSpec("set_address", AddressArgs, "a new bus address"),
+        CommandSpec("set_baudrate", BaudrateArgs, "a new baud rate; the gateway follows"),
+        CommandSpec("read_settings", NoArgs, "zero type, address, declination (AH)"),
+    )
+}
+
+
+class ErrorKind(enum.Enum):
+    """Why a command failed; each front end maps these to its own codes."""
+
+    UNKNOWN = "unknown_command"  # REST 404, Modbus 02
+    BAD_ARGUMENTS = "bad_arguments"  # REST 422, Modbus 03
+    UNSUPPORTED = "unsupported"  # the series or protocol lacks it: REST 422, Modbus 02
+    BUSY = "busy"  # save or calibration running: REST 409, Modbus 06
+    TIMEOUT = "timeout"  # the sensor did not answer: REST 504, Modbus 0B
+    FAILURE = "failure"  # the sensor answered "failure": Modbus 04
+    OFFLINE = "offline"  # the port is gone: REST 504, Modbus 0B
+
+
+class CommandError(Exception):
+    def __init__(self, kind: ErrorKind, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
+@dataclass(frozen=True, slots=True)
+class Command:
+    """A validated command for one sensor."""
+
+    name: str
+    args: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class CommandResult:
+    """The sensor's answer, or why there is none."""
+
+    sensor: str
+    command: str
+    ok: bool
+    answer: Mapping[str, Any] = field(default_factory=dict)
+    error: str | None = None
+    kind: ErrorKind | None = None
+
+    @classmethod
+    def failed(cls, sensor: str, command: str, error: CommandError) -> CommandResult:
+        return cls(sensor, command, False, {}, str(error), error.kind)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"ok": self.ok, "sensor": self.sensor, "command": self.command,
+                "answer": dict(self.answer), "error": self.error,
+                "kind": self.kind.value if self.kind else None}
+
+
+def _friendly(exc: ValidationError) -> str:
+    parts = []
+    for err in exc.errors():
+        where = ".".join(str(p) for p in err["loc"]) or "arguments"
+        message = err["msg"].removeprefix("Value error, ")
+        if err["type"] == "extra_forbidden":
+            message = "unknown argument"
+        parts.append(f"{where}: {message}")
+    return "; ".join(parts)
+
+
+def validate(name: str, args: Mapping[str, Any] | None, series: Series,
+             protocol: Protocol) -> Command:
+    """Check a command for a sensor of ``series``; raises ``CommandError``."""
+    spec = CATALOGUE.get(name)
+    if spec is None:
+        raise CommandError(ErrorKind.UNKNOWN,
+                           f"unknown command {name!r} (known: {', '.join(CATALOGUE)})")
+    if name not in commands_for(series, protocol):
+        over = "" if name in CAPABILITIES[series].commands else " over Modbus"
+        raise CommandError(ErrorKind.UNSUPPORTED, f"{series.name} sensors have no {name}{over}")
+    if args is not None and not isinstance(args, Mapping):
+        raise CommandError(ErrorKind.BAD_ARGUMENTS, "arguments must be a JSON object")
+    try:
+        parsed = spec.args.model_validate(dict(args or {}))
+    except ValidationError as exc:
+        raise CommandError(ErrorKind.BAD_ARGUMENTS, f"{name}: {_friendly(exc)}") from None
+    values = parsed.model_dump()
+    if name == "set_address" and protocol is Protocol.MODBUS and not 1 <= values["address"] <= 247:
+        raise CommandError(ErrorKind.BAD_ARGUMENTS, "set_address: a Modbus address is 1-247")
+    return Command(name, values)
