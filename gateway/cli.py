@@ -7,16 +7,21 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import logging
 import math
 import signal
 import sys
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 from . import __version__
 from .decode import decode_all, to_json_line
 from .model import Protocol, Series
 from .protocol.modbus_rtu import UNIT_IDS
 from .protocol.native import BAUD_CODES
+
+if TYPE_CHECKING:
+    from .config import GatewayConfig
 
 EXIT_BAD_INPUT = 2
 
@@ -118,6 +123,34 @@ def build_parser() -> argparse.ArgumentParser:
         "is not given before it)",
     )
 
+    run = commands.add_parser(
+        "run",
+        help="run the gateway",
+        description="Run the gateway: own the buses of the config, serve the interfaces it "
+        "turns on. Stops cleanly on SIGINT or SIGTERM.",
+    )
+    run.add_argument("-c", "--config", required=True, metavar="FILE", help="the YAML config")
+    run.add_argument("--log-level", default="info",
+                     choices=["debug", "info", "warning", "error"], help="default: info")
+    run.add_argument("--stats-interval", type=_non_negative, default=0.0, metavar="SECONDS",
+                     help="log each bus's rate and utilisation this often (0: never)")
+
+    scan = commands.add_parser(
+        "scan",
+        help="find the sensors on a port",
+        description="Find the sensors on a port: both protocols, every baud rate, every "
+        "address. Only reads are sent. The gateway must not be running on the port.",
+    )
+    scan.add_argument("--port", required=True, help="a device path or a pyserial URL")
+    scan.add_argument("--protocol", type=_protocol, action="append",
+                      help="only this protocol (repeatable; default: both)")
+    scan.add_argument("--baud", type=_baud, action="append",
+                      help="only this baud rate (repeatable; default: all eight)")
+    scan.add_argument("--address", type=_address, action="append",
+                      help="only this address (repeatable; default: all)")
+    scan.add_argument("--margin-ms", type=_non_negative, default=30.0,
+                      help="wait this long beyond the wire time for an answer (default 30)")
+
     sim = commands.add_parser(
         "simulate",
         help="simulated sensors on a pseudo-terminal",
@@ -171,6 +204,52 @@ def cmd_decode(args: argparse.Namespace) -> int:
     return status
 
 
+def _load_or_report(path: str) -> GatewayConfig | None:
+    from .config import ConfigError, load_config
+
+    try:
+        return load_config(path)
+    except ConfigError as exc:
+        for problem in exc.problems:
+            print(problem, file=sys.stderr)
+        return None
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from .app import run_until_signalled
+
+    config = _load_or_report(args.config)
+    if config is None:
+        return EXIT_BAD_INPUT
+    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
+                        format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
+    asyncio.run(run_until_signalled(config, args.stats_interval))
+    return 0
+
+
+def cmd_scan(args: argparse.Namespace) -> int:
+    import serial
+
+    from .scan import BAUD_ORDER, scan
+
+    found = 0
+    try:
+        for sensor in scan(args.port, args.protocol or list(Protocol), args.baud or BAUD_ORDER,
+                           args.address, args.margin_ms / 1000,
+                           progress=lambda text: print(f"scanning {text}", file=sys.stderr,
+                                                       flush=True)):
+            print(sensor.line(), flush=True)
+            found += 1
+    except serial.SerialException as exc:
+        print(f"imu-gateway scan: error: {args.port}: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("imu-gateway scan: interrupted", file=sys.stderr)
+        return 130
+    print(f"{found} sensor{'s' if found != 1 else ''} found", file=sys.stderr)
+    return 0 if found else 1
+
+
 def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     from .simulator import Faults, PtyBus, make_sensor
     from .simulator.motion import Motion
@@ -222,13 +301,8 @@ def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
 
 
 def cmd_check_config(args: argparse.Namespace) -> int:
-    from .config import ConfigError, load_config
-
-    try:
-        config = load_config(args.config)
-    except ConfigError as exc:
-        for problem in exc.problems:
-            print(problem, file=sys.stderr)
+    config = _load_or_report(args.config)
+    if config is None:
         return EXIT_BAD_INPUT
     print(f"config OK: {config.summary()}")
     return 0
@@ -237,11 +311,13 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.command == "decode":
-        return cmd_decode(args)
-    if args.command == "check-config":
-        return cmd_check_config(args)
-    return cmd_simulate(args, parser)
+    if args.command == "simulate":
+        return cmd_simulate(args, parser)
+    handlers: dict[str, Callable[[argparse.Namespace], int]] = {
+        "decode": cmd_decode, "check-config": cmd_check_config, "run": cmd_run,
+        "scan": cmd_scan,
+    }
+    return handlers[args.command](args)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -101,6 +101,7 @@ class SensorStats:
     transactions: int = 0
     readings: int = 0
     missed_polls: int = 0
+    busy_time: float = 0.0  # bus time this sensor's exchanges took, failed ones too
     errors: Counter[str] = field(default_factory=Counter)
     rate: RateMeter = field(default_factory=RateMeter)
 
@@ -430,6 +431,8 @@ class BusMaster:
                     answer = await self._transact(s, self.adapter.poll(s.config.series,
                                                                        s.address))
                     self._publish(s, answer, self._now())
+                    if job.future is not None and not job.future.done():
+                        job.future.set_result(None)
                 case Priority.STREAM_SETUP:
                     await self._start_stream(s)
                 case Priority.COMMAND:
@@ -568,7 +571,9 @@ class BusMaster:
                 continue
             finally:
                 self._waiting = None
-                self.stats.busy_time += loop.time() - started + gap
+                took = loop.time() - started + gap
+                self.stats.busy_time += took
+                s.stats.busy_time += took
             self.stats.transactions += 1
             s.stats.transactions += 1
             self.stats.rate.add(loop.time())
@@ -628,6 +633,7 @@ class BusMaster:
             "readings": s.stats.readings,
             "errors": dict(s.stats.errors),
             "missed_polls": s.stats.missed_polls,
+            "bus_share": round(s.stats.busy_time / max(now - self.stats.started, 1e-9), 4),
             "requested_hz": s.config.stream_hz if s.streaming else s.config.poll_hz,
             "achieved_hz": round(s.stats.rate.per_second(now), 2),
             "streaming": s.streaming,

@@ -1,0 +1,96 @@
+"""The gateway process: one bus master per bus, the cache between them and the front
+ends, and the lifecycle (the gateway, not a web server, owns signals and shutdown).
+
+Only this module imports everything.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+from collections.abc import Mapping
+from typing import Any
+
+from .bus.master import BusMaster
+from .cache import Cache
+from .commands import CommandError, CommandResult, ErrorKind, validate
+from .config import GatewayConfig, SensorConfig
+
+log = logging.getLogger("gateway")
+
+STALENESS_TICK = 0.1  # seconds between checks that turn "too old" into status events
+SHUTDOWN_GRACE = 10.0  # seconds the bus masters get to finish the exchange in flight
+
+
+class Gateway:
+    """The running gateway as the front ends see it: the cache, and commands."""
+
+    def __init__(self, config: GatewayConfig) -> None:
+        self.config = config
+        self.cache = Cache([(s.name, s.stale_after_ms) for _, s in config.iter_sensors()])
+        self.masters = {bus.name: BusMaster(bus, self.cache) for bus in config.buses}
+        self._master_of = {s.name: self.masters[b.name] for b, s in config.iter_sensors()}
+        self.sensors: dict[str, SensorConfig] = {s.name: s for _, s in config.iter_sensors()}
+
+    async def command(self, sensor: str, name: str,
+                      args: Mapping[str, Any] | None = None) -> CommandResult:
+        """Validate and carry out a command; returns after the sensor's answer."""
+        config = self.sensors.get(sensor)
+        if config is None:
+            return CommandResult.failed(sensor, name, CommandError(
+                ErrorKind.UNKNOWN, f"unknown sensor {sensor!r}"))
+        master = self._master_of[sensor]
+        try:
+            command = validate(name, args, config.series, master.config.protocol)
+        except CommandError as exc:
+            return CommandResult.failed(sensor, name, exc)
+        return await master.submit(sensor, command)
+
+    async def run(self, stop: asyncio.Event) -> None:
+        """Run until ``stop`` is set, then let every bus finish its exchange and stop."""
+        async with asyncio.TaskGroup() as tasks:
+            runs = [tasks.create_task(m.run(), name=f"bus {m.name}")
+                    for m in self.masters.values()]
+            tasks.create_task(self._watch_staleness(stop), name="staleness")
+            await stop.wait()
+            log.info("stopping")
+            for master in self.masters.values():
+                master.stop()
+            _, late = await asyncio.wait(runs, timeout=SHUTDOWN_GRACE)
+            for task in late:
+                task.cancel()
+
+    async def _watch_staleness(self, stop: asyncio.Event) -> None:
+        while not stop.is_set():
+            self.cache.check_staleness()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), STALENESS_TICK)
+
+    def stats(self) -> list[dict[str, Any]]:
+        return [m.bus_stats() for m in self.masters.values()]
+
+
+async def run_until_signalled(config: GatewayConfig, stats_interval: float = 0.0) -> None:
+    """``imu-gateway run``: the gateway until SIGINT or SIGTERM."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    gateway = Gateway(config)
+    log.info("%s", config.summary())
+    async with asyncio.TaskGroup() as tasks:
+        if stats_interval > 0:
+            tasks.create_task(_log_stats(gateway, stop, stats_interval))
+        await gateway.run(stop)
+    log.info("stopped")
+
+
+async def _log_stats(gateway: Gateway, stop: asyncio.Event, interval: float) -> None:
+    while not stop.is_set():
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(stop.wait(), interval)
+        for bus in gateway.stats():
+            log.info("bus %s: %.1f transactions/s, utilisation %.2f, errors %s", bus["name"],
+                     bus["transactions_per_s"], bus["utilisation"], bus["errors"] or "none")

@@ -1,0 +1,476 @@
+"""The bus master against simulated sensors on real pseudo-terminals.
+
+The simulator runs on its own thread and counts any byte the master sends while a
+sensor is answering (an overlap); every test ends by asserting there were none.
+Assertions are about behaviour (what was read, in which order, how the bus time was
+shared), never about how fast this machine happens to be.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import Any
+
+import pytest
+
+from gateway.app import Gateway
+from gateway.bus.master import OFFLINE_AFTER, BusMaster, SensorUnavailable
+from gateway.cache import EventKind, Snapshot, Status
+from gateway.commands import ErrorKind
+from gateway.config import config_from_dict
+from gateway.model import Protocol, Series
+from gateway.simulator import Faults, SimSensor, SimulatorThread, hold, make_sensor, simulated
+from gateway.simulator.motion import Motion
+
+FAST = 115200
+#: For tests about scheduling rather than failures: a hiccup of this busy machine must
+#: not turn into a timeout (and a back-off) that the test would then see as unfairness.
+PATIENT = {"timeout_ms": 2000}
+
+
+def bus_config(port: str, protocol: str, sensors: list[dict[str, Any]],
+               baudrate: int = FAST, **bus: Any) -> dict[str, Any]:
+    return {"gateway_id": "test", "buses": [
+        {"name": "line", "port": port, "baudrate": baudrate, "protocol": protocol,
+         "sensors": sensors, **bus}]}
+
+
+@contextlib.asynccontextmanager
+async def running(config: dict[str, Any]) -> AsyncIterator[Gateway]:
+    gateway = Gateway(config_from_dict(config, env={}))
+    stop = asyncio.Event()
+    task = asyncio.create_task(gateway.run(stop))
+    try:
+        yield gateway
+    finally:
+        stop.set()
+        await asyncio.wait_for(task, 15)
+
+
+def master(gateway: Gateway) -> BusMaster:
+    return next(iter(gateway.masters.values()))
+
+
+async def until(condition: Callable[[], bool], timeout: float = 10.0) -> None:
+    """Wait for a condition of the system under test (a deadline, not a measurement)."""
+    async def poll() -> None:
+        while not condition():
+            await asyncio.sleep(0.01)
+    await asyncio.wait_for(poll(), timeout)
+
+
+def run(coro: Callable[[], Awaitable[None]]) -> None:
+    asyncio.run(coro())
+
+
+def native(series: Series, address: int, **options: Any) -> SimSensor:
+    return make_sensor(Protocol.NATIVE, series, address, baud=FAST, **options)
+
+
+def modbus(series: Series, address: int, **options: Any) -> SimSensor:
+    return make_sensor(Protocol.MODBUS, series, address, baud=FAST, **options)
+
+
+def no_overlap(sim: SimulatorThread) -> None:
+    assert sim.bus.stats.overlaps == 0, list(sim.bus.stats.events)
+    assert sim.bus.stats.internal_errors == 0
+
+
+# ------------------------------------------------------------------ readings
+
+
+@pytest.mark.parametrize("protocol", ["native", "modbus"])
+def test_readings_reach_the_cache_with_the_series_groups(protocol: str) -> None:
+    make = native if protocol == "native" else modbus
+    first = 0 if protocol == "native" else 1
+    with simulated([make(Series.AH, first), make(Series.IMU, first + 1)]) as sim:
+        async def body() -> None:
+            async with running(bus_config(sim.path, protocol, [
+                {"name": "ah", "series": "AH", "address": first, "poll_hz": 20},
+                {"name": "imu", "series": "IMU", "address": first + 1, "poll_hz": 20},
+            ])) as gw:
+                await until(lambda: gw.cache.snapshot("ah").seq >= 3
+                            and gw.cache.snapshot("imu").seq >= 3)
+                ah, imu = gw.cache.snapshot("ah"), gw.cache.snapshot("imu")
+                assert ah.status is Status.OK and imu.status is Status.OK
+                assert ah.reading is not None and imu.reading is not None
+                assert {g.value for g in ah.reading.groups()} == {
+                    "angles", "accel", "gyro", "mag", "quaternion"}
+                assert {g.value for g in imu.reading.groups()} == {"accel", "gyro"}
+        run(body)
+        no_overlap(sim)
+
+
+@pytest.mark.parametrize(("protocol", "angle_step", "mag_step"), [
+    ("native", 0.005, 0.000005),  # half the BCD resolution: SXXX.YY and S.YYYYY
+    ("modbus", 1e-4, 1e-6),  # float32
+])
+def test_values_equal_the_simulators_within_resolution(protocol: str, angle_step: float,
+                                                        mag_step: float) -> None:
+    reading = Motion.from_seed(4).sample(12.0)
+    make = native if protocol == "native" else modbus
+    address = 0 if protocol == "native" else 1
+    with simulated([make(Series.AH, address, source=hold(reading))]) as sim:
+        async def body() -> None:
+            async with running(bus_config(sim.path, protocol, [
+                {"name": "ah", "series": "AH", "address": address, "poll_hz": 20}])) as gw:
+                await until(lambda: gw.cache.snapshot("ah").seq >= 1)
+                got = gw.cache.snapshot("ah").reading
+                assert got is not None
+                for group, step in (("angles", angle_step), ("accel", 0.00005),
+                                    ("gyro", 0.005), ("mag", mag_step),
+                                    ("quaternion", 0.0000005)):
+                    want = reading.to_json_groups()[group]
+                    have = got.to_json_groups()[group]
+                    assert have == pytest.approx(want, abs=step), group
+        run(body)
+        no_overlap(sim)
+
+
+# ------------------------------------------------------------------ one at a time
+
+
+def test_concurrent_commands_and_polling_never_overlap_and_commands_go_first() -> None:
+    sensors = [native(Series.AH, 0), native(Series.VG, 1), native(Series.MINS, 2)]
+    with simulated(sensors) as sim:
+        async def body() -> None:
+            async with running(bus_config(sim.path, "native", [
+                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0},
+                {"name": "vg", "series": "VG", "address": 1, "poll_hz": 0},
+                {"name": "mins", "series": "MINS", "address": 2, "poll_hz": 0},
+            ], **PATIENT)) as gw:
+                m = master(gw)
+                await until(lambda: all(gw.cache.snapshot(n).seq > 2 for n in gw.sensors))
+
+                def polls() -> int:
+                    return sum(gw.cache.snapshot(n).seq for n in gw.sensors)
+
+                async def submitter(sensor: str, n: int) -> list[bool]:
+                    oks = []
+                    for _ in range(n):
+                        before = polls()
+                        result = await gw.command(sensor, "read_settings")
+                        # Commands go before polls: at most the poll in flight when it was
+                        # submitted finishes first (other commands may, in order).
+                        assert polls() - before <= 1
+                        oks.append(result.ok)
+                    return oks
+
+                results = await asyncio.gather(*(submitter(s, 8) for s in gw.sensors))
+                assert all(all(r) for r in results)
+                assert m.stats.transactions > 0
+        run(body)
+        no_overlap(sim)
+
+
+def test_identical_on_demand_reads_share_one_exchange() -> None:
+    with simulated([native(Series.AH, 0)]) as sim:
+        async def body() -> None:
+            async with running(bus_config(sim.path, "native", [
+                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0.2}])) as gw:
+                await until(lambda: gw.cache.snapshot("ah").seq >= 1)
+                m = master(gw)
+                before = m.stats.transactions
+                snaps = await asyncio.wait_for(
+                    asyncio.gather(*(gw.cache.fresh("ah", 0) for _ in range(50))), 10)
+                assert m.stats.transactions - before == 1
+                assert len({s.seq for s in snaps}) == 1
+                cached = await gw.cache.fresh("ah", 60_000)  # young enough: no bus traffic
+                assert m.stats.transactions - before == 1 and cached.seq == snaps[0].seq
+        run(body)
+        no_overlap(sim)
+
+
+def test_fast_polling_is_shared_fairly() -> None:
+    with simulated([native(Series.IMU, a) for a in range(3)]) as sim:
+        async def body() -> None:
+            async with running(bus_config(sim.path, "native", [
+                {"name": f"s{a}", "series": "IMU", "address": a, "poll_hz": 0}
+                for a in range(3)], **PATIENT)) as gw:
+                await until(lambda: gw.cache.snapshot("s0").seq >= 60)
+                seqs = [gw.cache.snapshot(f"s{a}").seq for a in range(3)]
+                assert max(seqs) - min(seqs) <= 1  # strict round robin
+        run(body)
+        no_overlap(sim)
+
+
+def test_asking_more_than_the_wire_slows_every_sensor_evenly_and_counts_the_shortfall() -> None:
+    # Three AH sensors at 9600 baud: a 0x59 exchange is 62 bytes, 64.6 ms on the wire,
+    # so 15 polls/s is the ceiling; 3 x 20 Hz cannot be met.
+    with simulated([make_sensor(Protocol.NATIVE, Series.AH, a) for a in range(3)]) as sim:
+        async def body() -> None:
+            async with running(bus_config(sim.path, "native", [
+                {"name": f"s{a}", "series": "AH", "address": a, "poll_hz": 20}
+                for a in range(3)], baudrate=9600, **PATIENT)) as gw:
+                await until(lambda: gw.cache.snapshot("s0").seq >= 15)
+                stats = [master(gw).sensor_stats(f"s{a}") for a in range(3)]
+                readings = [s["readings"] for s in stats]
+                assert max(readings) - min(readings) <= 1
+                assert all(s["missed_polls"] > 0 for s in stats)
+        run(body)
+        no_overlap(sim)
+
+
+# ------------------------------------------------------------------ failures
+
+
+def test_dead_address_costs_the_live_sensors_little_and_comes_back() -> None:
+    dead = Faults(stalled=True)
+    sensors = [native(Series.AH, 0), native(Series.IMU, 1), native(Series.VG, 2, faults=dead)]
+    with simulated(sensors) as sim:
+        async def body() -> None:
+            async with running(bus_config(sim.path, "native", [
+                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0},
+                {"name": "imu", "series": "IMU", "address": 1, "poll_hz": 0},
+                {"name": "dead", "series": "VG", "address": 2, "poll_hz": 0},
+            ])) as gw:
+                m = master(gw)
+                await until(lambda: gw.cache.snapshot("dead").status is Status.OFFLINE
+                            and m.sensors["dead"].failures >= OFFLINE_AFTER + 2, 30)
+                await asyncio.sleep(2.0)
+                share = m.sensor_stats("dead")["bus_share"]
+                assert share < 0.2, share
+                assert gw.cache.snapshot("ah").status is Status.OK
+                dead.stalled = False
+                await until(lambda: gw.cache.snapshot("dead").status is Status.OK, 15)
+        run(body)
+        no_overlap(sim)
+
+
+def test_offline_is_logged_once_and_recovery_once(caplog: pytest.LogCaptureFixture) -> None:
+    faults = Faults()
+    with simulated([native(Series.AH, 0, faults=faults)]) as sim:
+        async def body() -> None:
+            async with running(bus_config(sim.path, "native", [
+                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0}])) as gw:
+                await until(lambda: gw.cache.snapshot("ah").status is Status.OK)
+                faults.stalled = True
+                await until(lambda: gw.cache.snapshot("ah").status is Status.OFFLINE)
+                await until(lambda: master(gw).sensors["ah"].failures >= OFFLINE_AFTER + 3, 20)
+                faults.stalled = False
+                await until(lambda: gw.cache.snapshot("ah").status is Status.OK, 15)
+        with caplog.at_level("INFO", logger="gateway"):
+            run(body)
+    lines = [r.getMessage() for r in caplog.records if r.name == "gateway.bus"]
+    assert sum("offline" in line for line in lines) == 1
+    assert sum("recovered" in line for line in lines) == 1
+
+
+def test_status_events_follow_the_sensor() -> None:
+    faults = Faults()
+    with simulated([native(Series.AH, 0, faults=faults)]) as sim:
+        async def body() -> None:
+            async with running(bus_config(sim.path, "native", [
+                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 10,
+                 "stale_after_ms": 300}])) as gw:
+                seen: list[Status] = []
+
+                def listen(kind: EventKind, snap: Snapshot) -> None:
+                    if kind is EventKind.STATUS:
+                        seen.append(snap.status)
+                gw.cache.subscribe(listen)
+                await until(lambda: Status.OK in seen)
+                faults.stalled = True
+                mark = len(seen)
+                await until(lambda: Status.OFFLINE in seen[mark:])
+                # stale (no reading for 300 ms) comes before offline (3 failures)
+                assert seen[mark:] == [Status.STALE, Status.OFFLINE], seen
+        run(body)
+
+
+def test_noisy_line_counts_bad_frames_and_keeps_reading() -> None:
+    with simulated([native(Series.AH, 0, faults=Faults(corrupt_rate=0.3))], noise_rate=20) as sim:
+        async def body() -> None:
+            async with running(bus_config(sim.path, "native", [
+                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0}], retries=2)) as gw:
+                await until(lambda: gw.cache.snapshot("ah").seq >= 40, 20)
+                errors = master(gw).bus_stats()["errors"]
+                assert errors.get("bad_frame", 0) > 0
+                assert gw.cache.snapshot("ah").errors > 0
+        run(body)
+
+
+def test_port_removed_and_restored_readings_resume(tmp_path: Any) -> None:
+    link = str(tmp_path / "ttyUSB-sim")
+    with simulated([native(Series.AH, 0)], link=link) as sim:
+        async def body() -> None:
+            async with running(bus_config(link, "native", [
+                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 20}])) as gw:
+                m = master(gw)
+                await until(lambda: gw.cache.snapshot("ah").seq >= 3)
+                sim.call(sim.bus.unplug)
+                await until(lambda: gw.cache.snapshot("ah").status is Status.OFFLINE)
+                assert not m.port_open
+                result = await gw.command("ah", "read_settings")
+                assert result.kind is ErrorKind.OFFLINE
+                with pytest.raises(SensorUnavailable):
+                    await gw.cache.fresh("ah", 0)
+                await asyncio.sleep(1.0)  # several failed reopen attempts
+                sim.call(sim.bus.replug)
+                seq = gw.cache.snapshot("ah").seq
+                await until(lambda: gw.cache.snapshot("ah").seq > seq + 3, 15)
+                assert m.bus_stats()["errors"]["port_lost"] == 1
+        run(body)
+        no_overlap(sim)
+
+
+def test_missing_port_at_start_is_retried_without_exiting(tmp_path: Any) -> None:
+    async def body() -> None:
+        async with running(bus_config(str(tmp_path / "nothing"), "native", [
+            {"name": "ah", "series": "AH", "address": 0}])) as gw:
+            await asyncio.sleep(1.5)
+            assert gw.cache.snapshot("ah").status is Status.OFFLINE
+            assert not master(gw).port_open
+    run(body)
+
+
+# ------------------------------------------------------------------ settings
+
+
+@pytest.mark.parametrize("protocol", ["native", "modbus"])
+def test_save_keeps_the_sensor_busy_then_it_answers(protocol: str) -> None:
+    make = native if protocol == "native" else modbus
+    address = 0 if protocol == "native" else 1
+    with simulated([make(Series.VG, address, save_duration=0.5)]) as sim:
+        async def body() -> None:
+            async with running(bus_config(sim.path, protocol, [
+                {"name": "vg", "series": "VG", "address": address, "poll_hz": 20}])) as gw:
+                m = master(gw)
+                await until(lambda: gw.cache.snapshot("vg").seq >= 2)
+                saved = await gw.command("vg", "save")
+                assert saved.ok, saved
+                assert gw.cache.snapshot("vg").busy
+                busy = await gw.command("vg", "read_settings")
+                assert busy.kind is ErrorKind.BUSY
+                failures = m.bus_stats()["errors"]
+                m.sensors["vg"].busy_until = 0.01  # the save takes 0.5 s here, not 5 s
+                await until(lambda: not gw.cache.snapshot("vg").busy)
+                after = await gw.command("vg", "read_settings")
+                assert after.ok, after
+                assert m.bus_stats()["errors"] == failures  # nothing was sent while saving
+        run(body)
+        no_overlap(sim)
+
+
+@pytest.mark.parametrize("protocol", ["native", "modbus"])
+def test_baud_change_the_gateway_follows(protocol: str) -> None:
+    make = make_sensor(Protocol[protocol.upper()], Series.AH, 0 if protocol == "native" else 1)
+    with simulated([make]) as sim:
+        async def body() -> None:
+            address = make.address
+            async with running(bus_config(sim.path, protocol, [
+                {"name": "ah", "series": "AH", "address": address, "poll_hz": 10}],
+                baudrate=9600)) as gw:
+                await until(lambda: gw.cache.snapshot("ah").seq >= 2)
+                result = await gw.command("ah", "set_baudrate", {"baudrate": 115200})
+                assert result.ok, result
+                assert make.baud == 115200 and master(gw).baud == 115200
+                seq = gw.cache.snapshot("ah").seq
+                await until(lambda: gw.cache.snapshot("ah").seq >= seq + 3)
+                assert sim.bus.line_baud() == 115200
+        run(body)
+        no_overlap(sim)
+
+
+@pytest.mark.parametrize("protocol", ["native", "modbus"])
+def test_address_change_answers_at_the_new_address(protocol: str) -> None:
+    sensor = make_sensor(Protocol[protocol.upper()], Series.VG, 0 if protocol == "native" else 1,
+                         baud=FAST)
+    with simulated([sensor]) as sim:
+        async def body() -> None:
+            async with running(bus_config(sim.path, protocol, [
+                {"name": "vg", "series": "VG", "address": sensor.address, "poll_hz": 10}])) \
+                    as gw:
+                await until(lambda: gw.cache.snapshot("vg").seq >= 2)
+                result = await gw.command("vg", "set_address", {"address": 42})
+                assert result.ok, result
+                assert sensor.address == 42
+                seq = gw.cache.snapshot("vg").seq
+                await until(lambda: gw.cache.snapshot("vg").seq >= seq + 3)
+                settings = await gw.command("vg", "read_settings")
+                assert settings.answer["address"] == 42
+        run(body)
+        no_overlap(sim)
+
+
+def test_commands_are_validated_and_carried_out() -> None:
+    with simulated([native(Series.MINS, 0, source=hold(Motion().sample(0))),
+                    modbus(Series.AH, 1)]) as sim:
+        async def body() -> None:
+            async with running(bus_config(sim.path, "native", [
+                {"name": "m", "series": "MINS", "address": 0, "poll_hz": 5}])) as gw:
+                await until(lambda: gw.cache.snapshot("m").seq >= 1)
+                heading = await gw.command("m", "set_relative_heading", {"degrees": 90})
+                assert heading.ok, heading
+                snap = await gw.cache.fresh("m", 0)
+                assert snap.reading is not None and snap.reading.angles is not None
+                assert snap.reading.angles.yaw == pytest.approx(90.0, abs=0.01)
+                bad = await gw.command("m", "set_relative_heading", {"degrees": "north"})
+                assert bad.kind is ErrorKind.BAD_ARGUMENTS
+                lacking = await gw.command("m", "set_declination", {"degrees": 2})
+                assert lacking.kind is ErrorKind.UNSUPPORTED
+                unknown = await gw.command("m", "self_destruct")
+                assert unknown.kind is ErrorKind.UNKNOWN
+                nobody = await gw.command("nobody", "save")
+                assert nobody.kind is ErrorKind.UNKNOWN
+        run(body)
+        no_overlap(sim)
+
+
+def test_modbus_gyro_calibration_is_busy_until_done() -> None:
+    with simulated([modbus(Series.VG, 1, gyro_cal_duration=0.5)]) as sim:
+        async def body() -> None:
+            async with running(bus_config(sim.path, "modbus", [
+                {"name": "vg", "series": "VG", "address": 1, "poll_hz": 10}])) as gw:
+                await until(lambda: gw.cache.snapshot("vg").seq >= 1)
+                result = await gw.command("vg", "calibrate_gyro")
+                assert result.ok and result.answer == {"value": 0}  # 0 = started
+                assert gw.cache.snapshot("vg").busy
+                await until(lambda: not gw.cache.snapshot("vg").busy, 5)
+                assert master(gw).sensors["vg"].busy_until < 1e9
+        run(body)
+        no_overlap(sim)
+
+
+# ------------------------------------------------------------------ auto-output
+
+
+@pytest.mark.parametrize("protocol", ["native", "modbus"])
+def test_stream_feeds_the_cache_commands_still_work_and_polling_takes_over(protocol: str) -> None:
+    faults = Faults()
+    sensor = make_sensor(Protocol[protocol.upper()], Series.AH, 0 if protocol == "native" else 1,
+                         baud=FAST, faults=faults)
+    with simulated([sensor]) as sim:
+        async def body() -> None:
+            async with running(bus_config(sim.path, protocol, [
+                {"name": "ah", "series": "AH", "address": sensor.address, "poll_hz": 5,
+                 "stream_hz": 50}])) as gw:
+                m = master(gw)
+                await until(lambda: gw.cache.snapshot("ah").streaming)
+                polls = m.stats.transactions
+                seq = gw.cache.snapshot("ah").seq
+                await until(lambda: gw.cache.snapshot("ah").seq >= seq + 20)
+                assert m.stats.transactions == polls  # readings came without asking
+                result = await gw.command("ah", "read_settings")
+                assert result.ok, result
+                # the stream stops (say the sensor was power-cycled): polling takes over
+                faults.stalled = True
+                await until(lambda: not gw.cache.snapshot("ah").streaming, 5)
+                faults.stalled = False
+                sensor.stream_interval = 0.0
+                await until(lambda: gw.cache.snapshot("ah").streaming, 15)  # set up again
+        run(body)
+        no_overlap(sim)
+
+
+def test_stream_is_stopped_on_shutdown() -> None:
+    sensor = native(Series.VG, 0)
+    with simulated([sensor]) as sim:
+        async def body() -> None:
+            async with running(bus_config(sim.path, "native", [
+                {"name": "vg", "series": "VG", "address": 0, "stream_hz": 20}])) as gw:
+                await until(lambda: gw.cache.snapshot("vg").streaming)
+        run(body)
+        assert sensor.stream_interval == 0.0
