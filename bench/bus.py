@@ -1,0 +1,117 @@
+"""Bus master throughput against the wire's limit.
+
+For each protocol, baud rate and sensor count, the simulator runs in its own process
+(like real sensors, it shares no interpreter with the gateway) and one bus master
+polls every sensor with ``poll_hz: 0``.  Printed per run:
+
+* achieved transactions/s;
+* the wire ceiling for those frames at that baud (DESIGN.md §4: bytes × 10 / baud,
+  plus the RTU silent gaps), and the ceiling once the simulator's answer delay is
+  added, which is the most any master could do against these sensors;
+* ``achieved/ceiling``: the share of that most the gateway gets;
+* utilisation: the time the line was in an exchange (request, answer delay, answer,
+  gaps) ÷ elapsed time.  The goal is >= 0.9.
+
+Run: ``.venv/bin/python bench/bus.py [--seconds 5] [--delay-ms 2]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import subprocess
+import sys
+from dataclasses import dataclass
+
+from gateway.app import Gateway
+from gateway.config import config_from_dict
+from gateway.model import Series
+from gateway.protocol.exchanges import ModbusAdapter, NativeAdapter, char_time, rtu_silence
+
+
+@dataclass(frozen=True)
+class Case:
+    protocol: str
+    baud: int
+    sensors: int
+
+    def per_exchange(self, delay: float) -> float:
+        """Seconds one poll takes at best: the wire, the gaps, the sensor's delay."""
+        if self.protocol == "native":
+            exchange = NativeAdapter().poll(Series.AH, 0)
+            gaps = 0.0
+        else:
+            exchange = ModbusAdapter().poll(Series.AH, 1)
+            # a silent interval before the request and before the answer
+            gaps = 2 * rtu_silence(self.baud)
+        wire = (len(exchange.request) + exchange.answer_bytes) * char_time(self.baud)
+        return wire + gaps + delay
+
+
+def start_simulator(case: Case, delay_ms: float) -> tuple[subprocess.Popen[str], str]:
+    first = 0 if case.protocol == "native" else 1
+    args = [sys.executable, "-m", "gateway", "simulate", "--answer-delay-ms", str(delay_ms)]
+    for i in range(case.sensors):
+        args += ["--sensor", f"{case.protocol}:AH:{first + i}:{case.baud}"]
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    assert proc.stdout is not None
+    line = proc.stdout.readline().split()
+    if not line or line[0] != "PTY":
+        proc.kill()
+        raise SystemExit("the simulator did not start")
+    return proc, line[1]
+
+
+async def measure(case: Case, port: str, seconds: float) -> dict[str, float]:
+    first = 0 if case.protocol == "native" else 1
+    config = config_from_dict({"buses": [{
+        "name": "bench", "port": port, "baudrate": case.baud, "protocol": case.protocol,
+        "sensors": [{"name": f"s{i}", "series": "AH", "address": first + i, "poll_hz": 0}
+                    for i in range(case.sensors)]}]}, env={})
+    gateway = Gateway(config)
+    stop = asyncio.Event()
+    task = asyncio.create_task(gateway.run(stop))
+    master = next(iter(gateway.masters.values()))
+    # Let every sensor answer once before the clock starts.
+    while not all(gateway.cache.snapshot(f"s{i}").seq for i in range(case.sensors)):
+        await asyncio.sleep(0.01)
+    loop = asyncio.get_running_loop()
+    t0, n0, busy0 = loop.time(), master.stats.transactions, master.stats.busy_time
+    await asyncio.sleep(seconds)
+    t1, n1, busy1 = loop.time(), master.stats.transactions, master.stats.busy_time
+    errors = sum(master.stats.errors.values())
+    stop.set()
+    await task
+    return {"tps": (n1 - n0) / (t1 - t0), "utilisation": (busy1 - busy0) / (t1 - t0),
+            "errors": errors}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--seconds", type=float, default=5.0)
+    parser.add_argument("--delay-ms", type=float, default=2.0,
+                        help="the simulated sensors' answer delay")
+    args = parser.parse_args()
+    delay = args.delay_ms / 1000
+    cases = [Case(p, b, n) for p in ("native", "modbus") for b in (9600, 115200) for n in (1, 4)]
+    print(f"bus master, poll_hz 0, AH sensors, answer delay {args.delay_ms} ms, "
+          f"{args.seconds} s per run, {os.cpu_count()} CPUs")
+    print(f"{'protocol':8} {'baud':>6} {'sensors':>7} {'tx/s':>8} {'wire max':>9} "
+          f"{'+delay max':>10} {'achieved/max':>12} {'utilisation':>11} {'errors':>6}")
+    for case in cases:
+        proc, port = start_simulator(case, args.delay_ms)
+        try:
+            result = asyncio.run(measure(case, port, args.seconds))
+        finally:
+            proc.terminate()
+            proc.wait(10)
+        wire_max = 1 / case.per_exchange(0.0)
+        real_max = 1 / case.per_exchange(delay)
+        print(f"{case.protocol:8} {case.baud:6} {case.sensors:7} {result['tps']:8.1f} "
+              f"{wire_max:9.1f} {real_max:10.1f} {result['tps'] / real_max:12.3f} "
+              f"{result['utilisation']:11.3f} {result['errors']:6.0f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
