@@ -17,11 +17,16 @@ from .bus.master import BusMaster
 from .cache import Cache
 from .commands import CommandError, CommandResult, ErrorKind, validate
 from .config import GatewayConfig, SensorConfig
+from .frontends.modbus_tcp import ModbusTcpServer
 
 log = logging.getLogger("gateway")
 
 STALENESS_TICK = 0.1  # seconds between checks that turn "too old" into status events
 SHUTDOWN_GRACE = 10.0  # seconds the bus masters get to finish the exchange in flight
+
+
+class StartupError(Exception):
+    """The gateway cannot start (a port to listen on is taken, …): one line for the user."""
 
 
 class Gateway:
@@ -33,6 +38,7 @@ class Gateway:
         self.masters = {bus.name: BusMaster(bus, self.cache) for bus in config.buses}
         self._master_of = {s.name: self.masters[b.name] for b, s in config.iter_sensors()}
         self.sensors: dict[str, SensorConfig] = {s.name: s for _, s in config.iter_sensors()}
+        self.modbus = ModbusTcpServer(self, config.modbus) if config.modbus else None
 
     async def command(self, sensor: str, name: str,
                       args: Mapping[str, Any] | None = None) -> CommandResult:
@@ -46,10 +52,54 @@ class Gateway:
             command = validate(name, args, config.series, master.config.protocol)
         except CommandError as exc:
             return CommandResult.failed(sensor, name, exc)
-        return await master.submit(sensor, command)
+        result = await master.submit(sensor, command)
+        if result.ok:
+            self._learn(sensor, command.name, command.args, result.answer)
+        return result
+
+    def _learn(self, sensor: str, name: str, args: Mapping[str, Any],
+               answer: Mapping[str, Any]) -> None:
+        """Remember what a successful command tells about the sensor's settings, for
+        the front ends that show them (Modbus TCP reads them back)."""
+        note = self.cache.note_settings
+        match name:
+            case "set_zero_type":
+                note(sensor, zero_type=args["type"])
+            case "read_settings":
+                if "zero_type" in answer:
+                    note(sensor, zero_type=answer["zero_type"])
+                if "degrees" in answer:
+                    note(sensor, declination=answer["degrees"])
+            case "set_declination":
+                note(sensor, declination=args["degrees"])
+            case "set_relative_heading":
+                note(sensor, relative_heading=args["degrees"])
+            case "mag_calibration":
+                note(sensor, mag_calibration=args["action"])
+            case "save" | "calibrate_gyro":
+                note(sensor, busy_with=name)
+
+    async def start_frontends(self) -> None:
+        """Open the listening sockets (once); raises ``StartupError`` when one cannot be
+        bound."""
+        if self.modbus is not None and not self.modbus.listening:
+            try:
+                await self.modbus.start()
+            except OSError as exc:
+                listen = self.modbus.config.listen
+                raise StartupError(f"modbus.listen {listen.host}:{listen.port}: "
+                                   f"{exc.strerror or exc}") from None
 
     async def run(self, stop: asyncio.Event) -> None:
         """Run until ``stop`` is set, then let every bus finish its exchange and stop."""
+        await self.start_frontends()
+        try:
+            await self._run_buses(stop)
+        finally:
+            if self.modbus is not None:
+                await self.modbus.stop()
+
+    async def _run_buses(self, stop: asyncio.Event) -> None:
         async with asyncio.TaskGroup() as tasks:
             runs = [tasks.create_task(m.run(), name=f"bus {m.name}")
                     for m in self.masters.values()]
@@ -68,6 +118,10 @@ class Gateway:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), STALENESS_TICK)
 
+    async def passthrough(self, sensor: str, pdu: bytes) -> bytes:
+        """A Modbus PDU to a Modbus sensor's own registers (``raw_unit_id``)."""
+        return await self._master_of[sensor].passthrough(sensor, pdu)
+
     def stats(self) -> list[dict[str, Any]]:
         return [m.bus_stats() for m in self.masters.values()]
 
@@ -80,6 +134,7 @@ async def run_until_signalled(config: GatewayConfig, stats_interval: float = 0.0
         loop.add_signal_handler(sig, stop.set)
     gateway = Gateway(config)
     log.info("%s", config.summary())
+    await gateway.start_frontends()  # before the task group: a StartupError stays plain
     async with asyncio.TaskGroup() as tasks:
         if stats_interval > 0:
             tasks.create_task(_log_stats(gateway, stop, stats_interval))

@@ -20,9 +20,11 @@ from __future__ import annotations
 import enum
 import time
 from collections.abc import Awaitable, Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from typing import Any
 
+from .commands import ErrorKind
 from .model import Reading
 
 
@@ -66,6 +68,14 @@ class UnknownSensor(KeyError):
     pass
 
 
+class SensorUnavailable(Exception):
+    """The bus could not be asked (a read or pass-through failed); ``kind`` says why."""
+
+    def __init__(self, kind: ErrorKind, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
 @dataclass(slots=True)
 class _Entry:
     stale_after: float  # seconds
@@ -78,6 +88,7 @@ class _Entry:
     streaming: bool = False
     errors: int = 0
     reported: tuple[Status, bool, bool] | None = None  # last status event sent
+    settings: dict[str, Any] = field(default_factory=dict)
 
 
 class Cache:
@@ -170,6 +181,14 @@ class Cache:
 
     def count_error(self, name: str) -> None:
         self._entry(name).errors += 1
+
+    def note_settings(self, name: str, **values: Any) -> None:
+        """Settings learnt from a command's answer (zero type, declination, …)."""
+        self._entry(name).settings.update(values)
+
+    def settings(self, name: str) -> dict[str, Any]:
+        """The sensor's settings as far as the gateway knows them."""
+        return dict(self._entry(name).settings)
 
     def check_staleness(self) -> None:
         for name in self._entries:

@@ -216,14 +216,18 @@ def _load_or_report(path: str) -> GatewayConfig | None:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from .app import run_until_signalled
+    from .app import StartupError, run_until_signalled
 
     config = _load_or_report(args.config)
     if config is None:
         return EXIT_BAD_INPUT
     logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
                         format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
-    asyncio.run(run_until_signalled(config, args.stats_interval))
+    try:
+        asyncio.run(run_until_signalled(config, args.stats_interval))
+    except StartupError as exc:
+        print(f"imu-gateway run: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     return 0
 
 

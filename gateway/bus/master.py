@@ -32,10 +32,9 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..cache import Cache
+from ..cache import Cache, SensorUnavailable
 from ..commands import Command, CommandError, CommandResult, ErrorKind
 from ..config import BusConfig, SensorConfig
-from ..model import Protocol
 from ..normalise import to_reading
 from ..protocol.errors import UsageError
 from ..protocol.exchanges import (
@@ -43,6 +42,7 @@ from ..protocol.exchanges import (
     Answer,
     Effect,
     Exchange,
+    ModbusAdapter,
     Unsupported,
     adapter_for,
     char_time,
@@ -63,14 +63,6 @@ class Priority(enum.IntEnum):
     STREAM_SETUP = 1
     ON_DEMAND = 2
     POLL = 3
-
-
-class SensorUnavailable(Exception):
-    """An on-demand read could not be done; ``kind`` says why."""
-
-    def __init__(self, kind: ErrorKind, message: str) -> None:
-        super().__init__(message)
-        self.kind = kind
 
 
 class _Failed(Exception):
@@ -164,6 +156,7 @@ class Job:
     sensor: Sensor
     command: Command | None = None
     future: asyncio.Future[Any] | None = None
+    plan: list[Exchange] | None = None  # exchanges ready made (pass-through)
 
 
 class BusMaster:
@@ -203,6 +196,21 @@ class BusMaster:
                 ErrorKind.OFFLINE, f"the port of bus {self.name} ({self.config.port}) is not open"))
         future: asyncio.Future[CommandResult] = asyncio.get_running_loop().create_future()
         self._commands.append(Job(Priority.COMMAND, s, command, future))
+        self._wake.set()
+        return await future
+
+    async def passthrough(self, sensor: str, pdu: bytes) -> bytes:
+        """A Modbus request PDU to the sensor unchanged, queued like a command; returns
+        the sensor's answer PDU (its exceptions included).  Raises ``SensorUnavailable``
+        when it does not answer."""
+        s = self.sensors[sensor]
+        if not self.port_open:
+            raise SensorUnavailable(ErrorKind.OFFLINE, f"the port of bus {self.name} is not open")
+        if not isinstance(self.adapter, ModbusAdapter):
+            raise SensorUnavailable(ErrorKind.UNSUPPORTED, f"{sensor} does not speak Modbus")
+        future: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
+        plan = [self.adapter.raw(s.address, pdu)]
+        self._commands.append(Job(Priority.COMMAND, s, None, future, plan))
         self._wake.set()
         return await future
 
@@ -435,6 +443,12 @@ class BusMaster:
                         job.future.set_result(None)
                 case Priority.STREAM_SETUP:
                     await self._start_stream(s)
+                case Priority.COMMAND if job.plan is not None:
+                    assert job.future is not None
+                    answer = await self._transact(s, job.plan[0])
+                    self._succeeded(s)
+                    if not job.future.done():
+                        job.future.set_result(answer.values["pdu"])
                 case Priority.COMMAND:
                     assert job.command is not None and job.future is not None
                     result = await self._command(s, job.command)
@@ -455,8 +469,7 @@ class BusMaster:
         future = job.future
         if future is None or future.done():
             return
-        if job.priority is Priority.COMMAND:
-            assert job.command is not None
+        if job.command is not None:
             future.set_result(CommandResult.failed(job.sensor.name, job.command.name,
                                                    CommandError(kind, message)))
         else:
@@ -657,4 +670,4 @@ class BusMaster:
         }
 
 
-__all__ = ["BusMaster", "Protocol", "SensorUnavailable"]
+__all__ = ["BusMaster", "SensorUnavailable"]

@@ -294,6 +294,32 @@ class ModbusAdapter:
         start, count = poll_span(series)
         return self.read("poll", address, start, count)
 
+    def raw(self, unit: int, pdu: bytes) -> Exchange:
+        """A request PDU passed to the sensor unchanged; the answer's PDU comes back as
+        ``values["pdu"]`` (the sensor's exceptions included).  ``pdu`` must be an
+        FC03/04/06/16 request the caller has checked."""
+        function = pdu[0]
+        if function in (rtu.READ_HOLDING, rtu.READ_INPUT):
+            answer_bytes = 5 + 2 * int.from_bytes(pdu[3:5], "big")
+        else:
+            answer_bytes = 8
+
+        def match(msg: Any) -> Answer | None:
+            if getattr(msg, "unit", None) != unit:
+                return None
+            if isinstance(msg, rtu.ExceptionAnswer | rtu.ReadResponse):
+                if msg.function != function:
+                    return None
+            elif isinstance(msg, rtu.WriteRegister):
+                if function != rtu.WRITE_SINGLE:
+                    return None
+            elif not isinstance(msg, rtu.WriteRegistersResponse) or \
+                    function != rtu.WRITE_MULTIPLE:
+                return None
+            return Answer({"pdu": rtu.encode(msg)[1:-2]})
+
+        return Exchange("pass-through", rtu.encode_pdu(unit, pdu), answer_bytes, match)
+
     def command(self, series: Series, address: int, name: str,
                 args: Mapping[str, Any]) -> list[Exchange]:
         w = self.write

@@ -387,6 +387,13 @@ def encode(message: RtuMessage) -> bytes:
         raise UsageError(f"cannot encode {message}: {exc}") from None
 
 
+def encode_pdu(unit: int, pdu: bytes) -> bytes:
+    """An RTU frame around a PDU given as bytes (Modbus TCP pass-through)."""
+    if not 0 <= unit <= 0xFF:
+        raise UsageError(f"unit {unit} is not 0-255")
+    return _BUILDER.encode(pdu, unit, 0)
+
+
 def read_request(unit: int, address: int, count: int, function: int = READ_HOLDING) -> bytes:
     return encode(ReadRequest(unit, address, count, function))
 

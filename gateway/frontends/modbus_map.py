@@ -1,0 +1,244 @@
+"""The Modbus TCP register map of SPEC.md §3, as one declarative table.
+
+The server answers from it, ``docs/register-map.md`` is generated from it
+(``python -m gateway.frontends.modbus_map > docs/register-map.md``; a test fails when
+the file is out of date), and nothing else describes it.
+
+Each sensor's map is kept as a ready byte image: the measured values are packed when
+a reading arrives, the status and command blocks when they are read (they change with
+time and settings).  A read is then a bounds check and a slice.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import struct
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from ..cache import Snapshot, Status
+from ..model import CAPABILITIES, Group, Protocol, Reading, Series
+from ..normalise import field_values
+
+INT32_MIN = -(2**31)
+NAN32 = struct.pack(">f", math.nan)
+
+
+class Type(enum.Enum):
+    U16 = (1, "u16")
+    U32 = (2, "u32")
+    I32 = (2, "i32")
+    F32 = (2, "f32")
+
+    @property
+    def words(self) -> int:
+        return self.value[0]
+
+
+@dataclass(frozen=True, slots=True)
+class Register:
+    address: int
+    type: Type
+    name: str
+    description: str
+    group: Group | None = None  # measured values: the group that carries it
+    scale: int = 1  # i32 copies: value × scale
+    command: str | None = None  # holding registers a write turns into this command
+    series: frozenset[Series] = frozenset(Series)  # who has it (commands)
+
+
+STATUS_BITS = {"online": 0, "stale": 1, "busy": 2, "streaming": 3, "no_reading": 4}
+
+_MEASURED: tuple[tuple[str, Group, int, str], ...] = (
+    ("pitch", Group.ANGLES, 100, "deg"), ("roll", Group.ANGLES, 100, "deg"),
+    ("yaw", Group.ANGLES, 100, "deg"),
+    ("accel_x", Group.ACCEL, 10000, "g"), ("accel_y", Group.ACCEL, 10000, "g"),
+    ("accel_z", Group.ACCEL, 10000, "g"),
+    ("gyro_x", Group.GYRO, 100, "deg/s"), ("gyro_y", Group.GYRO, 100, "deg/s"),
+    ("gyro_z", Group.GYRO, 100, "deg/s"),
+    ("mag_x", Group.MAG, 100000, "gauss"), ("mag_y", Group.MAG, 100000, "gauss"),
+    ("mag_z", Group.MAG, 100000, "gauss"),
+    ("q0", Group.QUATERNION, 1000000, ""), ("q1", Group.QUATERNION, 1000000, ""),
+    ("q2", Group.QUATERNION, 1000000, ""), ("q3", Group.QUATERNION, 1000000, ""),
+)
+FLOAT_BASE, INT_BASE, COMMAND_BASE = 100, 200, 1000
+MINS, AH = frozenset({Series.MINS}), frozenset({Series.AH})
+
+REGISTERS: tuple[Register, ...] = (
+    Register(0, Type.U16, "status", "bits: 0 online, 1 stale, 2 busy (save or calibration), "
+             "3 streaming, 4 no reading yet"),
+    Register(1, Type.U16, "age_ms", "age of the latest sample in ms, saturating at 65535"),
+    Register(2, Type.U32, "seq", "sample sequence number (increments on each new reading)"),
+    Register(4, Type.U32, "errors", "error count (timeouts, bad checksums, bad frames)"),
+    Register(6, Type.U16, "series", "series: 1 IMU, 2 VG, 3 AH, 4 MINS"),
+    Register(7, Type.U16, "protocol", "protocol: 0 native, 1 modbus"),
+    Register(8, Type.U16, "bus_address", "the sensor's address on its bus"),
+    *(Register(FLOAT_BASE + 2 * i, Type.F32, name, f"{name} ({unit})" if unit else name, group)
+      for i, (name, group, _, unit) in enumerate(_MEASURED)),
+    *(Register(INT_BASE + 2 * i, Type.I32, f"{name}_scaled",
+               f"{name} × {scale}" + (f" ({unit})" if unit else ""), group, scale)
+      for i, (name, group, scale, unit) in enumerate(_MEASURED)),
+    Register(1000, Type.U16, "zero_type", "zero type: write 0 absolute, 1 relative; reads the "
+             "last known (0xFFFF unknown)", command="set_zero_type"),
+    Register(1001, Type.U16, "save", "write 1: save settings; reads 1 while saving",
+             command="save"),
+    Register(1002, Type.U16, "gyro_calibration", "write 1: gyro calibration; reads 1 while "
+             "it runs", command="calibrate_gyro"),
+    Register(1003, Type.U16, "clear_heading", "write 1: clear heading (MINS); reads 0",
+             command="clear_heading", series=MINS),
+    Register(1004, Type.F32, "relative_heading", "relative heading start point, degrees "
+             "(MINS); reads the last written (NaN unknown)", command="set_relative_heading",
+             series=MINS),
+    Register(1006, Type.F32, "declination", "magnetic declination, degrees (AH); reads the "
+             "last known (NaN unknown)", command="set_declination", series=AH),
+    Register(1008, Type.U16, "mag_calibration", "magnetic calibration: write 1 start, "
+             "2 finish, 3 clear (AH); reads the last action (0 none)",
+             command="mag_calibration", series=AH),
+)
+
+#: Contiguous blocks of the map: a read must lie inside one.
+BLOCKS: tuple[range, ...] = (range(0, 9), range(100, 132), range(200, 232), range(1000, 1009))
+BY_ADDRESS: Mapping[int, Register] = {r.address: r for r in REGISTERS}
+IMAGE_WORDS = BLOCKS[-1].stop
+
+ZERO_TYPES = {"absolute": 0, "relative": 1}
+MAG_ACTIONS = {1: "start", 2: "finish", 3: "clear"}
+MAG_CODES = {action: code for code, action in MAG_ACTIONS.items()}
+
+
+def block_of(start: int, count: int) -> range | None:
+    """The block a read of ``count`` registers from ``start`` lies in, if any."""
+    for block in BLOCKS:
+        if start in block:
+            return block if start + count <= block.stop else None
+    return None
+
+
+def _pack(reg: Register, value: float | int | None) -> bytes:
+    """A register's bytes, big-endian, high word first; ``None`` is "not measured"."""
+    if reg.type is Type.F32:
+        return NAN32 if value is None else struct.pack(">f", value)
+    if reg.type is Type.I32:
+        if value is None or not math.isfinite(value):
+            return struct.pack(">i", INT32_MIN)
+        scaled = round(value * reg.scale)
+        return struct.pack(">i", max(INT32_MIN + 1, min(2**31 - 1, scaled)))
+    if reg.type is Type.U32:
+        return struct.pack(">I", int(value or 0) & 0xFFFFFFFF)
+    return struct.pack(">H", int(0 if value is None else value) & 0xFFFF)
+
+
+def _measured_values(reading: Reading | None) -> dict[str, float]:
+    return field_values(reading) if reading is not None else {}
+
+
+class SensorImage:
+    """One sensor's map as bytes."""
+
+    def __init__(self, series: Series, protocol: Protocol, address: int) -> None:
+        self.series = series
+        self.protocol = protocol
+        self.address = address
+        self.words = bytearray(2 * IMAGE_WORDS)
+        self.has_reading = False
+        self.set_reading(None)
+
+    def set_reading(self, reading: Reading | None) -> None:
+        values = _measured_values(reading)
+        measures = CAPABILITIES[self.series].groups
+        for reg in REGISTERS:
+            if reg.group is None:
+                continue
+            name = reg.name.removesuffix("_scaled")
+            value = values.get(name) if reg.group in measures else None
+            self.words[2 * reg.address: 2 * (reg.address + reg.type.words)] = _pack(reg, value)
+        self.has_reading = reading is not None
+
+    def refresh_status(self, snap: Snapshot) -> None:
+        bits = 0
+        if snap.online:
+            bits |= 1 << STATUS_BITS["online"]
+        if snap.status is Status.STALE:
+            bits |= 1 << STATUS_BITS["stale"]
+        if snap.busy:
+            bits |= 1 << STATUS_BITS["busy"]
+        if snap.streaming:
+            bits |= 1 << STATUS_BITS["streaming"]
+        if snap.reading is None:
+            bits |= 1 << STATUS_BITS["no_reading"]
+        age = 65535 if snap.age_ms is None else min(65535, int(snap.age_ms))
+        self.words[0:18] = struct.pack(">HHIIHHH", bits, age, snap.seq & 0xFFFFFFFF,
+                                       snap.errors & 0xFFFFFFFF, self.series.value,
+                                       self.protocol.value, self.address)
+
+    def refresh_commands(self, snap: Snapshot, known: Mapping[str, Any]) -> None:
+        """The command block: the settings as far as the gateway knows them."""
+        zero = ZERO_TYPES.get(known.get("zero_type", ""), 0xFFFF)
+        busy_with = known.get("busy_with") if snap.busy else None
+        words = struct.pack(">HHHH", zero, int(busy_with == "save"),
+                            int(busy_with == "calibrate_gyro"), 0)
+        heading = known.get("relative_heading")
+        declination = known.get("declination")
+        words += NAN32 if heading is None else struct.pack(">f", heading)
+        words += NAN32 if declination is None else struct.pack(">f", declination)
+        action = known.get("mag_calibration")
+        words += struct.pack(">H", MAG_CODES.get(action, 0) if action else 0)
+        self.words[2 * 1000: 2 * 1009] = words
+
+
+def markdown() -> str:
+    """``docs/register-map.md``."""
+    lines = [
+        "# Modbus TCP register map",
+        "",
+        "Generated from `gateway/frontends/modbus_map.py` by "
+        "`python -m gateway.frontends.modbus_map`; do not edit by hand.",
+        "",
+        "One map per sensor, addressed by its `unit_id`. Protocol addresses, 0-based. "
+        "FC03 and FC04 read the same values. 32-bit values are big-endian, high word "
+        "first (ABCD). A value the series does not measure reads NaN (f32) or "
+        "-2147483648 (i32). A read must lie inside one block "
+        f"({', '.join(f'{b.start}-{b.stop - 1}' for b in BLOCKS)}); other addresses answer "
+        "exception 02.",
+        "",
+        "| address | type | name | content | series |",
+        "|---|---|---|---|---|",
+    ]
+    for reg in REGISTERS:
+        span = str(reg.address) if reg.type.words == 1 else \
+            f"{reg.address}-{reg.address + reg.type.words - 1}"
+        if reg.group is not None:
+            who = ", ".join(s.name for s in Series if reg.group in CAPABILITIES[s].groups)
+        else:
+            who = "all" if reg.series == frozenset(Series) else \
+                ", ".join(s.name for s in Series if s in reg.series)
+        lines.append(f"| {span} | {reg.type.value[1]} | `{reg.name}` | {reg.description} | "
+                     f"{who} |")
+    lines += [
+        "",
+        "Writes (FC06, FC16) go to the command registers 1000-1008 only, one command per "
+        "request (a float takes both of its registers in one FC16). The answer is sent "
+        "after the sensor acknowledged.",
+        "",
+        "| exception | when |",
+        "|---|---|",
+        "| 01 | writes not allowed (`allow_writes: false`), or a function code other than "
+        "03, 04, 06, 16 |",
+        "| 02 | an address outside the map, a read across blocks, a command this series "
+        "or protocol lacks |",
+        "| 03 | a quantity outside 1-125 (read) or 1-123 (write), a bad value, half a "
+        "float |",
+        "| 04 | the sensor answered \"failure\" |",
+        "| 06 | the sensor is busy (save or calibration running) |",
+        "| 0A | an unknown unit id |",
+        "| 0B | the sensor did not answer; or a read of measured values before the first "
+        "reading |",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    print(markdown(), end="")
