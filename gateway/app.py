@@ -10,10 +10,11 @@ import asyncio
 import contextlib
 import logging
 import signal
+import sys
 from collections.abc import Mapping
 from typing import Any
 
-from .bus.master import BusMaster
+from .bus.runner import BusRunner
 from .cache import Cache
 from .commands import CommandError, CommandResult, ErrorKind, validate
 from .config import GatewayConfig, SensorConfig
@@ -23,6 +24,11 @@ log = logging.getLogger("gateway")
 
 STALENESS_TICK = 0.1  # seconds between checks that turn "too old" into status events
 SHUTDOWN_GRACE = 10.0  # seconds the bus masters get to finish the exchange in flight
+# A bus thread woken by its serial port waits for the GIL until the thread holding it
+# (busy with front-end clients) lets go: by default up to 5 ms, longer than a whole
+# exchange at 115200 baud.  A shorter interval keeps the line's timing (see
+# docs/benchmarks.md for the measurement).
+GIL_SWITCH_INTERVAL = 0.0005
 
 
 class StartupError(Exception):
@@ -35,8 +41,9 @@ class Gateway:
     def __init__(self, config: GatewayConfig) -> None:
         self.config = config
         self.cache = Cache([(s.name, s.stale_after_ms) for _, s in config.iter_sensors()])
-        self.masters = {bus.name: BusMaster(bus, self.cache) for bus in config.buses}
-        self._master_of = {s.name: self.masters[b.name] for b, s in config.iter_sensors()}
+        self.runners = {bus.name: BusRunner(bus, self.cache) for bus in config.buses}
+        self.masters = {name: runner.master for name, runner in self.runners.items()}
+        self._runner_of = {s.name: self.runners[b.name] for b, s in config.iter_sensors()}
         self.sensors: dict[str, SensorConfig] = {s.name: s for _, s in config.iter_sensors()}
         self.modbus = ModbusTcpServer(self, config.modbus) if config.modbus else None
 
@@ -47,12 +54,12 @@ class Gateway:
         if config is None:
             return CommandResult.failed(sensor, name, CommandError(
                 ErrorKind.UNKNOWN, f"unknown sensor {sensor!r}"))
-        master = self._master_of[sensor]
+        runner = self._runner_of[sensor]
         try:
-            command = validate(name, args, config.series, master.config.protocol)
+            command = validate(name, args, config.series, runner.master.config.protocol)
         except CommandError as exc:
             return CommandResult.failed(sensor, name, exc)
-        result = await master.submit(sensor, command)
+        result = await runner.call(runner.master.submit(sensor, command))
         if result.ok:
             self._learn(sensor, command.name, command.args, result.answer)
         return result
@@ -100,17 +107,15 @@ class Gateway:
                 await self.modbus.stop()
 
     async def _run_buses(self, stop: asyncio.Event) -> None:
-        async with asyncio.TaskGroup() as tasks:
-            runs = [tasks.create_task(m.run(), name=f"bus {m.name}")
-                    for m in self.masters.values()]
-            tasks.create_task(self._watch_staleness(stop), name="staleness")
-            await stop.wait()
+        for runner in self.runners.values():
+            runner.start()
+        try:
+            await self._watch_staleness(stop)
+        finally:
             log.info("stopping")
-            for master in self.masters.values():
-                master.stop()
-            _, late = await asyncio.wait(runs, timeout=SHUTDOWN_GRACE)
-            for task in late:
-                task.cancel()
+            for runner in self.runners.values():
+                runner.stop()
+            await asyncio.gather(*(r.join(SHUTDOWN_GRACE) for r in self.runners.values()))
 
     async def _watch_staleness(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
@@ -120,7 +125,8 @@ class Gateway:
 
     async def passthrough(self, sensor: str, pdu: bytes) -> bytes:
         """A Modbus PDU to a Modbus sensor's own registers (``raw_unit_id``)."""
-        return await self._master_of[sensor].passthrough(sensor, pdu)
+        runner = self._runner_of[sensor]
+        return await runner.call(runner.master.passthrough(sensor, pdu))
 
     def stats(self) -> list[dict[str, Any]]:
         return [m.bus_stats() for m in self.masters.values()]
@@ -132,6 +138,7 @@ async def run_until_signalled(config: GatewayConfig, stats_interval: float = 0.0
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL)
     gateway = Gateway(config)
     log.info("%s", config.summary())
     await gateway.start_frontends()  # before the task group: a StartupError stays plain

@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import threading
+import time
 from collections.abc import Callable
 
 import serial
@@ -32,6 +33,7 @@ class SerialLink:
         self._serial: serial.Serial | None = None
         self._thread: threading.Thread | None = None
         self._closing = False
+        self._expect = 0  # bytes of the answer now awaited (0: none known)
 
     @property
     def is_open(self) -> bool:
@@ -59,6 +61,14 @@ class SerialLink:
             while not self._closing:
                 try:
                     data = ser.read(max(1, ser.in_waiting))
+                    # The answer's length is known, its bytes cannot come faster than
+                    # the wire: wait for the rest and hand it over in one piece, instead
+                    # of waking up (and taking the GIL from busy front ends) per byte.
+                    remaining = self._expect - len(data)
+                    if data and remaining > 0:
+                        time.sleep(remaining * 10 / self.baudrate)
+                        data += ser.read(ser.in_waiting)
+                    self._expect = 0
                 except Exception as exc:  # any failure of the device means it is gone
                     if not self._closing:
                         loop.call_soon_threadsafe(self._lost, on_lost, exc)
@@ -75,7 +85,9 @@ class SerialLink:
         self.close()
         on_lost(exc)
 
-    def write(self, data: bytes) -> None:
+    def write(self, data: bytes, expect: int = 0) -> None:
+        """Send ``data``; ``expect`` is the length of the answer, when known."""
+        self._expect = expect
         if self._serial is None:
             raise LinkError(f"{self.port} is not open")
         try:

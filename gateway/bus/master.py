@@ -28,13 +28,15 @@ import asyncio
 import contextlib
 import enum
 import logging
+import typing
 from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..cache import Cache, SensorUnavailable
+from ..cache import SensorUnavailable
 from ..commands import Command, CommandError, CommandResult, ErrorKind
 from ..config import BusConfig, SensorConfig
+from ..model import Reading
 from ..normalise import to_reading
 from ..protocol.errors import UsageError
 from ..protocol.exchanges import (
@@ -159,8 +161,27 @@ class Job:
     plan: list[Exchange] | None = None  # exchanges ready made (pass-through)
 
 
+#: the master's on-demand read of one sensor
+ReadNow = typing.Callable[[str], typing.Coroutine[typing.Any, typing.Any, None]]
+
+
+class CacheWrites(typing.Protocol):
+    """What a bus master writes to the cache (``Cache`` itself, or a ``CacheWriter`` that
+    hands the writes to another thread's loop)."""
+
+    def publish(self, name: str, reading: Reading, at: float | None = None) -> object: ...
+
+    def set_state(self, name: str, *, online: bool | None = None, busy: bool | None = None,
+                  streaming: bool | None = None) -> None: ...
+
+    def count_error(self, name: str) -> None: ...
+
+    def set_requester(self, name: str, requester: ReadNow) -> None: ...
+
+
 class BusMaster:
-    def __init__(self, config: BusConfig, cache: Cache, link: SerialLink | None = None) -> None:
+    def __init__(self, config: BusConfig, cache: CacheWrites,
+                 link: SerialLink | None = None) -> None:
         self.config = config
         self.name = config.name
         self.baud = config.baudrate
@@ -565,7 +586,7 @@ class BusMaster:
             garbage = self.adapter.garbage_seen(self._framer)
             started = loop.time()
             try:
-                self.link.write(exchange.request)
+                self.link.write(exchange.request, exchange.answer_bytes)
                 self._last_tx_end = started + request_time
                 if exchange.answer_bytes == 0:
                     await asyncio.sleep(request_time)
@@ -665,6 +686,7 @@ class BusMaster:
             "errors": dict(self.stats.errors),
             "transactions_per_s": round(self.stats.rate.per_second(now), 2),
             "utilisation": round(self.stats.utilisation(now), 4),
+            "busy_ms": round(self.stats.busy_time * 1000),
             "wire_utilisation": round(self.stats.wire_utilisation(now), 4),
             "queue_depth": self.queue_depth(),
         }

@@ -188,6 +188,39 @@ class SensorImage:
         self.words[2 * 1000: 2 * 1009] = words
 
 
+#: Unit 255: the gateway's own diagnostics, one block of ``DIAG_STRIDE`` registers per
+#: bus in config order (bus i from address i × DIAG_STRIDE).  Read-only.
+DIAG_UNIT = 255
+DIAG_STRIDE = 10
+DIAG_REGISTERS: tuple[tuple[int, Type, str, str, float], ...] = (
+    # offset, type, stats key, content, scale
+    (0, Type.U32, "transactions", "transactions done", 1),
+    (2, Type.U32, "errors", "errors of every kind", 1),
+    (4, Type.U32, "busy_ms", "time the line spent in exchanges, ms (difference two reads "
+     "for the utilisation of a window)", 1),
+    (6, Type.U16, "transactions_per_s", "transactions/s over the last 5 s, × 10", 10),
+    (7, Type.U16, "utilisation", "time in exchanges ÷ elapsed since start, × 10000", 10000),
+    (8, Type.U16, "port_open", "1 when the port is open", 1),
+    (9, Type.U16, "queue_depth", "commands and reads waiting", 1),
+)
+
+
+def diagnostics_image(buses: list[dict[str, Any]]) -> bytes:
+    """Unit 255's registers for the buses' stats (``BusMaster.bus_stats``)."""
+    out = bytearray()
+    for bus in buses:
+        block = bytearray(2 * DIAG_STRIDE)
+        for offset, kind, key, _, scale in DIAG_REGISTERS:
+            value = bus[key]
+            if key == "errors":
+                value = sum(value.values())
+            raw = min(round(float(value) * scale), 0xFFFF if kind is Type.U16 else 2**32 - 1)
+            fmt = ">H" if kind is Type.U16 else ">I"
+            struct.pack_into(fmt, block, 2 * offset, raw)
+        out += block
+    return bytes(out)
+
+
 def markdown() -> str:
     """``docs/register-map.md``."""
     lines = [
@@ -235,6 +268,16 @@ def markdown() -> str:
         "| 0A | an unknown unit id |",
         "| 0B | the sensor did not answer; or a read of measured values before the first "
         "reading |",
+        "",
+        f"## Unit {DIAG_UNIT}: gateway diagnostics",
+        "",
+        f"One block of {DIAG_STRIDE} registers per bus, in the order of the config file "
+        f"(bus *i* starts at *i* × {DIAG_STRIDE}). Read-only (FC03/FC04).",
+        "",
+        "| offset | type | content |",
+        "|---|---|---|",
+        *(f"| {off if k.words == 1 else f'{off}-{off + 1}'} | {k.value[1]} | {text} |"
+          for off, k, _, text, _ in DIAG_REGISTERS),
         "",
     ]
     return "\n".join(lines)

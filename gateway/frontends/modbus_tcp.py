@@ -69,6 +69,8 @@ class GatewayLike(Protocol):
 
     async def passthrough(self, sensor: str, pdu: bytes) -> bytes: ...
 
+    def stats(self) -> list[dict[str, Any]]: ...
+
 
 def exception(function: int, code: int) -> bytes:
     return _pdu(ExceptionResponse(function, code))
@@ -141,6 +143,8 @@ class ModbusTcpServer:
             return self._passthrough(self.raw_units[unit_id], pdu)
         unit = self.units.get(unit_id)
         if unit is None:
+            if unit_id == mm.DIAG_UNIT and unit_id not in self.units:
+                return self._diagnostics(pdu)
             return exception(function, GATEWAY_PATH)
         if function in (READ_HOLDING, READ_INPUT):
             return self._read(unit, pdu)
@@ -171,6 +175,20 @@ class ModbusTcpServer:
         elif not image.has_reading:
             return exception(function, TARGET_FAILED)  # no reading yet
         return bytes((function, 2 * count)) + image.words[2 * start: 2 * (start + count)]
+
+    def _diagnostics(self, pdu: bytes) -> bytes:
+        function = pdu[0]
+        if function not in (READ_HOLDING, READ_INPUT):
+            return exception(function, ILLEGAL_FUNCTION)
+        if len(pdu) != 5:
+            return exception(function, ILLEGAL_VALUE)
+        start, count = struct.unpack_from(">HH", pdu, 1)
+        if not 1 <= count <= MAX_READ:
+            return exception(function, ILLEGAL_VALUE)
+        image = mm.diagnostics_image(self.gateway.stats())
+        if 2 * (start + count) > len(image):
+            return exception(function, ILLEGAL_ADDRESS)
+        return bytes((function, 2 * count)) + image[2 * start: 2 * (start + count)]
 
     def _check_write(self, pdu: bytes) -> int:
         """An exception code for a write that must be refused before decoding, or 0."""

@@ -1,0 +1,107 @@
+"""A bus master on a thread of its own.
+
+The line's timing must not depend on what the front ends are doing: with a hundred
+Modbus TCP clients on the main event loop, each turn of that loop runs a long burst of
+their callbacks, and a bus master sharing the loop would send each next request that
+much later (measured: the bus rate fell by a third, ``docs/benchmarks.md``).  So each
+bus master runs its own event loop on its own thread.
+
+The master writes to the cache through ``CacheWriter``, which hands every write to the
+loop that owns the cache, in order, so cache listeners (the front ends) always run
+there.  Calls into the master (commands, on-demand reads, pass-through) go through
+``BusRunner.call``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import logging
+import threading
+from collections.abc import Awaitable, Callable, Coroutine
+from typing import Any, TypeVar
+
+from ..cache import Cache
+from ..config import BusConfig
+from ..model import Reading
+from .master import BusMaster, ReadNow
+
+log = logging.getLogger("gateway.bus")
+T = TypeVar("T")
+
+
+class CacheWriter:
+    """The cache's write side, used from a bus thread."""
+
+    def __init__(self, cache: Cache, runner: BusRunner) -> None:
+        self.cache = cache
+        self.runner = runner
+        self.loop: asyncio.AbstractEventLoop | None = None  # the cache's loop, set at start
+
+    def _hand_over(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
+        assert self.loop is not None
+        self.loop.call_soon_threadsafe(functools.partial(fn, *args, **kwargs))
+
+    def publish(self, name: str, reading: Reading, at: float | None = None) -> None:
+        self._hand_over(self.cache.publish, name, reading, at)
+
+    def set_state(self, name: str, *, online: bool | None = None, busy: bool | None = None,
+                  streaming: bool | None = None) -> None:
+        self._hand_over(self.cache.set_state, name, online=online, busy=busy,
+                        streaming=streaming)
+
+    def count_error(self, name: str) -> None:
+        self._hand_over(self.cache.count_error, name)
+
+    def set_requester(self, name: str, requester: ReadNow) -> None:
+        """The master's on-demand read, reached from the cache's loop across threads."""
+        self.cache.set_requester(name, lambda sensor: self.runner.call(requester(sensor)))
+
+
+class BusRunner:
+    def __init__(self, config: BusConfig, cache: Cache) -> None:
+        self.writer = CacheWriter(cache, self)
+        self.master = BusMaster(config, self.writer)
+        self._thread = threading.Thread(target=self._main, name=f"bus {config.name}",
+                                        daemon=True)
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._task: asyncio.Task[None] | None = None
+        self._ready = threading.Event()
+
+    def start(self) -> None:
+        """Start the thread; the cache's loop is the running one."""
+        self.writer.loop = asyncio.get_running_loop()
+        self._thread.start()
+        self._ready.wait()
+
+    def _main(self) -> None:
+        async def run() -> None:
+            self._loop = asyncio.get_running_loop()
+            self._task = asyncio.current_task()
+            self._ready.set()
+            await self.master.run()
+
+        try:
+            asyncio.run(run())
+        except asyncio.CancelledError:
+            pass
+        except Exception:
+            log.exception("bus %s: the bus master failed", self.master.name)
+
+    def call(self, coro: Coroutine[Any, Any, T]) -> Awaitable[T]:
+        """Run ``coro`` on the bus's loop; await the result on the caller's."""
+        assert self._loop is not None
+        return asyncio.wrap_future(asyncio.run_coroutine_threadsafe(coro, self._loop))
+
+    def stop(self) -> None:
+        """Ask the master to finish its exchange in flight and stop."""
+        if self._loop is not None:
+            self._loop.call_soon_threadsafe(self.master.stop)
+
+    async def join(self, timeout: float) -> None:
+        """Wait for the thread; past ``timeout`` the master is cancelled."""
+        await asyncio.to_thread(self._thread.join, timeout)
+        if self._thread.is_alive() and self._loop is not None and self._task is not None:
+            log.warning("bus %s: not stopped after %.0f s; cancelling", self.master.name, timeout)
+            self._loop.call_soon_threadsafe(self._task.cancel)
+            await asyncio.to_thread(self._thread.join, 5.0)
