@@ -143,7 +143,7 @@ class ModbusTcpServer:
             return self._passthrough(self.raw_units[unit_id], pdu)
         unit = self.units.get(unit_id)
         if unit is None:
-            if unit_id == mm.DIAG_UNIT and unit_id not in self.units:
+            if unit_id == mm.DIAG_UNIT:  # sensor unit ids are 1-247
                 return self._diagnostics(pdu)
             return exception(function, GATEWAY_PATH)
         if function in (READ_HOLDING, READ_INPUT):
