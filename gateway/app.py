@@ -77,10 +77,10 @@ class Gateway:
                     note(sensor, zero_type=answer["zero_type"])
                 if "degrees" in answer:
                     note(sensor, declination=answer["degrees"])
-            case "set_declination":
-                note(sensor, declination=args["degrees"])
-            case "set_relative_heading":
-                note(sensor, relative_heading=args["degrees"])
+            case "set_declination" | "set_relative_heading":
+                # the sensor's echo, at its resolution (-1.25 is stored as -1.2)
+                key = "declination" if name == "set_declination" else "relative_heading"
+                note(sensor, **{key: answer.get("degrees", args["degrees"])})
             case "mag_calibration":
                 note(sensor, mag_calibration=args["action"])
             case "save" | "calibrate_gyro":

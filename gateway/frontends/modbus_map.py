@@ -18,7 +18,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from ..cache import Snapshot, Status
+from ..cache import Snapshot
 from ..model import CAPABILITIES, Group, Protocol, Reading, Series
 from ..normalise import field_values
 
@@ -137,10 +137,12 @@ def _measured_values(reading: Reading | None) -> dict[str, float]:
 class SensorImage:
     """One sensor's map as bytes."""
 
-    def __init__(self, series: Series, protocol: Protocol, address: int) -> None:
+    def __init__(self, series: Series, protocol: Protocol, address: int,
+                 stale_after_ms: float) -> None:
         self.series = series
         self.protocol = protocol
         self.address = address
+        self.stale_after_ms = stale_after_ms
         self.words = bytearray(2 * IMAGE_WORDS)
         self.has_reading = False
         self.set_reading(None)
@@ -160,7 +162,9 @@ class SensorImage:
         bits = 0
         if snap.online:
             bits |= 1 << STATUS_BITS["online"]
-        if snap.status is Status.STALE:
+        # Stale means "these values are old", whether or not the sensor is still online:
+        # a PLC that checks this bit alone must not trust the values of a dead sensor.
+        if snap.age_ms is None or snap.age_ms > self.stale_after_ms:
             bits |= 1 << STATUS_BITS["stale"]
         if snap.busy:
             bits |= 1 << STATUS_BITS["busy"]

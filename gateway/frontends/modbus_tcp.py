@@ -85,7 +85,8 @@ class _Unit:
 
     def __init__(self, sensor: SensorConfig, protocol: Any) -> None:
         self.sensor = sensor
-        self.image = mm.SensorImage(sensor.series, protocol, sensor.address)
+        self.image = mm.SensorImage(sensor.series, protocol, sensor.address,
+                                    sensor.stale_after_ms)
 
 
 class ModbusTcpServer:

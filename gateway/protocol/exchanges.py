@@ -299,22 +299,26 @@ class ModbusAdapter:
         ``values["pdu"]`` (the sensor's exceptions included).  ``pdu`` must be an
         FC03/04/06/16 request the caller has checked."""
         function = pdu[0]
-        if function in (rtu.READ_HOLDING, rtu.READ_INPUT):
-            answer_bytes = 5 + 2 * int.from_bytes(pdu[3:5], "big")
-        else:
-            answer_bytes = 8
+        address, quantity = int.from_bytes(pdu[1:3], "big"), int.from_bytes(pdu[3:5], "big")
+        reads = function in (rtu.READ_HOLDING, rtu.READ_INPUT)
+        answer_bytes = 5 + 2 * quantity if reads else 8
+
+        def answers_this(msg: Any) -> bool:
+            """Only the answer to *this* request: a late answer to an earlier one (other
+            registers, another count) must not be passed off as it."""
+            match msg:
+                case rtu.ExceptionAnswer(_, fn, _):
+                    return fn == function
+                case rtu.ReadResponse(_, registers, fn):
+                    return reads and fn == function and len(registers) == quantity
+                case rtu.WriteRegister(_, addr, value):
+                    return function == rtu.WRITE_SINGLE and addr == address and value == quantity
+                case rtu.WriteRegistersResponse(_, addr, count):
+                    return function == rtu.WRITE_MULTIPLE and (addr, count) == (address, quantity)
+            return False
 
         def match(msg: Any) -> Answer | None:
-            if getattr(msg, "unit", None) != unit:
-                return None
-            if isinstance(msg, rtu.ExceptionAnswer | rtu.ReadResponse):
-                if msg.function != function:
-                    return None
-            elif isinstance(msg, rtu.WriteRegister):
-                if function != rtu.WRITE_SINGLE:
-                    return None
-            elif not isinstance(msg, rtu.WriteRegistersResponse) or \
-                    function != rtu.WRITE_MULTIPLE:
+            if getattr(msg, "unit", None) != unit or not answers_this(msg):
                 return None
             return Answer({"pdu": rtu.encode(msg)[1:-2]})
 
