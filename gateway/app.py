@@ -15,7 +15,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from .bus.runner import BusRunner
-from .cache import Cache
+from .cache import Cache, SensorUnavailable
 from .commands import CommandError, CommandResult, ErrorKind, validate
 from .config import GatewayConfig, SensorConfig
 from .frontends.modbus_tcp import ModbusTcpServer
@@ -59,7 +59,10 @@ class Gateway:
             command = validate(name, args, config.series, runner.master.config.protocol)
         except CommandError as exc:
             return CommandResult.failed(sensor, name, exc)
-        result = await runner.call(runner.master.submit(sensor, command))
+        try:
+            result = await runner.call(runner.master.submit(sensor, command))
+        except SensorUnavailable as exc:
+            return CommandResult.failed(sensor, name, CommandError(exc.kind, str(exc)))
         if result.ok:
             self._learn(sensor, command.name, command.args, result.answer)
         return result

@@ -32,7 +32,7 @@ class SerialLink:
         self.rs485 = rs485
         self._serial: serial.Serial | None = None
         self._thread: threading.Thread | None = None
-        self._closing = False
+        self._closing = threading.Event()
         self._expect = 0  # bytes of the answer now awaited (0: none known)
 
     @property
@@ -55,10 +55,12 @@ class SerialLink:
         except (serial.SerialException, OSError, ValueError) as exc:
             raise LinkError(f"cannot open {self.port}: {exc}") from None
         self._serial = ser
-        self._closing = False
+        # Each open has its own stop flag: a reader of an earlier open that is still
+        # winding down can never touch this port.
+        closing = self._closing = threading.Event()
 
         def reader() -> None:
-            while not self._closing:
+            while not closing.is_set():
                 try:
                     data = ser.read(max(1, ser.in_waiting))
                     # The answer's length is known, its bytes cannot come faster than
@@ -70,8 +72,8 @@ class SerialLink:
                         data += ser.read(ser.in_waiting)
                     self._expect = 0
                 except Exception as exc:  # any failure of the device means it is gone
-                    if not self._closing:
-                        loop.call_soon_threadsafe(self._lost, on_lost, exc)
+                    if not closing.is_set():
+                        loop.call_soon_threadsafe(self._lost, ser, on_lost, exc)
                     return
                 if data:
                     loop.call_soon_threadsafe(on_bytes, data)
@@ -79,9 +81,10 @@ class SerialLink:
         self._thread = threading.Thread(target=reader, name=f"serial {self.port}", daemon=True)
         self._thread.start()
 
-    def _lost(self, on_lost: Callable[[Exception], None], exc: Exception) -> None:
-        if self._serial is None:
-            return
+    def _lost(self, ser: serial.Serial, on_lost: Callable[[Exception], None],
+              exc: Exception) -> None:
+        if self._serial is not ser:
+            return  # an earlier open's reader: that port is closed already
         self.close()
         on_lost(exc)
 
@@ -99,6 +102,8 @@ class SerialLink:
         self.baudrate = baudrate
         if self._serial is not None:
             try:
+                # The request just written must leave the UART at the old rate first.
+                self._serial.flush()
                 self._serial.baudrate = baudrate
             except (serial.SerialException, OSError, ValueError) as exc:
                 raise LinkError(f"setting {self.port} to {baudrate} baud: {exc}") from None
@@ -107,7 +112,7 @@ class SerialLink:
         ser, self._serial = self._serial, None
         if ser is None:
             return
-        self._closing = True
+        self._closing.set()
         with contextlib.suppress(Exception):
             ser.cancel_read()
         if self._thread is not None and self._thread is not threading.current_thread():

@@ -28,6 +28,7 @@ import asyncio
 import contextlib
 import enum
 import logging
+import time
 import typing
 from collections import Counter, deque
 from dataclasses import dataclass, field
@@ -58,6 +59,11 @@ BACKOFF_MIN, BACKOFF_MAX = 0.25, 10.0  # seconds between tries of a failing sens
 REOPEN_MIN, REOPEN_MAX = 0.5, 5.0  # seconds between tries to reopen a lost port
 STREAM_RETRY = 5.0  # seconds before setting up a stream that stopped again
 RATE_WINDOW = 5.0  # seconds over which achieved rates are measured
+MAX_QUEUED_PER_SENSOR = 16  # commands waiting for one sensor before more are refused (busy)
+LATE_ANSWER_GRACE = 0.1  # after a timeout, keep quiet this long (at most) for a late answer
+MIN_QUIET = 0.001  # the line must have been quiet this long before a request goes out
+SLOW_STREAM = 0.2  # stream periods from this long on are not waited for by every exchange
+STREAM_MARGIN = 0.02  # room left before a slow stream's next frame
 
 
 class Priority(enum.IntEnum):
@@ -129,8 +135,8 @@ class Sensor:
     failures: int = 0
     online: bool | None = None  # None: not heard from yet
     busy_until: float = 0.0
-    awaiting_done: bool = False
     streaming: bool = False
+    stop_stray_stream: bool = False  # it streams though nobody asked: tell it to stop
     last_stream: float = 0.0
     stream_retry_at: float = 0.0
     stats: SensorStats = field(default_factory=SensorStats)
@@ -203,18 +209,37 @@ class BusMaster:
         self._stopping = False
         self._last_rx = 0.0
         self._last_tx_end = 0.0
+        self._quiet_until = 0.0
+        self._dirty = False
         self._reopen_delay = REOPEN_MIN
         self._port_problem_logged = False
         self._loop: asyncio.AbstractEventLoop | None = None
 
     # ------------------------------------------------------------ public interface
 
+    def _refusal(self, s: Sensor, queued: bool = True) -> CommandError | None:
+        """Why a request for ``s`` cannot be taken now (it is answered at once), or None.
+
+        A sensor in back-off is not asked on demand: that would undo the back-off and
+        hand the line to a dead address (it is still retried in the background)."""
+        if self._stopping:
+            return CommandError(ErrorKind.OFFLINE, "the gateway is stopping")
+        if not self.port_open:
+            return CommandError(ErrorKind.OFFLINE,
+                                f"the port of bus {self.name} ({self.config.port}) is not open")
+        if s.online is False:
+            return CommandError(ErrorKind.OFFLINE, f"{s.name} is offline (it is retried in "
+                                f"the background; {s.failures} failed exchanges so far)")
+        if queued and sum(j.sensor is s for j in self._commands) >= MAX_QUEUED_PER_SENSOR:
+            return CommandError(ErrorKind.BUSY, f"{MAX_QUEUED_PER_SENSOR} requests for {s.name} "
+                                "are already waiting")
+        return None
+
     async def submit(self, sensor: str, command: Command) -> CommandResult:
         """Carry out a validated command; returns after the sensor's answer."""
         s = self.sensors[sensor]
-        if not self.port_open:
-            return CommandResult.failed(sensor, command.name, CommandError(
-                ErrorKind.OFFLINE, f"the port of bus {self.name} ({self.config.port}) is not open"))
+        if (refusal := self._refusal(s)) is not None:
+            return CommandResult.failed(sensor, command.name, refusal)
         future: asyncio.Future[CommandResult] = asyncio.get_running_loop().create_future()
         self._commands.append(Job(Priority.COMMAND, s, command, future))
         self._wake.set()
@@ -225,8 +250,8 @@ class BusMaster:
         the sensor's answer PDU (its exceptions included).  Raises ``SensorUnavailable``
         when it does not answer."""
         s = self.sensors[sensor]
-        if not self.port_open:
-            raise SensorUnavailable(ErrorKind.OFFLINE, f"the port of bus {self.name} is not open")
+        if (refusal := self._refusal(s)) is not None:
+            raise SensorUnavailable(refusal.kind, str(refusal))
         if not isinstance(self.adapter, ModbusAdapter):
             raise SensorUnavailable(ErrorKind.UNSUPPORTED, f"{sensor} does not speak Modbus")
         future: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
@@ -239,8 +264,8 @@ class BusMaster:
         """Read the sensor now (behind commands).  Concurrent calls share one exchange;
         a streaming sensor's next frame serves them.  Raises ``SensorUnavailable``."""
         s = self.sensors[sensor]
-        if not self.port_open:
-            raise SensorUnavailable(ErrorKind.OFFLINE, f"the port of bus {self.name} is not open")
+        if (refusal := self._refusal(s, queued=False)) is not None:
+            raise SensorUnavailable(refusal.kind, str(refusal))
         job = self._on_demand.get(sensor)
         if job is None:
             job = Job(Priority.ON_DEMAND, s, None, asyncio.get_running_loop().create_future())
@@ -285,15 +310,17 @@ class BusMaster:
             await asyncio.wait_for(self._wake.wait(), max(0.0, timeout))
 
     def _now(self) -> float:
-        assert self._loop is not None
-        return self._loop.time()
+        # The event loop's clock is time.monotonic; before run() there is no loop yet.
+        return self._loop.time() if self._loop is not None else time.monotonic()
 
     # ------------------------------------------------------------ the port
 
     async def _open_port(self) -> None:
         try:
             await self.link.open(self._on_bytes, self._on_lost)
+            self.link.set_baudrate(self.baud)
         except LinkError as exc:
+            self.link.close()
             if not self._port_problem_logged:
                 log.warning("bus %s: %s; retrying", self.name, exc)
                 self._port_problem_logged = True
@@ -306,7 +333,6 @@ class BusMaster:
             log.warning("bus %s: port %s is back", self.name, self.config.port)
         else:
             log.info("bus %s: port %s open at %d baud", self.name, self.config.port, self.baud)
-        self.link.set_baudrate(self.baud)
         self._port_problem_logged = False
         self._reopen_delay = REOPEN_MIN
         self._framer = self.adapter.new_framer()
@@ -316,6 +342,10 @@ class BusMaster:
             s.next_due, s.streaming, s.stream_retry_at = now, False, now
 
     def _on_lost(self, exc: Exception) -> None:
+        """The port is gone (reported by the reader or by a failed write): once."""
+        if not self.port_open:
+            return
+        self.link.close()
         self.port_open = False
         self.stats.errors["port_lost"] += 1
         log.warning("bus %s: port %s lost (%s); reopening", self.name, self.config.port, exc)
@@ -345,8 +375,13 @@ class BusMaster:
     def _on_bytes(self, data: bytes) -> None:
         now = self._now()
         self._last_rx = now
+        garbage = self.adapter.garbage_seen(self._framer)
         for frame in self._framer.feed(data):
             self._on_frame(frame, now)
+        # Bytes that did not end in a whole frame (noise, half a frame) may be followed
+        # by more: the next request then waits for the line to be quiet.
+        self._dirty = bool(self._framer.pending) or \
+            self.adapter.garbage_seen(self._framer) > garbage
 
     def _on_frame(self, frame: Any, now: float) -> None:
         if self._waiting is not None:
@@ -361,15 +396,29 @@ class BusMaster:
             if answer is None:
                 continue
             if answer.values.get("done"):
-                s.busy_until, s.awaiting_done = now, False
+                s.busy_until = now
                 log.info("sensor %s: gyro calibration done", s.name)
                 self.cache.set_state(s.name, busy=False)
-            else:
-                s.last_stream = now
-                self._publish(s, answer, now)
-                self._stream_frame.set()
+                return
+            if not s.config.stream_hz:
+                # Left streaming by an earlier owner, say: it would collide with polls.
+                s.stop_stray_stream = True
+            elif not s.streaming:
+                s.streaming = True  # the stream is back by itself: stop polling it
+                self.cache.set_state(s.name, streaming=True)
+                log.info("sensor %s: its stream is back", s.name)
+            s.last_stream = now
+            self._publish(s, answer, now)
+            self._stream_frame.set()
             return
         self.stats.errors["unexpected_frame"] += 1
+        # Unasked-for frames from a sensor that should not stream: it streams something
+        # (its default auto-output is the angles) and must be told to stop.  If it was a
+        # late answer instead, "rate 0" is what it is set to anyway.
+        sender = getattr(frame, "unit", getattr(frame, "address", None))
+        for s in self.sensors.values():
+            if s.address == sender and not s.config.stream_hz:
+                s.stop_stray_stream = True
 
     def _publish(self, s: Sensor, answer: Answer, at: float) -> None:
         reading = to_reading(answer.values, s.config.series)
@@ -394,7 +443,7 @@ class BusMaster:
                 self.cache.set_state(s.name, streaming=False)
                 log.warning("sensor %s: its stream stopped; polling it", s.name)
             if s.busy_until and now >= s.busy_until:
-                s.busy_until, s.awaiting_done = 0.0, False
+                s.busy_until = 0.0
                 self.cache.set_state(s.name, busy=False)
 
     def _next_job(self, now: float) -> Job | None:
@@ -408,6 +457,11 @@ class BusMaster:
         for s in self.sensors.values():
             if s.wants_stream(now):
                 return Job(Priority.STREAM_SETUP, s)
+            if s.stop_stray_stream and now >= s.stream_retry_at:
+                s.stop_stray_stream, s.stream_retry_at = False, now + STREAM_RETRY
+                log.warning("sensor %s: streams though stream_hz is 0; stopping it", s.name)
+                return Job(Priority.STREAM_SETUP, s,
+                           plan=self.adapter.stream_stop(s.config.series, s.address))
         for name, job in list(self._on_demand.items()):
             if job.sensor.busy_until > now:
                 del self._on_demand[name]
@@ -459,9 +513,15 @@ class BusMaster:
                 case Priority.POLL | Priority.ON_DEMAND:
                     answer = await self._transact(s, self.adapter.poll(s.config.series,
                                                                        s.address))
+                    if not answer.ok:  # a Modbus exception, or a frame that did not decode
+                        self._count_error(s, "refused")
+                        raise _Failed("refused")
                     self._publish(s, answer, self._now())
                     if job.future is not None and not job.future.done():
                         job.future.set_result(None)
+                case Priority.STREAM_SETUP if job.plan is not None:
+                    for exchange in job.plan:
+                        await self._transact(s, exchange)
                 case Priority.STREAM_SETUP:
                     await self._start_stream(s)
                 case Priority.COMMAND if job.plan is not None:
@@ -477,10 +537,18 @@ class BusMaster:
                         job.future.set_result(result)
         except _Failed as exc:
             self._failed(s, exc.kind)
-            kind = ErrorKind.OFFLINE if exc.kind == "port_lost" else ErrorKind.TIMEOUT
+            kind = {"port_lost": ErrorKind.OFFLINE, "refused": ErrorKind.FAILURE}.get(
+                exc.kind, ErrorKind.TIMEOUT)
             self._fail(job, kind, f"{s.name} did not answer ({exc.kind})")
             if job.priority is Priority.STREAM_SETUP:
                 s.stream_retry_at = self._now() + STREAM_RETRY
+        except LinkError as exc:  # e.g. the port refused a new baud rate
+            self._on_lost(exc)
+            self._fail(job, ErrorKind.OFFLINE, f"bus {self.name}: {exc}")
+        except Exception:
+            # A bug must cost one request, not the bus: log it, answer, carry on.
+            log.exception("bus %s: error while serving %s", self.name, s.name)
+            self._fail(job, ErrorKind.OFFLINE, "internal error in the gateway (logged)")
         finally:
             s.last_served = now
             if job.priority in (Priority.POLL, Priority.ON_DEMAND):
@@ -507,7 +575,8 @@ class BusMaster:
         answer: dict[str, Any] = {}
         for exchange in plan:
             result = await self._transact(s, exchange)
-            self._succeeded(s)
+            if exchange.answer_bytes:  # a write nobody answers proves nothing about s
+                self._succeeded(s)
             if not result.ok:
                 return CommandResult(s.name, command.name, False, dict(result.values),
                                      f"{s.name}: {result.detail}", ErrorKind.FAILURE)
@@ -543,13 +612,15 @@ class BusMaster:
                         effect.new_baud)
             self.baud = effect.new_baud
             self.link.set_baudrate(effect.new_baud)
+            if self.config.timeout_ms is None:  # derived from the rate: derive it again
+                self.timeout = self.config.model_copy(
+                    update={"baudrate": effect.new_baud}).effective_timeout_ms() / 1000
         if effect.new_address is not None and effect.new_address != s.address:
             log.warning("sensor %s: now at address %d (the config says %d)", s.name,
                         effect.new_address, s.config.address)
             s.address = effect.new_address
         if effect.busy_for or effect.busy_until_done:
             s.busy_until = now + (GYRO_CAL_SECONDS if effect.busy_until_done else effect.busy_for)
-            s.awaiting_done = effect.busy_until_done
             self.cache.set_state(s.name, busy=True)
 
     def _succeeded(self, s: Sensor) -> None:
@@ -576,9 +647,9 @@ class BusMaster:
         loop = asyncio.get_running_loop()
         kind = "timeout"
         for _attempt in range(self.config.retries + 1):
+            gap = await self._clear_to_send(exchange)
             if not self.port_open:
                 raise _Failed("port_lost")
-            gap = await self._clear_to_send()
             c = char_time(self.baud)
             request_time = len(exchange.request) * c
             future: asyncio.Future[Answer] = loop.create_future()
@@ -602,6 +673,8 @@ class BusMaster:
                     else "timeout"
                 self._count_error(s, kind)
                 self._flush_framer()
+                # A late answer may still be on its way: do not talk over it.
+                self._quiet_until = loop.time() + min(self.timeout, LATE_ANSWER_GRACE)
                 continue
             finally:
                 self._waiting = None
@@ -616,19 +689,41 @@ class BusMaster:
             return answer
         raise _Failed(kind)
 
-    async def _clear_to_send(self) -> float:
-        """Wait until a request may go out; returns the silent gap the protocol needs."""
+    async def _clear_to_send(self, exchange: Exchange) -> float:
+        """Wait until ``exchange`` may go out; returns the silent gap the protocol needs.
+
+        After a whole answer the line is known to be quiet and only the protocol's gap
+        applies.  After noise or half a frame it must have been quiet for at least 3.5
+        characters and ``MIN_QUIET``; after a timeout, for a late answer's grace.  Next to a
+        streaming sensor the exchange must also fit before its next frame; when it
+        does not, it waits for a frame to end and goes in the pause after it.
+        """
+        c = char_time(self.baud)
         gap = self.adapter.gap_before_request(self.baud)
+        quiet = max(gap, 3.5 * c, MIN_QUIET)
         streamer = next((s for s in self.sensors.values() if s.streaming), None)
         if streamer is not None:
-            # Talk right after one of its frames, so the request falls in the pause.
-            self._stream_frame.clear()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._stream_frame.wait(), 2 / streamer.config.stream_hz)
-        if gap:
-            wait = max(self._last_rx, self._last_tx_end) + gap - self._now()
-            if wait > 0:
-                await asyncio.sleep(wait)
+            # Next to a fast stream, wait for a frame to end (at most one period).  Next
+            # to a slow one that would hold every exchange to its rate, so go at once
+            # when the exchange fits well before the next frame (its time is estimated
+            # from when the last one was delivered, a few ms late: hence the margin).
+            period = 1 / streamer.config.stream_hz
+            needs = (len(exchange.request) + exchange.answer_bytes) * c + 2 * quiet
+            fits = self._now() + needs + STREAM_MARGIN < streamer.last_stream + period
+            if period < SLOW_STREAM or not fits:
+                self._stream_frame.clear()
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._stream_frame.wait(), 2 * period)
+        while self.port_open:
+            now = self._now()
+            settle = quiet if self._dirty else gap
+            ready_at = max(self._last_rx + settle, self._last_tx_end + gap, self._quiet_until)
+            if now >= ready_at and not self._framer.pending:
+                break
+            if now >= self._last_rx + quiet and self._framer.pending:
+                self._flush_framer()  # a half frame that stopped coming never completes
+                continue
+            await asyncio.sleep(max(ready_at - now, MIN_QUIET / 2))
         return gap
 
     def _count_error(self, s: Sensor, kind: str) -> None:
@@ -656,6 +751,7 @@ class BusMaster:
                             await self._transact(s, exchange)
         self.port_open = False
         self.link.close()
+        self._fail_pending(ErrorKind.OFFLINE, "the gateway is stopping")
 
     # ------------------------------------------------------------ views
 

@@ -21,7 +21,8 @@ import threading
 from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any, TypeVar
 
-from ..cache import Cache
+from ..cache import Cache, SensorUnavailable
+from ..commands import ErrorKind
 from ..config import BusConfig
 from ..model import Reading
 from .master import BusMaster, ReadNow
@@ -89,9 +90,17 @@ class BusRunner:
             log.exception("bus %s: the bus master failed", self.master.name)
 
     def call(self, coro: Coroutine[Any, Any, T]) -> Awaitable[T]:
-        """Run ``coro`` on the bus's loop; await the result on the caller's."""
-        assert self._loop is not None
-        return asyncio.wrap_future(asyncio.run_coroutine_threadsafe(coro, self._loop))
+        """Run ``coro`` on the bus's loop; await the result on the caller's.  Raises
+        ``SensorUnavailable`` when the bus is not running (not started, or stopped)."""
+        loop = self._loop
+        try:
+            if loop is None or loop.is_closed():
+                raise RuntimeError("not running")
+            return asyncio.wrap_future(asyncio.run_coroutine_threadsafe(coro, loop))
+        except RuntimeError:  # the loop closed under us: the bus has stopped
+            coro.close()
+            raise SensorUnavailable(ErrorKind.OFFLINE,
+                                    f"bus {self.master.name} is not running") from None
 
     def stop(self) -> None:
         """Ask the master to finish its exchange in flight and stop."""
