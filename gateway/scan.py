@@ -54,9 +54,10 @@ class Prober:
         self.port = port
         self.margin = margin
 
-    def ask(self, request: bytes, answer_bytes: int, framer: Any,
-            gap: float = 0.0) -> tuple[list[Any], int]:
-        """Send ``request``; return the frames heard and how many bytes arrived."""
+    def ask(self, request: bytes, answer_bytes: int, framer: Any, gap: float = 0.0,
+            all_answers: bool = False) -> tuple[list[Any], int]:
+        """Send ``request``; return the frames heard and how many bytes arrived.  With
+        ``all_answers`` it listens for the whole time allowed, not just the first."""
         c = char_time(self.port.baudrate)
         time.sleep(gap)
         self.port.reset_input_buffer()
@@ -64,7 +65,7 @@ class Prober:
         deadline = time.monotonic() + (len(request) + answer_bytes) * c + gap + self.margin
         frames: list[Any] = []
         heard = 0
-        while time.monotonic() < deadline and not frames:
+        while time.monotonic() < deadline and (all_answers or not frames):
             self.port.timeout = max(0.0, deadline - time.monotonic())
             data = self.port.read(max(1, self.port.in_waiting))
             heard += len(data)
@@ -89,10 +90,14 @@ def _native_series(prober: Prober, address: int) -> str:
 
 def scan_native(prober: Prober, addresses: Iterable[int]) -> Iterator[tuple[int, str]]:
     query = native.encode_request("read_address")
-    frames, heard = prober.ask(query, 6, native.NativeFramer(native.ANSWER_SHAPES))
-    answers = [native.interpret(f).values["address"] for f in frames if f.command == 0x1F]
-    if answers:
-        found = [answers[0]]
+    # Every sensor answers the address query: listen for all of them (they may answer
+    # one after another without colliding).
+    frames, heard = prober.ask(query, 6, native.NativeFramer(native.ANSWER_SHAPES),
+                               all_answers=True)
+    answers = sorted({native.interpret(f).values["address"] for f in frames
+                      if f.command == 0x1F})
+    if answers and heard == 6 * len(answers):
+        found = answers
     elif heard:  # something answered, garbled: several sensors at once
         zero_type = native.COMMANDS_BY_NAME["read_zero_type"]
         found = []

@@ -102,3 +102,14 @@ def test_scan_of_an_empty_line_finds_nothing(tmp_path: Path) -> None:
             capture_output=True, text=True, timeout=60, check=False)
     assert done.returncode == 1
     assert "0 sensors found" in done.stderr
+
+
+def test_scan_finds_native_sensors_whose_address_answers_do_not_collide() -> None:
+    sensors = [make_sensor(Protocol.NATIVE, Series.AH, 4, baud=115200, answer_delay=0.002),
+               make_sensor(Protocol.NATIVE, Series.IMU, 9, baud=115200, answer_delay=0.02)]
+    with simulated(sensors) as sim:
+        done = subprocess.run(
+            gateway_cli("scan", "--port", sim.path, "--baud", "115200", "--protocol", "native"),
+            capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    assert [line.split()[4] for line in done.stdout.splitlines()] == ["4", "9"]
