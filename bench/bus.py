@@ -24,7 +24,7 @@ import subprocess
 import sys
 from dataclasses import dataclass
 
-from gateway.app import Gateway
+from gateway.app import GIL_SWITCH_INTERVAL, Gateway
 from gateway.config import config_from_dict
 from gateway.model import Series
 from gateway.protocol.exchanges import ModbusAdapter, NativeAdapter, char_time, rtu_silence
@@ -93,6 +93,7 @@ def main() -> None:
     parser.add_argument("--delay-ms", type=float, default=2.0,
                         help="the simulated sensors' answer delay")
     args = parser.parse_args()
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL)  # as `imu-gateway run` does
     delay = args.delay_ms / 1000
     cases = [Case(p, b, n) for p in ("native", "modbus") for b in (9600, 115200) for n in (1, 4)]
     print(f"bus master, poll_hz 0, AH sensors, answer delay {args.delay_ms} ms, "

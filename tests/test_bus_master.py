@@ -559,3 +559,20 @@ def test_a_stream_that_comes_back_by_itself_is_no_longer_polled() -> None:
                 assert master(gw).stats.transactions == polls
                 assert sim.bus.stats.overlaps == overlaps
         run(body)
+
+
+@pytest.mark.parametrize("port", ["pty", "socket://127.0.0.1:9"])
+def test_kernel_rs485_mode_where_it_cannot_work_is_a_clear_error(port: str) -> None:
+    from gateway.bus.link import LinkError, SerialLink
+
+    async def body(path: str) -> None:
+        link = SerialLink(path, 9600, rs485=True)
+        with pytest.raises(LinkError, match=r"RS-?485"):
+            await link.open(lambda data: None, lambda exc: None)
+        assert not link.is_open
+
+    if port == "pty":
+        with simulated([native(Series.AH, 0)]) as sim:
+            asyncio.run(body(sim.path))
+    else:
+        asyncio.run(body(port))

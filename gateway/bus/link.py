@@ -44,6 +44,10 @@ class SerialLink:
     ) -> None:
         """Open the port and start delivering received bytes to ``on_bytes`` in the loop."""
         loop = asyncio.get_running_loop()
+        if self.rs485 and "://" in self.port:
+            # pyserial would accept the setting and silently ignore it.
+            raise LinkError(f"cannot open {self.port}: kernel RS-485 mode needs a local "
+                            "serial device, not a URL")
         try:
             ser = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.1,
                                         do_not_open=True)
