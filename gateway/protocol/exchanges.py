@@ -192,16 +192,12 @@ class NativeAdapter:
                 return reads
         raise Unsupported(f"no native command {name!r}")
 
-    def _output_codes(self, series: Series, hz: float) -> tuple[int, int]:
-        type_code = next(c for c, cmd in native.OUTPUT_TYPES[series].items() if cmd == "read_all")
-        for code, rate in native.OUTPUT_RATE_CODES.items():
-            if rate == hz:
-                return type_code, code
-        rates = sorted(native.OUTPUT_RATE_CODES.values())
-        raise Unsupported(f"native auto-output rates are {rates}, not {hz}")
-
     def stream_start(self, series: Series, address: int, hz: float) -> list[Exchange]:
-        type_code, _ = self._output_codes(series, hz)
+        """2.16 then 2.17: stream the combined frame (2.13-2.15) at ``hz``."""
+        if hz not in native.OUTPUT_RATE_CODES.values():
+            rates = sorted(native.OUTPUT_RATE_CODES.values())
+            raise Unsupported(f"native auto-output rates are {rates}, not {hz}")
+        type_code = next(c for c, cmd in native.OUTPUT_TYPES[series].items() if cmd == "read_all")
         return [
             self._exchange(series, address, "set_output_type", output_type=type_code),
             self._exchange(series, address, "set_output_rate", rate_hz=int(hz)),
