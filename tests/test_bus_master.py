@@ -9,11 +9,10 @@ shared), never about how fast this machine happens to be.
 from __future__ import annotations
 
 import asyncio
-import contextlib
-from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
 
 import pytest
+from harness import run, running, until
 
 from gateway.app import Gateway
 from gateway.bus.master import OFFLINE_AFTER, BusMaster, SensorUnavailable
@@ -37,32 +36,8 @@ def bus_config(port: str, protocol: str, sensors: list[dict[str, Any]],
          "sensors": sensors, **bus}]}
 
 
-@contextlib.asynccontextmanager
-async def running(config: dict[str, Any]) -> AsyncIterator[Gateway]:
-    gateway = Gateway(config_from_dict(config, env={}))
-    stop = asyncio.Event()
-    task = asyncio.create_task(gateway.run(stop))
-    try:
-        yield gateway
-    finally:
-        stop.set()
-        await asyncio.wait_for(task, 15)
-
-
 def master(gateway: Gateway) -> BusMaster:
     return next(iter(gateway.masters.values()))
-
-
-async def until(condition: Callable[[], bool], timeout: float = 10.0) -> None:
-    """Wait for a condition of the system under test (a deadline, not a measurement)."""
-    async def poll() -> None:
-        while not condition():
-            await asyncio.sleep(0.01)
-    await asyncio.wait_for(poll(), timeout)
-
-
-def run(coro: Callable[[], Awaitable[None]]) -> None:
-    asyncio.run(coro())
 
 
 def native(series: Series, address: int, **options: Any) -> SimSensor:

@@ -11,23 +11,22 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import inspect
 import logging
 import math
 import random
 import re
 import shutil
 import struct
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable
 from pathlib import Path
 from typing import Any
 
 import pytest
+from harness import run, running, until
 from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
 from gateway.app import Gateway
-from gateway.config import config_from_dict
 from gateway.model import Protocol, Series
 from gateway.normalise import field_values
 from gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
@@ -77,48 +76,9 @@ def config(buses: list[dict[str, Any]], **modbus: Any) -> dict[str, Any]:
             "modbus": {"listen": "127.0.0.1:0", **modbus}}
 
 
-@contextlib.asynccontextmanager
-async def running(cfg: dict[str, Any]) -> AsyncIterator[Gateway]:
-    gateway = Gateway(config_from_dict(cfg, env={}))
-    stop = asyncio.Event()
-    task = asyncio.create_task(gateway.run(stop))
-    try:
-        await until(lambda: task.done() or (gateway.modbus is not None
-                                            and gateway.modbus.listening))
-        if task.done():
-            task.result()
-        yield gateway
-    finally:
-        stop.set()
-        await asyncio.wait_for(task, 15)
-
-
 def port_of(gateway: Gateway) -> int:
     assert gateway.modbus is not None
     return gateway.modbus.port
-
-
-async def until(condition: Callable[[], bool | Awaitable[bool]], timeout: float = 10.0) -> None:
-    """Wait for a condition of the system under test (a deadline, not a measurement).
-
-    The deadline is checked between polls rather than by cancelling them: Python
-    3.11's ``wait_for`` can lose a cancellation that races with the inner
-    ``wait_for`` of a pymodbus request, and the wait would then never end."""
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
-    while True:
-        value = condition()
-        if inspect.isawaitable(value):
-            value = await value
-        if value:
-            return
-        if loop.time() > deadline:
-            raise TimeoutError(f"condition not met within {timeout} s")
-        await asyncio.sleep(0.01)
-
-
-def run(coro: Callable[[], Awaitable[None]]) -> None:
-    asyncio.run(coro())  # type: ignore[arg-type]
 
 
 async def has_readings(gateway: Gateway, *names: str, seq: int = 1) -> None:
