@@ -165,6 +165,7 @@ class Job:
     command: Command | None = None
     future: asyncio.Future[Any] | None = None
     plan: list[Exchange] | None = None  # exchanges ready made (pass-through)
+    started: bool = False  # an on-demand read in flight: later askers share it
 
 
 #: the master's on-demand read of one sensor
@@ -211,6 +212,7 @@ class BusMaster:
         self._last_tx_end = 0.0
         self._quiet_until = 0.0
         self._dirty = False
+        self._polls: dict[str, tuple[int, Exchange]] = {}
         self._reopen_delay = REOPEN_MIN
         self._port_problem_logged = False
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -420,14 +422,28 @@ class BusMaster:
             if s.address == sender and not s.config.stream_hz:
                 s.stop_stray_stream = True
 
+    def _poll_of(self, s: Sensor) -> Exchange:
+        """The sensor's poll, built once per address (it is sent hundreds of times a
+        second; the time between an answer and the next request is the line's)."""
+        poll = self._polls.get(s.name)
+        if poll is None or poll[0] != s.address:
+            poll = self._polls[s.name] = (s.address, self.adapter.poll(s.config.series,
+                                                                       s.address))
+        return poll[1]
+
+    def _publish_polled(self, s: Sensor, answer: Answer, at: float, job: Job) -> None:
+        self._publish(s, answer, at)
+        if job.future is not None and not job.future.done():
+            job.future.set_result(None)
+
     def _publish(self, s: Sensor, answer: Answer, at: float) -> None:
         reading = to_reading(answer.values, s.config.series)
-        if reading is None:
-            return
-        self.cache.publish(s.name, reading, at)
-        s.stats.readings += 1
-        s.stats.rate.add(at)
-        self._succeeded(s)
+        if reading is not None:
+            self.cache.publish(s.name, reading, at)
+            s.stats.readings += 1
+            s.stats.rate.add(at)
+            self._succeeded(s)
+        # Whoever asked for a fresh reading has one now (from a poll or a stream frame).
         job = self._on_demand.pop(s.name, None)
         if job is not None and job.future is not None and not job.future.done():
             job.future.set_result(None)
@@ -466,8 +482,8 @@ class BusMaster:
             if job.sensor.busy_until > now:
                 del self._on_demand[name]
                 self._fail(job, ErrorKind.BUSY, f"{name} is busy (save or calibration)")
-            elif not job.sensor.streaming:
-                del self._on_demand[name]
+            elif not job.sensor.streaming and not job.started:
+                job.started = True  # stays listed until answered, for later askers
                 return job
         due = [s for s in self.sensors.values()
                if s.next_due <= now and s.busy_until <= now and not s.streaming]
@@ -511,14 +527,15 @@ class BusMaster:
         try:
             match job.priority:
                 case Priority.POLL | Priority.ON_DEMAND:
-                    answer = await self._transact(s, self.adapter.poll(s.config.series,
-                                                                       s.address))
+                    answer = await self._transact(s, self._poll_of(s))
                     if not answer.ok:  # a Modbus exception, or a frame that did not decode
                         self._count_error(s, "refused")
                         raise _Failed("refused")
-                    self._publish(s, answer, self._now())
-                    if job.future is not None and not job.future.done():
-                        job.future.set_result(None)
+                    # Publishing (normalise, hand to the cache) waits until the next
+                    # request is on the wire: call_soon runs at the loop's next turn,
+                    # after this task has gone on to write it.
+                    asyncio.get_running_loop().call_soon(self._publish_polled, s, answer,
+                                                         self._now(), job)
                 case Priority.STREAM_SETUP if job.plan is not None:
                     for exchange in job.plan:
                         await self._transact(s, exchange)
@@ -555,6 +572,8 @@ class BusMaster:
                 self._schedule_next_poll(s, self._now())
 
     def _fail(self, job: Job, kind: ErrorKind, message: str) -> None:
+        if self._on_demand.get(job.sensor.name) is job:
+            del self._on_demand[job.sensor.name]
         future = job.future
         if future is None or future.done():
             return
