@@ -531,6 +531,7 @@ class BusMaster:
                     if not answer.ok:  # a Modbus exception, or a frame that did not decode
                         self._count_error(s, "refused")
                         raise _Failed("refused")
+                    self._succeeded(s)  # now: the next poll is scheduled before publishing
                     # Publishing (normalise, hand to the cache) waits until the next
                     # request is on the wire: call_soon runs at the loop's next turn,
                     # after this task has gone on to write it.
