@@ -24,7 +24,8 @@ from typing import Any
 
 import serial
 
-from .model import CAPABILITIES, Group, Protocol, Series
+from .model import CAPABILITIES, Protocol, Series
+from .normalise import GROUP_FIELDS
 from .protocol import modbus_rtu as rtu
 from .protocol import native
 from .protocol.exchanges import NativeAdapter, char_time, poll_span, rtu_silence
@@ -123,7 +124,7 @@ def _modbus_series(prober: Prober, unit: int) -> str:
     for frame in frames:
         if isinstance(frame, rtu.ReadResponse) and frame.unit == unit:
             values = rtu.read_values(start, frame.registers)
-            measured = {g for g, members in _GROUP_NAMES.items()
+            measured = {g for g, (_, members) in GROUP_FIELDS.items()
                         if any(values.get(n) for n in members)}
             # A series leaves what it does not measure at zero: the smallest series
             # whose groups cover what is non-zero is the best guess.
@@ -132,15 +133,6 @@ def _modbus_series(prober: Prober, unit: int) -> str:
                 if measured <= CAPABILITIES[series].groups:
                     return f"{label} (guessed from its values)"
     return "unknown"
-
-
-_GROUP_NAMES = {
-    Group.ANGLES: ("pitch", "roll", "yaw"),
-    Group.ACCEL: ("accel_x", "accel_y", "accel_z"),
-    Group.GYRO: ("gyro_x", "gyro_y", "gyro_z"),
-    Group.MAG: ("mag_x", "mag_y", "mag_z"),
-    Group.QUATERNION: ("q0", "q1", "q2", "q3"),
-}
 
 
 def scan_modbus(prober: Prober, units: Iterable[int]) -> Iterator[tuple[int, str]]:

@@ -431,11 +431,6 @@ class BusMaster:
                                                                        s.address))
         return poll[1]
 
-    def _publish_polled(self, s: Sensor, answer: Answer, at: float, job: Job) -> None:
-        self._publish(s, answer, at)
-        if job.future is not None and not job.future.done():
-            job.future.set_result(None)
-
     def _publish(self, s: Sensor, answer: Answer, at: float) -> None:
         reading = to_reading(answer.values, s.config.series)
         if reading is not None:
@@ -535,8 +530,9 @@ class BusMaster:
                     # Publishing (normalise, hand to the cache) waits until the next
                     # request is on the wire: call_soon runs at the loop's next turn,
                     # after this task has gone on to write it.
-                    asyncio.get_running_loop().call_soon(self._publish_polled, s, answer,
-                                                         self._now(), job)
+                    # (_publish also answers an on-demand job: it is listed until then.)
+                    asyncio.get_running_loop().call_soon(self._publish, s, answer,
+                                                         self._now())
                 case Priority.STREAM_SETUP if job.plan is not None:
                     for exchange in job.plan:
                         await self._transact(s, exchange)

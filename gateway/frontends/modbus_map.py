@@ -20,7 +20,7 @@ from typing import Any
 
 from ..cache import Snapshot
 from ..model import CAPABILITIES, Group, Protocol, Reading, Series
-from ..normalise import field_values
+from ..normalise import GROUP_FIELDS, field_values
 
 INT32_MIN = -(2**31)
 NAN32 = struct.pack(">f", math.nan)
@@ -51,17 +51,16 @@ class Register:
 
 STATUS_BITS = {"online": 0, "stale": 1, "busy": 2, "streaming": 3, "no_reading": 4}
 
-_MEASURED: tuple[tuple[str, Group, int, str], ...] = (
-    ("pitch", Group.ANGLES, 100, "deg"), ("roll", Group.ANGLES, 100, "deg"),
-    ("yaw", Group.ANGLES, 100, "deg"),
-    ("accel_x", Group.ACCEL, 10000, "g"), ("accel_y", Group.ACCEL, 10000, "g"),
-    ("accel_z", Group.ACCEL, 10000, "g"),
-    ("gyro_x", Group.GYRO, 100, "deg/s"), ("gyro_y", Group.GYRO, 100, "deg/s"),
-    ("gyro_z", Group.GYRO, 100, "deg/s"),
-    ("mag_x", Group.MAG, 100000, "gauss"), ("mag_y", Group.MAG, 100000, "gauss"),
-    ("mag_z", Group.MAG, 100000, "gauss"),
-    ("q0", Group.QUATERNION, 1000000, ""), ("q1", Group.QUATERNION, 1000000, ""),
-    ("q2", Group.QUATERNION, 1000000, ""), ("q3", Group.QUATERNION, 1000000, ""),
+#: Per group: the i32 copy's scale (SPEC.md §3) and the unit.
+_SCALE_AND_UNIT: dict[Group, tuple[int, str]] = {
+    Group.ANGLES: (100, "deg"), Group.ACCEL: (10000, "g"), Group.GYRO: (100, "deg/s"),
+    Group.MAG: (100000, "gauss"), Group.QUATERNION: (1000000, ""),
+}
+#: The sixteen measured values in the map's order (the reading JSON's): name, group,
+#: scale, unit.
+_MEASURED: tuple[tuple[str, Group, int, str], ...] = tuple(
+    (name, group, *_SCALE_AND_UNIT[group])
+    for group, (_, names) in GROUP_FIELDS.items() for name in names
 )
 FLOAT_BASE, INT_BASE, COMMAND_BASE = 100, 200, 1000
 MINS, AH = frozenset({Series.MINS}), frozenset({Series.AH})

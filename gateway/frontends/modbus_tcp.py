@@ -158,11 +158,10 @@ class ModbusTcpServer:
 
     def _read(self, unit: _Unit, pdu: bytes) -> bytes:
         function = pdu[0]
-        if len(pdu) != 5:
+        span = _read_span(pdu)
+        if span is None:
             return exception(function, ILLEGAL_VALUE)
-        start, count = struct.unpack_from(">HH", pdu, 1)
-        if not 1 <= count <= MAX_READ:
-            return exception(function, ILLEGAL_VALUE)
+        start, count = span
         block = mm.block_of(start, count)
         if block is None:
             return exception(function, ILLEGAL_ADDRESS)
@@ -181,11 +180,10 @@ class ModbusTcpServer:
         function = pdu[0]
         if function not in (READ_HOLDING, READ_INPUT):
             return exception(function, ILLEGAL_FUNCTION)
-        if len(pdu) != 5:
+        span = _read_span(pdu)
+        if span is None:
             return exception(function, ILLEGAL_VALUE)
-        start, count = struct.unpack_from(">HH", pdu, 1)
-        if not 1 <= count <= MAX_READ:
-            return exception(function, ILLEGAL_VALUE)
+        start, count = span
         image = mm.diagnostics_image(self.gateway.stats())
         if 2 * (start + count) > len(image):
             return exception(function, ILLEGAL_ADDRESS)
@@ -232,7 +230,7 @@ class ModbusTcpServer:
     async def _passthrough(self, sensor: str, pdu: bytes) -> bytes:
         function = pdu[0]
         if function in (READ_HOLDING, READ_INPUT):
-            if len(pdu) != 5 or not 1 <= struct.unpack_from(">H", pdu, 3)[0] <= MAX_READ:
+            if _read_span(pdu) is None:
                 return exception(function, ILLEGAL_VALUE)
         elif function in (WRITE_SINGLE, WRITE_MULTIPLE):
             if problem := self._check_write(pdu):
@@ -244,6 +242,15 @@ class ModbusTcpServer:
             return await self.gateway.passthrough(sensor, pdu)
         except SensorUnavailable as exc:
             return exception(function, EXCEPTION_FOR.get(exc.kind, TARGET_FAILED))
+
+
+def _read_span(pdu: bytes) -> tuple[int, int] | None:
+    """(start, count) of an FC03/FC04 request, or None when it is malformed or asks
+    for a quantity outside 1-125 (exception 03)."""
+    if len(pdu) != 5:
+        return None
+    start, count = struct.unpack_from(">HH", pdu, 1)
+    return (start, count) if 1 <= count <= MAX_READ else None
 
 
 def _command_args(reg: mm.Register, words: list[int]) -> dict[str, Any] | None:
