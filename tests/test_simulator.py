@@ -197,7 +197,10 @@ def test_modbus_exceptions() -> None:
 
 
 def _best_of(port: serial.Serial, request: bytes, answer_len: int, tries: int = 7) -> float:
-    """The fastest of several exchanges: load on the machine can only add time."""
+    """The fastest of several exchanges: load on the machine can only add time.  The
+    simulator must never be early (the lower bound allows float rounding only); it is
+    about 0.2-1% late (the pty's and this reader's wake-ups), the upper bound leaves
+    room for a busy machine."""
     best = float("inf")
     for _ in range(tries):
         port.reset_input_buffer()
@@ -221,7 +224,7 @@ def test_native_exchange_takes_the_wire_time(baud: int) -> None:
     with line(make_sensor(Protocol.NATIVE, Series.AH, baud=baud, answer_delay=delay),
               baud=baud) as port:
         took = _best_of(port, request, answer_len)
-    assert model * 0.98 <= took <= model * 1.10, (took, model)
+    assert model * 0.999 <= took <= model * 1.05, (took, model)
 
 
 def test_modbus_exchange_takes_the_wire_time_and_silent_interval() -> None:
@@ -231,7 +234,7 @@ def test_modbus_exchange_takes_the_wire_time_and_silent_interval() -> None:
     model = (len(request) + answer_len + 3.5) * 10 / baud + delay
     with line(make_sensor(Protocol.MODBUS, Series.AH, answer_delay=delay)) as port:
         took = _best_of(port, request, answer_len)
-    assert model * 0.98 <= took <= model * 1.10, (took, model)
+    assert model * 0.999 <= took <= model * 1.05, (took, model)
 
 
 def test_answer_arrives_in_pieces_not_at_once() -> None:
