@@ -66,6 +66,11 @@ SLOW_STREAM = 0.2  # stream periods from this long on are not waited for by ever
 STREAM_MARGIN = 0.02  # room left before a slow stream's next frame
 
 
+def _time_out(future: asyncio.Future[Any]) -> None:
+    if not future.done():
+        future.set_exception(TimeoutError())
+
+
 class Priority(enum.IntEnum):
     COMMAND = 0
     STREAM_SETUP = 1
@@ -680,7 +685,13 @@ class BusMaster:
                     answer = Answer({})
                 else:
                     budget = request_time + exchange.answer_bytes * c + gap + self.timeout
-                    answer = await asyncio.wait_for(future, budget)
+                    # Not wait_for: it wakes this task one loop turn after the answer
+                    # (through a waiter of its own), and that turn is line time.
+                    timer = loop.call_later(budget, _time_out, future)
+                    try:
+                        answer = await future
+                    finally:
+                        timer.cancel()
             except LinkError as exc:
                 self._on_lost(exc)
                 raise _Failed("port_lost") from None

@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import logging
+import selectors
 import threading
 from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any, TypeVar
@@ -25,10 +26,15 @@ from ..cache import Cache, SensorUnavailable
 from ..commands import ErrorKind
 from ..config import BusConfig
 from ..model import Reading
+from .link import tighten_timers
 from .master import BusMaster, ReadNow
 
 log = logging.getLogger("gateway.bus")
 T = TypeVar("T")
+
+
+def _precise_loop() -> asyncio.AbstractEventLoop:
+    return asyncio.SelectorEventLoop(selectors.SelectSelector())
 
 
 class CacheWriter:
@@ -82,8 +88,14 @@ class BusRunner:
             self._ready.set()
             await self.master.run()
 
+        tighten_timers()
         try:
-            asyncio.run(run())
+            # select() rather than epoll: epoll's timeouts are whole milliseconds, and
+            # the waits here (a Modbus silent interval is 1.75 ms) are not.  The loop
+            # watches one descriptor, its own wake-up pipe (bytes come from the link's
+            # reader thread).
+            with asyncio.Runner(loop_factory=_precise_loop) as runner:
+                runner.run(run())
         except asyncio.CancelledError:
             pass
         except Exception:
