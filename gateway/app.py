@@ -19,6 +19,7 @@ from .cache import Cache, SensorUnavailable
 from .commands import CommandError, CommandResult, ErrorKind, validate
 from .config import GatewayConfig, SensorConfig
 from .frontends.modbus_tcp import ModbusTcpServer
+from .frontends.mqtt import MqttClient
 
 log = logging.getLogger("gateway")
 
@@ -46,6 +47,7 @@ class Gateway:
         self._runner_of = {s.name: self.runners[b.name] for b, s in config.iter_sensors()}
         self.sensors: dict[str, SensorConfig] = {s.name: s for _, s in config.iter_sensors()}
         self.modbus = ModbusTcpServer(self, config.modbus) if config.modbus else None
+        self.mqtt = MqttClient(self, config.mqtt) if config.mqtt else None
 
     async def command(self, sensor: str, name: str,
                       args: Mapping[str, Any] | None = None) -> CommandResult:
@@ -103,9 +105,13 @@ class Gateway:
     async def run(self, stop: asyncio.Event) -> None:
         """Run until ``stop`` is set, then let every bus finish its exchange and stop."""
         await self.start_frontends()
+        if self.mqtt is not None:  # connects in the background, retrying: never fails here
+            await self.mqtt.start()
         try:
             await self._run_buses(stop)
         finally:
+            if self.mqtt is not None:
+                await self.mqtt.stop()  # before the buses stop: "offline" is the last word
             if self.modbus is not None:
                 await self.modbus.stop()
 

@@ -53,6 +53,22 @@ class Snapshot:
     def has_reading(self) -> bool:
         return self.reading is not None
 
+    def to_json(self) -> dict[str, Any]:
+        """The reading JSON of SPEC.md §4 (MQTT state and REST use the same)."""
+        out: dict[str, Any] = {"sensor": self.name, "ts": iso_time(self.timestamp),
+                               "seq": self.seq, "status": self.status.value}
+        if self.reading is not None:
+            out.update(self.reading.to_json_groups())
+        return out
+
+
+def iso_time(moment: datetime | None) -> str | None:
+    """``2026-11-22T03:40:00.123Z``: UTC, milliseconds."""
+    if moment is None:
+        return None
+    return moment.astimezone(UTC).strftime("%Y-%m-%dT%H:%M:%S.") + \
+        f"{moment.microsecond // 1000:03d}Z"
+
 
 class EventKind(enum.Enum):
     READING = "reading"  # a new sample

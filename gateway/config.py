@@ -46,7 +46,8 @@ from pydantic import (
 )
 from pydantic_core import ErrorDetails, PydanticCustomError
 
-from .model import Protocol, Series
+from .model import Group, Protocol, Series
+from .normalise import FIELD_NAMES, GROUP_FIELDS
 from .protocol.native import BAUD_CODES, OUTPUT_RATE_CODES
 
 __all__ = [
@@ -441,6 +442,32 @@ class MqttConfig(_Model):
     allow_commands: bool = False
     protocol: Annotated[Literal["3.1.1", "5"], PlainValidator(_mqtt_protocol)] = "3.1.1"
     client_id: NonEmpty | None = None
+    #: a state message is sent only when a field moved by more than its deadband
+    deadband: dict[str, Annotated[float, Field(ge=0, allow_inf_nan=False)]] = Field(
+        default_factory=dict)
+    #: messages kept while the broker is away; the oldest are dropped (and counted)
+    queue_size: Annotated[int, Field(gt=0)] = 1000
+    discovery_prefix: Annotated[str, AfterValidator(_base_topic)] = "homeassistant"
+
+    @field_validator("deadband")
+    @classmethod
+    def _deadband_fields(cls, value: dict[str, float]) -> dict[str, float]:
+        known = {*FIELD_NAMES, *(g.value for g in Group)}
+        unknown = sorted(set(value) - known)
+        if unknown:
+            raise _fail(f"unknown field {', '.join(map(_show, unknown))} (fields: "
+                        f"{' '.join(FIELD_NAMES)}; or a group: {' '.join(g.value for g in Group)})")
+        return value
+
+    def field_deadbands(self) -> dict[str, float]:
+        """The deadband of each field, a group's applied to its members (a field's own
+        value wins)."""
+        out: dict[str, float] = {}
+        for group, (_, names) in GROUP_FIELDS.items():
+            if group.value in self.deadband:
+                out.update(dict.fromkeys(names, self.deadband[group.value]))
+        out.update({k: v for k, v in self.deadband.items() if k in FIELD_NAMES})
+        return out
 
     @field_validator("password")
     @classmethod

@@ -38,6 +38,16 @@ class Group(enum.Enum):
     QUATERNION = "quaternion"
 
 
+#: the unit of each group's values (the module docstring says why there is no conversion)
+GROUP_UNITS: dict[Group, str] = {
+    Group.ANGLES: "°",
+    Group.ACCEL: "g",
+    Group.GYRO: "°/s",
+    Group.MAG: "G",
+    Group.QUATERNION: "",
+}
+
+
 @dataclass(frozen=True, slots=True)
 class Angles:
     pitch: float

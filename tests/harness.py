@@ -10,13 +10,40 @@ from typing import Any
 
 from gateway.app import Gateway
 from gateway.config import config_from_dict
+from gateway.model import Protocol
+from gateway.normalise import field_values
+from gateway.simulator import SimSensor
+
+# SPEC.md §4's field list, written out here so the tests do not trust the gateway's.
+FIELDS = ("pitch", "roll", "yaw", "accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y",
+          "gyro_z", "mag_x", "mag_y", "mag_z", "q0", "q1", "q2", "q3")
+GROUP_OF = {**dict.fromkeys(FIELDS[0:3], "angles"), **dict.fromkeys(FIELDS[3:6], "accel"),
+            **dict.fromkeys(FIELDS[6:9], "gyro"), **dict.fromkeys(FIELDS[9:12], "mag"),
+            **dict.fromkeys(FIELDS[12:16], "quaternion")}
+#: Half the native protocol's BCD resolution per group (SXXX.YY, S.YYYY, …).
+NATIVE_STEP = {"angles": 0.005, "accel": 0.00005, "gyro": 0.005, "mag": 0.000005,
+               "quaternion": 0.0000005}
+
+
+def expected(sim: SimSensor) -> dict[str, float]:
+    """What the simulated sensor reports (its held reading through its settings)."""
+    return field_values(sim.measure(0.0))
+
+
+def tolerance(protocol: Protocol, name: str, value: float) -> float:
+    """The sensor's resolution: BCD steps (native) or float32 (Modbus RTU)."""
+    if protocol is Protocol.NATIVE:
+        return NATIVE_STEP[GROUP_OF[name]] + 1e-6 * abs(value)
+    return 1e-6 * max(1.0, abs(value))
 
 
 @contextlib.asynccontextmanager
-async def running(config: dict[str, Any]) -> AsyncIterator[Gateway]:
-    """A gateway on ``config`` (a dict as the YAML would give), running until the block
-    ends; its front ends are listening when the block starts."""
-    gateway = Gateway(config_from_dict(config, env={}))
+async def running(config: dict[str, Any],
+                  env: dict[str, str] | None = None) -> AsyncIterator[Gateway]:
+    """A gateway on ``config`` (a dict as the YAML would give, ``${VAR}`` taken from
+    ``env``), running until the block ends; its front ends are listening when the block
+    starts."""
+    gateway = Gateway(config_from_dict(config, env=env or {}))
     stop = asyncio.Event()
     task = asyncio.create_task(gateway.run(stop))
     try:

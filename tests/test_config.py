@@ -380,7 +380,14 @@ RULES: list[tuple[str, dict[str, Any], str]] = [
     ("mqtt unknown key", base(mqtt={"topic": "x"}),
      "mqtt.topic: unknown key (allowed: url, username, password, ca_file, certfile, keyfile, "
      "base_topic, qos, retain, per_field_topics, min_interval_ms, homeassistant_discovery, "
-     "allow_commands, protocol, client_id); did you mean base_topic?"),
+     "allow_commands, protocol, client_id, deadband, queue_size, discovery_prefix); "
+     "did you mean base_topic?"),
+    ("mqtt deadband of an unknown field", base(mqtt={"deadband": {"pich": 0.1}}),
+     'mqtt.deadband: unknown field "pich" (fields: pitch roll yaw accel_x accel_y accel_z '
+     "gyro_x gyro_y gyro_z mag_x mag_y mag_z q0 q1 q2 q3; or a group: angles accel gyro mag "
+     "quaternion)"),
+    ("mqtt negative deadband", base(mqtt={"deadband": {"angles": -1}}),
+     "mqtt.deadband.angles: input should be greater than or equal to 0"),
     ("http commands need a token", base(http={"allow_commands": True}),
      "http.allow_commands: needs http.token (the bearer token clients must send)"),
     ("http read token needs a token", base(http={"read_token_required": True}),
@@ -718,3 +725,8 @@ def test_baudrate_defaults_to_the_sensors_factory_rate() -> None:
     data = base()
     del data["buses"][0]["baudrate"]
     assert config_from_dict(data, env={}).buses[0].baudrate == 9600
+
+
+def test_deadband_of_a_group_applies_to_its_fields_and_a_field_wins() -> None:
+    bands = MqttConfig(deadband={"angles": 0.5, "yaw": 2.0, "q0": 0.01}).field_deadbands()
+    assert bands == {"pitch": 0.5, "roll": 0.5, "yaw": 2.0, "q0": 0.01}

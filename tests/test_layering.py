@@ -65,3 +65,42 @@ def test_protocol_imports_only_allowed(path: Path) -> None:
             or any(_within(name, p) for p in ALLOWED_THIRD_PARTY + ALLOWED_PROJECT)
         )
         assert allowed, f"{path.name} imports {name}"
+
+
+FRONTENDS = PROTOCOL.parent / "frontends"
+#: the front ends proper; the other modules of the folder are their shared parts
+FRONTEND_MODULES = ("modbus_tcp", "mqtt")
+
+
+def frontend_imports(path: Path) -> list[str]:
+    """Like ``imported_names``, for a module of ``gateway.frontends``."""
+    names: list[str] = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names += [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = ["gateway", "frontends"][: 2 - (node.level - 1)] if node.level else []
+            module = [node.module] if node.module else []
+            if node.module or not node.level:
+                names.append(".".join([*base, *module]))
+            else:
+                names += [".".join([*base, alias.name]) for alias in node.names]
+    return names
+
+
+@pytest.mark.parametrize("path", sorted(FRONTENDS.glob("*.py")), ids=lambda p: p.name)
+def test_front_ends_use_neither_protocol_nor_bus_nor_each_other(path: Path) -> None:
+    """DESIGN.md section 1: a front end reads the cache and asks the gateway; it never
+    touches the wire's code, and a change to one front end cannot break another."""
+    for name in frontend_imports(path):
+        assert not _within(name, "gateway.protocol"), f"{path.name} imports {name}"
+        assert not _within(name, "gateway.bus"), f"{path.name} imports {name}"
+        for other in FRONTEND_MODULES:
+            if other != path.stem:
+                assert not _within(name, f"gateway.frontends.{other}"), \
+                    f"{path.name} imports {name}"
+
+
+def test_frontend_resolver() -> None:
+    names = frontend_imports(FRONTENDS / "mqtt.py")
+    assert "gateway.cache" in names and "gateway.frontends.common" in names

@@ -22,13 +22,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from harness import run, running, until
+from harness import FIELDS, GROUP_OF, expected, run, running, tolerance, until
 from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
 from gateway.app import Gateway
 from gateway.model import Protocol, Series
-from gateway.normalise import field_values
 from gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
 from gateway.simulator.motion import Motion
 
@@ -38,15 +37,7 @@ READING = Motion.from_seed(3).sample(10.0)
 MBAP = struct.Struct(">HHHB")
 
 # SPEC.md §3, written out here so the test does not trust the server's own table.
-FIELDS = ("pitch", "roll", "yaw", "accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y",
-          "gyro_z", "mag_x", "mag_y", "mag_z", "q0", "q1", "q2", "q3")
-GROUP_OF = {**dict.fromkeys(FIELDS[0:3], "angles"), **dict.fromkeys(FIELDS[3:6], "accel"),
-            **dict.fromkeys(FIELDS[6:9], "gyro"), **dict.fromkeys(FIELDS[9:12], "mag"),
-            **dict.fromkeys(FIELDS[12:16], "quaternion")}
 SCALE = {"angles": 100, "accel": 10000, "gyro": 100, "mag": 100000, "quaternion": 1000000}
-#: Half the native protocol's BCD resolution per group (SXXX.YY, S.YYYY, …).
-NATIVE_STEP = {"angles": 0.005, "accel": 0.00005, "gyro": 0.005, "mag": 0.000005,
-               "quaternion": 0.0000005}
 SERIES_CODE = {Series.IMU: 1, Series.VG: 2, Series.AH: 3, Series.MINS: 4}
 PROTOCOL_CODE = {Protocol.NATIVE: 0, Protocol.MODBUS: 1}
 INT32_MIN = -(2**31)
@@ -83,18 +74,6 @@ def port_of(gateway: Gateway) -> int:
 
 async def has_readings(gateway: Gateway, *names: str, seq: int = 1) -> None:
     await until(lambda: all(gateway.cache.snapshot(n).seq >= seq for n in names))
-
-
-def expected(sim: SimSensor) -> dict[str, float]:
-    """What the simulated sensor reports (its held reading through its settings)."""
-    return field_values(sim.measure(0.0))
-
-
-def tolerance(protocol: Protocol, name: str, value: float) -> float:
-    """The sensor's resolution: BCD steps (native) or float32 (Modbus RTU)."""
-    if protocol is Protocol.NATIVE:
-        return NATIVE_STEP[GROUP_OF[name]] + 1e-6 * abs(value)
-    return 1e-6 * max(1.0, abs(value))
 
 
 # ------------------------------------------------------------------ raw Modbus TCP

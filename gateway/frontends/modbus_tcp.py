@@ -24,15 +24,16 @@ import math
 import struct
 from collections import Counter
 from collections.abc import Awaitable, Mapping
-from typing import Any, Protocol
+from typing import Any
 
 from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 from pymodbus.pdu.register_message import WriteMultipleRegistersResponse
 
-from ..cache import Cache, EventKind, SensorUnavailable, Snapshot
-from ..commands import CommandResult, ErrorKind
-from ..config import GatewayConfig, ModbusConfig, SensorConfig
+from ..cache import EventKind, SensorUnavailable, Snapshot
+from ..commands import ErrorKind
+from ..config import ModbusConfig, SensorConfig
 from . import modbus_map as mm
+from .common import GatewayLike
 
 log = logging.getLogger("gateway.modbus")
 
@@ -55,21 +56,6 @@ EXCEPTION_FOR: Mapping[ErrorKind, int] = {
     ErrorKind.TIMEOUT: TARGET_FAILED,
     ErrorKind.OFFLINE: TARGET_FAILED,
 }
-
-
-class GatewayLike(Protocol):
-    """What the server needs of the gateway (``app.Gateway``)."""
-
-    config: GatewayConfig
-    cache: Cache
-    sensors: dict[str, SensorConfig]
-
-    async def command(self, sensor: str, name: str,
-                      args: Mapping[str, Any] | None = None) -> CommandResult: ...
-
-    async def passthrough(self, sensor: str, pdu: bytes) -> bytes: ...
-
-    def stats(self) -> list[dict[str, Any]]: ...
 
 
 def exception(function: int, code: int) -> bytes:

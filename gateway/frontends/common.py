@@ -1,0 +1,25 @@
+"""What every front end needs of the gateway; ``app.Gateway`` provides it."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, Protocol
+
+from ..cache import Cache
+from ..commands import CommandResult
+from ..config import GatewayConfig, SensorConfig
+
+
+class GatewayLike(Protocol):
+    """What the server needs of the gateway (``app.Gateway``)."""
+
+    config: GatewayConfig
+    cache: Cache
+    sensors: dict[str, SensorConfig]
+
+    async def command(self, sensor: str, name: str,
+                      args: Mapping[str, Any] | None = None) -> CommandResult: ...
+
+    async def passthrough(self, sensor: str, pdu: bytes) -> bytes: ...
+
+    def stats(self) -> list[dict[str, Any]]: ...

@@ -1,0 +1,569 @@
+"""The MQTT client: state, availability, commands and Home Assistant discovery
+(SPEC.md §4).
+
+Threads.  paho-mqtt's network loop runs on its own thread (``loop_start``); everything
+else here runs on the gateway's event loop, where the cache calls its listeners.  paho's
+callbacks only hand their event over (``call_soon_threadsafe``), so no state of this
+module is touched from two threads, except two counters paho's thread increments.
+
+Connecting.  The connect itself (TCP, TLS, CONNECT) is ours, in an executor, with a
+back-off from ``RECONNECT_MIN`` to ``RECONNECT_MAX`` seconds: paho's own automatic
+reconnect swallows the reason a connection failed, and a user looking at a TLS or
+password problem needs that reason.  Each distinct failure is logged once; the retries
+after it are quiet, and "connected" is logged on the way back.
+
+Nothing grows while the broker is away.  Messages wait in ``Outbox``, a bounded queue
+that drops its oldest message (and counts it) when full.  Only ``WINDOW`` messages are
+handed to paho and not yet written (QoS 0) or acknowledged (QoS 1, 2), so paho's own
+queues stay small even when a broker stops reading.  After each (re)connect the gateway
+status, every sensor's availability and discovery are published anew, then what waited,
+then every sensor's latest state: the retained messages are right again whatever was
+lost in between.
+
+State messages.  Every new reading, unless ``min_interval_ms`` (at most one message per
+interval; the latest reading is sent when the interval ends, so a sensor that goes quiet
+is not left showing an older one) or ``deadband`` (only when a listed field moved more
+than its band since the last message sent) hold it back.  A status change is always
+sent.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import paho.mqtt.client as paho
+from paho.mqtt.enums import CallbackAPIVersion, MQTTErrorCode
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.properties import Properties
+from paho.mqtt.reasoncodes import ReasonCode
+
+from .. import __version__
+from ..cache import EventKind, Snapshot, Status
+from ..commands import CommandError, CommandResult, ErrorKind
+from ..config import MqttConfig
+from ..model import CAPABILITIES, GROUP_UNITS
+from ..normalise import GROUP_FIELDS, field_values, member_name
+from .common import GatewayLike
+
+log = logging.getLogger("gateway.mqtt")
+
+KEEPALIVE_S = 30
+RECONNECT_MIN, RECONNECT_MAX = 0.5, 30.0  # seconds between connection attempts
+WINDOW = 100  # messages handed to paho and not yet written or acknowledged
+MAX_COMMANDS = 16  # commands carried out at once; more are answered "busy"
+DISCOVERY_SWEEP_S = 5.0  # how long after connecting old discovery configs are looked for
+CONTROL_QOS = 1  # status, availability, discovery: small and must arrive
+ONLINE, OFFLINE = b"online", b"offline"
+
+
+class Message(NamedTuple):
+    topic: str
+    payload: bytes
+    qos: int
+    retain: bool
+    properties: Properties | None = None
+
+
+class Outbox:
+    """A bounded FIFO: when full, the oldest message goes and is counted."""
+
+    def __init__(self, size: int) -> None:
+        self._messages: deque[Message] = deque()
+        self.size = size
+        self.dropped = 0
+
+    def put(self, message: Message) -> None:
+        self._messages.append(message)
+        if len(self._messages) > self.size:
+            self._messages.popleft()
+            self.dropped += 1
+
+    def put_back(self, message: Message) -> None:
+        """A message paho refused: first in line again."""
+        self._messages.appendleft(message)
+
+    def take(self) -> Message:
+        return self._messages.popleft()
+
+    def __len__(self) -> int:
+        return len(self._messages)
+
+
+@dataclass(slots=True)
+class _SensorOut:
+    """What was last sent for one sensor, for the throttle and the deadband."""
+
+    sent_at: float = -math.inf  # loop time of the last state message
+    values: dict[str, float] | None = None  # the field values it carried
+    status: Status | None = None
+    availability: bytes | None = None
+    trailing: asyncio.TimerHandle | None = None  # min_interval's deferred send
+
+
+@dataclass(slots=True)
+class _Counters:
+    published: int = 0  # handed to paho
+    written: int = 0  # written (QoS 0) or acknowledged: paho's on_publish, on its thread
+    refused: int = 0  # paho would not take a message (the connection just went)
+    commands: int = 0
+    command_errors: int = 0
+    connects: int = 0
+
+
+class MqttClient:
+    """The gateway's MQTT connection; ``start()`` and ``stop()`` on the gateway's loop."""
+
+    def __init__(self, gateway: GatewayLike, config: MqttConfig) -> None:
+        self.gateway = gateway
+        self.config = config
+        gid = gateway.config.gateway_id
+        self.prefix = f"{config.base_topic}/{gid}"
+        self.status_topic = f"{self.prefix}/status"
+        self.outbox = Outbox(config.queue_size)
+        self.counters = _Counters()
+        self.connected = False
+        self._deadbands = config.field_deadbands()
+        self._sensors = {name: _SensorOut() for name in gateway.sensors}
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._client: paho.Client | None = None
+        self._lost = asyncio.Event()
+        # Messages in paho's hands: ``_handed - counters.written``.  Each of the two
+        # counters has one writer (this loop, paho's thread), so no lock is needed.
+        self._handed = 0
+        self._waiting_for_window = False
+        self._runner: asyncio.Task[None] | None = None
+        self._unsubscribe: Any = None
+        self._commands: set[asyncio.Task[None]] = set()
+        self._sweep_until = 0.0
+        self._stopping = False
+        self._last_problem: str | None = None
+
+    # ------------------------------------------------------------ topics
+
+    def sensor_topic(self, sensor: str, leaf: str) -> str:
+        return f"{self.prefix}/{sensor}/{leaf}"
+
+    def discovery_topic(self, sensor: str, field_name: str) -> str:
+        return f"{self.config.discovery_prefix}/sensor/{self._object_id(sensor, field_name)}/config"
+
+    def _object_id(self, sensor: str, field_name: str) -> str:
+        # Home Assistant's object ids allow [a-zA-Z0-9_-]; a gateway id may hold dots.
+        return f"{self.gateway.config.gateway_id}_{sensor}_{field_name}".replace(".", "_")
+
+    # ------------------------------------------------------------ lifecycle
+
+    async def start(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._unsubscribe = self.gateway.cache.subscribe(self._on_cache_event)
+        self._runner = asyncio.create_task(self._keep_connected(), name="mqtt")
+
+    def _make_client(self) -> paho.Client:
+        c = self.config
+        v5 = c.protocol == "5"
+        client = paho.Client(
+            CallbackAPIVersion.VERSION2,
+            client_id=c.client_id or f"imu-gateway-{self.gateway.config.gateway_id}",
+            protocol=paho.MQTTv5 if v5 else paho.MQTTv311,
+            clean_session=None if v5 else True,
+            reconnect_on_failure=False,  # the reconnect is ours (see the module docstring)
+        )
+        if c.username is not None:
+            client.username_pw_set(c.username, c.password)
+        if c.tls:
+            client.tls_set(ca_certs=c.ca_file, certfile=c.certfile, keyfile=c.keyfile)
+        client.will_set(self.status_topic, OFFLINE, qos=CONTROL_QOS, retain=True)
+        client.max_queued_messages_set(WINDOW * 2)
+        client.on_connect = self._paho_connect
+        client.on_disconnect = self._paho_disconnect
+        client.on_publish = self._paho_publish
+        client.on_message = self._paho_message
+        return client
+
+    async def stop(self) -> None:
+        """Say ``offline`` (status and availability), then disconnect."""
+        self._stopping = True
+        if self._unsubscribe is not None:
+            self._unsubscribe()
+        for out in self._sensors.values():
+            if out.trailing is not None:
+                out.trailing.cancel()
+        for task in list(self._commands):
+            task.cancel()
+        if self.connected:
+            for name in self._sensors:
+                self._send(Message(self.sensor_topic(name, "availability"), OFFLINE,
+                                   CONTROL_QOS, True))
+            self._send(Message(self.status_topic, OFFLINE, CONTROL_QOS, True))
+            await self._flushed(timeout=2.0)
+        if self._runner is not None:
+            self._runner.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._runner
+        client = self._client
+        if client is not None:
+            client.disconnect()
+            await asyncio.to_thread(client.loop_stop)
+
+    async def _flushed(self, timeout: float) -> None:
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while (self.outbox or self._in_window()) and self.connected and loop.time() < deadline:
+            await asyncio.sleep(0.01)
+
+    async def _keep_connected(self) -> None:
+        c = self.config
+        delay = RECONNECT_MIN
+        while True:
+            self._lost.clear()
+            # A new paho client for every connection: paho's loop_start() makes a new
+            # wake-up socket pair each time without closing the last, and a client
+            # closes its sockets when it is dropped.  The session is clean anyway.
+            self._client = client = self._make_client()
+            try:
+                await asyncio.to_thread(client.connect, c.host, c.port, KEEPALIVE_S)
+            except (OSError, ValueError) as exc:
+                self._problem(f"cannot connect to {c.host}:{c.port}: {_reason(exc)}")
+                _close_socket(client)
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, RECONNECT_MAX)
+                continue
+            client.loop_start()
+            await self._lost.wait()
+            await asyncio.to_thread(client.loop_stop)
+            _close_socket(client)
+            if self.connected:  # a working connection ended: start the back-off again
+                delay = RECONNECT_MIN
+            self._set_disconnected()
+            await asyncio.sleep(delay)
+            delay = min(delay * 2, RECONNECT_MAX)
+
+    def _problem(self, text: str) -> None:
+        """Log a connection problem once, until it changes or a connection works."""
+        if text != self._last_problem:
+            log.warning("mqtt: %s; retrying", text)
+            self._last_problem = text
+
+    # ------------------------------------------------------------ paho's thread
+
+    def _hand_over(self, fn: Any, *args: Any) -> None:
+        assert self._loop is not None
+        with contextlib.suppress(RuntimeError):  # the loop closed during shutdown
+            self._loop.call_soon_threadsafe(fn, *args)
+
+    def _paho_connect(self, client: paho.Client, userdata: Any, flags: Any,
+                      reason: ReasonCode, properties: Properties | None) -> None:
+        self._hand_over(self._on_connect, reason)
+
+    def _paho_disconnect(self, client: paho.Client, userdata: Any, flags: Any,
+                         reason: ReasonCode, properties: Properties | None) -> None:
+        self._hand_over(self._on_disconnect, reason)
+
+    def _paho_publish(self, client: paho.Client, userdata: Any, mid: int,
+                      reason: ReasonCode, properties: Properties | None) -> None:
+        self.counters.written += 1
+        if self._waiting_for_window:
+            self._hand_over(self._drain)
+
+    def _paho_message(self, client: paho.Client, userdata: Any,
+                      message: paho.MQTTMessage) -> None:
+        self._hand_over(self._on_message, message)
+
+    # ------------------------------------------------------------ connection events
+
+    def _on_connect(self, reason: ReasonCode) -> None:
+        if reason.is_failure:
+            self._problem(f"the broker at {self.config.host}:{self.config.port} refused "
+                          f"the connection: {reason}")
+            self._lost.set()
+            return
+        self.connected = True
+        self.counters.connects += 1
+        self._last_problem = None
+        self._handed = self.counters.written  # what paho held was lost with the connection
+        log.info("mqtt: connected to %s:%s (MQTT %s)", self.config.host, self.config.port,
+                 self.config.protocol)
+        self._subscribe()
+        self._announce()
+
+    def _on_disconnect(self, reason: ReasonCode) -> None:
+        if self.connected and not self._stopping:
+            log.warning("mqtt: connection to %s:%s lost (%s); reconnecting",
+                        self.config.host, self.config.port, reason)
+        self._set_disconnected()
+        self._lost.set()
+
+    def _set_disconnected(self) -> None:
+        self.connected = False
+
+    def _subscribe(self) -> None:
+        assert self._client is not None
+        if self.config.allow_commands:
+            self._client.subscribe(f"{self.prefix}/+/cmd/+", qos=1)
+        if self.config.homeassistant_discovery:
+            assert self._loop is not None
+            self._sweep_until = self._loop.time() + DISCOVERY_SWEEP_S
+            self._client.subscribe(f"{self.config.discovery_prefix}/sensor/+/config", qos=1)
+            self._loop.call_later(DISCOVERY_SWEEP_S, self._end_sweep)
+
+    def _end_sweep(self) -> None:
+        if self._client is not None and self.connected:
+            self._client.unsubscribe(f"{self.config.discovery_prefix}/sensor/+/config")
+
+    def _announce(self) -> None:
+        """Everything retained, anew: after every connect."""
+        self._send(Message(self.status_topic, ONLINE, CONTROL_QOS, True), first=True)
+        if self.config.homeassistant_discovery:
+            for topic, payload in self.discovery_configs().items():
+                self._send(Message(topic, _json(payload), CONTROL_QOS, True), first=True)
+        for snap in self.gateway.cache.snapshots():
+            self._sensors[snap.name].availability = None
+            self._publish_availability(snap, first=True)
+        self._drain()
+        for snap in self.gateway.cache.snapshots():
+            if snap.has_reading:
+                self._publish_state(snap)
+
+    # ------------------------------------------------------------ sending
+
+    def _in_window(self) -> int:
+        # Below zero when paho re-sent QoS 1/2 messages of an earlier connection.
+        return max(0, self._handed - self.counters.written)
+
+    def _send(self, message: Message, *, first: bool = False) -> None:
+        """Queue a message and send what the window allows.  ``first``: straight to
+        paho (the announcements after a connect, which must precede what waited)."""
+        if first and self.connected:
+            self._hand_to_paho(message)
+            return
+        self.outbox.put(message)
+        self._drain()
+
+    def _drain(self) -> None:
+        self._waiting_for_window = False
+        while self.outbox and self.connected:
+            if self._in_window() >= WINDOW:
+                self._waiting_for_window = True
+                return
+            message = self.outbox.take()
+            if not self._hand_to_paho(message):
+                self.outbox.put_back(message)
+                return
+
+    def _hand_to_paho(self, message: Message) -> bool:
+        assert self._client is not None
+        info = self._client.publish(message.topic, message.payload, message.qos,
+                                    message.retain, message.properties)
+        if info.rc == MQTTErrorCode.MQTT_ERR_SUCCESS:
+            self._handed += 1
+            self.counters.published += 1
+            return True
+        self.counters.refused += 1
+        return False
+
+    # ------------------------------------------------------------ cache events
+
+    def _on_cache_event(self, kind: EventKind, snap: Snapshot) -> None:
+        if kind is EventKind.STATUS:
+            self._publish_availability(snap)
+            out = self._sensors[snap.name]
+            if snap.has_reading and out.status is not None and snap.status is not out.status:
+                self._publish_state(snap)
+        elif kind is EventKind.READING:
+            self._consider(snap)
+
+    def _publish_availability(self, snap: Snapshot, *, first: bool = False) -> None:
+        if not self.connected:
+            return  # not queued: the next connect publishes the availability of then
+        out = self._sensors[snap.name]
+        payload = OFFLINE if snap.status is Status.OFFLINE else ONLINE
+        if payload != out.availability:
+            out.availability = payload
+            self._send(Message(self.sensor_topic(snap.name, "availability"), payload,
+                               CONTROL_QOS, True), first=first)
+
+    def _consider(self, snap: Snapshot) -> None:
+        """A new reading: send it now, later (min_interval) or not (deadband)."""
+        out = self._sensors[snap.name]
+        if out.trailing is not None:
+            return  # the deferred send will take the latest reading
+        if self._within_deadband(snap, out):
+            return
+        assert self._loop is not None
+        wait = out.sent_at + self.config.min_interval_ms / 1000 - self._loop.time()
+        if wait > 0:
+            out.trailing = self._loop.call_later(wait, self._send_trailing, snap.name)
+            return
+        self._publish_state(snap)
+
+    def _send_trailing(self, name: str) -> None:
+        self._sensors[name].trailing = None
+        snap = self.gateway.cache.snapshot(name)
+        if snap.has_reading and not self._within_deadband(snap, self._sensors[name]):
+            self._publish_state(snap)
+
+    def _within_deadband(self, snap: Snapshot, out: _SensorOut) -> bool:
+        if not self._deadbands or out.values is None or snap.reading is None:
+            return False
+        values = field_values(snap.reading)
+        moved = [abs(values[f] - out.values[f]) > band
+                 for f, band in self._deadbands.items() if f in values and f in out.values]
+        return bool(moved) and not any(moved)
+
+    def _publish_state(self, snap: Snapshot) -> None:
+        assert self._loop is not None and snap.reading is not None
+        out = self._sensors[snap.name]
+        out.sent_at = self._loop.time()
+        out.values = field_values(snap.reading)
+        out.status = snap.status
+        c = self.config
+        self._send(Message(self.sensor_topic(snap.name, "state"), _json(snap.to_json()),
+                           c.qos, c.retain))
+        if c.per_field_topics:
+            for name, value in out.values.items():
+                self._send(Message(self.sensor_topic(snap.name, name),
+                                   json.dumps(value).encode(), c.qos, c.retain))
+
+    # ------------------------------------------------------------ incoming
+
+    def _on_message(self, message: paho.MQTTMessage) -> None:
+        topic = message.topic
+        if topic.startswith(f"{self.config.discovery_prefix}/"):
+            self._sweep(message)
+            return
+        parts = topic.removeprefix(f"{self.prefix}/").split("/")
+        if len(parts) != 3 or parts[1] != "cmd" or not topic.startswith(self.prefix + "/"):
+            return
+        sensor, _, command = parts
+        if message.retain:
+            # A retained command would be carried out again at every reconnect.
+            log.warning("mqtt: ignored a retained command on %s; publish commands "
+                        "without the retain flag", topic)
+            return
+        self.counters.commands += 1
+        try:
+            args = _command_args(bytes(message.payload))
+        except CommandError as exc:
+            self._answer(message, CommandResult.failed(sensor, command, exc))
+            return
+        if len(self._commands) >= MAX_COMMANDS:
+            self._answer(message, CommandResult.failed(sensor, command, CommandError(
+                ErrorKind.BUSY, f"{MAX_COMMANDS} commands are already being carried out")))
+            return
+        task = asyncio.create_task(self._carry_out(message, sensor, command, args))
+        self._commands.add(task)
+        task.add_done_callback(self._commands.discard)
+
+    async def _carry_out(self, message: paho.MQTTMessage, sensor: str, command: str,
+                         args: Mapping[str, Any]) -> None:
+        result = await self.gateway.command(sensor, command, args)
+        self._answer(message, result)
+
+    def _answer(self, request: paho.MQTTMessage, result: CommandResult) -> None:
+        if not result.ok:
+            self.counters.command_errors += 1
+        # MQTT 5: the asker's response topic and correlation data win.
+        topic = getattr(request.properties, "ResponseTopic", None) or f"{request.topic}/result"
+        properties = None
+        correlation = getattr(request.properties, "CorrelationData", None)
+        if correlation is not None:
+            properties = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
+            properties.CorrelationData = correlation
+        self._send(Message(topic, _json(result.to_json()), max(self.config.qos, 1), False,
+                           properties))
+
+    # ------------------------------------------------------------ Home Assistant
+
+    def discovery_configs(self) -> dict[str, dict[str, Any]]:
+        """Topic -> discovery payload: one entity per measured field of every sensor."""
+        gid = self.gateway.config.gateway_id
+        availability = [{"topic": self.status_topic}]
+        out: dict[str, dict[str, Any]] = {}
+        for name, sensor in self.gateway.sensors.items():
+            device = {"identifiers": [f"{gid}_{name}".replace(".", "_")],
+                      "name": f"{name} ({sensor.series.name})",
+                      "model": f"{sensor.series.name} series",
+                      "manufacturer": "imu-gateway", "sw_version": __version__}
+            for group, (_, fields) in GROUP_FIELDS.items():
+                if group not in CAPABILITIES[sensor.series].groups:
+                    continue
+                for field_name in fields:
+                    payload: dict[str, Any] = {
+                        "name": field_name.replace("_", " "),
+                        "unique_id": self._object_id(name, field_name),
+                        "state_topic": self.sensor_topic(name, "state"),
+                        "value_template": "{{ value_json." + group.value + "."
+                                          + member_name(group, field_name) + " }}",
+                        "state_class": "measurement",
+                        "availability": [*availability,
+                                         {"topic": self.sensor_topic(name, "availability")}],
+                        "availability_mode": "all",
+                        "device": device,
+                        "origin": {"name": "imu-gateway", "sw_version": __version__},
+                    }
+                    if GROUP_UNITS[group]:
+                        payload["unit_of_measurement"] = GROUP_UNITS[group]
+                    out[self.discovery_topic(name, field_name)] = payload
+        return out
+
+    def _sweep(self, message: paho.MQTTMessage) -> None:
+        """A retained discovery config of this gateway that it no longer publishes (a
+        sensor left the config, or changed series) is removed: an empty retained
+        message is how Home Assistant is told."""
+        assert self._loop is not None
+        if not message.retain or not message.payload or self._loop.time() > self._sweep_until:
+            return
+        try:
+            state_topic = json.loads(message.payload).get("state_topic", "")
+        except (ValueError, AttributeError):
+            return
+        if not isinstance(state_topic, str) or not state_topic.startswith(self.prefix + "/"):
+            return  # another gateway's, or not a gateway's at all
+        if message.topic not in self.discovery_configs():
+            log.info("mqtt: removing the discovery config %s", message.topic)
+            self._send(Message(message.topic, b"", CONTROL_QOS, True))
+
+    # ------------------------------------------------------------ stats
+
+    def stats(self) -> dict[str, Any]:
+        return {"connected": self.connected, "published": self.counters.published,
+                "queued": len(self.outbox), "dropped": self.outbox.dropped,
+                "in_flight": self._in_window(), "connects": self.counters.connects,
+                "commands": self.counters.commands,
+                "command_errors": self.counters.command_errors}
+
+
+def _json(value: Any) -> bytes:
+    return json.dumps(value, separators=(",", ":"), ensure_ascii=False).encode()
+
+
+def _command_args(payload: bytes) -> dict[str, Any]:
+    """A command's payload: empty or a JSON object."""
+    if not payload.strip():
+        return {}
+    try:
+        args = json.loads(payload)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise CommandError(ErrorKind.BAD_ARGUMENTS, f"the payload is not JSON: {exc}") from None
+    if not isinstance(args, dict):
+        raise CommandError(ErrorKind.BAD_ARGUMENTS, "the payload must be a JSON object")
+    return args
+
+
+def _close_socket(client: paho.Client) -> None:
+    """paho leaves the socket of a failed or lost connection to the garbage collector."""
+    sock = client.socket()
+    if sock is not None:
+        with contextlib.suppress(OSError):
+            sock.close()
+
+
+def _reason(exc: BaseException) -> str:
+    return getattr(exc, "strerror", None) or str(exc) or type(exc).__name__

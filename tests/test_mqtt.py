@@ -1,0 +1,529 @@
+"""MQTT (SPEC.md §4, issue 5) against a real mosquitto broker.
+
+Every test starts its own broker (``broker.Mosquitto``) on a free port and listens
+with a paho client of its own (``broker.Recorder``).  The gateway runs on simulated
+sensors on real pseudo-terminals.  Expected values come from the simulator and
+SPEC.md, never from the gateway's MQTT module.  Waits are deadlines on a condition.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import signal
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import paho.mqtt.client as paho
+import pytest
+import yaml
+from broker import Mosquitto, Tls, make_tls, recording
+from harness import FIELDS, GROUP_OF, expected, run, running, tolerance, until
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.properties import Properties
+
+from gateway.app import Gateway
+from gateway.model import Angles, Protocol, Series
+from gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
+from gateway.simulator.motion import Motion
+
+FAST = 115200
+READING = Motion.from_seed(3).sample(10.0)
+GID = "test"
+BASE = f"imu/{GID}"
+# SPEC.md §4: which groups each series' state JSON carries.
+GROUPS = {Series.AH: {"angles", "accel", "gyro", "mag", "quaternion"},
+          Series.VG: {"angles", "accel", "gyro", "quaternion"}}
+
+
+def sensor(protocol: Protocol, series: Series, **options: Any) -> SimSensor:
+    return make_sensor(protocol, series, baud=FAST, **options)
+
+
+def bus(name: str, port: str, protocol: str, sensors: list[dict[str, Any]]) -> dict[str, Any]:
+    return {"name": name, "port": port, "baudrate": FAST, "protocol": protocol,
+            "timeout_ms": 300, "sensors": sensors}
+
+
+def config(buses: list[dict[str, Any]], broker: Mosquitto, **mqtt: Any) -> dict[str, Any]:
+    return {"gateway_id": GID, "buses": buses, "mqtt": {"url": broker.url, **mqtt}}
+
+
+def state(message: Any) -> dict[str, Any]:
+    value = json.loads(message.payload)
+    assert isinstance(value, dict)
+    return value
+
+
+def flat(state_json: dict[str, Any]) -> dict[str, float]:
+    """The state JSON's values by SPEC.md's per-field names."""
+    out = {}
+    for name in FIELDS:
+        group = state_json.get(GROUP_OF[name])
+        if group is not None:
+            member = name.split("_")[1] if GROUP_OF[name] in ("accel", "gyro", "mag") else name
+            out[name] = group[member]
+    return out
+
+
+def written(gateway: Gateway) -> bool:
+    """Every message the gateway made so far is on its way to the broker (after this, a
+    new subscriber sees what it retained)."""
+    mqtt = gateway.mqtt
+    return mqtt is not None and mqtt.connected and not mqtt.outbox and \
+        mqtt.stats()["in_flight"] == 0
+
+
+def retained(broker: Mosquitto, topic: str, **options: Any) -> list[Any]:
+    """The retained messages a new subscriber to ``topic`` gets."""
+    with recording(broker, topic, **options) as fresh:
+        # Retained messages come right after the SUBACK; a round trip of our own
+        # message through the broker proves they are all in.  At QoS 1, so that it
+        # queues behind them: the broker holds back QoS 1 messages past its in-flight
+        # limit (20), and a QoS 0 one would overtake them.
+        marker = f"{BASE}/_marker"
+        fresh.client.subscribe(marker, qos=1)
+        fresh.client.publish(marker, b"x", qos=1)
+        fresh.wait(lambda: fresh.on(marker))
+        return [m for m in fresh.messages if m.retain]
+
+
+# ------------------------------------------------------------------ state and status
+
+
+def test_state_json_carries_the_simulators_values(tmp_path: Path) -> None:
+    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    vg = sensor(Protocol.MODBUS, Series.VG, address=1, source=hold(READING))
+    with Mosquitto(tmp_path) as broker, simulated([ah]) as line_a, \
+            simulated([vg]) as line_b, recording(broker, "imu/#") as rec:
+        cfg = config([bus("a", line_a.path, "native", [{"name": "boom", "series": "AH"}]),
+                      bus("b", line_b.path, "modbus", [{"name": "arm", "series": "VG"}])],
+                     broker)
+
+        async def body() -> None:
+            async with running(cfg):
+                await until(lambda: rec.on(f"{BASE}/boom/state") and rec.on(f"{BASE}/arm/state"))
+
+        run(body)
+        for name, sim, protocol in (("boom", ah, Protocol.NATIVE),
+                                    ("arm", vg, Protocol.MODBUS)):
+            message = rec.on(f"{BASE}/{name}/state")[-1]
+            got = state(message)
+            assert set(got) == {"sensor", "ts", "seq", "status"} | GROUPS[sim.series]
+            assert got["sensor"] == name and got["status"] == "ok" and got["seq"] >= 1
+            assert got["ts"].endswith("Z") and len(got["ts"]) == len("2026-11-22T03:40:00.123Z")
+            want = expected(sim)
+            for field_name, value in flat(got).items():
+                assert abs(value - want[field_name]) <= tolerance(protocol, field_name, value), \
+                    (name, field_name, value, want[field_name])
+            assert message.retain is False  # live delivery; retained copies are checked below
+            assert "online" in [m.text for m in rec.on(f"{BASE}/{name}/availability")]
+        assert [m.text for m in rec.on(f"{BASE}/status")] == ["online", "offline"]
+        assert rec.on(f"{BASE}/boom/availability")[-1].text == "offline"
+
+
+def test_status_availability_and_state_are_retained(tmp_path: Path) -> None:
+    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    with Mosquitto(tmp_path) as broker, simulated([ah]) as line:
+        cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])], broker)
+
+        async def body() -> None:
+            async with running(cfg) as gateway:
+                await until(lambda: gateway.cache.snapshot("boom").seq >= 2)
+                await until(lambda: written(gateway))
+                kept = {m.topic: m for m in await asyncio.to_thread(retained, broker, "imu/#")}
+                assert kept[f"{BASE}/status"].text == "online"
+                assert kept[f"{BASE}/boom/availability"].text == "online"
+                assert state(kept[f"{BASE}/boom/state"])["sensor"] == "boom"
+            kept = {m.topic: m for m in await asyncio.to_thread(retained, broker, "imu/#")}
+            assert kept[f"{BASE}/status"].text == "offline"  # said on a clean stop
+            assert kept[f"{BASE}/boom/availability"].text == "offline"
+
+        run(body)
+
+
+def test_availability_follows_a_sensor_that_stops_and_comes_back(tmp_path: Path) -> None:
+    faults = Faults()
+    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING), faults=faults)
+    with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
+            recording(broker, f"{BASE}/boom/#") as rec:
+        cfg = config([bus("a", line.path, "native",
+                          [{"name": "boom", "series": "AH", "poll_hz": 20}])], broker)
+        availability = f"{BASE}/boom/availability"
+
+        def said() -> list[str]:
+            return [m.text for m in rec.on(availability)]
+
+        async def body() -> None:
+            async with running(cfg):
+                await until(lambda: said()[-1:] == ["online"])
+                faults.stalled = True
+                await until(lambda: said()[-1:] == ["offline"])
+                last = rec.on(f"{BASE}/boom/state")[-1]
+                assert state(last)["status"] == "offline"  # the state says it too
+                faults.stalled = False
+                await until(lambda: said()[-1:] == ["online"], timeout=20)
+                await until(lambda: state(rec.on(f"{BASE}/boom/state")[-1])["status"] == "ok")
+
+        run(body)
+        # (an "offline" may come first: the gateway's view before its first poll)
+        changes = said()[said().index("online"):]
+        assert changes == ["online", "offline", "online", "offline"]  # the last: stopping
+
+
+# ------------------------------------------------------------------ commands
+
+
+@pytest.mark.parametrize("version", ["3.1.1", "5"])
+def test_command_round_trip(tmp_path: Path, version: str,
+                            caplog: pytest.LogCaptureFixture) -> None:
+    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    vg = sensor(Protocol.NATIVE, Series.VG, address=1, source=hold(READING))
+    paho_version = paho.MQTTv5 if version == "5" else paho.MQTTv311
+    with Mosquitto(tmp_path) as broker, simulated([ah, vg]) as line, \
+            recording(broker, f"{BASE}/+/cmd/+/result", "replies/#",
+                      version=paho_version) as rec:
+        cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"},
+                                                     {"name": "arm", "series": "VG",
+                                                      "address": 1}])],
+                     broker, allow_commands=True, protocol=version)
+        cmd = f"{BASE}/boom/cmd"
+
+        async def ask(topic: str, payload: str | bytes, **options: Any) -> dict[str, Any]:
+            result_topic = options.pop("result_topic", f"{topic}/result")
+            before = len(rec.on(result_topic))
+            rec.client.publish(topic, payload, qos=1, **options)
+            await until(lambda: len(rec.on(result_topic)) > before)
+            return state(rec.on(result_topic)[-1])
+
+        async def body() -> None:
+            async with running(cfg) as gateway:
+                await until(lambda: gateway.mqtt is not None and gateway.mqtt.connected)
+                await until(lambda: gateway.cache.snapshot("boom").seq >= 1)
+                result = await ask(f"{cmd}/set_zero_type", '{"type": "relative"}')
+                assert result["ok"] is True and result["error"] is None
+                assert ah.settings.zero_type == "relative"
+                result = await ask(f"{cmd}/read_settings", "")
+                assert result["ok"] is True
+                assert result["answer"]["zero_type"] == "relative"
+
+                # Bad requests: each answered with an error, nothing stops.
+                bad = await ask(f"{cmd}/set_zero_type", "{not json")
+                assert bad["ok"] is False and bad["kind"] == "bad_arguments"
+                assert "not JSON" in bad["error"]
+                bad = await ask(f"{cmd}/set_zero_type", "[1, 2]")
+                assert bad["kind"] == "bad_arguments" and "JSON object" in bad["error"]
+                bad = await ask(f"{cmd}/set_zero_type", '{"type": "sideways"}')
+                assert bad["kind"] == "bad_arguments" and "type" in bad["error"]
+                bad = await ask(f"{cmd}/explode", "{}")
+                assert bad["kind"] == "unknown_command"
+                bad = await ask(f"{BASE}/arm/cmd/set_declination", '{"degrees": 3}')
+                assert bad["kind"] == "unsupported"
+                bad = await ask(f"{BASE}/nobody/cmd/save", "")
+                assert bad["ok"] is False and "nobody" in bad["error"]
+                bad = await ask(f"{cmd}/set_zero_type", b"\xff\xfe")
+                assert bad["kind"] == "bad_arguments"
+
+                # A command published with the retain flag is carried out when it is
+                # published; the broker's replay of it to a new subscription is not (or
+                # it would run again at every reconnect).
+                result = await ask(f"{cmd}/set_zero_type", '{"type": "absolute"}',
+                                   retain=True)
+                assert result["ok"] is True and ah.settings.zero_type == "absolute"
+                result = await ask(f"{cmd}/set_zero_type", '{"type": "relative"}')
+                assert result["ok"] is True and ah.settings.zero_type == "relative"
+
+                if version == "5":
+                    props = Properties(PacketTypes.PUBLISH)
+                    props.ResponseTopic = "replies/me"
+                    props.CorrelationData = b"req-42"
+                    result = await ask(f"{cmd}/read_settings", "", properties=props,
+                                       result_topic="replies/me")
+                    assert result["ok"] is True
+                    answer = rec.on("replies/me")[-1]
+                    assert answer.properties.CorrelationData == b"req-42"
+
+            before = len(rec.messages)
+            async with running(cfg) as gateway:  # subscribes anew: the broker replays
+                await until(lambda: gateway.mqtt is not None and gateway.mqtt.connected)
+                await until(lambda: any("retained command" in r.getMessage()
+                                        for r in caplog.records))
+            assert ah.settings.zero_type == "relative" and len(rec.messages) == before
+            rec.client.publish(f"{cmd}/set_zero_type", b"", qos=1, retain=True)  # clear
+
+        run(body)
+
+
+# ------------------------------------------------------------------ Home Assistant
+
+
+def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
+        tmp_path: Path) -> None:
+    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    vg = sensor(Protocol.NATIVE, Series.VG, address=1, source=hold(READING))
+    with Mosquitto(tmp_path) as broker, simulated([ah, vg]) as line:
+        both = [{"name": "boom", "series": "AH"},
+                {"name": "arm", "series": "VG", "address": 1}]
+        cfg = config([bus("a", line.path, "native", both)], broker,
+                     homeassistant_discovery=True)
+
+        async def body() -> None:
+            async with running(cfg) as gateway:
+                await until(lambda: all(gateway.cache.snapshot(n).seq >= 1
+                                        for n in ("boom", "arm")))
+                await until(lambda: written(gateway))
+                kept = await asyncio.to_thread(retained, broker, "#")
+            configs = {m.topic: json.loads(m.payload) for m in kept
+                       if m.topic.startswith("homeassistant/")}
+            others = {m.topic: m for m in kept}
+            # One entity per measured field: AH all 16, VG all but the magnetometer.
+            fields = {"boom": set(FIELDS),
+                      "arm": {f for f in FIELDS if GROUP_OF[f] != "mag"}}
+            want = {f"homeassistant/sensor/{GID}_{s}_{f}/config"
+                    for s, names in fields.items() for f in names}
+            assert set(configs) == want
+            assert len({c["unique_id"] for c in configs.values()}) == len(want)
+            for topic, c in configs.items():
+                for key in ("name", "unique_id", "state_topic", "value_template", "device",
+                            "availability"):
+                    assert key in c, (topic, key)
+                assert c["device"]["identifiers"] and c["device"]["name"]
+                assert c.get("state_class") == "measurement"
+                # The template points into the state JSON that is really published.
+                group, member = c["value_template"].strip("{} ").split(".")[1:]
+                published = state(others[c["state_topic"]])
+                assert isinstance(published[group][member], float)
+                for a in c["availability"]:
+                    assert others[a["topic"]].text in ("online", "offline")
+                unit = c.get("unit_of_measurement")
+                field_name = topic.split("/")[2].split("_", 2)[2]
+                assert unit == {"angles": "°", "accel": "g", "gyro": "°/s", "mag": "G",
+                                "quaternion": None}[GROUP_OF[field_name]]
+
+            # Restart with the AH sensor gone: its entities are removed, the VG's stay.
+            cfg["buses"][0]["sensors"] = [both[1]]
+            async with running(cfg) as gateway:
+                await until(lambda: gateway.cache.snapshot("arm").seq >= 1)
+                # the old configs come back within the sweep, and are answered
+                await asyncio.sleep(1.0)
+                await until(lambda: written(gateway))
+                kept = await asyncio.to_thread(retained, broker, "homeassistant/#")
+            left = {m.topic for m in kept if m.payload}
+            assert left == {t for t in want if "_arm_" in t}
+
+        run(body)
+
+
+# ------------------------------------------------------------------ the broker away
+
+
+def test_broker_restart_reconnects_and_republishes_and_queue_stays_bounded(
+        tmp_path: Path) -> None:
+    ah = sensor(Protocol.NATIVE, Series.AH, source=Motion.from_seed(5))
+    with Mosquitto(tmp_path) as broker, simulated([ah]) as line:
+        cfg = config([bus("a", line.path, "native",
+                          [{"name": "boom", "series": "AH", "poll_hz": 0}])], broker,
+                     queue_size=20, homeassistant_discovery=True)
+
+        async def body() -> None:
+            async with running(cfg) as gateway:
+                mqtt = gateway.mqtt
+                assert mqtt is not None
+                await until(lambda: mqtt.connected)
+                broker.stop()
+                await until(lambda: not mqtt.connected)
+                seq = gateway.cache.snapshot("boom").seq
+                await until(lambda: gateway.cache.snapshot("boom").seq > seq + 60)
+                assert len(mqtt.outbox) <= 20
+                assert mqtt.stats()["dropped"] > 0
+                broker.start()  # the same port; it remembers nothing
+                await until(lambda: mqtt.connected and mqtt.stats()["connects"] == 2,
+                            timeout=20)
+                await until(lambda: written(gateway))
+                kept = {m.topic: m for m in await asyncio.to_thread(retained, broker, "#")}
+                assert kept[f"{BASE}/status"].text == "online"
+                assert kept[f"{BASE}/boom/availability"].text == "online"
+                assert state(kept[f"{BASE}/boom/state"])["seq"] > seq
+                assert f"homeassistant/sensor/{GID}_boom_pitch/config" in kept
+
+        run(body)
+
+
+def test_no_broker_the_gateway_runs_and_connects_when_one_appears(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO, "gateway.mqtt")
+    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    broker = Mosquitto(tmp_path)  # not started yet
+    with simulated([ah]) as line:
+        cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])],
+                     broker)
+
+        async def body() -> None:
+            async with running(cfg) as gateway:
+                await until(lambda: gateway.cache.snapshot("boom").seq >= 3)
+                await asyncio.sleep(2.0)  # several connection attempts
+                with broker:
+                    assert gateway.mqtt is not None
+                    await until(lambda: gateway.mqtt is not None and gateway.mqtt.connected,
+                                timeout=20)
+
+        run(body)
+    refused = [r for r in caplog.records if "cannot connect" in r.getMessage()]
+    assert len(refused) == 1, [r.getMessage() for r in refused]  # once, not every retry
+    assert "refused" in refused[0].getMessage().lower()
+    assert any("connected to" in r.getMessage() for r in caplog.records)
+
+
+# ------------------------------------------------------------------ the gateway process
+
+
+def _run_gateway(tmp_path: Path, cfg: dict[str, Any]) -> subprocess.Popen[bytes]:
+    path = tmp_path / "gateway.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    with (tmp_path / "gateway.log").open("wb") as log:
+        return subprocess.Popen([sys.executable, "-m", "gateway", "run", "-c", str(path)],
+                                stdout=log, stderr=subprocess.STDOUT)
+
+
+@pytest.mark.parametrize("how", ["killed", "interrupted"])
+def test_the_broker_says_offline_when_the_gateway_goes(tmp_path: Path, how: str) -> None:
+    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
+            recording(broker, f"{BASE}/status", f"{BASE}/boom/availability") as rec:
+        cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])],
+                     broker)
+        gateway = _run_gateway(tmp_path, cfg)
+        try:
+            rec.wait(lambda: "online" in [m.text for m in rec.on(f"{BASE}/boom/availability")],
+                     timeout=30)
+            gateway.send_signal(signal.SIGKILL if how == "killed" else signal.SIGINT)
+            code = gateway.wait(20)
+        finally:
+            if gateway.poll() is None:
+                gateway.kill()
+        rec.wait(lambda: rec.last(f"{BASE}/status") is not None
+                 and rec.last(f"{BASE}/status").text == "offline")  # type: ignore[union-attr]
+        if how == "interrupted":
+            assert code == 0
+            assert rec.last(f"{BASE}/boom/availability").text == "offline"  # type: ignore[union-attr]
+        else:
+            assert code == -signal.SIGKILL  # the last will spoke for it
+
+
+# ------------------------------------------------------------------ TLS and passwords
+
+
+def _secure(tls: Tls) -> dict[str, Any]:
+    return {"username": "gateway", "password": "${MQTT_PASSWORD}", "ca_file": str(tls.ca),
+            "certfile": str(tls.client_cert), "keyfile": str(tls.client_key)}
+
+
+USERS = {"gateway": "s3cret", "dashboard": "look"}
+
+
+def test_tls_with_a_test_ca_client_certificate_and_password(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.WARNING, "gateway.mqtt")
+    tls = make_tls(tmp_path / "pki")
+    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    with Mosquitto(tmp_path, tls=tls, users=USERS) as broker, simulated([ah]) as line, \
+            recording(broker, "imu/#", username="dashboard", password="look") as rec:
+        buses = [bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])]
+
+        async def body() -> None:
+            async with running(config(buses, broker, **_secure(tls)),
+                               env={"MQTT_PASSWORD": "s3cret"}):
+                await until(lambda: rec.on(f"{BASE}/boom/state"))
+            # A wrong password: the broker's reason, once.
+            async with running(config(buses, broker, **_secure(tls)),
+                               env={"MQTT_PASSWORD": "wrong"}) as gateway:
+                await until(lambda: any("refused" in r.getMessage() for r in caplog.records))
+                assert gateway.mqtt is not None and not gateway.mqtt.connected
+
+        run(body)
+        assert state(rec.on(f"{BASE}/boom/state")[-1])["status"] == "ok"
+        refused = [r.getMessage() for r in caplog.records if "refused" in r.getMessage()]
+        assert len(refused) == 1 and "not authori" in refused[0].lower(), refused
+
+
+# paho 2.2 leaves the socket of a failed TLS handshake to its finaliser
+# (``Client._ssl_wrap_socket``), which warns: that one warning is expected here.
+@pytest.mark.filterwarnings(
+    "ignore:Exception ignored in. <ssl.SSLSocket:pytest.PytestUnraisableExceptionWarning")
+def test_tls_with_a_ca_that_did_not_sign_the_broker_says_why(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.WARNING, "gateway.mqtt")
+    tls, other = make_tls(tmp_path / "pki"), make_tls(tmp_path / "other-pki")
+    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    with Mosquitto(tmp_path, tls=tls, users=USERS) as broker, simulated([ah]) as line:
+        buses = [bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])]
+        cfg = config(buses, broker, **{**_secure(tls), "ca_file": str(other.ca)})
+
+        async def body() -> None:
+            async with running(cfg, env={"MQTT_PASSWORD": "s3cret"}) as gateway:
+                await until(lambda: any("certificate" in r.getMessage()
+                                        for r in caplog.records))
+                await until(lambda: gateway.cache.snapshot("boom").seq >= 1)  # runs on
+
+        run(body)
+        problems = [r.getMessage() for r in caplog.records if "certificate" in r.getMessage()]
+        assert "certificate verify failed" in problems[0]
+
+
+# ------------------------------------------------------------------ throttling
+
+
+def test_min_interval_deadband_and_per_field_topics(tmp_path: Path) -> None:
+    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
+            recording(broker, f"{BASE}/#") as rec:
+        buses = [bus("a", line.path, "native",
+                     [{"name": "boom", "series": "AH", "poll_hz": 0}])]
+
+        async def body() -> None:
+            # min_interval: at most one message per 400 ms, however fast the polls.
+            async with running(config(buses, broker, min_interval_ms=400,
+                                      per_field_topics=True)) as gateway:
+                await until(lambda: rec.on(f"{BASE}/boom/state"))
+                first_seq = gateway.cache.snapshot("boom").seq
+                start = asyncio.get_running_loop().time()
+                rec.clear()
+                await asyncio.sleep(2.0)
+                elapsed = asyncio.get_running_loop().time() - start
+                polled = gateway.cache.snapshot("boom").seq - first_seq
+                sent = len(rec.on(f"{BASE}/boom/state"))
+                assert polled > 3 * sent  # the polls outnumber the messages
+                assert 1 <= sent <= elapsed / 0.4 + 1
+                # per_field_topics: plain numbers equal to the state JSON's.
+                last = flat(state(rec.on(f"{BASE}/boom/state")[-1]))
+                await until(lambda: rec.on(f"{BASE}/boom/q3"))
+                for name in FIELDS:
+                    assert float(rec.last(f"{BASE}/boom/{name}").text) == last[name]  # type: ignore[union-attr]
+
+            # deadband: a still sensor sends one message; a move past the band, another.
+            rec.clear()
+            async with running(config(buses, broker, deadband={"angles": 1.0})) as gateway:
+                await until(lambda: rec.on(f"{BASE}/boom/state"))
+                seq = gateway.cache.snapshot("boom").seq
+                await until(lambda: gateway.cache.snapshot("boom").seq > seq + 20)
+                assert len(rec.on(f"{BASE}/boom/state")) == 1
+                a = READING.angles
+                assert a is not None
+                ah.source = hold(_replace_angles(READING, Angles(a.pitch + 0.5, a.roll, a.yaw)))
+                seq = gateway.cache.snapshot("boom").seq
+                await until(lambda: gateway.cache.snapshot("boom").seq > seq + 20)
+                assert len(rec.on(f"{BASE}/boom/state")) == 1  # within the band
+                ah.source = hold(_replace_angles(READING, Angles(a.pitch + 5, a.roll, a.yaw)))
+                await until(lambda: len(rec.on(f"{BASE}/boom/state")) == 2)
+                moved = state(rec.on(f"{BASE}/boom/state")[-1])["angles"]["pitch"]
+                assert abs(moved - (a.pitch + 5)) < 0.01
+
+        run(body)
+
+
+def _replace_angles(reading: Any, angles: Angles) -> Any:
+    from dataclasses import replace
+    return replace(reading, angles=angles)
