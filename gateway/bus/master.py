@@ -215,6 +215,7 @@ class BusMaster:
         self._stopping = False
         self._last_rx = 0.0
         self._last_tx_end = 0.0
+        self._busy_end = 0.0  # when the last exchange counted in busy_time ended
         self._quiet_until = 0.0
         self._dirty = False
         self._polls: dict[str, tuple[int, Exchange]] = {}
@@ -705,7 +706,11 @@ class BusMaster:
                 continue
             finally:
                 self._waiting = None
-                took = loop.time() - started + gap
+                # The silent gap before the request counts, but not twice: it starts
+                # at the answer before, whose exchange was counted up to its end.
+                end = loop.time()
+                took = end - max(started - gap, self._busy_end)
+                self._busy_end = end
                 self.stats.busy_time += took
                 s.stats.busy_time += took
             self.stats.transactions += 1
