@@ -83,8 +83,12 @@ class PtyBus:
         seed: int = 0,
         link: str | None = None,
         verbose: bool = False,
+        on_sent: Callable[[float, bytes, bool], None] | None = None,
     ) -> None:
+        """``on_sent(t, frame, solicited)`` is told of every frame a sensor sent, at the
+        monotonic time its last byte was written (benchmarks time the path from there)."""
         self.sensors = list(sensors)
+        self.on_sent = on_sent
         self.noise_rate = noise_rate  # bursts of line noise per second, while idle
         self.link = link
         self.verbose = verbose
@@ -223,6 +227,8 @@ class PtyBus:
                 last = written + 1 == len(frame)
                 await self._pause(start + (written + 1) * c - loop.time(), exact=last)
         self.stats.answer_frames += 1
+        if self.on_sent is not None:
+            self.on_sent(time.monotonic(), frame, out.solicited)
         self._note(f"{out.sender} -> {out.frame.hex(' ')}")
 
     def _inject_noise(self) -> None:
