@@ -11,6 +11,7 @@ import contextlib
 import logging
 import signal
 import sys
+import time
 from collections.abc import Mapping
 from typing import Any
 
@@ -20,6 +21,7 @@ from .commands import CommandError, CommandResult, ErrorKind, validate
 from .config import GatewayConfig, SensorConfig
 from .frontends.modbus_tcp import ModbusTcpServer
 from .frontends.mqtt import MqttClient
+from .frontends.rest import HttpServer
 
 log = logging.getLogger("gateway")
 
@@ -48,6 +50,8 @@ class Gateway:
         self.sensors: dict[str, SensorConfig] = {s.name: s for _, s in config.iter_sensors()}
         self.modbus = ModbusTcpServer(self, config.modbus) if config.modbus else None
         self.mqtt = MqttClient(self, config.mqtt) if config.mqtt else None
+        self.http = HttpServer(self, config.http) if config.http else None
+        self.started = time.monotonic()
 
     async def command(self, sensor: str, name: str,
                       args: Mapping[str, Any] | None = None) -> CommandResult:
@@ -94,13 +98,14 @@ class Gateway:
     async def start_frontends(self) -> None:
         """Open the listening sockets (once); raises ``StartupError`` when one cannot be
         bound."""
-        if self.modbus is not None and not self.modbus.listening:
-            try:
-                await self.modbus.start()
-            except OSError as exc:
-                listen = self.modbus.config.listen
-                raise StartupError(f"modbus.listen {listen.host}:{listen.port}: "
-                                   f"{exc.strerror or exc}") from None
+        for name, server in (("modbus", self.modbus), ("http", self.http)):
+            if server is not None and not server.listening:
+                try:
+                    await server.start()
+                except OSError as exc:
+                    listen = server.config.listen
+                    raise StartupError(f"{name}.listen {listen}: {exc.strerror or exc}") \
+                        from None
 
     async def run(self, stop: asyncio.Event) -> None:
         """Run until ``stop`` is set, then let every bus finish its exchange and stop."""
@@ -112,6 +117,8 @@ class Gateway:
         finally:
             if self.mqtt is not None:
                 await self.mqtt.stop()  # before the buses stop: "offline" is the last word
+            if self.http is not None:
+                await self.http.stop()
             if self.modbus is not None:
                 await self.modbus.stop()
 
@@ -139,6 +146,13 @@ class Gateway:
 
     def stats(self) -> list[dict[str, Any]]:
         return [m.bus_stats() for m in self.masters.values()]
+
+    def sensor_stats(self, name: str) -> dict[str, Any]:
+        return self._runner_of[name].master.sensor_stats(name)
+
+    def frontend_stats(self) -> dict[str, dict[str, Any]]:
+        running = {"modbus": self.modbus, "mqtt": self.mqtt, "http": self.http}
+        return {name: f.stats() for name, f in running.items() if f is not None}
 
 
 async def run_until_signalled(config: GatewayConfig, stats_interval: float = 0.0) -> None:

@@ -11,15 +11,24 @@ from ..config import GatewayConfig, SensorConfig
 
 
 class GatewayLike(Protocol):
-    """What the server needs of the gateway (``app.Gateway``)."""
+    """What the front ends need of the gateway (``app.Gateway``)."""
 
     config: GatewayConfig
     cache: Cache
     sensors: dict[str, SensorConfig]
+    started: float  # time.monotonic() at start
 
     async def command(self, sensor: str, name: str,
                       args: Mapping[str, Any] | None = None) -> CommandResult: ...
 
     async def passthrough(self, sensor: str, pdu: bytes) -> bytes: ...
 
-    def stats(self) -> list[dict[str, Any]]: ...
+    def stats(self) -> list[dict[str, Any]]:
+        """Every bus master's stats."""
+        ...
+
+    def sensor_stats(self, name: str) -> dict[str, Any]: ...
+
+    def frontend_stats(self) -> dict[str, dict[str, Any]]:
+        """Each running front end's ``stats()``, by name (``modbus``, ``mqtt``, ``http``)."""
+        ...

@@ -86,7 +86,7 @@ class ModbusTcpServer:
                           if s.raw_unit_id is not None}
         self._decoder = DecodePDU(is_server=True)
         self.connections: set[_Connection] = set()
-        self.stats: Counter[str] = Counter()
+        self.counts: Counter[str] = Counter()
         self._server: asyncio.Server | None = None
         gateway.cache.subscribe(self._on_cache_event)
         for name, unit in self._by_name.items():
@@ -108,6 +108,9 @@ class ModbusTcpServer:
     def listening(self) -> bool:
         return self._server is not None
 
+    def stats(self) -> dict[str, Any]:
+        return {"clients": len(self.connections), **self.counts}
+
     @property
     def port(self) -> int:
         assert self._server is not None
@@ -125,7 +128,7 @@ class ModbusTcpServer:
     def handle(self, unit_id: int, pdu: bytes) -> bytes | Awaitable[bytes]:
         """The answer PDU to a request PDU: at once for reads, later for writes."""
         function = pdu[0]
-        self.stats["requests"] += 1
+        self.counts["requests"] += 1
         if unit_id in self.raw_units:
             return self._passthrough(self.raw_units[unit_id], pdu)
         unit = self.units.get(unit_id)
@@ -204,7 +207,7 @@ class ModbusTcpServer:
         args = _command_args(reg, words)
         if args is None:
             return exception(function, ILLEGAL_VALUE)
-        self.stats["writes"] += 1
+        self.counts["writes"] += 1
         result = await self.gateway.command(unit.sensor.name, reg.command, args)
         if not result.ok:
             assert result.kind is not None
@@ -223,7 +226,7 @@ class ModbusTcpServer:
                 return exception(function, problem)
         else:
             return exception(function, ILLEGAL_FUNCTION)
-        self.stats["passthrough"] += 1
+        self.counts["passthrough"] += 1
         try:
             return await self.gateway.passthrough(sensor, pdu)
         except SensorUnavailable as exc:
@@ -274,18 +277,18 @@ class _Connection(asyncio.Protocol):
         self.peer = f"{peer[0]}:{peer[1]}"
         server, config = self.server, self.server.config
         if not config.allows(str(peer[0])):
-            server.stats["refused_address"] += 1
+            server.counts["refused_address"] += 1
             log.warning("Modbus TCP: refused %s (not in allow_from)", self.peer)
             transport.abort()
             return
         if len(server.connections) >= config.max_connections:
-            server.stats["refused_limit"] += 1
+            server.counts["refused_limit"] += 1
             log.warning("Modbus TCP: refused %s (%d connections is the limit)", self.peer,
                         config.max_connections)
             transport.abort()
             return
         server.connections.add(self)
-        server.stats["connections"] += 1
+        server.counts["connections"] += 1
         self._touch()
 
     def connection_lost(self, exc: Exception | None) -> None:
@@ -305,7 +308,7 @@ class _Connection(asyncio.Protocol):
             self.idle = asyncio.get_running_loop().call_later(timeout, self._idle_out)
 
     def _idle_out(self) -> None:
-        self.server.stats["idle_closed"] += 1
+        self.server.counts["idle_closed"] += 1
         self.close()
 
     def data_received(self, data: bytes) -> None:
@@ -320,7 +323,7 @@ class _Connection(asyncio.Protocol):
             transaction, protocol, length, unit = MBAP.unpack_from(buffer)
             if protocol != 0 or not 2 <= length <= MAX_LENGTH:
                 # Not Modbus, or framing lost: nothing after this can be trusted.
-                self.server.stats["bad_mbap"] += 1
+                self.server.counts["bad_mbap"] += 1
                 log.warning("Modbus TCP: closing %s: MBAP protocol id %d, length %d",
                             self.peer, protocol, length)
                 self.transport.abort()

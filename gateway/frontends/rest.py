@@ -1,0 +1,617 @@
+"""The REST API, the live stream, the metrics and the dashboard (SPEC.md §6).
+
+FastAPI on uvicorn, inside the gateway's own event loop: the gateway owns the signals
+and the shutdown (uvicorn would install handlers of its own; ``_Server`` stops it).
+Every read is answered from the cache; ``max_age_ms`` is the one way a client can
+cause bus traffic, and identical on-demand reads share one transaction.
+
+Errors are one JSON shape, ``{"error": "...", "kind": "..."}``, with the status codes
+SPEC.md lists: 401/403 auth, 404 unknown sensor or command, 409 busy, 422 bad
+arguments or a command the series lacks, 503 no reading yet, 504 the sensor did not
+answer; 502 when the sensor answered that the command failed.
+
+The command routes are made from the command catalogue, so the OpenAPI document shows
+each command's own arguments.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hmac
+import inspect
+import json
+import logging
+import socket
+import time
+from collections import deque
+from collections.abc import AsyncIterator, Awaitable, Callable
+from importlib import resources
+from typing import Annotated, Any, Literal
+
+import uvicorn
+from fastapi import Depends, FastAPI, Query, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from fastapi.staticfiles import StaticFiles
+from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from pydantic import BaseModel, ConfigDict, Field
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from .. import __version__
+from ..cache import EventKind, SensorUnavailable, Snapshot, Status
+from ..commands import CATALOGUE, ErrorKind
+from ..config import HttpConfig
+from .common import GatewayLike
+
+log = logging.getLogger("gateway.http")
+
+API = "/api/v1"
+STREAM_QUEUE = 64  # events a slow stream client may fall behind before it is dropped
+KEEPALIVE_S = 15.0  # a comment line on an idle stream, so proxies keep it open
+MAX_STREAMS = 1000
+
+STATUS_FOR: dict[ErrorKind, int] = {
+    ErrorKind.UNKNOWN: 404,
+    ErrorKind.BAD_ARGUMENTS: 422,
+    ErrorKind.UNSUPPORTED: 422,
+    ErrorKind.BUSY: 409,
+    ErrorKind.TIMEOUT: 504,
+    ErrorKind.OFFLINE: 504,
+    ErrorKind.FAILURE: 502,
+}
+
+
+# Module level: FastAPI resolves the (string) annotations of endpoints here.
+_bearer = HTTPBearer(auto_error=False, description="the gateway's http.token")
+Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
+
+
+class ApiError(Exception):
+    def __init__(self, status: int, kind: str, message: str) -> None:
+        super().__init__(message)
+        self.status, self.kind = status, kind
+
+
+# ------------------------------------------------------------------ response models
+
+
+class _Out(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ErrorOut(_Out):
+    error: str
+    kind: str
+
+
+class AnglesOut(_Out):
+    pitch: float
+    roll: float
+    yaw: float
+
+
+class VectorOut(_Out):
+    x: float
+    y: float
+    z: float
+
+
+class QuaternionOut(_Out):
+    q0: float
+    q1: float
+    q2: float
+    q3: float
+
+
+class ReadingOut(_Out):
+    """The reading JSON of SPEC.md §4; groups the series does not measure are absent."""
+
+    sensor: str
+    ts: str | None = Field(description="when the sample arrived, UTC")
+    seq: int
+    status: Literal["ok", "stale", "offline"]
+    angles: AnglesOut | None = Field(None, description="degrees")
+    accel: VectorOut | None = Field(None, description="g")
+    gyro: VectorOut | None = Field(None, description="degrees per second")
+    mag: VectorOut | None = Field(None, description="gauss")
+    quaternion: QuaternionOut | None = None
+
+
+class SensorOut(_Out):
+    name: str
+    bus: str
+    series: str
+    protocol: str
+    address: int
+    unit_id: int
+    status: Literal["ok", "stale", "offline"]
+    online: bool
+    busy: bool
+    streaming: bool
+    seq: int
+    age_ms: float | None
+    achieved_hz: float
+    errors: int
+
+
+class SensorDetailOut(SensorOut):
+    config: dict[str, Any]
+    settings: dict[str, Any] = Field(description="what the gateway learnt from commands")
+    stats: dict[str, Any]
+    reading: ReadingOut | None
+
+
+class BusOut(_Out):
+    name: str
+    port: str
+    baudrate: int
+    protocol: str
+    port_open: bool
+    transactions: int
+    errors: dict[str, int]
+    transactions_per_s: float
+    utilisation: float = Field(description="time in exchanges ÷ elapsed time")
+    wire_utilisation: float
+    busy_ms: int
+    queue_depth: int
+    sensors: list[str]
+
+
+class HealthOut(_Out):
+    status: Literal["ok", "degraded"] = Field(
+        description="degraded: a port is closed or a sensor is offline")
+    gateway_id: str
+    version: str
+    uptime_s: float
+    buses: dict[str, bool] = Field(description="bus name -> port open")
+    sensors: dict[str, int] = Field(description="how many sensors are ok, stale, offline")
+    interfaces: list[str]
+
+
+class CommandOut(_Out):
+    ok: bool
+    sensor: str
+    command: str
+    answer: dict[str, Any]
+    error: str | None
+    kind: str | None
+
+
+# ------------------------------------------------------------------ the live stream
+
+
+class _Subscriber:
+    def __init__(self, sensor: str | None) -> None:
+        self.sensor = sensor
+        self.events: deque[bytes] = deque()
+        self.wake = asyncio.Event()
+        self.dropped = False
+
+
+class StreamHub:
+    """Server-Sent Events: every reading (and status change) to every subscriber of
+    its sensor.  An event is formatted once, whatever the number of subscribers.  A
+    subscriber more than ``STREAM_QUEUE`` events behind is dropped: its stream ends
+    and its client may reconnect, rather than the gateway buffering without bound."""
+
+    def __init__(self, gateway: GatewayLike) -> None:
+        self.gateway = gateway
+        self.subscribers: set[_Subscriber] = set()
+        self.dropped = 0
+        self.closing = asyncio.Event()
+        self._unsubscribe = gateway.cache.subscribe(self._on_cache_event)
+
+    def _on_cache_event(self, kind: EventKind, snap: Snapshot) -> None:
+        if not self.subscribers:
+            return
+        event = _event("reading" if kind is EventKind.READING else "status", snap)
+        for sub in list(self.subscribers):
+            if sub.sensor is not None and sub.sensor != snap.name:
+                continue
+            if len(sub.events) >= STREAM_QUEUE:
+                sub.dropped = True
+                self.subscribers.discard(sub)
+                self.dropped += 1
+                log.info("http: dropped a stream client %d events behind", STREAM_QUEUE)
+            else:
+                sub.events.append(event)
+            sub.wake.set()
+
+    async def stream(self, sensor: str | None) -> AsyncIterator[bytes]:
+        sub = _Subscriber(sensor)
+        self.subscribers.add(sub)
+        try:
+            names = [sensor] if sensor is not None else self.gateway.cache.names
+            for name in names:  # where each sensor stands now, first
+                snap = self.gateway.cache.snapshot(name)
+                yield _event("reading" if snap.has_reading else "status", snap)
+            while not self.closing.is_set() and not sub.dropped:
+                if not sub.events:
+                    sub.wake.clear()
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(sub.wake.wait(), KEEPALIVE_S)
+                    if not sub.events:
+                        yield b": keep-alive\n\n"
+                        continue
+                yield sub.events.popleft()
+        finally:
+            self.subscribers.discard(sub)
+
+    def close(self) -> None:
+        self.closing.set()
+        for sub in self.subscribers:
+            sub.wake.set()
+        self._unsubscribe()
+
+
+def _event(name: str, snap: Snapshot) -> bytes:
+    data = json.dumps(snap.to_json(), separators=(",", ":"))
+    return f"event: {name}\nid: {snap.seq}\ndata: {data}\n\n".encode()
+
+
+# ------------------------------------------------------------------ metrics
+
+
+class GatewayCollector:
+    """Prometheus metrics, read from the gateway's stats at each scrape."""
+
+    def __init__(self, gateway: GatewayLike) -> None:
+        self.gateway = gateway
+
+    def collect(self) -> list[Metric]:
+        g = self.gateway
+        p = "imu_gateway_"
+        out: list[Metric] = []
+
+        def family(kind: type[GaugeMetricFamily] | type[CounterMetricFamily], name: str,
+                   doc: str, labels: list[str]) -> Any:
+            metric = kind(p + name, doc, labels=labels)
+            out.append(metric)
+            return metric
+
+        tx = family(CounterMetricFamily, "bus_transactions", "exchanges on the line", ["bus"])
+        errors = family(CounterMetricFamily, "bus_errors", "failed exchanges by kind",
+                        ["bus", "kind"])
+        util = family(GaugeMetricFamily, "bus_utilisation",
+                      "time in exchanges / elapsed time", ["bus"])
+        queue = family(GaugeMetricFamily, "bus_queue_depth", "jobs waiting for the line",
+                       ["bus"])
+        port = family(GaugeMetricFamily, "bus_port_open", "1 when the port is open", ["bus"])
+        for bus in g.stats():
+            tx.add_metric([bus["name"]], bus["transactions"])
+            for kind, count in bus["errors"].items():
+                errors.add_metric([bus["name"], kind], count)
+            util.add_metric([bus["name"]], bus["utilisation"])
+            queue.add_metric([bus["name"]], bus["queue_depth"])
+            port.add_metric([bus["name"]], 1.0 if bus["port_open"] else 0.0)
+
+        rate = family(GaugeMetricFamily, "sensor_rate_hz", "readings per second", ["sensor"])
+        age = family(GaugeMetricFamily, "sensor_age_seconds", "age of the latest reading",
+                     ["sensor"])
+        status = family(GaugeMetricFamily, "sensor_status", "1 for the sensor's status",
+                        ["sensor", "status"])
+        readings = family(CounterMetricFamily, "sensor_readings", "readings received",
+                          ["sensor"])
+        sensor_errors = family(CounterMetricFamily, "sensor_errors", "timeouts and bad frames",
+                               ["sensor"])
+        for snap in g.cache.snapshots():
+            stats = g.sensor_stats(snap.name)
+            rate.add_metric([snap.name], stats["achieved_hz"])
+            if snap.age_ms is not None:
+                age.add_metric([snap.name], snap.age_ms / 1000)
+            for s in Status:
+                status.add_metric([snap.name, s.value], 1.0 if snap.status is s else 0.0)
+            readings.add_metric([snap.name], snap.seq)
+            sensor_errors.add_metric([snap.name], snap.errors)
+
+        clients = family(GaugeMetricFamily, "frontend_clients", "connected clients",
+                         ["frontend"])
+        requests = family(CounterMetricFamily, "frontend_requests", "requests served",
+                          ["frontend"])
+        for name, stats in g.frontend_stats().items():
+            clients.add_metric([name], stats.get("clients", 0))
+            requests.add_metric([name], stats.get("requests", 0))
+        mqtt = g.frontend_stats().get("mqtt")
+        if mqtt is not None:
+            family(GaugeMetricFamily, "mqtt_connected", "1 when connected to the broker",
+                   []).add_metric([], 1.0 if mqtt["connected"] else 0.0)
+            family(CounterMetricFamily, "mqtt_published", "messages handed to the client",
+                   []).add_metric([], mqtt["published"])
+            family(CounterMetricFamily, "mqtt_dropped", "messages dropped while the broker "
+                   "was away", []).add_metric([], mqtt["dropped"])
+        return out
+
+
+# ------------------------------------------------------------------ the app
+
+
+def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None = None,
+               counters: dict[str, int] | None = None) -> FastAPI:
+    """The FastAPI app.  ``hub`` and ``counters`` belong to the running server; without
+    them (as for the OpenAPI document) the stream has a hub of its own."""
+    app = FastAPI(
+        title="imu-gateway",
+        version=__version__,
+        description="Readings, commands, live streams and metrics of IMU/VG/AH/MINS "
+                    "attitude sensors behind one gateway (SPEC.md §6).",
+        docs_url=None,  # Swagger UI loads from a CDN: not on a plant network
+        redoc_url=None,
+    )
+    counts = counters if counters is not None else {"requests": 0}
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(GatewayCollector(gateway))
+    errors: dict[int | str, dict[str, Any]] = {
+        code: {"model": ErrorOut} for code in (401, 403, 404, 409, 422, 502, 503, 504)}
+
+    def error_response(exc: ApiError) -> JSONResponse:
+        headers = {"WWW-Authenticate": "Bearer"} if exc.status == 401 else None
+        return JSONResponse({"error": str(exc), "kind": exc.kind}, exc.status, headers)
+
+    @app.exception_handler(ApiError)
+    async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
+        return error_response(exc)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+        parts = []
+        for err in exc.errors():
+            where = ".".join(str(p) for p in err["loc"] if p != "body") or "body"
+            parts.append(f"{where}: {err['msg'].removeprefix('Value error, ')}")
+        return error_response(ApiError(422, "bad_arguments", "; ".join(parts)))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        kind = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http")
+        return error_response(ApiError(exc.status_code, kind, str(exc.detail)))
+
+    @app.middleware("http")
+    async def _count(request: Request, call_next: Callable[[Request], Awaitable[Response]]
+                     ) -> Response:
+        counts["requests"] += 1
+        return await call_next(request)
+
+    def authorised(credentials: HTTPAuthorizationCredentials | None) -> None:
+        if credentials is None or config.token is None or not hmac.compare_digest(
+                credentials.credentials.encode(), config.token.encode()):
+            raise ApiError(401, "unauthorised", "a valid bearer token is required")
+
+    def read_access(credentials: Credentials) -> None:
+        if config.read_token_required:
+            authorised(credentials)
+
+    def command_access(credentials: Credentials) -> None:
+        if not config.allow_commands:
+            raise ApiError(403, "forbidden", "commands are turned off (http.allow_commands)")
+        authorised(credentials)
+
+    reads = [Depends(read_access)]
+
+    def sensor_or_404(name: str) -> Snapshot:
+        if name not in gateway.sensors:
+            raise ApiError(404, "unknown_sensor", f"unknown sensor {name!r}")
+        return gateway.cache.snapshot(name)
+
+    bus_of = {s.name: b for b, s in gateway.config.iter_sensors()}
+
+    def sensor_out(snap: Snapshot) -> dict[str, Any]:
+        sensor, bus = gateway.sensors[snap.name], bus_of[snap.name]
+        stats = gateway.sensor_stats(snap.name)
+        return {"name": snap.name, "bus": bus.name, "series": sensor.series.name,
+                "protocol": bus.protocol.name.lower(), "address": sensor.address,
+                "unit_id": sensor.unit_id, "status": snap.status.value, "online": snap.online,
+                "busy": snap.busy, "streaming": snap.streaming, "seq": snap.seq,
+                "age_ms": None if snap.age_ms is None else round(snap.age_ms, 1),
+                "achieved_hz": stats["achieved_hz"], "errors": snap.errors}
+
+    @app.get(f"{API}/health", response_model=HealthOut, dependencies=reads,
+             responses={401: errors[401]}, summary="gateway and bus status")
+    async def health() -> dict[str, Any]:
+        buses = {b["name"]: b["port_open"] for b in gateway.stats()}
+        counted = {s.value: 0 for s in Status}
+        for snap in gateway.cache.snapshots():
+            counted[snap.status.value] += 1
+        degraded = not all(buses.values()) or counted["offline"] > 0
+        return {"status": "degraded" if degraded else "ok",
+                "gateway_id": gateway.config.gateway_id, "version": __version__,
+                "uptime_s": round(time.monotonic() - gateway.started, 1),
+                "buses": buses, "sensors": counted, "interfaces": gateway.config.interfaces()}
+
+    @app.get(f"{API}/buses", response_model=list[BusOut], dependencies=reads,
+             responses={401: errors[401]}, summary="every bus and its stats")
+    async def buses() -> list[dict[str, Any]]:
+        names = {b.name: [s.name for s in b.sensors] for b in gateway.config.buses}
+        return [{**{k: v for k, v in b.items() if k in BusOut.model_fields},
+                 "sensors": names[b["name"]]} for b in gateway.stats()]
+
+    @app.get(f"{API}/sensors", response_model=list[SensorOut], dependencies=reads,
+             responses={401: errors[401]}, summary="every sensor with its status")
+    async def sensors() -> list[dict[str, Any]]:
+        return [sensor_out(snap) for snap in gateway.cache.snapshots()]
+
+    @app.get(f"{API}/sensors/{{name}}", response_model=SensorDetailOut,
+             response_model_exclude_none=False, dependencies=reads,
+             responses={401: errors[401], 404: errors[404]},
+             summary="a sensor's config, status and latest reading")
+    async def sensor(name: str) -> dict[str, Any]:
+        snap = sensor_or_404(name)
+        return {**sensor_out(snap),
+                "config": gateway.sensors[name].model_dump(mode="json"),
+                "settings": gateway.cache.settings(name),
+                "stats": gateway.sensor_stats(name),
+                "reading": snap.to_json() if snap.has_reading else None}
+
+    @app.get(f"{API}/sensors/{{name}}/reading", response_model=ReadingOut,
+             response_model_exclude_none=True, dependencies=reads,
+             responses={code: errors[code] for code in (401, 404, 409, 503, 504)},
+             summary="the latest reading; older than max_age_ms: a fresh bus read first")
+    async def reading(name: str, max_age_ms: Annotated[float | None, Query(
+            ge=0, le=3_600_000, description="the oldest reading acceptable, ms")] = None,
+                      ) -> dict[str, Any]:
+        snap = sensor_or_404(name)
+        if max_age_ms is not None:
+            try:
+                snap = await gateway.cache.fresh(name, max_age_ms)
+            except SensorUnavailable as exc:
+                raise ApiError(STATUS_FOR.get(exc.kind, 504), exc.kind.value, str(exc)) \
+                    from None
+        if not snap.has_reading:
+            raise ApiError(503, "no_reading", f"{name} has not been read yet")
+        return snap.to_json()
+
+    def stream_response(sensor: str | None) -> StreamingResponse:
+        active = hub if hub is not None else StreamHub(gateway)
+        if len(active.subscribers) >= MAX_STREAMS:
+            raise ApiError(503, "too_many_streams", f"{MAX_STREAMS} streams are open")
+        return StreamingResponse(active.stream(sensor), media_type="text/event-stream",
+                                 headers={"Cache-Control": "no-cache",
+                                          "X-Accel-Buffering": "no"})
+
+    sse = {"content": {"text/event-stream": {}},
+           "description": "`event: reading` (or `status`), `id: seq`, `data:` the "
+                          "reading JSON; a `: keep-alive` comment when idle"}
+
+    @app.get(f"{API}/sensors/{{name}}/stream", dependencies=reads,
+             response_class=StreamingResponse,
+             responses={200: sse, 401: errors[401], 404: errors[404], 503: errors[503]},
+             summary="Server-Sent Events: one reading per event")
+    async def stream(name: str) -> StreamingResponse:
+        sensor_or_404(name)
+        return stream_response(name)
+
+    @app.get(f"{API}/stream", dependencies=reads, response_class=StreamingResponse,
+             responses={200: sse, 401: errors[401], 503: errors[503]},
+             summary="Server-Sent Events of every sensor")
+    async def stream_all() -> StreamingResponse:
+        return stream_response(None)
+
+    for spec in CATALOGUE.values():
+        _command_route(app, gateway, spec.name, spec.args, spec.summary, command_access,
+                       sensor_or_404, errors)
+
+    @app.post(f"{API}/sensors/{{name}}/commands/{{command}}", include_in_schema=False)
+    async def unknown_command(name: str, command: str) -> None:
+        sensor_or_404(name)
+        raise ApiError(404, "unknown_command",
+                       f"unknown command {command!r} (known: {', '.join(CATALOGUE)})")
+
+    @app.get("/metrics", response_class=Response, dependencies=reads,
+             responses={200: {"content": {"text/plain": {}}}, 401: errors[401]},
+             summary="Prometheus text format")
+    async def metrics() -> Response:
+        return Response(generate_latest(registry),
+                        media_type="text/plain; version=0.0.4; charset=utf-8")
+
+    static = resources.files("gateway") / "static"
+
+    @app.get("/", response_class=HTMLResponse, include_in_schema=False)
+    async def dashboard() -> HTMLResponse:
+        return HTMLResponse((static / "index.html").read_text(encoding="utf-8"))
+
+    app.mount("/static", StaticFiles(packages=[("gateway", "static")]), name="static")
+    return app
+
+
+def _command_route(app: FastAPI, gateway: GatewayLike, command: str, args: type[BaseModel],
+                   summary: str, access: Callable[..., None],
+                   sensor_or_404: Callable[[str], Snapshot],
+                   errors: dict[int | str, dict[str, Any]]) -> None:
+    """``POST …/commands/{command}``, its body the command's own argument model (a
+    command without arguments takes no body, or an empty object)."""
+
+    async def endpoint(name: str, body: BaseModel | None = None) -> JSONResponse:
+        sensor_or_404(name)
+        values = body.model_dump() if body is not None else {}
+        result = await gateway.command(name, command, values)
+        status = 200 if result.ok else STATUS_FOR.get(result.kind or ErrorKind.FAILURE, 502)
+        return JSONResponse(result.to_json(), status)
+
+    # The body's type is the command's model, known only here: FastAPI reads it from
+    # the signature.
+    body = inspect.Parameter(
+        "body", inspect.Parameter.POSITIONAL_OR_KEYWORD,
+        annotation=args if args.model_fields else args | None,
+        **({} if args.model_fields else {"default": None}))
+    endpoint.__signature__ = inspect.Signature(  # type: ignore[attr-defined]
+        [inspect.Parameter("name", inspect.Parameter.POSITIONAL_OR_KEYWORD, annotation=str),
+         body], return_annotation=JSONResponse)
+    app.add_api_route(
+        f"{API}/sensors/{{name}}/commands/{command}", endpoint, methods=["POST"],
+        response_model=CommandOut, summary=summary, name=f"command_{command}",
+        dependencies=[Depends(access)], tags=["commands"],
+        responses={code: errors[code] for code in (401, 403, 404, 409, 422, 502, 504)})
+
+
+# ------------------------------------------------------------------ the server
+
+
+class _Server(uvicorn.Server):
+    """uvicorn without its signal handlers: the gateway owns SIGINT and SIGTERM."""
+
+    @contextlib.contextmanager
+    def capture_signals(self) -> Any:
+        yield
+
+
+class HttpServer:
+    def __init__(self, gateway: GatewayLike, config: HttpConfig) -> None:
+        self.gateway = gateway
+        self.config = config
+        self.counters = {"requests": 0}
+        self.hub: StreamHub | None = None
+        self._socket: socket.socket | None = None
+        self._server: _Server | None = None
+        self._task: asyncio.Task[None] | None = None
+
+    async def start(self) -> None:
+        """Listen; raises ``OSError`` when the address cannot be bound."""
+        listen = self.config.listen
+        family = socket.AF_INET6 if ":" in listen.host else socket.AF_INET
+        sock = socket.socket(family, socket.SOCK_STREAM)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.bind((listen.host, listen.port))
+            sock.listen(512)
+        except OSError:
+            sock.close()
+            raise
+        sock.setblocking(False)
+        self._socket = sock
+        self.hub = StreamHub(self.gateway)
+        app = create_app(self.gateway, self.config, self.hub, self.counters)
+        self._server = _Server(uvicorn.Config(
+            app, log_config=None, log_level="warning", access_log=False, lifespan="off",
+            timeout_graceful_shutdown=2, server_header=False))
+        self._task = asyncio.create_task(self._server.serve(sockets=[sock]), name="http")
+        log.info("HTTP on http://%s:%d/ (API %s)", listen.host, self.port, API)
+
+    @property
+    def listening(self) -> bool:
+        return self._socket is not None
+
+    @property
+    def port(self) -> int:
+        assert self._socket is not None
+        return int(self._socket.getsockname()[1])
+
+    def stats(self) -> dict[str, Any]:
+        streams = len(self.hub.subscribers) if self.hub is not None else 0
+        connections = len(self._server.server_state.connections) if self._server else 0
+        return {"clients": connections, "streams": streams,
+                "requests": self.counters["requests"],
+                "dropped_streams": self.hub.dropped if self.hub is not None else 0}
+
+    async def stop(self) -> None:
+        if self.hub is not None:
+            self.hub.close()  # streams end, so their connections can close
+        if self._server is not None and self._task is not None:
+            self._server.should_exit = True
+            await self._task
+        if self._socket is not None:
+            self._socket.close()
+
+
+def openapi_document(gateway: GatewayLike, config: HttpConfig) -> dict[str, Any]:
+    return create_app(gateway, config).openapi()
