@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import signal
 import sys
@@ -18,10 +19,10 @@ from typing import Any
 from .bus.runner import BusRunner
 from .cache import Cache, SensorUnavailable
 from .commands import CommandError, CommandResult, ErrorKind, validate
-from .config import GatewayConfig, SensorConfig
+from .config import GatewayConfig, HttpConfig, SensorConfig, config_from_dict
 from .frontends.modbus_tcp import ModbusTcpServer
 from .frontends.mqtt import MqttClient
-from .frontends.rest import HttpServer
+from .frontends.rest import HttpServer, openapi_document
 
 log = logging.getLogger("gateway")
 
@@ -179,3 +180,14 @@ async def _log_stats(gateway: Gateway, stop: asyncio.Event, interval: float) -> 
         for bus in gateway.stats():
             log.info("bus %s: %.1f transactions/s, utilisation %.2f, errors %s", bus["name"],
                      bus["transactions_per_s"], bus["utilisation"], bus["errors"] or "none")
+
+
+def openapi_json() -> str:
+    """The REST API's OpenAPI document as committed at ``openapi/openapi.json``
+    (``scripts/openapi`` writes it).  The routes do not depend on the config; a
+    one-sensor gateway stands in for any."""
+    config = config_from_dict({"gateway_id": "openapi", "buses": [{
+        "name": "line", "port": "/dev/null", "protocol": "native",
+        "sensors": [{"name": "sensor", "series": "AH"}]}]}, env={})
+    document = openapi_document(Gateway(config), HttpConfig())
+    return json.dumps(document, indent=2, ensure_ascii=False) + "\n"

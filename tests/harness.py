@@ -47,7 +47,8 @@ async def running(config: dict[str, Any],
     stop = asyncio.Event()
     task = asyncio.create_task(gateway.run(stop))
     try:
-        await until(lambda: task.done() or gateway.modbus is None or gateway.modbus.listening)
+        servers = [s for s in (gateway.modbus, gateway.http) if s is not None]
+        await until(lambda: task.done() or all(s.listening for s in servers))
         if task.done():
             task.result()  # it could not start: raise why
         yield gateway

@@ -52,6 +52,7 @@ API = "/api/v1"
 STREAM_QUEUE = 64  # events a slow stream client may fall behind before it is dropped
 KEEPALIVE_S = 15.0  # a comment line on an idle stream, so proxies keep it open
 MAX_STREAMS = 1000
+SEND_BUFFER = 64 * 1024  # bytes of kernel send buffer per connection
 
 STATUS_FOR: dict[ErrorKind, int] = {
     ErrorKind.UNKNOWN: 404,
@@ -572,6 +573,10 @@ class HttpServer:
         sock = socket.socket(family, socket.SOCK_STREAM)
         try:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            # Accepted connections inherit this: the kernel's buffer for a client that
+            # stops reading stays small (it may otherwise grow to megabytes), so a
+            # stalled stream client is noticed, and dropped, within seconds.
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
             sock.bind((listen.host, listen.port))
             sock.listen(512)
         except OSError:

@@ -1,0 +1,435 @@
+"""The REST API, live stream and metrics (SPEC.md §6, issue 6) through a real HTTP
+client (httpx) against the running gateway on simulated sensors.
+
+Expected values come from the simulator, the config and SPEC.md.  Waits are
+deadlines on conditions, never measurements of speed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from harness import FIELDS, GROUP_OF, expected, run, running, tolerance, until
+from prometheus_client.parser import text_string_to_metric_families
+
+from gateway.app import Gateway, StartupError, openapi_json
+from gateway.cache import Cache
+from gateway.frontends.rest import STREAM_QUEUE, StreamHub
+from gateway.model import Protocol, Series
+from gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
+from gateway.simulator.motion import Motion
+
+FAST = 115200
+READING = Motion.from_seed(3).sample(10.0)
+TOKEN = "t0ken-for-tests"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+API = "/api/v1"
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def sensor(protocol: Protocol, series: Series, **options: Any) -> SimSensor:
+    return make_sensor(protocol, series, baud=FAST, **options)
+
+
+def bus(name: str, port: str, protocol: str, sensors: list[dict[str, Any]]) -> dict[str, Any]:
+    return {"name": name, "port": port, "baudrate": FAST, "protocol": protocol,
+            "timeout_ms": 300, "sensors": sensors}
+
+
+def config(buses: list[dict[str, Any]], **http: Any) -> dict[str, Any]:
+    return {"gateway_id": "test", "buses": buses,
+            "http": {"listen": "127.0.0.1:0", "token": TOKEN, "allow_commands": True, **http}}
+
+
+def client(gateway: Gateway) -> httpx.AsyncClient:
+    assert gateway.http is not None
+    return httpx.AsyncClient(base_url=f"http://127.0.0.1:{gateway.http.port}", timeout=10)
+
+
+def flat(reading: dict[str, Any]) -> dict[str, float]:
+    out = {}
+    for name in FIELDS:
+        group = reading.get(GROUP_OF[name])
+        if group is not None:
+            member = name.split("_")[1] if GROUP_OF[name] in ("accel", "gyro", "mag") else name
+            out[name] = group[member]
+    return out
+
+
+def assert_error(response: httpx.Response, status: int, kind: str) -> None:
+    assert response.status_code == status, response.text
+    body = response.json()
+    assert body["kind"] == kind and body["error"], body
+
+
+@pytest.fixture
+def two_lines() -> Any:
+    """A native AH and a Modbus VG, each on its own line."""
+    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING), save_duration=1.0)
+    vg = sensor(Protocol.MODBUS, Series.VG, address=1, source=hold(READING))
+    with simulated([ah]) as line_a, simulated([vg]) as line_b:
+        yield ah, vg, [bus("a", line_a.path, "native", [{"name": "boom", "series": "AH"}]),
+                       bus("b", line_b.path, "modbus", [{"name": "arm", "series": "VG"}])]
+
+
+# ------------------------------------------------------------------ reads
+
+
+def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
+    ah, vg, buses = two_lines
+
+    async def body() -> None:
+        async with running(config(buses)) as gateway, client(gateway) as http:
+            await until(lambda: all(s.seq >= 2 for s in gateway.cache.snapshots()))
+            health = (await http.get(f"{API}/health")).json()
+            assert health["status"] == "ok" and health["gateway_id"] == "test"
+            assert health["buses"] == {"a": True, "b": True}
+            assert health["sensors"] == {"ok": 2, "stale": 0, "offline": 0}
+            assert health["interfaces"] == ["http"]
+
+            buses_out = {b["name"]: b for b in (await http.get(f"{API}/buses")).json()}
+            assert buses_out["a"]["protocol"] == "native" and buses_out["b"]["protocol"] == "modbus"
+            assert buses_out["a"]["baudrate"] == FAST and buses_out["a"]["sensors"] == ["boom"]
+            assert buses_out["a"]["transactions"] >= 2 and buses_out["a"]["port_open"] is True
+            assert 0 < buses_out["a"]["utilisation"] <= 1.0
+
+            listed = {s["name"]: s for s in (await http.get(f"{API}/sensors")).json()}
+            assert listed["boom"]["series"] == "AH" and listed["arm"]["protocol"] == "modbus"
+            assert listed["boom"]["status"] == "ok" and listed["boom"]["unit_id"] == 1
+
+            detail = (await http.get(f"{API}/sensors/arm")).json()
+            assert detail["config"]["address"] == 1 and detail["reading"]["sensor"] == "arm"
+
+            for name, sim, protocol in (("boom", ah, Protocol.NATIVE),
+                                        ("arm", vg, Protocol.MODBUS)):
+                response = await http.get(f"{API}/sensors/{name}/reading")
+                assert response.status_code == 200
+                got = response.json()
+                assert got["status"] == "ok" and got["seq"] >= 2
+                want = expected(sim)
+                assert set(flat(got)) == set(want)  # a VG has no "mag" group
+                for field_name, value in flat(got).items():
+                    assert abs(value - want[field_name]) <= tolerance(
+                        protocol, field_name, value), (name, field_name)
+
+            assert_error(await http.get(f"{API}/sensors/nobody"), 404, "unknown_sensor")
+            assert_error(await http.get(f"{API}/sensors/nobody/reading"), 404, "unknown_sensor")
+            assert_error(await http.get(f"{API}/nothing/here"), 404, "not_found")
+
+    run(body)
+
+
+def test_max_age_reads_the_bus_and_a_silent_sensor_is_504(two_lines: Any) -> None:
+    ah, _, buses = two_lines
+    buses[0]["sensors"][0]["poll_hz"] = 0.2  # a reading every 5 s: max_age must ask
+
+    async def body() -> None:
+        async with running(config(buses)) as gateway, client(gateway) as http:
+            await until(lambda: gateway.cache.snapshot("boom").seq >= 1)
+            await asyncio.sleep(0.3)
+            before = gateway.cache.snapshot("boom").seq
+            fresh = (await http.get(f"{API}/sensors/boom/reading",
+                                    params={"max_age_ms": 100})).json()
+            assert fresh["seq"] > before  # read from the bus, not the cache
+            cached = (await http.get(f"{API}/sensors/boom/reading",
+                                     params={"max_age_ms": 60_000})).json()
+            assert cached["seq"] == fresh["seq"]  # young enough: no bus read
+            assert_error(await http.get(f"{API}/sensors/boom/reading",
+                                        params={"max_age_ms": -1}), 422, "bad_arguments")
+            assert_error(await http.get(f"{API}/sensors/boom/reading",
+                                        params={"max_age_ms": "soon"}), 422, "bad_arguments")
+            ah.faults.stalled = True
+            response = await http.get(f"{API}/sensors/boom/reading", params={"max_age_ms": 0})
+            assert response.status_code == 504, response.text
+            # without max_age_ms the cached reading is served, marked for what it is
+            await until(lambda: gateway.cache.snapshot("boom").status.value == "offline",
+                        timeout=20)
+            old = (await http.get(f"{API}/sensors/boom/reading")).json()
+            assert old["status"] == "offline" and old["seq"] == fresh["seq"]
+            assert (await http.get(f"{API}/health")).json()["status"] == "degraded"
+
+    run(body)
+
+
+def test_no_reading_yet_is_503(tmp_path: Path) -> None:
+    dead = sensor(Protocol.NATIVE, Series.AH, faults=Faults(stalled=True))
+    with simulated([dead]) as line:
+        buses = [bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])]
+
+        async def body() -> None:
+            async with running(config(buses)) as gateway, client(gateway) as http:
+                assert_error(await http.get(f"{API}/sensors/boom/reading"), 503, "no_reading")
+                detail = (await http.get(f"{API}/sensors/boom")).json()
+                assert detail["reading"] is None and detail["status"] == "offline"
+
+        run(body)
+
+
+def test_read_token_required(two_lines: Any) -> None:
+    _, _, buses = two_lines
+
+    async def body() -> None:
+        async with running(config(buses, read_token_required=True)) as gateway, \
+                client(gateway) as http:
+            for path in ("/health", "/buses", "/sensors", "/sensors/boom"):
+                response = await http.get(API + path)
+                assert_error(response, 401, "unauthorised")
+                assert response.headers["WWW-Authenticate"] == "Bearer"
+                assert (await http.get(API + path, headers=AUTH)).status_code == 200
+            assert (await http.get("/metrics")).status_code == 401
+            wrong = {"Authorization": "Bearer not-it"}
+            assert_error(await http.get(f"{API}/health", headers=wrong), 401, "unauthorised")
+
+    run(body)
+
+
+# ------------------------------------------------------------------ commands
+
+
+def test_commands_status_codes(two_lines: Any) -> None:
+    ah, vg, buses = two_lines
+
+    async def post(http: httpx.AsyncClient, path: str, body: Any = None, *,
+                   headers: dict[str, str] | None = AUTH, **options: Any) -> httpx.Response:
+        return await http.post(f"{API}/sensors/{path}", json=body, headers=headers, **options)
+
+    async def body() -> None:
+        async with running(config(buses)) as gateway, client(gateway) as http:
+            await until(lambda: all(s.seq >= 1 for s in gateway.cache.snapshots()))
+            response = await post(http, "boom/commands/set_zero_type", {"type": "relative"})
+            assert response.status_code == 200, response.text
+            assert response.json()["ok"] is True and ah.settings.zero_type == "relative"
+            settings = (await post(http, "boom/commands/read_settings")).json()
+            assert settings["answer"]["zero_type"] == "relative"
+            assert (await http.get(f"{API}/sensors/boom")).json()["settings"]["zero_type"] \
+                == "relative"
+
+            # auth
+            response = await post(http, "boom/commands/save", headers=None)
+            assert_error(response, 401, "unauthorised")
+            assert response.headers["WWW-Authenticate"] == "Bearer"
+            assert_error(await post(http, "boom/commands/save",
+                                    headers={"Authorization": "Bearer nope"}),
+                         401, "unauthorised")
+            assert_error(await post(http, "boom/commands/save",
+                                    headers={"Authorization": "Basic dXNlcjpwdw=="}),
+                         401, "unauthorised")
+            # bad arguments, each with its reason
+            bad = await post(http, "boom/commands/set_zero_type", {"type": "sideways"})
+            assert_error(bad, 422, "bad_arguments")
+            assert "type" in bad.json()["error"]
+            assert_error(await post(http, "boom/commands/set_zero_type", {"type": "absolute",
+                                                                          "extra": 1}),
+                         422, "bad_arguments")
+            assert_error(await post(http, "boom/commands/set_zero_type"), 422, "bad_arguments")
+            assert_error(await post(http, "boom/commands/set_declination", {"degrees": 200}),
+                         422, "bad_arguments")
+            assert_error(await post(http, "boom/commands/save", {"now": True}),
+                         422, "bad_arguments")
+            raw = await http.post(f"{API}/sensors/boom/commands/set_zero_type",
+                                  content=b"{not json", headers={
+                                      **AUTH, "Content-Type": "application/json"})
+            assert_error(raw, 422, "bad_arguments")
+            # the series or protocol lacks it
+            lacks = await post(http, "arm/commands/set_declination", {"degrees": 3})
+            assert_error(lacks, 422, "unsupported")
+            # unknown names
+            assert_error(await post(http, "boom/commands/explode"), 404, "unknown_command")
+            assert_error(await post(http, "nobody/commands/save"), 404, "unknown_sensor")
+            # busy: during the save's deaf period
+            saving = asyncio.create_task(post(http, "boom/commands/save"))
+            await until(lambda: gateway.cache.snapshot("boom").busy)
+            assert_error(await post(http, "boom/commands/calibrate_gyro"), 409, "busy")
+            assert (await saving).status_code == 200
+            # the sensor does not answer
+            vg.faults.stalled = True
+            assert_error(await post(http, "arm/commands/set_zero_type", {"type": "absolute"}),
+                         504, "timeout")
+            assert ah.settings.zero_type == "relative"  # nothing else happened to it
+
+    run(body)
+
+
+def test_commands_turned_off_are_403(two_lines: Any) -> None:
+    ah, _, buses = two_lines
+
+    async def body() -> None:
+        async with running(config(buses, allow_commands=False)) as gateway, \
+                client(gateway) as http:
+            response = await http.post(f"{API}/sensors/boom/commands/set_zero_type",
+                                       json={"type": "relative"}, headers=AUTH)
+            assert_error(response, 403, "forbidden")
+            assert ah.settings.zero_type == "absolute"
+
+    run(body)
+
+
+# ------------------------------------------------------------------ live stream
+
+
+async def sse_events(response: httpx.Response) -> AsyncIterator[tuple[str, dict[str, Any]]]:
+    name, data = "message", ""
+    async for line in response.aiter_lines():
+        if line.startswith("event:"):
+            name = line[6:].strip()
+        elif line.startswith("data:"):
+            data = line[5:].strip()
+        elif not line and data:
+            yield name, json.loads(data)
+            name, data = "message", ""
+
+
+def test_stream_delivers_every_reading_at_the_poll_rate(two_lines: Any) -> None:
+    _, _, buses = two_lines
+    for b in buses:
+        b["sensors"][0]["poll_hz"] = 20
+
+    async def body() -> None:
+        async with running(config(buses)) as gateway, client(gateway) as http:
+            await until(lambda: all(s.seq >= 1 for s in gateway.cache.snapshots()))
+            seen: dict[str, list[int]] = {"boom": [], "arm": []}
+            async with http.stream("GET", f"{API}/stream") as response:
+                assert response.headers["content-type"].startswith("text/event-stream")
+                start = {s.name: s.seq for s in gateway.cache.snapshots()}
+                async for name, event in sse_events(response):
+                    if name == "reading":
+                        seen[event["sensor"]].append(event["seq"])
+                    if all(len(s) >= 30 for s in seen.values()):
+                        break
+            for sensor, seqs in seen.items():
+                # every reading, in order, none skipped: the poll rate is the event rate
+                later = [s for s in seqs if s > start[sensor]]
+                assert later == list(range(later[0], later[0] + len(later))), sensor
+            async with http.stream("GET", f"{API}/sensors/arm/stream") as response:
+                async for name, event in sse_events(response):
+                    assert event["sensor"] == "arm"
+                    if name == "reading":
+                        assert flat(event) and "mag" not in event
+                        break
+            response = await http.get(f"{API}/sensors/nobody/stream")
+            assert_error(response, 404, "unknown_sensor")
+
+    run(body)
+
+
+def test_a_stream_client_that_does_not_read_is_dropped(two_lines: Any) -> None:
+    _, _, buses = two_lines
+    buses[0]["sensors"][0]["poll_hz"] = 0  # as fast as the line goes
+
+    async def body() -> None:
+        async with running(config(buses)) as gateway:
+            assert gateway.http is not None and gateway.http.hub is not None
+            hub = gateway.http.hub
+            # A client with a tiny receive window that never reads.
+            sock = socket.socket()
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
+            sock.connect(("127.0.0.1", gateway.http.port))
+            sock.sendall(f"GET {API}/sensors/boom/stream HTTP/1.1\r\n"
+                         "Host: test\r\n\r\n".encode())
+            try:
+                await until(lambda: hub.dropped >= 1, timeout=60)
+                await until(lambda: not hub.subscribers)
+                # a reading client is served meanwhile
+                async with client(gateway) as http:
+                    assert (await http.get(f"{API}/health")).status_code == 200
+            finally:
+                sock.close()
+
+    run(body)
+
+
+def test_stream_hub_drops_a_subscriber_that_falls_behind() -> None:
+    """The hub's own rule, on a real cache: more than STREAM_QUEUE events behind."""
+    from gateway.config import config_from_dict
+
+    async def body() -> None:
+        config = config_from_dict({"buses": [{"name": "a", "port": "/dev/null",
+                                              "protocol": "native",
+                                              "sensors": [{"name": "s", "series": "AH"}]}]},
+                                  env={})
+        gateway = Gateway(config)
+        cache: Cache = gateway.cache
+        hub = StreamHub(gateway)
+        slow = hub.stream("s")
+        first = await anext(slow)  # subscribed; it reads no further
+        assert b"event: status" in first
+        for _ in range(STREAM_QUEUE + 1):
+            cache.publish("s", READING)
+        assert hub.dropped == 1 and not hub.subscribers
+        assert [event async for event in slow] == []  # its stream ends
+        hub.close()
+
+    run(body)
+
+
+# ------------------------------------------------------------------ metrics, OpenAPI
+
+
+def test_metrics(two_lines: Any) -> None:
+    _, vg, buses = two_lines
+
+    async def body() -> None:
+        async with running(config(buses)) as gateway, client(gateway) as http:
+            await until(lambda: all(s.seq >= 2 for s in gateway.cache.snapshots()))
+            vg.faults.stalled = True
+            await until(lambda: gateway.cache.snapshot("arm").status.value == "offline",
+                        timeout=20)
+            buses_out = {b["name"]: b for b in (await http.get(f"{API}/buses")).json()}
+            response = await http.get("/metrics")
+            assert response.headers["content-type"].startswith("text/plain")
+            samples = {(s.name, tuple(sorted(s.labels.items()))): s.value
+                       for family in text_string_to_metric_families(response.text)
+                       for s in family.samples}
+            tx = samples[("imu_gateway_bus_transactions_total", (("bus", "a"),))]
+            assert buses_out["a"]["transactions"] <= tx <= buses_out["a"]["transactions"] + 100
+            assert samples[("imu_gateway_bus_port_open", (("bus", "b"),))] == 1
+            assert ("imu_gateway_bus_utilisation", (("bus", "a"),)) in samples
+            assert ("imu_gateway_bus_queue_depth", (("bus", "a"),)) in samples
+            assert samples[("imu_gateway_bus_errors_total",
+                            (("bus", "b"), ("kind", "timeout")))] >= 1
+            status = {labels: v for (name, labels), v in samples.items()
+                      if name == "imu_gateway_sensor_status" and ("sensor", "arm") in labels}
+            assert status == {(("sensor", "arm"), ("status", "offline")): 1.0,
+                              (("sensor", "arm"), ("status", "ok")): 0.0,
+                              (("sensor", "arm"), ("status", "stale")): 0.0}
+            assert samples[("imu_gateway_sensor_rate_hz", (("sensor", "boom"),))] > 0
+            assert samples[("imu_gateway_sensor_age_seconds", (("sensor", "boom"),))] >= 0
+            assert samples[("imu_gateway_frontend_requests_total", (("frontend", "http"),))] >= 2
+            assert ("imu_gateway_frontend_clients", (("frontend", "http"),)) in samples
+
+    run(body)
+
+
+def test_committed_openapi_document_is_what_the_app_serves(two_lines: Any) -> None:
+    _, _, buses = two_lines
+    committed = (ROOT / "openapi" / "openapi.json").read_text()
+    assert openapi_json() == committed, "run scripts/openapi and commit the result"
+
+    async def body() -> None:
+        async with running(config(buses)) as gateway, client(gateway) as http:
+            served = (await http.get("/openapi.json")).json()
+            assert served == json.loads(committed)
+
+    run(body)
+
+
+def test_a_taken_port_is_a_clear_startup_error(two_lines: Any) -> None:
+    _, _, buses = two_lines
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+
+        async def body() -> None:
+            with pytest.raises(StartupError, match=f"http.listen 127.0.0.1:{port}: "):
+                async with running(config(buses, listen=f"127.0.0.1:{port}")):
+                    pass
+
+        run(body)
