@@ -22,7 +22,8 @@ from .protocol.native import BAUD_CODES
 
 
 class _Args(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # strict: JSON's true is not the number 1, and "5" is not 5
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
 
 
 class NoArgs(_Args):

@@ -32,6 +32,7 @@ from typing import Annotated, Any, Literal
 import uvicorn
 from fastapi import Depends, FastAPI, Query, Request
 from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.utils import get_openapi
 from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from fastapi.staticfiles import StaticFiles
@@ -83,7 +84,11 @@ class _Out(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
-class ErrorOut(_Out):
+class ErrorOut(BaseModel):
+    """Every error: what went wrong and its kind.  A command's failure also carries the
+    command result's other fields (``ok``, ``sensor``, ``command``, ``answer``)."""
+
+    model_config = ConfigDict(extra="allow")
     error: str
     kind: str
 
@@ -365,8 +370,12 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
 
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        if exc.status_code == 400:  # a body that is not even text: bad arguments too
+            return error_response(ApiError(422, "bad_arguments", str(exc.detail)))
         kind = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http")
-        return error_response(ApiError(exc.status_code, kind, str(exc.detail)))
+        response = error_response(ApiError(exc.status_code, kind, str(exc.detail)))
+        response.headers.update(exc.headers or {})  # 405's Allow
+        return response
 
     @app.middleware("http")
     async def _count(request: Request, call_next: Callable[[Request], Awaitable[Response]]
@@ -504,6 +513,22 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     async def metrics() -> Response:
         return Response(generate_latest(registry),
                         media_type="text/plain; version=0.0.4; charset=utf-8")
+
+    def openapi() -> dict[str, Any]:
+        """FastAPI's document, with one correction: a read's bearer token is optional
+        (required only with ``http.read_token_required``), which OpenAPI says with an
+        empty alternative."""
+        if app.openapi_schema is None:
+            document = get_openapi(title=app.title, version=app.version,
+                                   description=app.description, routes=app.routes)
+            for path in document["paths"].values():
+                operation = path.get("get")
+                if operation is not None and "security" in operation:
+                    operation["security"] = [{}, *operation["security"]]
+            app.openapi_schema = document
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
 
     static = resources.files("gateway") / "static"
 
