@@ -45,6 +45,15 @@ def group_values(values: Mapping[str, Any]) -> dict[str, dict[str, float]]:
     return out
 
 
+#: series -> (reading attribute, its dataclass, per-field names) of each group the
+#: series measures: ``to_reading``'s table, worked out once (it runs for every answer).
+_MEASURED: dict[Series, tuple[tuple[str, type, tuple[str, ...]], ...]] = {
+    series: tuple((group.value, cls, names) for group, (cls, names) in GROUP_FIELDS.items()
+                  if group in caps.groups)
+    for series, caps in CAPABILITIES.items()
+}
+
+
 def to_reading(values: Mapping[str, Any], series: Series) -> Reading | None:
     """A ``Reading`` from decoded values, or ``None`` if they measure nothing.
 
@@ -55,11 +64,10 @@ def to_reading(values: Mapping[str, Any], series: Series) -> Reading | None:
     at zero, which is "not measured", not "zero gauss".
     """
     groups: dict[str, Any] = {}
-    for group, (cls, names) in GROUP_FIELDS.items():
+    for key, cls, names in _MEASURED[series]:
         if all(n in values for n in names):
-            groups[group.value] = cls(*(float(values[n]) for n in names))
-    reading = Reading(**groups).only(CAPABILITIES[series].groups)
-    return reading if reading.groups() else None
+            groups[key] = cls(*[float(values[n]) for n in names])
+    return Reading(**groups) if groups else None
 
 
 def field_values(reading: Reading) -> dict[str, float]:

@@ -16,9 +16,19 @@ never drifts by a float ulp.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from .errors import BadBcd, BadLength, UsageError
+
+#: Stands in for a byte with a nibble above 9 in ``_PAIRS``: so negative that the
+#: magnitude it is folded into stays negative whatever digits follow (up to 18 digits).
+_NOT_DECIMAL = -(10**20)
+#: Every byte's two nibbles read as two decimal digits (0x47 -> 47), or ``_NOT_DECIMAL``.
+#: Decoding is then one lookup per byte: a value is decoded hundreds of times a second.
+_PAIRS: tuple[int, ...] = tuple(
+    (b >> 4) * 10 + (b & 0x0F) if b >> 4 <= 9 and b & 0x0F <= 9 else _NOT_DECIMAL
+    for b in range(256)
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -28,16 +38,15 @@ class BcdFormat:
     name: str
     int_digits: int
     frac_digits: int
+    #: Bytes on the wire: the sign nibble and every digit, two nibbles to a byte.
+    size: int = field(init=False, repr=False, compare=False)
+    #: Counts of the last digit per unit: 100 for ``SXXX.YY``.
+    scale: int = field(init=False, repr=False, compare=False)
 
-    @property
-    def size(self) -> int:
-        """Bytes on the wire: the sign nibble and every digit, two nibbles to a byte."""
-        return (1 + self.int_digits + self.frac_digits) // 2
-
-    @property
-    def scale(self) -> int:
-        """Counts of the last digit per unit: 100 for ``SXXX.YY``."""
-        return int(10**self.frac_digits)
+    def __post_init__(self) -> None:
+        # Worked out once: they are read for every value decoded.
+        object.__setattr__(self, "size", (1 + self.int_digits + self.frac_digits) // 2)
+        object.__setattr__(self, "scale", int(10**self.frac_digits))
 
     @property
     def max_counts(self) -> int:
@@ -77,13 +86,15 @@ class BcdFormat:
         """Decode to an exact integer count of the last digit (sign applied)."""
         if len(data) != self.size:
             raise BadLength(f"BCD {self.name} needs {self.size} bytes, got {len(data)}")
-        nibbles = [n for byte in data for n in (byte >> 4, byte & 0x0F)]
-        sign, digits = nibbles[0], nibbles[1:]
+        sign, magnitude = data[0] >> 4, data[0] & 0x0F  # the first digit shares a byte
         if sign > 1:
             raise BadBcd(f"BCD {self.name}: sign nibble {sign:X} in {data.hex(' ')}")
-        if any(d > 9 for d in digits):
+        if magnitude > 9:
+            magnitude = _NOT_DECIMAL
+        for byte in data[1:]:
+            magnitude = magnitude * 100 + _PAIRS[byte]
+        if magnitude < 0:
             raise BadBcd(f"BCD {self.name}: non-decimal nibble in {data.hex(' ')}")
-        magnitude = int("".join(map(str, digits)))
         return -magnitude if sign else magnitude
 
     def decode(self, data: bytes) -> float:

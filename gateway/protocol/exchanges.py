@@ -120,10 +120,12 @@ class Unsupported(UsageError):
 
 
 def _native_match(shape: native.Shape, address: int) -> Callable[[Any], Answer | None]:
+    command, data_size = shape.command, shape.data_size
+
     def match(frame: Any) -> Answer | None:
         if not isinstance(frame, native.NativeFrame) or frame.address != address:
             return None
-        if (frame.command, len(frame.data) + 4) != shape.key:
+        if frame.command != command or len(frame.data) != data_size:
             return None
         try:
             values = native.interpret(frame).values

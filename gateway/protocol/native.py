@@ -24,7 +24,7 @@ Nothing here does I/O or reads a clock.
 from __future__ import annotations
 
 import enum
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, Protocol
@@ -195,19 +195,25 @@ class Shape:
     direction: Direction
     series: frozenset[Series]
     section: str
+    # Worked out from the fields once (an answer is read hundreds of times a second):
+    data_size: int = field(init=False, repr=False, compare=False)
+    #: The LEN byte: LEN, ADDR, CMD, DATA and SUM.
+    length_byte: int = field(init=False, repr=False, compare=False)
+    #: (command word, LEN byte): what tells this frame from every other.
+    key: tuple[int, int] = field(init=False, repr=False, compare=False)
+    #: Each field's name, where its bytes lie in DATA and the decoder they go through.
+    layout: tuple[tuple[str, int, int, Callable[[bytes], Any]], ...] = field(
+        init=False, repr=False, compare=False)
 
-    @property
-    def data_size(self) -> int:
-        return sum(f.codec.size for f in self.fields)
-
-    @property
-    def length_byte(self) -> int:
-        """The LEN byte: LEN, ADDR, CMD, DATA and SUM."""
-        return self.data_size + 4
-
-    @property
-    def key(self) -> tuple[int, int]:
-        return (self.command, self.length_byte)
+    def __post_init__(self) -> None:
+        layout, offset = [], 0
+        for f in self.fields:
+            layout.append((f.name, offset, offset + f.codec.size, f.codec.decode))
+            offset += f.codec.size
+        object.__setattr__(self, "data_size", offset)
+        object.__setattr__(self, "length_byte", offset + 4)
+        object.__setattr__(self, "key", (self.command, offset + 4))
+        object.__setattr__(self, "layout", tuple(layout))
 
 
 @dataclass(frozen=True, slots=True)
@@ -425,14 +431,12 @@ def interpret(frame: NativeFrame, series: Series | None = None) -> NativeMessage
             f"this {shape.name} frame ({shape.section}) comes from {allowed}, not {series.name}"
         )
     values: dict[str, Any] = {}
-    offset = 0
-    for f in shape.fields:
-        chunk = frame.data[offset : offset + f.codec.size]
+    data = frame.data
+    for name, start, stop, decode_field in shape.layout:
         try:
-            values[f.name] = f.codec.decode(chunk)
+            values[name] = decode_field(data[start:stop])
         except FrameError as exc:
-            raise type(exc)(f"{shape.name} field {f.name}: {exc}") from None
-        offset += f.codec.size
+            raise type(exc)(f"{shape.name} field {name}: {exc}") from None
     return NativeMessage(shape, frame.address, MappingProxyType(values))
 
 
