@@ -14,7 +14,8 @@ polls every sensor with ``poll_hz: 0``.  Printed per run:
 * a reference measured in the same run: a bare blocking pyserial loop polling the
   same simulator (the best it allows), and gateway/bare.
 
-Run: ``.venv/bin/python bench/bus.py [--seconds 5] [--delay-ms 2]``
+Run: ``.venv/bin/python bench/bus.py [--seconds 5] [--delay-ms 2]``; ``--protocol``,
+``--baud`` and ``--sensors`` (each repeatable) run only some of the cases.
 """
 
 from __future__ import annotations
@@ -119,10 +120,17 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=5.0)
     parser.add_argument("--delay-ms", type=float, default=2.0,
                         help="the simulated sensors' answer delay")
+    parser.add_argument("--protocol", choices=("native", "modbus"), action="append",
+                        help="run only this protocol (repeatable; default: both)")
+    parser.add_argument("--baud", type=int, choices=(9600, 115200), action="append",
+                        help="run only this baud rate (repeatable; default: both)")
+    parser.add_argument("--sensors", type=int, choices=(1, 4), action="append",
+                        help="run only this sensor count (repeatable; default: both)")
     args = parser.parse_args()
     sys.setswitchinterval(GIL_SWITCH_INTERVAL)  # as `imu-gateway run` does
     delay = args.delay_ms / 1000
-    cases = [Case(p, b, n) for p in ("native", "modbus") for b in (9600, 115200) for n in (1, 4)]
+    cases = [Case(p, b, n) for p in args.protocol or ("native", "modbus")
+             for b in args.baud or (9600, 115200) for n in args.sensors or (1, 4)]
     print(f"bus master, poll_hz 0, AH sensors, answer delay {args.delay_ms} ms, "
           f"{args.seconds} s per run, {os.cpu_count()} CPUs")
     print(f"{'protocol':8} {'baud':>6} {'sensors':>7} {'tx/s':>8} {'wire max':>9} "
