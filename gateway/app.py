@@ -13,7 +13,7 @@ import logging
 import signal
 import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from .bus.runner import BusRunner
@@ -156,8 +156,10 @@ class Gateway:
         return {name: f.stats() for name, f in running.items() if f is not None}
 
 
-async def run_until_signalled(config: GatewayConfig, stats_interval: float = 0.0) -> None:
-    """``imu-gateway run``: the gateway until SIGINT or SIGTERM."""
+async def run_until_signalled(config: GatewayConfig, stats_interval: float = 0.0,
+                              on_started: Callable[[Gateway], None] | None = None) -> None:
+    """``imu-gateway run``: the gateway until SIGINT or SIGTERM.  ``on_started`` is
+    called once every listening socket is open."""
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -166,6 +168,8 @@ async def run_until_signalled(config: GatewayConfig, stats_interval: float = 0.0
     gateway = Gateway(config)
     log.info("%s", config.summary())
     await gateway.start_frontends()  # before the task group: a StartupError stays plain
+    if on_started is not None:
+        on_started(gateway)
     async with asyncio.TaskGroup() as tasks:
         if stats_interval > 0:
             tasks.create_task(_log_stats(gateway, stop, stats_interval))

@@ -86,6 +86,16 @@ _probability = _float_in(0.0, 1.0, "a probability 0-1")
 _non_negative = _float_in(0.0, math.inf, "a number >= 0")
 
 
+def _port(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"a TCP port is 0-65535, not {text!r}")
+    return value
+
+
 def _sensor_spec(text: str) -> tuple[Protocol, Series, int | None, int]:
     """``PROTOCOL:SERIES[:ADDRESS[:BAUD]]``, e.g. ``modbus:VG:2:19200``."""
     parts = text.split(":")
@@ -134,6 +144,25 @@ def build_parser() -> argparse.ArgumentParser:
                      choices=["debug", "info", "warning", "error"], help="default: info")
     run.add_argument("--stats-interval", type=_non_negative, default=0.0, metavar="SECONDS",
                      help="log each bus's rate and utilisation this often (0: never)")
+
+    demo = commands.add_parser(
+        "demo",
+        help="the gateway on simulated sensors (no hardware)",
+        description="The whole gateway on built-in simulated sensors: a native AH and a "
+        "streaming MINS on one simulated line, a Modbus VG on another. Modbus TCP, REST, "
+        "the dashboard and MQTT (when a broker is reachable) are up; ready command lines "
+        "are printed. Stop with Ctrl-C.",
+    )
+    demo.add_argument("--modbus-port", type=_port, default=5020, help="default 5020")
+    demo.add_argument("--http-port", type=_port, default=8080, help="default 8080")
+    demo.add_argument("--mqtt", default="mqtt://localhost:1883", metavar="URL",
+                      help="the broker (default mqtt://localhost:1883; retried quietly "
+                      "while it is not there)")
+    demo.add_argument("--listen-host", default="127.0.0.1", metavar="HOST",
+                      help="the address Modbus TCP and HTTP listen on (default 127.0.0.1; "
+                      "0.0.0.0 to be reached from other machines)")
+    demo.add_argument("--log-level", default="warning",
+                      choices=["debug", "info", "warning", "error"], help="default: warning")
 
     scan = commands.add_parser(
         "scan",
@@ -231,6 +260,25 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .app import StartupError
+    from .config import ConfigError
+    from .demo import DemoOptions, run_demo
+
+    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
+                        format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
+    try:
+        run_demo(DemoOptions(args.modbus_port, args.http_port, args.mqtt, args.listen_host))
+    except StartupError as exc:
+        print(f"imu-gateway demo: error: {exc} (choose another port with --modbus-port "
+              "or --http-port)", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except ConfigError as exc:
+        print(f"imu-gateway demo: error: {'; '.join(exc.problems)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    return 0
+
+
 def cmd_scan(args: argparse.Namespace) -> int:
     import serial
 
@@ -319,7 +367,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return cmd_simulate(args, parser)
     handlers: dict[str, Callable[[argparse.Namespace], int]] = {
         "decode": cmd_decode, "check-config": cmd_check_config, "run": cmd_run,
-        "scan": cmd_scan,
+        "scan": cmd_scan, "demo": cmd_demo,
     }
     return handlers[args.command](args)
 
