@@ -162,8 +162,9 @@ def test_availability_follows_a_sensor_that_stops_and_comes_back(tmp_path: Path)
                 await until(lambda: said()[-1:] == ["online"])
                 faults.stalled = True
                 await until(lambda: said()[-1:] == ["offline"])
-                last = rec.on(f"{BASE}/boom/state")[-1]
-                assert state(last)["status"] == "offline"  # the state says it too
+                # the state says it too (sent just after the availability)
+                await until(lambda: state(rec.on(f"{BASE}/boom/state")[-1])["status"]
+                            == "offline")
                 faults.stalled = False
                 await until(lambda: said()[-1:] == ["online"], timeout=20)
                 await until(lambda: state(rec.on(f"{BASE}/boom/state")[-1])["status"] == "ok")
