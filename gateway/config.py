@@ -11,7 +11,11 @@ part that is valid on its own (:func:`_cross_problems`).
 Defaults that depend on context are filled in before validation, so the models always
 hold final values: a sensor's ``address`` (0 on a native bus, 1 on a modbus bus) and its
 ``unit_id`` (1, 2, … in document order across the gateway, skipping the ids taken
-explicitly).  ``docs/configuration.md`` is the user's reference; keep the two in step.
+explicitly).
+
+Each field's ``description`` is its rule for the user: ``docs/config-reference.md`` is
+generated from them (``scripts/config-reference``); ``docs/configuration.md`` is the
+narrative.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ import math
 import os
 import re
 import socket
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal, NamedTuple, Self, cast, get_args
@@ -351,6 +355,22 @@ ExistingFile = Annotated[str, AfterValidator(_existing_file)]
 
 # ------------------------------------------------------------------------ the models
 
+# Each field's ``description`` is its rule as the user reads it: docs/config-reference.md
+# is generated from these (gateway/config_reference.py).  Where the default shown by
+# pydantic would mislead (it depends on context), ``json_schema_extra`` says what to show.
+_SHOWN_DEFAULT = "shown_default"
+_SHOWN_TYPE = "shown_type"
+
+
+def _span(bounds: tuple[int, int]) -> str:
+    return f"{bounds[0]}-{bounds[1]}"
+
+
+def _or_list(items: Iterable[str]) -> str:
+    """``a, b, c or d``."""
+    *rest, last = list(items)
+    return f"{', '.join(rest)} or {last}" if rest else last
+
 
 class _Model(BaseModel):
     model_config = ConfigDict(
@@ -362,27 +382,58 @@ class SensorConfig(_Model):
     """One sensor.  ``address`` and ``unit_id`` hold their final values once the sensor
     is part of a :class:`GatewayConfig` (a lone ``SensorConfig`` has ``unit_id`` 0)."""
 
-    name: Name
-    series: SeriesField
-    address: int = 0
-    unit_id: UnitId = 0
-    poll_hz: NonNegative = 10.0
-    stream_hz: NonNegative = 0.0
-    stale_after_ms: PositiveInt = 1000
-    raw_unit_id: UnitId | None = None
+    name: Name = Field(description=(
+        "`[a-z0-9_-]+`, unique in the whole gateway: it is the sensor's name in MQTT "
+        "topics and REST paths"))
+    series: SeriesField = Field(description=(
+        f"{_or_list(f'`{s.name}`' for s in Series)} (any case)"))
+    address: int = Field(default=0, description=(
+        f"the sensor's bus address: native {_span(ADDRESS_RANGE[Protocol.NATIVE])}, "
+        f"modbus {_span(ADDRESS_RANGE[Protocol.MODBUS])}; unique on its bus"),
+        json_schema_extra={_SHOWN_DEFAULT: "0 on a native bus, 1 on a modbus bus"})
+    unit_id: UnitId = Field(default=0, description=(
+        f"{_span(UNIT_ID_RANGE)}, unique; the Modbus TCP unit id of the sensor's register "
+        "map. Sensors without one are numbered 1, 2, … in file order across all buses, "
+        "skipping every `unit_id` and `raw_unit_id` given explicitly"),
+        json_schema_extra={_SHOWN_DEFAULT: "1, 2, … in file order"})
+    poll_hz: NonNegative = Field(default=10.0, description=(
+        ">= 0; polls per second. 0: as fast as the bus allows, shared fairly with the "
+        "other sensors"))
+    stream_hz: NonNegative = Field(default=0.0, description=(
+        ">= 0; > 0 turns on the sensor's own auto-output at that rate instead of polling. "
+        f"Native: {_or_list(map(str, NATIVE_STREAM_HZ))}. Modbus: the interval "
+        f"`round(1000 / stream_hz)` ms must be {_span(MODBUS_STREAM_INTERVAL_MS)} (about "
+        "0.016-100 Hz). At most one streaming sensor per bus"))
+    stale_after_ms: PositiveInt = Field(default=1000, description=(
+        "> 0; a reading older than this is `stale`"))
+    raw_unit_id: UnitId | None = Field(default=None, description=(
+        f"{_span(UNIT_ID_RANGE)}; only for sensors on a modbus bus: a Modbus TCP unit id "
+        "whose requests pass through to the sensor unchanged. Unique, and different from "
+        "every `unit_id`"))
 
 
 class BusConfig(_Model):
     """One serial line and the sensors on it; the bus master owns it alone."""
 
-    name: Name
-    port: Annotated[str, AfterValidator(_serial_port)]
-    baudrate: Annotated[int, AfterValidator(_baudrate)] = 9600  # the sensors' factory rate
-    protocol: ProtocolField
-    timeout_ms: PositiveInt | None = None
-    retries: Annotated[int, _between(0, 10)] = 1
-    rs485: bool = False
-    sensors: Annotated[list[SensorConfig], Field(min_length=1)]
+    name: Name = Field(description="`[a-z0-9_-]+`, unique among buses")
+    port: Annotated[str, AfterValidator(_serial_port)] = Field(description=(
+        "a device path (`/dev/ttyUSB0`, `/dev/serial/by-id/…`) or a pyserial URL: "
+        "`socket://host:port`, `rfc2217://host:port`, `loop://` (also "
+        f"{', '.join(f'`{s}://`' for s in PYSERIAL_SCHEMES[3:])}). Unique among buses"))
+    baudrate: Annotated[int, AfterValidator(_baudrate)] = Field(default=9600, description=(
+        f"{_or_list(map(str, BAUD_RATES))}: the rates the sensors have a code for. 9600 is "
+        "the sensors' factory rate"))
+    protocol: ProtocolField = Field(description="`native` or `modbus` (any case)")
+    timeout_ms: PositiveInt | None = Field(default=None, description=(
+        "> 0; how long to wait for an answer per attempt, on top of the wire time of the "
+        "request and the answer"),
+        json_schema_extra={_SHOWN_DEFAULT: "null: derived from `baudrate` (below)"})
+    retries: Annotated[int, _between(0, 10)] = Field(default=1, description=(
+        "0-10; attempts after the first before an exchange counts as failed"))
+    rs485: bool = Field(default=False, description=(
+        "put the port into the kernel's RS-485 mode (the driver switches the transmitter)"))
+    sensors: Annotated[list[SensorConfig], Field(min_length=1)] = Field(description=(
+        "the sensors on this line, at least one (`buses[].sensors[]`)"))
 
     @model_validator(mode="before")
     @classmethod
@@ -403,15 +454,23 @@ class BusConfig(_Model):
 class ModbusConfig(_Model):
     """The Modbus TCP server."""
 
-    listen: Listen = ListenAddress("0.0.0.0", 502)
-    allow_writes: bool = False
+    listen: Listen = Field(default=ListenAddress("0.0.0.0", 502), description=(
+        "`host:port`, port 0-65535; an IPv6 host in brackets: `[::]:502`"))
+    allow_writes: bool = Field(default=False, description=(
+        "writes (FC06/FC16) are refused with exception 01 unless true"))
     allow_from: Annotated[list[Network], Field(min_length=1)] = Field(
         default_factory=lambda: [
             ipaddress.ip_network("0.0.0.0/0"), ipaddress.ip_network("::/0")
-        ]
+        ],
+        description=(
+            "at least one IPv4 or IPv6 network; host bits are allowed (`192.168.1.5/24` "
+            "means `192.168.1.0/24`); a bare address is a single host. Clients from "
+            "elsewhere are disconnected at once"),
     )
-    max_connections: PositiveInt = 100
-    idle_timeout_s: NonNegative = 60.0
+    max_connections: PositiveInt = Field(default=100, description=(
+        "> 0; clients beyond this are disconnected at once"))
+    idle_timeout_s: NonNegative = Field(default=60.0, description=(
+        ">= 0; a client connection idle this long is closed; 0: never"))
 
     def allows(self, client: str) -> bool:
         """Whether a client address (IPv4, IPv6, or IPv4-mapped IPv6) is in ``allow_from``."""
@@ -427,27 +486,51 @@ class ModbusConfig(_Model):
 class MqttConfig(_Model):
     """The MQTT client."""
 
-    url: Annotated[str, AfterValidator(_mqtt_url)] = "mqtt://localhost:1883"
-    username: NonEmpty | None = None
-    password: str | None = None
-    ca_file: ExistingFile | None = None
-    certfile: ExistingFile | None = None
-    keyfile: ExistingFile | None = None
-    base_topic: Annotated[str, AfterValidator(_base_topic)] = "imu"
-    qos: Annotated[int, _between(0, 2)] = 0
-    retain: bool = True
-    per_field_topics: bool = False
-    min_interval_ms: NonNegativeInt = 0
-    homeassistant_discovery: bool = False
-    allow_commands: bool = False
-    protocol: Annotated[Literal["3.1.1", "5"], PlainValidator(_mqtt_protocol)] = "3.1.1"
-    client_id: NonEmpty | None = None
+    url: Annotated[str, AfterValidator(_mqtt_url)] = Field(
+        default="mqtt://localhost:1883", description=(
+            "`mqtt://host[:port]` (default port 1883) or `mqtts://host[:port]` for TLS "
+            "(default 8883); no credentials, path or query in it"))
+    username: NonEmpty | None = Field(default=None, description="not empty")
+    password: str | None = Field(default=None, description=(
+        "needs `username`; write `${VAR}` to take it from the environment"))
+    ca_file: ExistingFile | None = Field(default=None, description=(
+        "the CA that signed the broker's certificate; an existing file; needs `mqtts://`"),
+        json_schema_extra={_SHOWN_DEFAULT: "null: the system's CAs"})
+    certfile: ExistingFile | None = Field(default=None, description=(
+        "client certificate; an existing file; needs `mqtts://`"))
+    keyfile: ExistingFile | None = Field(default=None, description=(
+        "client key; an existing file; needs `mqtts://` and `certfile`"))
+    base_topic: Annotated[str, AfterValidator(_base_topic)] = Field(default="imu", description=(
+        "first level of every topic; not empty, no `+` or `#`, no leading or trailing `/`"))
+    qos: Annotated[int, _between(0, 2)] = Field(default=0, description=(
+        "0-2; QoS of state and per-field messages"))
+    retain: bool = Field(default=True, description="retain state and per-field messages")
+    per_field_topics: bool = Field(default=False, description=(
+        "also publish every value on its own topic (`{base}/{gateway_id}/{sensor}/{field}`)"))
+    min_interval_ms: NonNegativeInt = Field(default=0, description=(
+        ">= 0; at most one state message per sensor per interval (the latest is sent when "
+        "it ends)"))
+    homeassistant_discovery: bool = Field(default=False, description=(
+        "publish Home Assistant discovery configs"))
+    allow_commands: bool = Field(default=False, description=(
+        "accept commands on `{base}/{gateway_id}/{sensor}/cmd/{command}`"))
+    protocol: Annotated[Literal["3.1.1", "5"], PlainValidator(_mqtt_protocol)] = Field(
+        default="3.1.1", description='`"3.1.1"` or `5` (MQTT 5)',
+        json_schema_extra={_SHOWN_TYPE: "string or number", _SHOWN_DEFAULT: '`"3.1.1"`'})
+    client_id: NonEmpty | None = Field(default=None, description="not empty", json_schema_extra={
+        _SHOWN_DEFAULT: "null: `imu-gateway-{gateway_id}`"})
     #: a state message is sent only when a field moved by more than its deadband
     deadband: dict[str, Annotated[float, Field(ge=0, allow_inf_nan=False)]] = Field(
-        default_factory=dict)
+        default_factory=dict, description=(
+            f"field (`{FIELD_NAMES[0]}` … `{FIELD_NAMES[-1]}`) or group "
+            f"({', '.join(f'`{g.value}`' for g in Group)}) → band >= 0; a state message is sent "
+            "only when a listed field moved more than its band ([mqtt.md](mqtt.md))"))
     #: messages kept while the broker is away; the oldest are dropped (and counted)
-    queue_size: Annotated[int, Field(gt=0)] = 1000
-    discovery_prefix: Annotated[str, AfterValidator(_base_topic)] = "homeassistant"
+    queue_size: Annotated[int, Field(gt=0)] = Field(default=1000, description=(
+        "> 0; messages kept while the broker is away, the oldest dropped first"))
+    discovery_prefix: Annotated[str, AfterValidator(_base_topic)] = Field(
+        default="homeassistant", description=(
+            "Home Assistant's discovery prefix; rules as for `base_topic`"))
 
     @field_validator("deadband")
     @classmethod
@@ -503,10 +586,15 @@ class MqttConfig(_Model):
 class HttpConfig(_Model):
     """The REST API and dashboard."""
 
-    listen: Listen = ListenAddress("0.0.0.0", 8080)
-    token: NonEmpty | None = None
-    allow_commands: bool = False
-    read_token_required: bool = False
+    listen: Listen = Field(default=ListenAddress("0.0.0.0", 8080), description=(
+        "`host:port` as for `modbus.listen`"))
+    token: NonEmpty | None = Field(default=None, description=(
+        "not empty; the bearer token (`Authorization: Bearer …`); write `${VAR}` to take "
+        "it from the environment"))
+    allow_commands: bool = Field(default=False, description=(
+        "accept `POST /api/v1/sensors/{name}/commands/{command}`; needs `token`"))
+    read_token_required: bool = Field(default=False, description=(
+        "reads need the token too; needs `token`"))
 
     @field_validator("allow_commands", "read_token_required")
     @classmethod
@@ -520,12 +608,18 @@ class GatewayConfig(_Model):
     """The whole file.  A section left out (``None``) is an interface turned off."""
 
     gateway_id: Annotated[str, AfterValidator(_gateway_id)] = Field(
-        default_factory=socket.gethostname
+        default_factory=socket.gethostname,
+        description="`[A-Za-z0-9_.-]+`; part of every MQTT topic",
+        json_schema_extra={_SHOWN_DEFAULT: "the host name"},
     )
-    buses: Annotated[list[BusConfig], Field(min_length=1)]
-    modbus: ModbusConfig | None = None
-    mqtt: MqttConfig | None = None
-    http: HttpConfig | None = None
+    buses: Annotated[list[BusConfig], Field(min_length=1)] = Field(description=(
+        "the serial lines, at least one (`buses[]`)"))
+    modbus: ModbusConfig | None = Field(default=None, description=(
+        "the Modbus TCP server (`modbus`); left out: off"))
+    mqtt: MqttConfig | None = Field(default=None, description=(
+        "the MQTT client (`mqtt`); left out: off"))
+    http: HttpConfig | None = Field(default=None, description=(
+        "the REST API and dashboard (`http`); left out: off"))
 
     @model_validator(mode="before")
     @classmethod
