@@ -551,3 +551,21 @@ def test_kernel_rs485_mode_where_it_cannot_work_is_a_clear_error(port: str) -> N
             asyncio.run(body(sim.path))
     else:
         asyncio.run(body(port))
+
+
+def test_one_late_answer_is_not_taken_for_a_stream() -> None:
+    """A busy machine makes an answer arrive after its timeout: that one unasked-for
+    frame must not be called a stream (and logged, and answered with a stop)."""
+    from gateway.bus.master import STRAY_EVIDENCE, STRAY_WINDOW, BusMaster, Sensor
+    from gateway.config import SensorConfig
+
+    s = Sensor(SensorConfig(name="vg", series="VG"), 0)
+    for i in range(STRAY_EVIDENCE - 1):
+        BusMaster._stray(s, 100.0 + i * 0.1)
+    assert not s.stop_stray_stream
+    BusMaster._stray(s, 100.0 + STRAY_WINDOW + 1)  # the first two are too old by now
+    assert not s.stop_stray_stream
+    for i in range(STRAY_EVIDENCE - 1):
+        BusMaster._stray(s, 200.0 + i * 0.02)
+    BusMaster._stray(s, 200.1)
+    assert s.stop_stray_stream

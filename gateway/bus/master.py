@@ -63,6 +63,9 @@ MAX_QUEUED_PER_SENSOR = 16  # commands waiting for one sensor before more are re
 LATE_ANSWER_GRACE = 0.1  # after a timeout, keep quiet this long (at most) for a late answer
 MIN_QUIET = 0.001  # the line must have been quiet this long before a request goes out
 SLOW_STREAM = 0.2  # stream periods from this long on are not waited for by every exchange
+# A sensor is taken to stream unasked only after this many unasked-for frames within
+# STRAY_WINDOW seconds: one such frame is usually a late answer (a busy machine).
+STRAY_EVIDENCE, STRAY_WINDOW = 3, 2.0
 STREAM_MARGIN = 0.02  # room left before a slow stream's next frame
 
 
@@ -142,6 +145,7 @@ class Sensor:
     busy_until: float = 0.0
     streaming: bool = False
     stop_stray_stream: bool = False  # it streams though nobody asked: tell it to stop
+    stray_frames: list[float] = field(default_factory=list)  # when unasked-for frames came
     last_stream: float = 0.0
     stream_retry_at: float = 0.0
     stats: SensorStats = field(default_factory=SensorStats)
@@ -410,7 +414,7 @@ class BusMaster:
                 return
             if not s.config.stream_hz:
                 # Left streaming by an earlier owner, say: it would collide with polls.
-                s.stop_stray_stream = True
+                self._stray(s, now)
             elif not s.streaming:
                 s.streaming = True  # the stream is back by itself: stop polling it
                 self.cache.set_state(s.name, streaming=True)
@@ -426,7 +430,15 @@ class BusMaster:
         sender = getattr(frame, "unit", getattr(frame, "address", None))
         for s in self.sensors.values():
             if s.address == sender and not s.config.stream_hz:
-                s.stop_stray_stream = True
+                self._stray(s, now)
+
+    @staticmethod
+    def _stray(s: Sensor, now: float) -> None:
+        """An unasked-for frame from a sensor that should not stream."""
+        s.stray_frames = [t for t in s.stray_frames if now - t < STRAY_WINDOW] + [now]
+        if len(s.stray_frames) >= STRAY_EVIDENCE:
+            s.stray_frames.clear()
+            s.stop_stray_stream = True
 
     def _poll_of(self, s: Sensor) -> Exchange:
         """The sensor's poll, built once per address (it is sent hundreds of times a
