@@ -418,6 +418,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
         return gateway.cache.snapshot(name)
 
     bus_of = {s.name: b for b, s in gateway.config.iter_sensors()}
+    bodies: dict[str, tuple[tuple[int, Status], bytes]] = {}  # the latest reading's JSON
 
     def sensor_out(snap: Snapshot) -> dict[str, Any]:
         sensor, bus = gateway.sensors[snap.name], bus_of[snap.name]
@@ -482,9 +483,13 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
                     from None
         if not snap.has_reading:
             raise ApiError(503, "no_reading", f"{name} has not been read yet")
-        # The hot path: serialised directly, not validated against ReadingOut again
-        # (which only documents it): that costs more than the rest of the request.
-        return Response(_json(snap.to_json()), media_type="application/json")
+        # The hot path: serialised once per sample and status however many clients
+        # ask, and not validated against ReadingOut again (which only documents it).
+        key = (snap.seq, snap.status)
+        cached = bodies.get(name)
+        if cached is None or cached[0] != key:
+            cached = bodies[name] = (key, _json(snap.to_json()))
+        return Response(cached[1], media_type="application/json")
 
     def stream_response(sensor: str | None) -> StreamingResponse:
         active = hub if hub is not None else StreamHub(gateway)
