@@ -10,6 +10,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import os
 import signal
 import sys
 import time
@@ -104,8 +105,9 @@ class Gateway:
                 try:
                     await server.start()
                 except OSError as exc:
-                    listen = server.config.listen
-                    raise StartupError(f"{name}.listen {listen}: {exc.strerror or exc}") \
+                    # asyncio's bind error has the errno but a long sentence of its own
+                    reason = os.strerror(exc.errno) if exc.errno else str(exc)
+                    raise StartupError(f"{name}.listen {server.config.listen}: {reason}") \
                         from None
 
     async def run(self, stop: asyncio.Event) -> None:

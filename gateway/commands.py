@@ -160,7 +160,8 @@ def validate(name: str, args: Mapping[str, Any] | None, series: Series,
         raise CommandError(ErrorKind.UNKNOWN,
                            f"unknown command {name!r} (known: {', '.join(CATALOGUE)})")
     if name not in commands_for(series, protocol):
-        over = "" if name in CAPABILITIES[series].commands else " over Modbus"
+        # the series has it, so the protocol cannot carry it
+        over = " over Modbus" if name in CAPABILITIES[series].commands else ""
         raise CommandError(ErrorKind.UNSUPPORTED, f"{series.name} sensors have no {name}{over}")
     if args is not None and not isinstance(args, Mapping):
         raise CommandError(ErrorKind.BAD_ARGUMENTS, "arguments must be a JSON object")

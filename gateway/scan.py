@@ -149,7 +149,8 @@ def scan(port: str, protocols: Iterable[Protocol], bauds: Iterable[int],
          progress: Callable[[str], None] | None = None) -> Iterator[Found]:
     """Every sensor that answers, as it is found.  Raises ``serial.SerialException``
     when the port cannot be opened."""
-    with serial.serial_for_url(port, baudrate=9600, timeout=0.1) as ser:
+    with serial.serial_for_url(port, baudrate=9600, timeout=0.1,
+                               exclusive=None if "://" in port else True) as ser:
         prober = Prober(ser, margin)
         for baud in bauds:
             ser.baudrate = baud

@@ -528,3 +528,56 @@ def test_min_interval_deadband_and_per_field_topics(tmp_path: Path) -> None:
 def _replace_angles(reading: Any, angles: Angles) -> Any:
     from dataclasses import replace
     return replace(reading, angles=angles)
+
+
+def test_plain_mqtt_to_a_tls_port_says_so(tmp_path: Path,
+                                          caplog: pytest.LogCaptureFixture) -> None:
+    """A TLS listener closes a plain connection (or, elsewhere, waits for a TLS hello
+    and says nothing): the gateway says so once, and why it might be."""
+    caplog.set_level(logging.WARNING, "gateway.mqtt")
+    tls = make_tls(tmp_path / "pki")
+    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    with Mosquitto(tmp_path, tls=tls) as broker, simulated([ah]) as line:
+        plain = broker.url.replace("mqtts://", "mqtt://")
+        cfg = {"gateway_id": GID, "buses": [bus("a", line.path, "native",
+                                                [{"name": "boom", "series": "AH"}])],
+               "mqtt": {"url": plain}}
+
+        async def body() -> None:
+            async with running(cfg) as gateway:
+                await until(lambda: any("use mqtts://" in r.getMessage()
+                                        for r in caplog.records), timeout=30)
+                assert gateway.mqtt is not None and not gateway.mqtt.connected
+                await until(lambda: gateway.cache.snapshot("boom").seq >= 1)  # runs on
+
+        run(body)
+    said = [r.getMessage() for r in caplog.records if "mqtts://" in r.getMessage()]
+    assert len(said) == 1, said  # once, not at every retry
+
+
+def test_a_server_that_never_answers_connect_is_given_up_on(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """Not a broker at all (or a TLS port that waits for a hello): a TCP server that
+    accepts and says nothing.  Each attempt ends after CONNACK_TIMEOUT, said once."""
+    caplog.set_level(logging.WARNING, "gateway.mqtt")
+    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    with simulated([ah]) as line:
+        async def body() -> None:
+            accepted: list[asyncio.StreamWriter] = []
+            silent = await asyncio.start_server(lambda r, w: accepted.append(w),
+                                                "127.0.0.1", 0)
+            port = silent.sockets[0].getsockname()[1]
+            cfg = {"gateway_id": GID, "buses": [bus("a", line.path, "native",
+                                                    [{"name": "boom", "series": "AH"}])],
+                   "mqtt": {"url": f"mqtt://127.0.0.1:{port}"}}
+            async with silent, running(cfg) as gateway:
+                await until(lambda: any("no answer" in r.getMessage()
+                                        for r in caplog.records), timeout=30)
+                assert gateway.mqtt is not None and not gateway.mqtt.connected
+            for writer in accepted:
+                writer.close()
+                await writer.wait_closed()
+
+        run(body)
+    said = [r.getMessage() for r in caplog.records if "no answer" in r.getMessage()]
+    assert len(said) == 1 and "within 5 s" in said[0] and "mqtts://" in said[0]

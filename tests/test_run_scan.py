@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import signal
 import subprocess
 import sys
@@ -9,6 +10,7 @@ import time
 from pathlib import Path
 
 import pytest
+from harness import run, running, until
 
 from gateway.model import Protocol, Series
 from gateway.simulator import Faults, make_sensor, simulated
@@ -113,3 +115,25 @@ def test_scan_finds_native_sensors_whose_address_answers_do_not_collide() -> Non
             capture_output=True, text=True, timeout=60, check=False)
     assert done.returncode == 0, done.stderr
     assert [line.split()[4] for line in done.stdout.splitlines()] == ["4", "9"]
+
+
+def test_a_second_program_on_the_gateways_port_gets_a_clear_error() -> None:
+    """One owner per line: the gateway opens its device exclusively, so a scan (or a
+    second gateway) started on the same port is refused at once, and the gateway
+    carries on."""
+    with simulated([make_sensor(Protocol.NATIVE, Series.AH, 0, baud=115200)]) as sim:
+        async def body() -> None:
+            async with running({"buses": [{
+                    "name": "a", "port": sim.path, "baudrate": 115200, "protocol": "native",
+                    "sensors": [{"name": "boom", "series": "AH", "poll_hz": 20}]}]}) as gw:
+                await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+                done = await asyncio.to_thread(
+                    subprocess.run, gateway_cli("scan", "--port", sim.path, "--baud", "115200"),
+                    capture_output=True, text=True, timeout=60, check=False)
+                assert done.returncode == 2, done.stderr
+                assert "exclusively lock" in done.stderr and "Traceback" not in done.stderr
+                seq = gw.cache.snapshot("boom").seq
+                await until(lambda: gw.cache.snapshot("boom").seq > seq + 5)
+                assert sim.bus.stats.overlaps == 0
+
+        run(body)

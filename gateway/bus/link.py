@@ -64,6 +64,10 @@ class SerialLink:
         try:
             ser = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.1,
                                         do_not_open=True)
+            if "://" not in self.port:
+                # One owner per line: a second program opening the same device gets a
+                # clear "busy" error instead of both reading half of each answer.
+                ser.exclusive = True
             if self.rs485:
                 # Kernel RS-485 mode: the UART driver switches the transceiver's direction.
                 ser.rs485_mode = serial.rs485.RS485Settings()

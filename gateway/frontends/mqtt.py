@@ -56,6 +56,7 @@ from .common import GatewayLike
 log = logging.getLogger("gateway.mqtt")
 
 KEEPALIVE_S = 30
+CONNACK_TIMEOUT = 5.0  # a broker that says nothing after CONNECT (a TLS port, say)
 RECONNECT_MIN, RECONNECT_MAX = 0.5, 30.0  # seconds between connection attempts
 WINDOW = 100  # messages handed to paho and not yet written or acknowledged
 MAX_COMMANDS = 16  # commands carried out at once; more are answered "busy"
@@ -135,6 +136,7 @@ class MqttClient:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._client: paho.Client | None = None
         self._lost = asyncio.Event()
+        self._answered = asyncio.Event()  # the broker answered CONNECT (either way)
         # Messages in paho's hands: ``_handed - counters.written``.  Each of the two
         # counters has one writer (this loop, paho's thread), so no lock is needed.
         self._handed = 0
@@ -211,6 +213,7 @@ class MqttClient:
         if client is not None:
             client.disconnect()
             await asyncio.to_thread(client.loop_stop)
+            _close_sockets(client)
 
     async def _flushed(self, timeout: float) -> None:
         loop = asyncio.get_running_loop()
@@ -223,22 +226,29 @@ class MqttClient:
         delay = RECONNECT_MIN
         while True:
             self._lost.clear()
-            # A new paho client for every connection: paho's loop_start() makes a new
-            # wake-up socket pair each time without closing the last, and a client
-            # closes its sockets when it is dropped.  The session is clean anyway.
+            # A new paho client for every connection (the session is clean anyway):
+            # paho's loop_start() makes a new wake-up socket pair each time without
+            # closing the last; each client's sockets are closed when it is done.
             self._client = client = self._make_client()
             try:
                 await asyncio.to_thread(client.connect, c.host, c.port, KEEPALIVE_S)
             except (OSError, ValueError) as exc:
                 self._problem(f"cannot connect to {c.host}:{c.port}: {_reason(exc)}")
-                _close_socket(client)
+                _close_sockets(client)
                 await asyncio.sleep(delay)
                 delay = min(delay * 2, RECONNECT_MAX)
                 continue
+            self._answered.clear()
             client.loop_start()
-            await self._lost.wait()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._answered.wait(), CONNACK_TIMEOUT)
+            if self._answered.is_set():
+                await self._lost.wait()
+            else:
+                self._problem(f"no answer from {c.host}:{c.port} within "
+                              f"{CONNACK_TIMEOUT:g} s of connecting{self._tls_hint()}")
             await asyncio.to_thread(client.loop_stop)
-            _close_socket(client)
+            _close_sockets(client)
             if self.connected:  # a working connection ended: start the back-off again
                 delay = RECONNECT_MIN
             self._set_disconnected()
@@ -279,6 +289,7 @@ class MqttClient:
     # ------------------------------------------------------------ connection events
 
     def _on_connect(self, reason: ReasonCode) -> None:
+        self._answered.set()
         if reason.is_failure:
             self._problem(f"the broker at {self.config.host}:{self.config.port} refused "
                           f"the connection: {reason}")
@@ -297,8 +308,15 @@ class MqttClient:
         if self.connected and not self._stopping:
             log.warning("mqtt: connection to %s:%s lost (%s); reconnecting",
                         self.config.host, self.config.port, reason)
+        elif not self._answered.is_set() and not self._stopping:
+            self._problem(f"{self.config.host}:{self.config.port} closed the connection "
+                          f"without answering{self._tls_hint()}")
+        self._answered.set()
         self._set_disconnected()
         self._lost.set()
+
+    def _tls_hint(self) -> str:
+        return "" if self.config.tls else " (a TLS port? then use mqtts://)"
 
     def _set_disconnected(self) -> None:
         self.connected = False
@@ -557,12 +575,12 @@ def _command_args(payload: bytes) -> dict[str, Any]:
     return args
 
 
-def _close_socket(client: paho.Client) -> None:
-    """paho leaves the socket of a failed or lost connection to the garbage collector."""
-    sock = client.socket()
-    if sock is not None:
-        with contextlib.suppress(OSError):
-            sock.close()
+def _close_sockets(client: paho.Client) -> None:
+    """paho 2.2 leaves the socket of a failed or lost connection, and loop_start()'s
+    wake-up socket pair, to the garbage collector; ``_reset_sockets`` (private, but the
+    one place that closes all three) closes them now."""
+    with contextlib.suppress(OSError):
+        client._reset_sockets()
 
 
 def _reason(exc: BaseException) -> str:

@@ -424,7 +424,8 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
         sensor, bus = gateway.sensors[snap.name], bus_of[snap.name]
         stats = gateway.sensor_stats(snap.name)
         return {"name": snap.name, "bus": bus.name, "series": sensor.series.name,
-                "protocol": bus.protocol.name.lower(), "address": sensor.address,
+                "protocol": bus.protocol.name.lower(),
+                "address": stats["address"],  # the live one, after a set_address too
                 "unit_id": sensor.unit_id, "status": snap.status.value, "online": snap.online,
                 "busy": snap.busy, "streaming": snap.streaming, "seq": snap.seq,
                 "age_ms": None if snap.age_ms is None else round(snap.age_ms, 1),

@@ -16,7 +16,9 @@
 "use strict";
 
 (function () {
-  const API = "/api/v1";
+  // Relative to the page, so the dashboard also works behind a reverse proxy that
+  // serves the gateway under a path prefix (/gateway-1/ → /gateway-1/api/v1).
+  const API = "api/v1";
   const POLL_MS = 2000; // sensors and buses
   const READING_POLL_MS = 200; // token mode: 5 Hz per sensor
   const D2R = Math.PI / 180;
