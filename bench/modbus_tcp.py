@@ -16,14 +16,12 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
-import socket
 import statistics
 import struct
-import subprocess
 import sys
-import tempfile
 import time
-from pathlib import Path
+
+from common import free_port, processes
 
 BARE_SERVER = """
 import asyncio, sys
@@ -35,12 +33,6 @@ asyncio.run(StartAsyncTcpServer(context=context, address=("127.0.0.1", int(sys.a
 """
 
 READ = struct.Struct(">HHHBBHH")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 async def wait_for_port(port: int, timeout: float = 20.0) -> None:
@@ -135,40 +127,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=5.0)
     args = parser.parse_args()
-    python = sys.executable
-    simulator = subprocess.Popen(
-        [python, "-m", "gateway", "simulate", "--protocol", "native", "--series", "AH",
-         "--baud", "115200"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-    assert simulator.stdout is not None
-    pty = simulator.stdout.readline().split()[1]
     gateway_port, bare_port = free_port(), free_port()
-    with tempfile.TemporaryDirectory() as tmp:
-        config = Path(tmp) / "bench.yaml"
-        config.write_text(f"""
-buses:
-  - name: bench
-    port: {pty}
-    baudrate: 115200
-    protocol: native
-    sensors: [{{name: ah, series: AH, address: 0, poll_hz: 0}}]
-modbus:
-  listen: 127.0.0.1:{gateway_port}
-  max_connections: 200
-""")
-        procs = [
-            subprocess.Popen([python, "-m", "gateway", "run", "-c", str(config),
-                              "--log-level", "warning"]),
-            subprocess.Popen([python, "-c", BARE_SERVER, str(bare_port)],
-                             stderr=subprocess.DEVNULL),
-        ]
+    bare = [sys.executable, "-c", BARE_SERVER, str(bare_port)]
+    interfaces = f"modbus:\n  listen: 127.0.0.1:{gateway_port}\n  max_connections: 200"
+    with processes("{name: ah, series: AH, address: 0, poll_hz: 0}", interfaces, bare):
         print(f"Modbus TCP, 32-register float block, {args.seconds} s per run, "
               f"{os.cpu_count()} CPUs; load generator: raw asyncio clients in one process")
-        try:
-            asyncio.run(measure(gateway_port, bare_port, args.seconds))
-        finally:
-            for proc in [*procs, simulator]:
-                proc.terminate()
-                proc.wait(10)
+        asyncio.run(measure(gateway_port, bare_port, args.seconds))
 
 
 if __name__ == "__main__":

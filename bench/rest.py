@@ -22,14 +22,12 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
-import socket
 import statistics
-import subprocess
 import sys
-import tempfile
 import time
 from datetime import datetime
-from pathlib import Path
+
+from common import free_port, processes
 
 BARE_APP = """
 import sys, uvicorn
@@ -52,12 +50,6 @@ READING = "/api/v1/sensors/boom/reading"
 STREAM = "/api/v1/sensors/boom/stream"
 SSE_STEPS = (10, 50, 100, 200, 300, 400, 600, 800)
 SSE_LIMIT_MS = 100.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 async def wait_for(port: int, path: str, timeout: float = 30.0) -> None:
@@ -179,39 +171,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=5.0)
     args = parser.parse_args()
-    python = sys.executable
-    simulator = subprocess.Popen(
-        [python, "-m", "gateway", "simulate", "--protocol", "native", "--series", "AH",
-         "--baud", "115200"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-    assert simulator.stdout is not None
-    pty = simulator.stdout.readline().split()[1]
     gateway_port, bare_port = free_port(), free_port()
-    with tempfile.TemporaryDirectory() as tmp:
-        config = Path(tmp) / "bench.yaml"
-        config.write_text(f"""
-buses:
-  - name: bench
-    port: {pty}
-    baudrate: 115200
-    protocol: native
-    sensors: [{{name: boom, series: AH, poll_hz: 20}}]
-http:
-  listen: 127.0.0.1:{gateway_port}
-""")
-        procs = [
-            subprocess.Popen([python, "-m", "gateway", "run", "-c", str(config),
-                              "--log-level", "warning"]),
-            subprocess.Popen([python, "-c", BARE_APP, str(bare_port)],
-                             stderr=subprocess.DEVNULL),
-        ]
+    bare = [sys.executable, "-c", BARE_APP, str(bare_port)]
+    interfaces = f"http:\n  listen: 127.0.0.1:{gateway_port}"
+    with processes("{name: boom, series: AH, poll_hz: 20}", interfaces, bare):
         print(f"REST, {args.seconds:g} s per run, {os.cpu_count()} CPUs; load generator: "
               "raw asyncio HTTP/1.1 keep-alive clients in one process")
-        try:
-            asyncio.run(measure(gateway_port, bare_port, args.seconds))
-        finally:
-            for proc in [*procs, simulator]:
-                proc.terminate()
-                proc.wait(10)
+        asyncio.run(measure(gateway_port, bare_port, args.seconds))
 
 
 if __name__ == "__main__":

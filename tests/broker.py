@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import paho.mqtt.client as paho
+from harness import free_port
 from paho.mqtt.enums import CallbackAPIVersion
 
 
@@ -32,10 +33,6 @@ def find_mosquitto() -> str:
     return path
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass(frozen=True)
@@ -75,11 +72,15 @@ class Mosquitto:
     """One broker process; ``stop()`` and ``start()`` again keep the port."""
 
     def __init__(self, folder: Path, *, tls: Tls | None = None,
-                 users: dict[str, str] | None = None) -> None:
+                 users: dict[str, str] | None = None,
+                 settings: dict[str, str] | None = None) -> None:
+        """``users``: a password file made for them; ``settings``: more config lines
+        (``password_file``, ``acl_file``, ``allow_anonymous`` …), which win."""
         self.folder = folder
         self.port = free_port()
         self.tls = tls
         self.users = users
+        self.settings = settings or {}
         self.process: subprocess.Popen[bytes] | None = None
         self.log = folder / "mosquitto.log"
 
@@ -93,18 +94,19 @@ class Mosquitto:
                  # as root, mosquitto would become user "mosquitto", who cannot read
                  # the test's private folder
                  f"user {getpass.getuser()}"]
+        settings = {"allow_anonymous": "true"}
         if self.users:
             passwords = self.folder / "passwords"
             passwords.write_text("")
             for user, password in self.users.items():
                 subprocess.run(["mosquitto_passwd", "-b", str(passwords), user, password],
                                check=True, capture_output=True)
-            lines += ["allow_anonymous false", f"password_file {passwords}"]
-        else:
-            lines.append("allow_anonymous true")
+            settings.update(allow_anonymous="false", password_file=str(passwords))
         if self.tls:
-            lines += [f"cafile {self.tls.ca}", f"certfile {self.tls.server_cert}",
-                      f"keyfile {self.tls.server_key}", "require_certificate true"]
+            settings.update(cafile=str(self.tls.ca), certfile=str(self.tls.server_cert),
+                            keyfile=str(self.tls.server_key), require_certificate="true")
+        settings.update(self.settings)
+        lines += [f"{key} {value}" for key, value in settings.items()]
         path = self.folder / "mosquitto.conf"
         path.write_text("\n".join(lines) + "\n")
         return path

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import inspect
+import socket
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
 
@@ -23,6 +24,23 @@ GROUP_OF = {**dict.fromkeys(FIELDS[0:3], "angles"), **dict.fromkeys(FIELDS[3:6],
 #: Half the native protocol's BCD resolution per group (SXXX.YY, S.YYYY, …).
 NATIVE_STEP = {"angles": 0.005, "accel": 0.00005, "gyro": 0.005, "mag": 0.000005,
                "quaternion": 0.0000005}
+
+
+def fields_of(reading_json: dict[str, Any]) -> dict[str, float]:
+    """The reading JSON's values (SPEC.md §4) by its per-field names."""
+    out = {}
+    for name in FIELDS:
+        group = reading_json.get(GROUP_OF[name])
+        if group is not None:
+            member = name.split("_")[1] if GROUP_OF[name] in ("accel", "gyro", "mag") else name
+            out[name] = group[member]
+    return out
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
 
 
 def expected(sim: SimSensor) -> dict[str, float]:

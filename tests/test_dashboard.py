@@ -15,7 +15,6 @@ import contextlib
 import json
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -27,6 +26,7 @@ from typing import Any, TypeVar
 
 import pytest
 import yaml
+from harness import free_port
 
 from gateway.model import Protocol, Series
 from gateway.simulator import Faults, make_sensor, simulated
@@ -69,10 +69,6 @@ def wait(condition: Callable[[], T | None], what: str, timeout: float = 15.0) ->
         time.sleep(0.05)
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def get_json(url: str, token: str | None = None) -> Any:

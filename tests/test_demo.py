@@ -18,7 +18,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import httpx
-from broker import Mosquitto, free_port
+from broker import Mosquitto
+from harness import free_port
 
 
 def _banner(process: subprocess.Popen[str], timeout: float = 60.0) -> list[str]:

@@ -9,8 +9,6 @@ ones the others use.  The Docker daemon is never needed.
 
 from __future__ import annotations
 
-import contextlib
-import getpass
 import http.server
 import json
 import os
@@ -30,6 +28,8 @@ from typing import Any
 import paho.mqtt.client as paho
 import pytest
 import yaml
+from broker import Mosquitto
+from harness import free_port
 from paho.mqtt.enums import CallbackAPIVersion
 
 from gateway.cli import build_parser
@@ -56,10 +56,6 @@ def env_vars(path: Path) -> set[str]:
     return set(re.findall(r"(?<!\$)\$\{([A-Za-z_][A-Za-z0-9_]*)\}", path.read_text()))
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def cli_binary() -> Path:
@@ -434,52 +430,26 @@ def test_docker_compose_config_when_available(tmp_path: Path) -> None:
 # ------------------------------------------------------------------ the broker, live
 
 
-class Broker:
+def deploy_broker(folder: Path) -> Mosquitto:
     """Debian's mosquitto with deploy/docker/mosquitto's conf, ACL and example
     passwords, on a free loopback port."""
-
-    def __init__(self, folder: Path) -> None:
-        path = shutil.which("mosquitto") or shutil.which("mosquitto", path="/usr/sbin:/sbin")
-        if path is None:
-            pytest.skip("mosquitto is not installed: run scripts/bootstrap")
-        self.port = free_port()
-        conf = mosquitto_conf()
-        lines = [f"listener {self.port} 127.0.0.1", "persistence false",
-                 f"allow_anonymous {conf['allow_anonymous']}",
-                 f"password_file {MOSQUITTO / 'passwords.example'}",
-                 f"acl_file {MOSQUITTO / Path(conf['acl_file']).name}",
-                 # as root, mosquitto would become user "mosquitto"
-                 f"user {getpass.getuser()}", "log_dest stderr"]
-        (folder / "mosquitto.conf").write_text("\n".join(lines) + "\n")
-        self.log = folder / "mosquitto.log"
-        with self.log.open("wb") as log:
-            self.process = subprocess.Popen([path, "-c", str(folder / "mosquitto.conf")],
-                                            stdout=subprocess.DEVNULL, stderr=log)
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline:
-            assert self.process.poll() is None, self.log.read_text()
-            with contextlib.suppress(OSError), socket.create_connection(
-                    ("127.0.0.1", self.port), timeout=0.5):
-                return
-            time.sleep(0.02)
-        raise AssertionError("mosquitto did not start listening")
-
-    def stop(self) -> None:
-        self.process.terminate()
-        self.process.wait(10)
+    conf = mosquitto_conf()
+    return Mosquitto(folder, settings={
+        "allow_anonymous": conf["allow_anonymous"],
+        "password_file": str(MOSQUITTO / "passwords.example"),
+        "acl_file": str(MOSQUITTO / Path(conf["acl_file"]).name)})
 
 
 @pytest.fixture
-def broker(tmp_path: Path) -> Iterator[Broker]:
-    running = Broker(tmp_path)
-    yield running
-    running.stop()
+def broker(tmp_path: Path) -> Iterator[Mosquitto]:
+    with deploy_broker(tmp_path) as running:
+        yield running
 
 
 class Client:
     """A paho client logged in as a user of passwords.example (password demo-USER)."""
 
-    def __init__(self, broker: Broker, user: str | None, *subscribe: str) -> None:
+    def __init__(self, broker: Mosquitto, user: str | None, *subscribe: str) -> None:
         self.messages: list[tuple[str, str]] = []
         self.lock = threading.Lock()
         self.client = paho.Client(CallbackAPIVersion.VERSION2)
@@ -526,7 +496,7 @@ class Client:
 
 
 def test_broker_acl_gateway_publishes_dashboard_reads_operator_commands(
-        broker: Broker) -> None:
+        broker: Mosquitto) -> None:
     clients: list[Client] = []
     try:
         anonymous = Client(broker, None)
@@ -560,7 +530,7 @@ def test_broker_acl_gateway_publishes_dashboard_reads_operator_commands(
             client.close()
 
 
-def test_compose_gateway_config_runs_against_the_broker(broker: Broker,
+def test_compose_gateway_config_runs_against_the_broker(broker: Mosquitto,
                                                         tmp_path: Path) -> None:
     """The gateway of the compose setup, as configured, logs in to a broker with the
     shipped ACL as user "gateway", publishes its status and discovery, answers the

@@ -21,7 +21,7 @@ import paho.mqtt.client as paho
 import pytest
 import yaml
 from broker import Mosquitto, Tls, make_tls, recording
-from harness import FIELDS, GROUP_OF, expected, run, running, tolerance, until
+from harness import FIELDS, GROUP_OF, expected, fields_of, run, running, tolerance, until
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
@@ -58,15 +58,6 @@ def state(message: Any) -> dict[str, Any]:
     return value
 
 
-def flat(state_json: dict[str, Any]) -> dict[str, float]:
-    """The state JSON's values by SPEC.md's per-field names."""
-    out = {}
-    for name in FIELDS:
-        group = state_json.get(GROUP_OF[name])
-        if group is not None:
-            member = name.split("_")[1] if GROUP_OF[name] in ("accel", "gyro", "mag") else name
-            out[name] = group[member]
-    return out
 
 
 def written(gateway: Gateway) -> bool:
@@ -116,7 +107,7 @@ def test_state_json_carries_the_simulators_values(tmp_path: Path) -> None:
             assert got["sensor"] == name and got["status"] == "ok" and got["seq"] >= 1
             assert got["ts"].endswith("Z") and len(got["ts"]) == len("2026-11-22T03:40:00.123Z")
             want = expected(sim)
-            for field_name, value in flat(got).items():
+            for field_name, value in fields_of(got).items():
                 assert abs(value - want[field_name]) <= tolerance(protocol, field_name, value), \
                     (name, field_name, value, want[field_name])
             assert message.retain is False  # live delivery; retained copies are checked below
@@ -499,7 +490,7 @@ def test_min_interval_deadband_and_per_field_topics(tmp_path: Path) -> None:
                 assert polled > 3 * sent  # the polls outnumber the messages
                 assert 1 <= sent <= elapsed / 0.4 + 1
                 # per_field_topics: plain numbers equal to the state JSON's.
-                last = flat(state(rec.on(f"{BASE}/boom/state")[-1]))
+                last = fields_of(state(rec.on(f"{BASE}/boom/state")[-1]))
                 await until(lambda: rec.on(f"{BASE}/boom/q3"))
                 for name in FIELDS:
                     assert float(rec.last(f"{BASE}/boom/{name}").text) == last[name]  # type: ignore[union-attr]

@@ -16,7 +16,7 @@ from typing import Any
 
 import httpx
 import pytest
-from harness import FIELDS, GROUP_OF, expected, run, running, tolerance, until
+from harness import expected, fields_of, run, running, tolerance, until
 from prometheus_client.parser import text_string_to_metric_families
 
 from gateway.app import Gateway, StartupError, openapi_json
@@ -53,14 +53,6 @@ def client(gateway: Gateway) -> httpx.AsyncClient:
     return httpx.AsyncClient(base_url=f"http://127.0.0.1:{gateway.http.port}", timeout=10)
 
 
-def flat(reading: dict[str, Any]) -> dict[str, float]:
-    out = {}
-    for name in FIELDS:
-        group = reading.get(GROUP_OF[name])
-        if group is not None:
-            member = name.split("_")[1] if GROUP_OF[name] in ("accel", "gyro", "mag") else name
-            out[name] = group[member]
-    return out
 
 
 def assert_error(response: httpx.Response, status: int, kind: str) -> None:
@@ -114,8 +106,8 @@ def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
                 got = response.json()
                 assert got["status"] == "ok" and got["seq"] >= 2
                 want = expected(sim)
-                assert set(flat(got)) == set(want)  # a VG has no "mag" group
-                for field_name, value in flat(got).items():
+                assert set(fields_of(got)) == set(want)  # a VG has no "mag" group
+                for field_name, value in fields_of(got).items():
                     assert abs(value - want[field_name]) <= tolerance(
                         protocol, field_name, value), (name, field_name)
 
@@ -311,7 +303,7 @@ def test_stream_delivers_every_reading_at_the_poll_rate(two_lines: Any) -> None:
                 async for name, event in sse_events(response):
                     assert event["sensor"] == "arm"
                     if name == "reading":
-                        assert flat(event) and "mag" not in event
+                        assert fields_of(event) and "mag" not in event
                         break
             response = await http.get(f"{API}/sensors/nobody/stream")
             assert_error(response, 404, "unknown_sensor")

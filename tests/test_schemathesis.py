@@ -17,7 +17,7 @@ from pathlib import Path
 
 import httpx
 import yaml
-from broker import free_port
+from harness import free_port
 
 from gateway.model import Protocol, Series
 from gateway.simulator import make_sensor, simulated
