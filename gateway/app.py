@@ -111,30 +111,27 @@ class Gateway:
                         from None
 
     async def run(self, stop: asyncio.Event) -> None:
-        """Run until ``stop`` is set, then let every bus finish its exchange and stop."""
+        """Run until ``stop`` is set, then stop: the front ends first (MQTT says
+        "offline" while the buses still run; HTTP and Modbus TCP finish the requests
+        they have, which may need a bus), then every bus after its exchange in flight.
+        Each step runs even if one before it failed."""
         await self.start_frontends()
-        if self.mqtt is not None:  # connects in the background, retrying: never fails here
-            await self.mqtt.start()
-        try:
-            await self._run_buses(stop)
-        finally:
-            if self.mqtt is not None:
-                await self.mqtt.stop()  # before the buses stop: "offline" is the last word
-            if self.http is not None:
-                await self.http.stop()
-            if self.modbus is not None:
-                await self.modbus.stop()
-
-    async def _run_buses(self, stop: asyncio.Event) -> None:
-        for runner in self.runners.values():
-            runner.start()
-        try:
-            await self._watch_staleness(stop)
-        finally:
-            log.info("stopping")
+        async with contextlib.AsyncExitStack() as stopping:  # unwinds last in, first out
+            stopping.push_async_callback(self._stop_buses)
             for runner in self.runners.values():
-                runner.stop()
-            await asyncio.gather(*(r.join(SHUTDOWN_GRACE) for r in self.runners.values()))
+                runner.start()
+            for frontend in (self.modbus, self.http, self.mqtt):
+                if frontend is not None:
+                    stopping.push_async_callback(frontend.stop)
+            if self.mqtt is not None:  # connects in the background, retrying: never fails
+                await self.mqtt.start()
+            await self._watch_staleness(stop)
+            log.info("stopping")
+
+    async def _stop_buses(self) -> None:
+        for runner in self.runners.values():
+            runner.stop()
+        await asyncio.gather(*(r.join(SHUTDOWN_GRACE) for r in self.runners.values()))
 
     async def _watch_staleness(self, stop: asyncio.Event) -> None:
         while not stop.is_set():

@@ -8,6 +8,7 @@ units in both protocols, so no conversion happens between the wire and a client.
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -87,14 +88,21 @@ class Reading:
         """The same reading with every group outside ``groups`` dropped."""
         return Reading(**{g.value: getattr(self, g.value) for g in groups})
 
-    def to_json_groups(self) -> dict[str, dict[str, float]]:
-        """The value groups of the reading JSON of SPEC.md §4, absent groups left out."""
-        out: dict[str, dict[str, float]] = {}
+    def to_json_groups(self) -> dict[str, dict[str, float | None]]:
+        """The value groups of the reading JSON of SPEC.md §4, absent groups left out.
+        A value that is not a finite number (a Modbus float register can hold NaN) is
+        ``None``: JSON has no NaN, and one would break every client's parser."""
+        out: dict[str, dict[str, float | None]] = {}
         for group in Group:
             value: Any = getattr(self, group.value)
             if value is not None:
-                out[group.value] = {f.name: getattr(value, f.name) for f in fields(value)}
+                out[group.value] = {f.name: _finite(getattr(value, f.name))
+                                    for f in fields(value)}
         return out
+
+
+def _finite(value: float) -> float | None:
+    return value if math.isfinite(value) else None
 
 
 @dataclass(frozen=True, slots=True)

@@ -572,3 +572,49 @@ def test_a_server_that_never_answers_connect_is_given_up_on(
         run(body)
     said = [r.getMessage() for r in caplog.records if "no answer" in r.getMessage()]
     assert len(said) == 1 and "within 5 s" in said[0] and "mqtts://" in said[0]
+
+
+def test_twenty_sensors_all_discovery_configs_and_availabilities_arrive(
+        tmp_path: Path) -> None:
+    """320 discovery configs and 20 availabilities at one connect: more than paho's
+    own queue would take at once; none may be lost."""
+    sims = [sensor(Protocol.NATIVE, Series.AH, address=a, source=hold(READING))
+            for a in range(20)]
+    with Mosquitto(tmp_path) as broker, simulated(sims) as line:
+        cfg = config([bus("a", line.path, "native",
+                          [{"name": f"s{a}", "series": "AH", "address": a, "poll_hz": 2}
+                           for a in range(20)])], broker, homeassistant_discovery=True)
+
+        async def body() -> None:
+            async with running(cfg) as gateway:
+                await until(lambda: all(s.seq >= 1 for s in gateway.cache.snapshots()),
+                            timeout=30)
+                await until(lambda: written(gateway))
+                kept = await asyncio.to_thread(retained, broker, "#")
+            topics = {m.topic for m in kept}
+            assert len([t for t in topics if t.startswith("homeassistant/")]) == 20 * 16
+            assert {f"{BASE}/s{a}/availability" for a in range(20)} <= topics
+
+        run(body)
+
+
+def test_a_connection_that_worked_resets_the_reconnect_back_off(tmp_path: Path) -> None:
+    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    with Mosquitto(tmp_path) as broker, simulated([ah]) as line:
+        cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])],
+                     broker)
+
+        async def body() -> None:
+            async with running(cfg) as gateway:
+                mqtt = gateway.mqtt
+                assert mqtt is not None
+                for restart in range(1, 6):
+                    await until(lambda: mqtt.connected)
+                    broker.stop()
+                    await until(lambda: not mqtt.connected)
+                    broker.start()
+                    # 0.5 s each time; without the reset the fifth would wait 8 s
+                    await until(lambda r=restart: mqtt.counters.connects == r + 1,
+                                timeout=4)
+
+        run(body)

@@ -333,6 +333,7 @@ def test_a_stream_client_that_does_not_read_is_dropped(two_lines: Any) -> None:
                     assert (await http.get(f"{API}/health")).status_code == 200
             finally:
                 sock.close()
+            await until(lambda: hub.open == 0)  # its stream ended with its connection
 
     run(body)
 
@@ -425,3 +426,54 @@ def test_a_taken_port_is_a_clear_startup_error(two_lines: Any) -> None:
                     pass
 
         run(body)
+
+
+def test_a_value_that_is_not_a_number_is_null_not_broken_json() -> None:
+    """A Modbus float register can hold NaN; JSON cannot."""
+    from dataclasses import replace
+
+    from gateway.model import Vector3
+
+    assert READING.accel is not None
+    odd = replace(READING, accel=Vector3(float("nan"), READING.accel.y, float("inf")))
+    vg = sensor(Protocol.MODBUS, Series.VG, address=1, source=hold(odd))
+    with simulated([vg]) as line:
+        buses = [bus("b", line.path, "modbus", [{"name": "arm", "series": "VG"}])]
+
+        async def body() -> None:
+            async with running(config(buses)) as gateway, client(gateway) as http:
+                await until(lambda: gateway.cache.snapshot("arm").seq >= 1)
+                got = (await http.get(f"{API}/sensors/arm/reading")).json()
+                assert got["accel"]["x"] is None and got["accel"]["z"] is None
+                assert abs(got["accel"]["y"] - READING.accel.y) < 1e-6
+                detail = await http.get(f"{API}/sensors/arm")
+                assert detail.status_code == 200
+                assert detail.json()["reading"]["accel"]["x"] is None
+
+        run(body)
+
+
+def test_command_bodies_are_read_only_after_access_is_granted(two_lines: Any) -> None:
+    """Auth and allow_commands come before the body is even read; a body is at most
+    16 KiB."""
+    _, _, buses = two_lines
+    huge = b'{"type": "' + b"x" * 100_000 + b'"}'
+    route = f"{API}/sensors/boom/commands/set_zero_type"
+    json_type = {"Content-Type": "application/json"}
+
+    async def body() -> None:
+        async with running(config(buses, allow_commands=False)) as gateway, \
+                client(gateway) as http:
+            assert_error(await http.post(route, content=b"{not json", headers=json_type),
+                         403, "forbidden")
+        async with running(config(buses)) as gateway, client(gateway) as http:
+            assert_error(await http.post(route, content=b"{not json", headers=json_type),
+                         401, "unauthorised")
+            assert_error(await http.post(route, content=huge, headers=json_type),
+                         401, "unauthorised")
+            assert_error(await http.post(route, content=huge,
+                                         headers={**json_type, **AUTH}), 413, "too_large")
+            ok = await http.post(route, json={"type": "relative"}, headers=AUTH)
+            assert ok.status_code == 200, ok.text
+
+    run(body)

@@ -121,6 +121,8 @@ class BusRunner:
 
     async def join(self, timeout: float) -> None:
         """Wait for the thread; past ``timeout`` the master is cancelled."""
+        if self._thread.ident is None:
+            return  # never started
         await asyncio.to_thread(self._thread.join, timeout)
         if self._thread.is_alive() and self._loop is not None and self._task is not None:
             log.warning("bus %s: not stopped after %.0f s; cancelling", self.master.name, timeout)

@@ -109,7 +109,8 @@ class ModbusTcpServer:
         return self._server is not None
 
     def stats(self) -> dict[str, Any]:
-        return {"clients": len(self.connections), **self.counts}
+        return {"clients": len(self.connections), "requests": self.counts["requests"],
+                **self.counts}
 
     @property
     def port(self) -> int:

@@ -4,7 +4,8 @@
 Threads.  paho-mqtt's network loop runs on its own thread (``loop_start``); everything
 else here runs on the gateway's event loop, where the cache calls its listeners.  paho's
 callbacks only hand their event over (``call_soon_threadsafe``), so no state of this
-module is touched from two threads, except two counters paho's thread increments.
+module is written from two threads: paho's thread increments one counter (``written``)
+and reads one flag (``_waiting_for_window``).
 
 Connecting.  The connect itself (TCP, TLS, CONNECT) is ours, in an executor, with a
 back-off from ``RECONNECT_MIN`` to ``RECONNECT_MAX`` seconds: paho's own automatic
@@ -12,8 +13,10 @@ reconnect swallows the reason a connection failed, and a user looking at a TLS o
 password problem needs that reason.  Each distinct failure is logged once; the retries
 after it are quiet, and "connected" is logged on the way back.
 
-Nothing grows while the broker is away.  Messages wait in ``Outbox``, a bounded queue
-that drops its oldest message (and counts it) when full.  Only ``WINDOW`` messages are
+Nothing grows while the broker is away.  States wait in ``Outbox``, a bounded queue
+that drops its oldest message (and counts it) when full.  The retained control messages
+(status, availability, discovery) and command results wait in a queue of their own,
+one entry per topic, which goes first and drops nothing.  Only ``WINDOW`` messages are
 handed to paho and not yet written (QoS 0) or acknowledged (QoS 1, 2), so paho's own
 queues stay small even when a broker stops reading.  After each (re)connect the gateway
 status, every sensor's availability and discovery are published anew, then what waited,
@@ -94,6 +97,10 @@ class Outbox:
     def take(self) -> Message:
         return self._messages.popleft()
 
+    def clear(self) -> None:
+        self.dropped += len(self._messages)
+        self._messages.clear()
+
     def __len__(self) -> int:
         return len(self._messages)
 
@@ -114,6 +121,7 @@ class _Counters:
     published: int = 0  # handed to paho
     written: int = 0  # written (QoS 0) or acknowledged: paho's on_publish, on its thread
     refused: int = 0  # paho would not take a message (the connection just went)
+    lost_in_flight: int = 0  # handed to paho, unwritten or unacknowledged when it went
     commands: int = 0
     command_errors: int = 0
     connects: int = 0
@@ -129,6 +137,10 @@ class MqttClient:
         self.prefix = f"{config.base_topic}/{gid}"
         self.status_topic = f"{self.prefix}/status"
         self.outbox = Outbox(config.queue_size)
+        # Retained control messages (status, availability, discovery) and command
+        # results go before the outbox and are never dropped: one entry per key, so
+        # this is bounded by the number of topics (and of commands in progress).
+        self._control: dict[str, Message] = {}
         self.counters = _Counters()
         self.connected = False
         self._deadbands = config.field_deadbands()
@@ -145,6 +157,8 @@ class MqttClient:
         self._unsubscribe: Any = None
         self._commands: set[asyncio.Task[None]] = set()
         self._sweep_until = 0.0
+        self._sweep_timer: asyncio.TimerHandle | None = None
+        self._results = 0  # command results sent (their control-queue keys)
         self._stopping = False
         self._last_problem: str | None = None
 
@@ -190,7 +204,9 @@ class MqttClient:
         return client
 
     async def stop(self) -> None:
-        """Say ``offline`` (status and availability), then disconnect."""
+        """Say ``offline`` (every sensor's availability, then the status), then
+        disconnect.  If that is not acknowledged in time, the connection is dropped
+        without DISCONNECT, so the broker publishes the last will instead."""
         self._stopping = True
         if self._unsubscribe is not None:
             self._unsubscribe()
@@ -199,33 +215,42 @@ class MqttClient:
                 out.trailing.cancel()
         for task in list(self._commands):
             task.cancel()
+        said_offline = False
         if self.connected:
+            self.outbox.clear()  # states of before: "offline" is the last word
             for name in self._sensors:
-                self._send(Message(self.sensor_topic(name, "availability"), OFFLINE,
-                                   CONTROL_QOS, True))
-            self._send(Message(self.status_topic, OFFLINE, CONTROL_QOS, True))
-            await self._flushed(timeout=2.0)
+                self._send_control(Message(self.sensor_topic(name, "availability"), OFFLINE,
+                                           CONTROL_QOS, True))
+            self._send_control(Message(self.status_topic, OFFLINE, CONTROL_QOS, True))
+            said_offline = await self._flushed(timeout=2.0)
         if self._runner is not None:
             self._runner.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._runner
         client = self._client
         if client is not None:
-            client.disconnect()
+            if said_offline:
+                client.disconnect()
             await asyncio.to_thread(client.loop_stop)
             _close_sockets(client)
 
-    async def _flushed(self, timeout: float) -> None:
+    async def _flushed(self, timeout: float) -> bool:
+        """Wait until everything queued was written or acknowledged."""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
-        while (self.outbox or self._in_window()) and self.connected and loop.time() < deadline:
+        while self.connected and loop.time() < deadline:
+            self._drain()
+            if not (self._control or self.outbox or self._in_window()):
+                return True
             await asyncio.sleep(0.01)
+        return False
 
     async def _keep_connected(self) -> None:
         c = self.config
         delay = RECONNECT_MIN
         while True:
             self._lost.clear()
+            connects = self.counters.connects
             # A new paho client for every connection (the session is clean anyway):
             # paho's loop_start() makes a new wake-up socket pair each time without
             # closing the last; each client's sockets are closed when it is done.
@@ -249,7 +274,7 @@ class MqttClient:
                               f"{CONNACK_TIMEOUT:g} s of connecting{self._tls_hint()}")
             await asyncio.to_thread(client.loop_stop)
             _close_sockets(client)
-            if self.connected:  # a working connection ended: start the back-off again
+            if self.counters.connects > connects:  # it worked: start the back-off again
                 delay = RECONNECT_MIN
             self._set_disconnected()
             await asyncio.sleep(delay)
@@ -279,7 +304,7 @@ class MqttClient:
     def _paho_publish(self, client: paho.Client, userdata: Any, mid: int,
                       reason: ReasonCode, properties: Properties | None) -> None:
         self.counters.written += 1
-        if self._waiting_for_window:
+        if self._waiting_for_window:  # set before the loop looks at the window again
             self._hand_over(self._drain)
 
     def _paho_message(self, client: paho.Client, userdata: Any,
@@ -298,7 +323,10 @@ class MqttClient:
         self.connected = True
         self.counters.connects += 1
         self._last_problem = None
-        self._handed = self.counters.written  # what paho held was lost with the connection
+        # What paho held when the last connection went is lost with it (each
+        # connection has a fresh client): counted, then the window starts empty.
+        self.counters.lost_in_flight += self._in_window()
+        self._handed = self.counters.written
         log.info("mqtt: connected to %s:%s (MQTT %s)", self.config.host, self.config.port,
                  self.config.protocol)
         self._subscribe()
@@ -329,22 +357,24 @@ class MqttClient:
             assert self._loop is not None
             self._sweep_until = self._loop.time() + DISCOVERY_SWEEP_S
             self._client.subscribe(f"{self.config.discovery_prefix}/sensor/+/config", qos=1)
-            self._loop.call_later(DISCOVERY_SWEEP_S, self._end_sweep)
+            if self._sweep_timer is not None:  # an earlier connection's
+                self._sweep_timer.cancel()
+            self._sweep_timer = self._loop.call_later(DISCOVERY_SWEEP_S, self._end_sweep)
 
     def _end_sweep(self) -> None:
         if self._client is not None and self.connected:
             self._client.unsubscribe(f"{self.config.discovery_prefix}/sensor/+/config")
 
     def _announce(self) -> None:
-        """Everything retained, anew: after every connect."""
-        self._send(Message(self.status_topic, ONLINE, CONTROL_QOS, True), first=True)
+        """Everything retained, anew: after every connect.  The control messages go
+        before what waited in the outbox; the latest states after it."""
+        self._send_control(Message(self.status_topic, ONLINE, CONTROL_QOS, True))
         if self.config.homeassistant_discovery:
             for topic, payload in self.discovery_configs().items():
-                self._send(Message(topic, _json(payload), CONTROL_QOS, True), first=True)
+                self._send_control(Message(topic, _json(payload), CONTROL_QOS, True))
         for snap in self.gateway.cache.snapshots():
             self._sensors[snap.name].availability = None
-            self._publish_availability(snap, first=True)
-        self._drain()
+            self._publish_availability(snap)
         for snap in self.gateway.cache.snapshots():
             if snap.has_reading:
                 self._publish_state(snap)
@@ -352,28 +382,40 @@ class MqttClient:
     # ------------------------------------------------------------ sending
 
     def _in_window(self) -> int:
-        # Below zero when paho re-sent QoS 1/2 messages of an earlier connection.
         return max(0, self._handed - self.counters.written)
 
-    def _send(self, message: Message, *, first: bool = False) -> None:
-        """Queue a message and send what the window allows.  ``first``: straight to
-        paho (the announcements after a connect, which must precede what waited)."""
-        if first and self.connected:
-            self._hand_to_paho(message)
-            return
+    def _send(self, message: Message) -> None:
+        """Queue a message and send what the window allows."""
         self.outbox.put(message)
         self._drain()
 
+    def _send_control(self, message: Message, key: str | None = None) -> None:
+        """A message that must not be dropped; a newer one for the same ``key`` (its
+        topic by default) replaces one still waiting."""
+        self._control.pop(key or message.topic, None)
+        self._control[key or message.topic] = message
+        self._drain()
+
     def _drain(self) -> None:
-        self._waiting_for_window = False
-        while self.outbox and self.connected:
+        """Hand paho what the window allows: control messages first, then the outbox."""
+        while (self._control or self.outbox) and self.connected:
+            # The flag goes up before the window is read: an on_publish in between
+            # then still wakes this loop (paho's thread reads the flag).
+            self._waiting_for_window = True
             if self._in_window() >= WINDOW:
-                self._waiting_for_window = True
                 return
-            message = self.outbox.take()
-            if not self._hand_to_paho(message):
-                self.outbox.put_back(message)
-                return
+            self._waiting_for_window = False
+            if self._control:
+                key = next(iter(self._control))
+                if not self._hand_to_paho(self._control[key]):
+                    return
+                del self._control[key]
+            else:
+                message = self.outbox.take()
+                if not self._hand_to_paho(message):
+                    self.outbox.put_back(message)
+                    return
+        self._waiting_for_window = False
 
     def _hand_to_paho(self, message: Message) -> bool:
         assert self._client is not None
@@ -397,15 +439,15 @@ class MqttClient:
         elif kind is EventKind.READING:
             self._consider(snap)
 
-    def _publish_availability(self, snap: Snapshot, *, first: bool = False) -> None:
+    def _publish_availability(self, snap: Snapshot) -> None:
         if not self.connected:
             return  # not queued: the next connect publishes the availability of then
         out = self._sensors[snap.name]
         payload = OFFLINE if snap.status is Status.OFFLINE else ONLINE
         if payload != out.availability:
             out.availability = payload
-            self._send(Message(self.sensor_topic(snap.name, "availability"), payload,
-                               CONTROL_QOS, True), first=first)
+            self._send_control(Message(self.sensor_topic(snap.name, "availability"),
+                                       payload, CONTROL_QOS, True))
 
     def _consider(self, snap: Snapshot) -> None:
         """A new reading: send it now, later (min_interval) or not (deadband)."""
@@ -446,18 +488,18 @@ class MqttClient:
                            c.qos, c.retain))
         if c.per_field_topics:
             for name, value in out.values.items():
-                self._send(Message(self.sensor_topic(snap.name, name),
-                                   json.dumps(value).encode(), c.qos, c.retain))
+                if math.isfinite(value):  # a plain number or nothing
+                    self._send(Message(self.sensor_topic(snap.name, name),
+                                       json.dumps(value).encode(), c.qos, c.retain))
 
     # ------------------------------------------------------------ incoming
 
     def _on_message(self, message: paho.MQTTMessage) -> None:
         topic = message.topic
-        if topic.startswith(f"{self.config.discovery_prefix}/"):
-            self._sweep(message)
-            return
         parts = topic.removeprefix(f"{self.prefix}/").split("/")
-        if len(parts) != 3 or parts[1] != "cmd" or not topic.startswith(self.prefix + "/"):
+        if not (topic.startswith(self.prefix + "/") and len(parts) == 3 and parts[1] == "cmd"):
+            if topic.startswith(f"{self.config.discovery_prefix}/"):
+                self._sweep(message)
             return
         sensor, _, command = parts
         if message.retain:
@@ -494,8 +536,9 @@ class MqttClient:
         if correlation is not None:
             properties = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
             properties.CorrelationData = correlation
-        self._send(Message(topic, _json(result.to_json()), max(self.config.qos, 1), False,
-                           properties))
+        self._results += 1
+        self._send_control(Message(topic, _json(result.to_json()), max(self.config.qos, 1),
+                                   False, properties), key=f"result {self._results}")
 
     # ------------------------------------------------------------ Home Assistant
 
@@ -540,26 +583,29 @@ class MqttClient:
             return
         try:
             state_topic = json.loads(message.payload).get("state_topic", "")
-        except (ValueError, AttributeError):
+        except (ValueError, AttributeError, RecursionError):
             return
         if not isinstance(state_topic, str) or not state_topic.startswith(self.prefix + "/"):
             return  # another gateway's, or not a gateway's at all
         if message.topic not in self.discovery_configs():
             log.info("mqtt: removing the discovery config %s", message.topic)
-            self._send(Message(message.topic, b"", CONTROL_QOS, True))
+            self._send_control(Message(message.topic, b"", CONTROL_QOS, True))
 
     # ------------------------------------------------------------ stats
 
     def stats(self) -> dict[str, Any]:
         return {"connected": self.connected, "published": self.counters.published,
-                "queued": len(self.outbox), "dropped": self.outbox.dropped,
+                "queued": len(self.outbox) + len(self._control),
+                "dropped": self.outbox.dropped + self.counters.lost_in_flight,
                 "in_flight": self._in_window(), "connects": self.counters.connects,
                 "commands": self.counters.commands,
                 "command_errors": self.counters.command_errors}
 
 
 def _json(value: Any) -> bytes:
-    return json.dumps(value, separators=(",", ":"), ensure_ascii=False).encode()
+    # allow_nan=False: the reading JSON has no NaN (Reading.to_json_groups)
+    return json.dumps(value, separators=(",", ":"), ensure_ascii=False,
+                      allow_nan=False).encode()
 
 
 def _command_args(payload: bytes) -> dict[str, Any]:
@@ -568,7 +614,7 @@ def _command_args(payload: bytes) -> dict[str, Any]:
         return {}
     try:
         args = json.loads(payload)
-    except (ValueError, UnicodeDecodeError) as exc:
+    except (ValueError, RecursionError) as exc:  # UnicodeDecodeError is a ValueError
         raise CommandError(ErrorKind.BAD_ARGUMENTS, f"the payload is not JSON: {exc}") from None
     if not isinstance(args, dict):
         raise CommandError(ErrorKind.BAD_ARGUMENTS, "the payload must be a JSON object")

@@ -54,6 +54,7 @@ STREAM_QUEUE = 64  # events a slow stream client may fall behind before it is dr
 KEEPALIVE_S = 15.0  # a comment line on an idle stream, so proxies keep it open
 MAX_STREAMS = 1000
 SEND_BUFFER = 64 * 1024  # bytes of kernel send buffer per connection
+MAX_BODY = 16 * 1024  # a command's arguments are a few bytes
 
 STATUS_FOR: dict[ErrorKind, int] = {
     ErrorKind.UNKNOWN: 404,
@@ -94,22 +95,23 @@ class ErrorOut(BaseModel):
 
 
 class AnglesOut(_Out):
-    pitch: float
-    roll: float
-    yaw: float
+    # None: the sensor sent something that is not a number (a Modbus float can be NaN)
+    pitch: float | None
+    roll: float | None
+    yaw: float | None
 
 
 class VectorOut(_Out):
-    x: float
-    y: float
-    z: float
+    x: float | None
+    y: float | None
+    z: float | None
 
 
 class QuaternionOut(_Out):
-    q0: float
-    q1: float
-    q2: float
-    q3: float
+    q0: float | None
+    q1: float | None
+    q2: float | None
+    q3: float | None
 
 
 class ReadingOut(_Out):
@@ -205,7 +207,11 @@ class StreamHub:
 
     def __init__(self, gateway: GatewayLike) -> None:
         self.gateway = gateway
-        self.subscribers: set[_Subscriber] = set()
+        self.subscribers: set[_Subscriber] = set()  # those events go to
+        # Streams not yet ended, dropped ones included: a dropped client that stops
+        # reading keeps its connection until the operating system gives up on it, so
+        # it still counts against MAX_STREAMS.
+        self.open = 0
         self.dropped = 0
         self.closing = asyncio.Event()
         self._unsubscribe = gateway.cache.subscribe(self._on_cache_event)
@@ -229,6 +235,7 @@ class StreamHub:
     async def stream(self, sensor: str | None) -> AsyncIterator[bytes]:
         sub = _Subscriber(sensor)
         self.subscribers.add(sub)
+        self.open += 1
         try:
             names = [sensor] if sensor is not None else self.gateway.cache.names
             for name in names:  # where each sensor stands now, first
@@ -245,6 +252,7 @@ class StreamHub:
                 yield sub.events.popleft()
         finally:
             self.subscribers.discard(sub)
+            self.open -= 1
 
     def close(self) -> None:
         self.closing.set()
@@ -258,7 +266,77 @@ def _event(name: str, snap: Snapshot) -> bytes:
 
 
 def _json(value: Any) -> bytes:
-    return json.dumps(value, separators=(",", ":"), ensure_ascii=False).encode()
+    # allow_nan=False: the reading JSON has no NaN (Reading.to_json_groups)
+    return json.dumps(value, separators=(",", ":"), ensure_ascii=False,
+                      allow_nan=False).encode()
+
+
+class _CommandGuard:
+    """ASGI middleware in front of the command routes.  FastAPI reads and parses a
+    body before it runs the route's dependencies, so without this an unauthorised
+    client could make the gateway read a body of any size.  Here the access rules
+    come first, then at most ``MAX_BODY`` bytes are read (413 beyond), and the body
+    is handed on as it came."""
+
+    def __init__(self, app: Any, config: HttpConfig) -> None:
+        self.app, self.config = app, config
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] != "http" or scope["method"] not in ("POST", "PUT", "PATCH"):
+            await self.app(scope, receive, send)
+            return
+        refusal = self._refusal(scope)
+        if refusal is not None:
+            await _send_error(send, refusal)
+            return
+        body = bytearray()
+        more = True
+        while more:
+            message = await receive()
+            if message["type"] != "http.request":
+                return  # the client went away
+            body += message.get("body", b"")
+            more = message.get("more_body", False)
+            if len(body) > MAX_BODY:
+                await _send_error(send, ApiError(413, "too_large",
+                                                 f"the body is over {MAX_BODY} bytes"))
+                return
+        replayed = False
+
+        async def replay() -> Any:
+            nonlocal replayed
+            if not replayed:
+                replayed = True
+                return {"type": "http.request", "body": bytes(body), "more_body": False}
+            return await receive()
+
+        await self.app(scope, replay, send)
+
+    def _refusal(self, scope: Any) -> ApiError | None:
+        if not scope["path"].startswith(f"{API}/sensors/") or "/commands/" not in scope["path"]:
+            return None
+        if not self.config.allow_commands:
+            return ApiError(403, "forbidden", "commands are turned off (http.allow_commands)")
+        headers = dict(scope["headers"])
+        scheme, _, token = headers.get(b"authorization", b"").decode("latin-1").partition(" ")
+        if scheme.lower() != "bearer" or not token_matches(token, self.config.token):
+            return ApiError(401, "unauthorised", "a valid bearer token is required")
+        return None
+
+
+def token_matches(given: str, token: str | None) -> bool:
+    """Constant time: how much of a token matched must not show in the answer's time."""
+    return token is not None and hmac.compare_digest(given.encode(), token.encode())
+
+
+async def _send_error(send: Any, error: ApiError) -> None:
+    body = _json({"error": str(error), "kind": error.kind})
+    headers = [(b"content-type", b"application/json"),
+               (b"content-length", str(len(body)).encode())]
+    if error.status == 401:
+        headers.append((b"www-authenticate", b"Bearer"))
+    await send({"type": "http.response.start", "status": error.status, "headers": headers})
+    await send({"type": "http.response.body", "body": body})
 
 
 class _CountRequests:
@@ -333,10 +411,12 @@ class GatewayCollector:
                          ["frontend"])
         requests = family(CounterMetricFamily, "frontend_requests", "requests served",
                           ["frontend"])
-        for name, stats in g.frontend_stats().items():
-            clients.add_metric([name], stats.get("clients", 0))
-            requests.add_metric([name], stats.get("requests", 0))
-        mqtt = g.frontend_stats().get("mqtt")
+        frontends = g.frontend_stats()
+        for name, stats in frontends.items():
+            if "clients" in stats:  # the servers (the MQTT client has its own below)
+                clients.add_metric([name], stats["clients"])
+                requests.add_metric([name], stats["requests"])
+        mqtt = frontends.get("mqtt")
         if mqtt is not None:
             family(GaugeMetricFamily, "mqtt_connected", "1 when connected to the broker",
                    []).add_metric([], 1.0 if mqtt["connected"] else 0.0)
@@ -366,7 +446,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     registry = CollectorRegistry(auto_describe=False)
     registry.register(GatewayCollector(gateway))
     errors: dict[int | str, dict[str, Any]] = {
-        code: {"model": ErrorOut} for code in (401, 403, 404, 409, 422, 502, 503, 504)}
+        code: {"model": ErrorOut} for code in (401, 403, 404, 409, 413, 422, 502, 503, 504)}
 
     def error_response(exc: ApiError) -> JSONResponse:
         headers = {"WWW-Authenticate": "Bearer"} if exc.status == 401 else None
@@ -395,8 +475,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
 
 
     def authorised(credentials: HTTPAuthorizationCredentials | None) -> None:
-        if credentials is None or config.token is None or not hmac.compare_digest(
-                credentials.credentials.encode(), config.token.encode()):
+        if credentials is None or not token_matches(credentials.credentials, config.token):
             raise ApiError(401, "unauthorised", "a valid bearer token is required")
 
     # async, like every dependency here: FastAPI runs a plain def in a worker thread,
@@ -494,7 +573,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
 
     def stream_response(sensor: str | None) -> StreamingResponse:
         active = hub if hub is not None else StreamHub(gateway)
-        if len(active.subscribers) >= MAX_STREAMS:
+        if active.open >= MAX_STREAMS:
             raise ApiError(503, "too_many_streams", f"{MAX_STREAMS} streams are open")
         return StreamingResponse(active.stream(sensor), media_type="text/event-stream",
                                  headers={"Cache-Control": "no-cache",
@@ -535,7 +614,8 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
         return Response(generate_latest(registry),
                         media_type="text/plain; version=0.0.4; charset=utf-8")
 
-    app.add_middleware(_CountRequests, counts=counts)
+    app.add_middleware(_CommandGuard, config=config)
+    app.add_middleware(_CountRequests, counts=counts)  # outermost: counts every request
 
     def openapi() -> dict[str, Any]:
         """FastAPI's document, with one correction: a read's bearer token is optional
@@ -590,7 +670,7 @@ def _command_route(app: FastAPI, gateway: GatewayLike, command: str, args: type[
         f"{API}/sensors/{{name}}/commands/{command}", endpoint, methods=["POST"],
         response_model=CommandOut, summary=summary, name=f"command_{command}",
         dependencies=[Depends(access)], tags=["commands"],
-        responses={code: errors[code] for code in (401, 403, 404, 409, 422, 502, 504)})
+        responses={code: errors[code] for code in (401, 403, 404, 409, 413, 422, 502, 504)})
 
 
 # ------------------------------------------------------------------ the server
@@ -638,7 +718,9 @@ class HttpServer:
         app = create_app(self.gateway, self.config, self.hub, self.counters)
         self._server = _Server(uvicorn.Config(
             app, log_config=None, log_level="warning", access_log=False, lifespan="off",
-            timeout_graceful_shutdown=2, server_header=False))
+            timeout_graceful_shutdown=2, server_header=False,
+            # every connection and request at once, stalled ones included: 503 beyond
+            limit_concurrency=MAX_STREAMS + 100))
         self._task = asyncio.create_task(self._server.serve(sockets=[sock]), name="http")
         log.info("HTTP on http://%s:%d/ (API %s)", listen.host, self.port, API)
 
@@ -652,7 +734,7 @@ class HttpServer:
         return int(self._socket.getsockname()[1])
 
     def stats(self) -> dict[str, Any]:
-        streams = len(self.hub.subscribers) if self.hub is not None else 0
+        streams = self.hub.open if self.hub is not None else 0
         connections = len(self._server.server_state.connections) if self._server else 0
         return {"clients": connections, "streams": streams,
                 "requests": self.counters["requests"],
