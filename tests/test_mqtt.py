@@ -218,6 +218,8 @@ def test_command_round_trip(tmp_path: Path, version: str,
                 assert bad["ok"] is False and "nobody" in bad["error"]
                 bad = await ask(f"{cmd}/set_zero_type", b"\xff\xfe")
                 assert bad["kind"] == "bad_arguments"
+                bad = await ask(f"{cmd}/set_zero_type", "[" * 100_000)  # too deep to parse
+                assert bad["kind"] == "bad_arguments"
 
                 # A command published with the retain flag is carried out when it is
                 # published; the broker's replay of it to a new subscription is not (or
