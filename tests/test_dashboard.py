@@ -274,7 +274,7 @@ def test_the_stream_going_down_shows_a_banner(tmp_path: Path) -> None:
         assert "disconnected" in banner.text
 
 
-def test_with_a_read_token_the_dashboard_polls_with_it(tmp_path: Path) -> None:
+def test_with_a_read_token_the_dashboard_streams_with_it(tmp_path: Path) -> None:
     boom = make_sensor(Protocol.NATIVE, Series.AH, 0, baud=FAST, source=Motion.from_seed(7))
     with simulated([boom]) as line:
         cfg = {"gateway_id": "dash", "http": {"token": "s3cret", "read_token_required": True},
@@ -289,9 +289,8 @@ def test_with_a_read_token_the_dashboard_polls_with_it(tmp_path: Path) -> None:
 
             driver.get(base + "/?token=s3cret")
             moves(driver, "boom")
-            # Polled at 5 Hz: up to 200 ms behind, so a wider margin.
             wait(lambda: agrees(driver, f"{base}/api/v1/sensors/boom/reading", "boom",
-                                "s3cret", margin=3.0), "boom's shown angles agree with REST")
-            assert "polling" in driver.find_element("id", "mode").text
+                                "s3cret"), "boom's shown angles agree with REST")
+            assert "live (token)" in driver.find_element("id", "mode").text
             assert not driver.find_element("id", "banner").is_displayed()
             assert console_errors(driver) == []

@@ -176,6 +176,15 @@ def test_read_token_required(two_lines: Any) -> None:
                 assert response.headers["WWW-Authenticate"] == "Bearer"
                 assert (await http.get(API + path, headers=AUTH)).status_code == 200
             assert (await http.get("/metrics")).status_code == 401
+            # A stream takes the token as ?access_token= too (EventSource has no headers).
+            assert_error(await http.get(f"{API}/stream", params={"access_token": "no"}),
+                         401, "unauthorised")
+            async with http.stream("GET", f"{API}/sensors/boom/stream",
+                                   params={"access_token": TOKEN}) as response:
+                assert response.status_code == 200
+                async for name, _ in sse_events(response):
+                    assert name in ("reading", "status")
+                    break
             wrong = {"Authorization": "Bearer not-it"}
             assert_error(await http.get(f"{API}/health", headers=wrong), 401, "unauthorised")
 

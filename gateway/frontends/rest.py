@@ -491,6 +491,16 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
 
     reads = [Depends(read_access)]
 
+    async def stream_access(credentials: Credentials, access_token: Annotated[
+            str | None, Query(description="the token, for clients that cannot send "
+                              "headers (a browser's EventSource; RFC 6750 §2.3)")] = None,
+                            ) -> None:
+        if config.read_token_required and not (
+                access_token is not None and token_matches(access_token, config.token)):
+            authorised(credentials)
+
+    streams = [Depends(stream_access)]
+
     def sensor_or_404(name: str) -> Snapshot:
         if name not in gateway.sensors:
             raise ApiError(404, "unknown_sensor", f"unknown sensor {name!r}")
@@ -583,7 +593,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
            "description": "`event: reading` (or `status`), `id: seq`, `data:` the "
                           "reading JSON; a `: keep-alive` comment when idle"}
 
-    @app.get(f"{API}/sensors/{{name}}/stream", dependencies=reads,
+    @app.get(f"{API}/sensors/{{name}}/stream", dependencies=streams,
              response_class=StreamingResponse,
              responses={200: sse, 401: errors[401], 404: errors[404], 503: errors[503]},
              summary="Server-Sent Events: one reading per event")
@@ -591,7 +601,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
         sensor_or_404(name)
         return stream_response(name)
 
-    @app.get(f"{API}/stream", dependencies=reads, response_class=StreamingResponse,
+    @app.get(f"{API}/stream", dependencies=streams, response_class=StreamingResponse,
              responses={200: sse, 401: errors[401], 503: errors[503]},
              summary="Server-Sent Events of every sensor")
     async def stream_all() -> StreamingResponse:

@@ -3,7 +3,7 @@
  * Data: GET /api/v1/sensors (the list, then every 2 s for status and rates),
  * GET /api/v1/buses (every 2 s) and the Server-Sent Events of GET /api/v1/stream.
  * With ?token=... in the page address every request carries "Authorization: Bearer";
- * EventSource cannot send headers, so then each sensor's reading is polled at 5 Hz.
+ * EventSource cannot send headers, so the stream gets it as ?access_token= instead.
  *
  * Readings may arrive at hundreds per second: they only update the model and mark the
  * sensor dirty; the DOM and the canvases are redrawn at most once per animation frame.
@@ -20,7 +20,6 @@
   // serves the gateway under a path prefix (/gateway-1/ → /gateway-1/api/v1).
   const API = "api/v1";
   const POLL_MS = 2000; // sensors and buses
-  const READING_POLL_MS = 200; // token mode: 5 Hz per sensor
   const D2R = Math.PI / 180;
 
   // The reading JSON's groups (SPEC.md §4), with the digits of the sensors' resolution.
@@ -482,7 +481,8 @@
   // ------------------------------------------------------------------ live data
 
   function openStream() {
-    const stream = new EventSource(API + "/stream");
+    const query = token ? "?access_token=" + encodeURIComponent(token) : "";
+    const stream = new EventSource(API + "/stream" + query);
     stream.addEventListener("open", () => setDown("stream", false));
     stream.addEventListener("reading", (e) => onReading(JSON.parse(e.data)));
     stream.addEventListener("status", (e) => onReading(JSON.parse(e.data)));
@@ -493,22 +493,6 @@
         setTimeout(openStream, 3000);
       }
     });
-  }
-
-  async function pollReading(s) {
-    const path = "/sensors/" + encodeURIComponent(s.name) + "/reading";
-    for (;;) {
-      const started = performance.now();
-      try {
-        onReading(await api(path));
-        setDown("stream", false);
-      } catch (error) {
-        if (!(error instanceof HttpError && error.status === 503)) { // 503: no reading yet
-          setDown("stream", true, error);
-        }
-      }
-      await sleep(Math.max(20, READING_POLL_MS - (performance.now() - started)));
-    }
   }
 
   async function pollStatus() {
@@ -526,7 +510,7 @@
   }
 
   async function start() {
-    $("mode").textContent = token ? "polling 5 Hz (token)" : "live";
+    $("mode").textContent = token ? "live (token)" : "live";
     let list;
     for (;;) {
       try {
@@ -549,11 +533,10 @@
     }
     api("/health").then((health) => {
       $("mode").textContent = `${health.gateway_id} · v${health.version} · ` +
-        (token ? "polling 5 Hz (token)" : "live");
+        (token ? "live (token)" : "live");
     }, () => { /* shown by the banner */ });
     pollStatus();
-    if (token) for (const s of sensors.values()) pollReading(s);
-    else openStream();
+    openStream();
     // The age keeps growing between readings.
     setInterval(() => {
       const now = performance.now();
