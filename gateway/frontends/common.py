@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
 from typing import Any, Protocol
 
@@ -32,3 +33,10 @@ class GatewayLike(Protocol):
     def frontend_stats(self) -> dict[str, dict[str, Any]]:
         """Each running front end's ``stats()``, by name (``modbus``, ``mqtt``, ``http``)."""
         ...
+
+
+def json_bytes(value: Any) -> bytes:
+    """Compact JSON as the front ends send it.  ``allow_nan=False``: the reading JSON
+    has no NaN (``Reading.to_json_groups`` makes it null), and nothing else should."""
+    return json.dumps(value, separators=(",", ":"), ensure_ascii=False,
+                      allow_nan=False).encode()

@@ -54,7 +54,7 @@ from ..commands import CommandError, CommandResult, ErrorKind
 from ..config import MqttConfig
 from ..model import CAPABILITIES, GROUP_UNITS
 from ..normalise import GROUP_FIELDS, field_values, member_name
-from .common import GatewayLike
+from .common import GatewayLike, json_bytes
 
 log = logging.getLogger("gateway.mqtt")
 
@@ -144,6 +144,8 @@ class MqttClient:
         self.counters = _Counters()
         self.connected = False
         self._deadbands = config.field_deadbands()
+        # The sensors are fixed for the process's life, so their discovery configs are.
+        self.discovery = self._discovery_configs() if config.homeassistant_discovery else {}
         self._sensors = {name: _SensorOut() for name in gateway.sensors}
         self._loop: asyncio.AbstractEventLoop | None = None
         self._client: paho.Client | None = None
@@ -276,7 +278,7 @@ class MqttClient:
             _close_sockets(client)
             if self.counters.connects > connects:  # it worked: start the back-off again
                 delay = RECONNECT_MIN
-            self._set_disconnected()
+            self.connected = False
             await asyncio.sleep(delay)
             delay = min(delay * 2, RECONNECT_MAX)
 
@@ -340,14 +342,11 @@ class MqttClient:
             self._problem(f"{self.config.host}:{self.config.port} closed the connection "
                           f"without answering{self._tls_hint()}")
         self._answered.set()
-        self._set_disconnected()
+        self.connected = False
         self._lost.set()
 
     def _tls_hint(self) -> str:
         return "" if self.config.tls else " (a TLS port? then use mqtts://)"
-
-    def _set_disconnected(self) -> None:
-        self.connected = False
 
     def _subscribe(self) -> None:
         assert self._client is not None
@@ -369,9 +368,8 @@ class MqttClient:
         """Everything retained, anew: after every connect.  The control messages go
         before what waited in the outbox; the latest states after it."""
         self._send_control(Message(self.status_topic, ONLINE, CONTROL_QOS, True))
-        if self.config.homeassistant_discovery:
-            for topic, payload in self.discovery_configs().items():
-                self._send_control(Message(topic, _json(payload), CONTROL_QOS, True))
+        for topic, payload in self.discovery.items():
+            self._send_control(Message(topic, json_bytes(payload), CONTROL_QOS, True))
         for snap in self.gateway.cache.snapshots():
             self._sensors[snap.name].availability = None
             self._publish_availability(snap)
@@ -484,7 +482,7 @@ class MqttClient:
         out.values = field_values(snap.reading)
         out.status = snap.status
         c = self.config
-        self._send(Message(self.sensor_topic(snap.name, "state"), _json(snap.to_json()),
+        self._send(Message(self.sensor_topic(snap.name, "state"), json_bytes(snap.to_json()),
                            c.qos, c.retain))
         if c.per_field_topics:
             for name, value in out.values.items():
@@ -537,12 +535,13 @@ class MqttClient:
             properties = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
             properties.CorrelationData = correlation
         self._results += 1
-        self._send_control(Message(topic, _json(result.to_json()), max(self.config.qos, 1),
-                                   False, properties), key=f"result {self._results}")
+        self._send_control(Message(topic, json_bytes(result.to_json()),
+                                   max(self.config.qos, 1), False, properties),
+                           key=f"result {self._results}")
 
     # ------------------------------------------------------------ Home Assistant
 
-    def discovery_configs(self) -> dict[str, dict[str, Any]]:
+    def _discovery_configs(self) -> dict[str, dict[str, Any]]:
         """Topic -> discovery payload: one entity per measured field of every sensor."""
         gid = self.gateway.config.gateway_id
         availability = [{"topic": self.status_topic}]
@@ -587,7 +586,7 @@ class MqttClient:
             return
         if not isinstance(state_topic, str) or not state_topic.startswith(self.prefix + "/"):
             return  # another gateway's, or not a gateway's at all
-        if message.topic not in self.discovery_configs():
+        if message.topic not in self.discovery:
             log.info("mqtt: removing the discovery config %s", message.topic)
             self._send_control(Message(message.topic, b"", CONTROL_QOS, True))
 
@@ -600,12 +599,6 @@ class MqttClient:
                 "in_flight": self._in_window(), "connects": self.counters.connects,
                 "commands": self.counters.commands,
                 "command_errors": self.counters.command_errors}
-
-
-def _json(value: Any) -> bytes:
-    # allow_nan=False: the reading JSON has no NaN (Reading.to_json_groups)
-    return json.dumps(value, separators=(",", ":"), ensure_ascii=False,
-                      allow_nan=False).encode()
 
 
 def _command_args(payload: bytes) -> dict[str, Any]:

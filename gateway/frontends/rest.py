@@ -20,7 +20,6 @@ import asyncio
 import contextlib
 import hmac
 import inspect
-import json
 import logging
 import socket
 import time
@@ -45,7 +44,7 @@ from .. import __version__
 from ..cache import EventKind, SensorUnavailable, Snapshot, Status
 from ..commands import CATALOGUE, ErrorKind
 from ..config import HttpConfig
-from .common import GatewayLike
+from .common import GatewayLike, json_bytes
 
 log = logging.getLogger("gateway.http")
 
@@ -262,13 +261,8 @@ class StreamHub:
 
 
 def _event(name: str, snap: Snapshot) -> bytes:
-    return b"event: %s\nid: %d\ndata: %s\n\n" % (name.encode(), snap.seq, _json(snap.to_json()))
-
-
-def _json(value: Any) -> bytes:
-    # allow_nan=False: the reading JSON has no NaN (Reading.to_json_groups)
-    return json.dumps(value, separators=(",", ":"), ensure_ascii=False,
-                      allow_nan=False).encode()
+    return b"event: %s\nid: %d\ndata: %s\n\n" % (name.encode(), snap.seq,
+                                                json_bytes(snap.to_json()))
 
 
 class _CommandGuard:
@@ -287,7 +281,7 @@ class _CommandGuard:
             return
         refusal = self._refusal(scope)
         if refusal is not None:
-            await _send_error(send, refusal)
+            await error_response(refusal)(scope, receive, send)
             return
         body = bytearray()
         more = True
@@ -298,8 +292,8 @@ class _CommandGuard:
             body += message.get("body", b"")
             more = message.get("more_body", False)
             if len(body) > MAX_BODY:
-                await _send_error(send, ApiError(413, "too_large",
-                                                 f"the body is over {MAX_BODY} bytes"))
+                too_large = ApiError(413, "too_large", f"the body is over {MAX_BODY} bytes")
+                await error_response(too_large)(scope, receive, send)
                 return
         replayed = False
 
@@ -315,13 +309,9 @@ class _CommandGuard:
     def _refusal(self, scope: Any) -> ApiError | None:
         if not scope["path"].startswith(f"{API}/sensors/") or "/commands/" not in scope["path"]:
             return None
-        if not self.config.allow_commands:
-            return ApiError(403, "forbidden", "commands are turned off (http.allow_commands)")
         headers = dict(scope["headers"])
         scheme, _, token = headers.get(b"authorization", b"").decode("latin-1").partition(" ")
-        if scheme.lower() != "bearer" or not token_matches(token, self.config.token):
-            return ApiError(401, "unauthorised", "a valid bearer token is required")
-        return None
+        return command_refusal(self.config, token if scheme.lower() == "bearer" else None)
 
 
 def token_matches(given: str, token: str | None) -> bool:
@@ -329,14 +319,20 @@ def token_matches(given: str, token: str | None) -> bool:
     return token is not None and hmac.compare_digest(given.encode(), token.encode())
 
 
-async def _send_error(send: Any, error: ApiError) -> None:
-    body = _json({"error": str(error), "kind": error.kind})
-    headers = [(b"content-type", b"application/json"),
-               (b"content-length", str(len(body)).encode())]
-    if error.status == 401:
-        headers.append((b"www-authenticate", b"Bearer"))
-    await send({"type": "http.response.start", "status": error.status, "headers": headers})
-    await send({"type": "http.response.body", "body": body})
+def command_refusal(config: HttpConfig, token: str | None) -> ApiError | None:
+    """Why a command with this bearer token is refused, if it is (the one rule, for
+    the guard in front of the body and the routes' dependency alike)."""
+    if not config.allow_commands:
+        return ApiError(403, "forbidden", "commands are turned off (http.allow_commands)")
+    if token is None or not token_matches(token, config.token):
+        return ApiError(401, "unauthorised", "a valid bearer token is required")
+    return None
+
+
+def error_response(exc: ApiError) -> JSONResponse:
+    """Every error's answer: ``{"error", "kind"}``, and the challenge with a 401."""
+    headers = {"WWW-Authenticate": "Bearer"} if exc.status == 401 else None
+    return JSONResponse({"error": str(exc), "kind": exc.kind}, exc.status, headers)
 
 
 class _CountRequests:
@@ -448,10 +444,6 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     errors: dict[int | str, dict[str, Any]] = {
         code: {"model": ErrorOut} for code in (401, 403, 404, 409, 413, 422, 502, 503, 504)}
 
-    def error_response(exc: ApiError) -> JSONResponse:
-        headers = {"WWW-Authenticate": "Bearer"} if exc.status == 401 else None
-        return JSONResponse({"error": str(exc), "kind": exc.kind}, exc.status, headers)
-
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
         return error_response(exc)
@@ -485,9 +477,9 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
             authorised(credentials)
 
     async def command_access(credentials: Credentials) -> None:
-        if not config.allow_commands:
-            raise ApiError(403, "forbidden", "commands are turned off (http.allow_commands)")
-        authorised(credentials)
+        refusal = command_refusal(config, credentials.credentials if credentials else None)
+        if refusal is not None:
+            raise refusal
 
     reads = [Depends(read_access)]
 
@@ -509,9 +501,8 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     bus_of = {s.name: b for b, s in gateway.config.iter_sensors()}
     bodies: dict[str, tuple[tuple[int, Status], bytes]] = {}  # the latest reading's JSON
 
-    def sensor_out(snap: Snapshot) -> dict[str, Any]:
+    def sensor_out(snap: Snapshot, stats: dict[str, Any]) -> dict[str, Any]:
         sensor, bus = gateway.sensors[snap.name], bus_of[snap.name]
-        stats = gateway.sensor_stats(snap.name)
         return {"name": snap.name, "bus": bus.name, "series": sensor.series.name,
                 "protocol": bus.protocol.name.lower(),
                 "address": stats["address"],  # the live one, after a set_address too
@@ -543,7 +534,8 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     @app.get(f"{API}/sensors", response_model=list[SensorOut], dependencies=reads,
              responses={401: errors[401]}, summary="every sensor with its status")
     async def sensors() -> list[dict[str, Any]]:
-        return [sensor_out(snap) for snap in gateway.cache.snapshots()]
+        return [sensor_out(snap, gateway.sensor_stats(snap.name))
+                for snap in gateway.cache.snapshots()]
 
     @app.get(f"{API}/sensors/{{name}}", response_model=SensorDetailOut,
              response_model_exclude_none=False, dependencies=reads,
@@ -551,10 +543,11 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
              summary="a sensor's config, status and latest reading")
     async def sensor(name: str) -> dict[str, Any]:
         snap = sensor_or_404(name)
-        return {**sensor_out(snap),
+        stats = gateway.sensor_stats(name)
+        return {**sensor_out(snap, stats),
                 "config": gateway.sensors[name].model_dump(mode="json"),
                 "settings": gateway.cache.settings(name),
-                "stats": gateway.sensor_stats(name),
+                "stats": stats,
                 "reading": snap.to_json() if snap.has_reading else None}
 
     @app.get(f"{API}/sensors/{{name}}/reading", response_model=ReadingOut,
@@ -578,14 +571,15 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
         key = (snap.seq, snap.status)
         cached = bodies.get(name)
         if cached is None or cached[0] != key:
-            cached = bodies[name] = (key, _json(snap.to_json()))
+            cached = bodies[name] = (key, json_bytes(snap.to_json()))
         return Response(cached[1], media_type="application/json")
 
+    streams_hub = hub if hub is not None else StreamHub(gateway)
+
     def stream_response(sensor: str | None) -> StreamingResponse:
-        active = hub if hub is not None else StreamHub(gateway)
-        if active.open >= MAX_STREAMS:
+        if streams_hub.open >= MAX_STREAMS:
             raise ApiError(503, "too_many_streams", f"{MAX_STREAMS} streams are open")
-        return StreamingResponse(active.stream(sensor), media_type="text/event-stream",
+        return StreamingResponse(streams_hub.stream(sensor), media_type="text/event-stream",
                                  headers={"Cache-Control": "no-cache",
                                           "X-Accel-Buffering": "no"})
 
