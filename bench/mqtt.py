@@ -42,6 +42,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from broker import Mosquitto
+from harness import fields_of
 
 from gateway.app import GIL_SWITCH_INTERVAL, Gateway
 from gateway.config import config_from_dict
@@ -213,8 +214,7 @@ def main() -> None:
         received = 0
         for stamp, payload in arrivals(folder / "gateway.txt"):
             body = json.loads(payload)
-            values = {k: v for g in ("angles", "accel", "gyro", "mag", "quaternion")
-                      for k, v in _flat(body, g).items()}
+            values = fields_of(body)
             if not begin <= stamp <= end:
                 continue
             received += 1
@@ -239,13 +239,6 @@ def main() -> None:
                        f"(received {received}, matched {len(latencies)})"))
     print(latency_line("bare paho -> sub", reference, len(reference) / args.seconds))
 
-
-def _flat(body: dict[str, Any], group: str) -> dict[str, float]:
-    """The reading JSON's group as per-field names (``accel`` -> ``accel_x`` …)."""
-    members = body.get(group) or {}
-    if group in ("accel", "gyro", "mag"):
-        return {f"{group}_{m}": v for m, v in members.items()}
-    return dict(members)
 
 
 if __name__ == "__main__":
