@@ -198,6 +198,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sim.add_argument("--answer-delay-ms", type=_non_negative, default=2.0,
                      help="the sensors' turnaround before answering (default 2)")
+    sim.add_argument("--jitter-ms", type=_non_negative, default=0.0,
+                     help="each answer's delay is --answer-delay-ms plus a uniform random "
+                     "0..jitter ms (seeded by --seed)")
     sim.add_argument("--save-ms", type=_non_negative, default=4000.0,
                      help="save's deaf period (default 4000; the document says 3-5 s)")
     sim.add_argument("--drop", type=_probability, default=0.0,
@@ -313,11 +316,14 @@ def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
         specs.insert(0, (args.protocol, args.series, args.address, args.baud))
     if not specs:
         parser.error("simulate: give --protocol and --series, or --sensor")
+    if not math.isfinite(args.jitter_ms):  # _non_negative lets inf through
+        parser.error("simulate: --jitter-ms must be finite")
     sensors = [
         make_sensor(
             protocol, series, address, baud,
             source=Motion.from_seed(args.seed + i),
             answer_delay=args.answer_delay_ms / 1000,
+            jitter=args.jitter_ms / 1000,
             save_duration=args.save_ms / 1000,
             faults=Faults(drop_rate=args.drop, corrupt_rate=args.corrupt),
             seed=args.seed + i,

@@ -10,14 +10,17 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from itertools import pairwise
 from typing import Any
 
 import pytest
 import serial
 
+from gateway.cli import build_parser, main
 from gateway.model import Angles, Protocol, Quaternion, Reading, Series, Vector3
 from gateway.protocol import modbus_rtu as rtu
 from gateway.protocol import native
+from gateway.protocol.exchanges import char_time, rtu_silence
 from gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
 
 ZERO = Reading(
@@ -245,6 +248,164 @@ def test_answer_arrives_in_pieces_not_at_once() -> None:
         partial = port.in_waiting
         time.sleep(0.1)
         assert 0 < partial < 57 <= port.in_waiting
+
+
+# ---------------------------------------------------------------- answer delay and jitter
+
+DELAY, JITTER = 0.005, 0.035  # the slow sensor behind a USB adapter of docs/simulator.md
+EPS = 1e-9  # float rounding of now + delay - now
+
+
+def read_request(protocol: Protocol) -> bytes:
+    if protocol is Protocol.NATIVE:
+        return native.encode_request("read_angles")
+    return rtu.read_request(1, 1, 3)
+
+
+def answer_delays(s: SimSensor, count: int) -> list[float]:
+    """How long after each request's last byte its answer starts, beyond the protocol's
+    silent interval.  The requests are a second apart, so no answer waits for another."""
+    silence = rtu_silence(s.baud) if s.protocol is Protocol.MODBUS else 0.0
+    delays = []
+    for i in range(count):
+        now = 100.0 + i
+        [out] = s.hear(read_request(s.protocol), now, after_silence=True)
+        assert out.solicited
+        delays.append(out.not_before - now - silence)
+    return delays
+
+
+@pytest.mark.parametrize("protocol", list(Protocol))
+def test_answer_starts_between_delay_and_delay_plus_jitter(protocol: Protocol) -> None:
+    s = sensor(protocol, Series.AH, answer_delay=DELAY, jitter=JITTER, seed=11)
+    silence = rtu_silence(9600) if protocol is Protocol.MODBUS else 0.0
+    for now in (0.5, 7.25, 30.0):
+        [out] = s.hear(read_request(protocol), now, after_silence=True)
+        assert now + silence + DELAY - EPS <= out.not_before <= now + silence + DELAY + JITTER + EPS
+
+
+@pytest.mark.parametrize("protocol", list(Protocol))
+def test_jitter_varies_per_answer_over_its_whole_range(protocol: Protocol) -> None:
+    delays = answer_delays(sensor(protocol, Series.VG, answer_delay=DELAY, jitter=JITTER), 200)
+    assert all(DELAY - EPS <= d <= DELAY + JITTER + EPS for d in delays)
+    assert len({round(d, 9) for d in delays}) > 190  # drawn per answer, not once
+    # uniform over the range: 200 draws reach both ends' tenths (seeded, so not flaky)
+    assert min(delays) < DELAY + JITTER / 10 and max(delays) > DELAY + JITTER * 0.9
+
+
+def test_jitter_is_reproducible_by_seed() -> None:
+    def delays(seed: int) -> list[float]:
+        return answer_delays(sensor(Protocol.NATIVE, Series.AH, answer_delay=DELAY,
+                                    jitter=JITTER, seed=seed), 50)
+
+    assert delays(3) == delays(3)
+    assert delays(3) != delays(4)
+
+
+@pytest.mark.parametrize("protocol", list(Protocol))
+def test_without_jitter_every_answer_is_exactly_the_delay_and_draws_nothing(
+        protocol: Protocol) -> None:
+    s = sensor(protocol, Series.AH, answer_delay=DELAY)
+    state = s.rng.getstate()
+    assert s.turnaround() == DELAY
+    assert s.rng.getstate() == state  # the faults' random sequence is as it was
+    assert {round(d, 12) for d in answer_delays(s, 20)} == {DELAY}
+
+
+@pytest.mark.parametrize("protocol", list(Protocol))
+def test_answers_of_one_sensor_never_reorder_or_overlap(protocol: Protocol) -> None:
+    """Requests heard faster than the sensor answers (two in one chunk, then one more
+    1 ms later): each answer starts after the previous one has left the wire (and, on
+    Modbus, after the silent interval), whatever the jitter drew."""
+    gap = rtu_silence(9600) if protocol is Protocol.MODBUS else 0.0
+    request = read_request(protocol)
+    for seed in range(40):
+        s = sensor(protocol, Series.AH, answer_delay=0.001, jitter=0.05, seed=seed)
+        out = s.hear(request + request, 1.0, after_silence=True) + s.hear(request, 1.001)
+        assert len(out) == 3
+        for first, second in pairwise(out):
+            end = first.not_before + len(first.frame) * char_time(first.baud)
+            assert second.not_before >= end + gap - EPS, seed
+
+
+@pytest.mark.parametrize("protocol", list(Protocol))
+def test_save_and_stream_start_follow_the_jittered_answer(protocol: Protocol) -> None:
+    s = sensor(protocol, Series.VG, answer_delay=DELAY, jitter=JITTER, save_duration=1.0)
+    if protocol is Protocol.NATIVE:
+        rate, save = native.encode_request("set_output_rate", rate_hz=10), \
+            native.encode_request("save")
+    else:
+        rate, save = rtu.write_request(1, "output_interval_ms", 100), \
+            rtu.write_request(1, "save", 0)
+    [answer] = s.hear(rate, 1.0, after_silence=True)
+    assert s.next_stream == answer.not_before
+    [answer] = s.hear(save, 2.0, after_silence=True)
+    assert s.busy_until == answer.not_before + 1.0
+
+
+def test_negative_jitter_is_refused() -> None:
+    with pytest.raises(ValueError, match="jitter"):
+        make_sensor(Protocol.NATIVE, Series.AH, jitter=-0.001)
+
+
+def test_jittered_answers_on_the_wire_are_never_early() -> None:
+    """Through the pty: each exchange takes at least the wire time plus the delay this
+    sensor draws for it (a twin with the same seed tells which); the upper bound only
+    leaves room for a busy machine."""
+    baud, seed = 115200, 5
+    request = native.encode_request("read_angles")
+    options: dict[str, Any] = {"baud": baud, "answer_delay": DELAY, "jitter": JITTER,
+                               "seed": seed}
+    expected = answer_delays(make_sensor(Protocol.NATIVE, Series.AH, **options), 6)
+    wire = (len(request) + 14) * char_time(baud)
+    with line(make_sensor(Protocol.NATIVE, Series.AH, **options), baud=baud) as port:
+        for delay in expected:
+            port.reset_input_buffer()
+            start = time.monotonic()
+            port.write(request)
+            answer = port.read(14)
+            took = time.monotonic() - start
+            assert native.decode(answer).name == "read_angles"
+            assert (wire + delay) * 0.999 <= took <= wire + delay + 0.25, (took, delay)
+        assert port.sim.bus.stats.overlaps == 0
+
+
+def test_cli_simulate_accepts_jitter_ms() -> None:
+    base = ["simulate", "--protocol", "native", "--series", "AH"]
+    assert build_parser().parse_args(base).jitter_ms == 0.0
+    args = build_parser().parse_args([*base, "--answer-delay-ms", "5", "--jitter-ms", "35"])
+    assert (args.answer_delay_ms, args.jitter_ms) == (5.0, 35.0)
+
+
+@pytest.mark.parametrize("value", ["-1", "-0.5", "nan", "inf", "ms"])
+def test_cli_simulate_refuses_a_bad_jitter(value: str,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main(["simulate", "--protocol", "native", "--series", "AH", "--jitter-ms", value])
+    assert exit_.value.code == 2
+    assert "--jitter-ms" in capsys.readouterr().err
+
+
+def test_cli_simulate_gives_every_sensor_the_delay_and_jitter(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """cmd_simulate wires the options into the sensors (the bus is a stand-in that
+    stops at once, so no pty is served)."""
+    built: list[SimSensor] = []
+
+    class Bus:
+        def __init__(self, sensors: list[SimSensor], **_: Any) -> None:
+            built.extend(sensors)
+
+        def open(self) -> str:
+            return "/dev/null"
+
+        async def serve(self, stop: Any) -> None:
+            return None
+
+    monkeypatch.setattr("gateway.simulator.PtyBus", Bus)
+    assert main(["simulate", "--protocol", "native", "--series", "AH", "--sensor",
+                 "modbus:VG:3", "--answer-delay-ms", "5", "--jitter-ms", "35"]) == 0
+    assert [(s.answer_delay, s.jitter) for s in built] == [(0.005, 0.035)] * 2
 
 
 # ---------------------------------------------------------------- settings

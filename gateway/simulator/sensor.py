@@ -23,7 +23,7 @@ from ..normalise import field_values
 from ..protocol import bcd, native
 from ..protocol import modbus_rtu as rtu
 from ..protocol.errors import FrameError
-from ..protocol.exchanges import Framer, rtu_silence
+from ..protocol.exchanges import Framer, char_time, rtu_silence
 from .motion import Motion, Source
 
 
@@ -62,7 +62,8 @@ class SimSensor(ABC):
     series: Series
     settings: Settings
     source: Source = field(default_factory=Motion)
-    answer_delay: float = 0.002
+    answer_delay: float = 0.002  # turnaround before an answer starts
+    jitter: float = 0.0  # plus a uniform 0..jitter, drawn per answer from ``rng``
     save_duration: float = 4.0
     gyro_cal_duration: float = 2.0
     faults: Faults = field(default_factory=Faults)
@@ -75,11 +76,15 @@ class SimSensor(ABC):
     next_stream: float = 0.0
     gyro_cal_done_at: float | None = None
     requests_heard: int = 0
+    last_answer_end: float = 0.0  # when this sensor's latest answer leaves the wire
     rng: random.Random = field(init=False)
 
     protocol: Protocol = field(init=False)
 
     def __post_init__(self) -> None:
+        # A negative draw would answer before the delay; NaN or inf would never answer.
+        if not 0.0 <= self.jitter < math.inf:
+            raise ValueError(f"jitter must be finite and >= 0 seconds, not {self.jitter!r}")
         self.rng = random.Random(self.seed)
 
     @property
@@ -97,6 +102,32 @@ class SimSensor(ABC):
     def busy(self, now: float) -> bool:
         """Within save's deaf period."""
         return now < self.busy_until
+
+    # ------------------------------------------------------------ answer timing
+
+    def turnaround(self) -> float:
+        """The delay of one answer: ``answer_delay`` plus a uniform 0..``jitter``.
+
+        Drawn from the sensor's own seeded ``rng``, so a run is reproducible with its
+        seed.  Without jitter nothing is drawn: the fault draws that share ``rng`` stay
+        the sequence they were before jitter existed.
+        """
+        if not self.jitter:
+            return self.answer_delay
+        return self.answer_delay + self.rng.uniform(0.0, self.jitter)
+
+    def _silence(self) -> float:
+        """Quiet the protocol requires before a frame (RTU's 3.5 characters)."""
+        return 0.0
+
+    def _answer_start(self, now: float) -> float:
+        """When the answer to a request that ended at ``now`` starts (one turnaround is
+        drawn).  A sensor answers one request at a time: with jitter a later request
+        could otherwise draw a shorter delay and be answered before, or over, the
+        previous answer, so it waits until that answer (and the silence after it) ends.
+        """
+        silence = self._silence()
+        return max(now + silence + self.turnaround(), self.last_answer_end + silence)
 
     # ------------------------------------------------------------ the measured values
 
@@ -152,8 +183,16 @@ class SimSensor(ABC):
             if self.busy(now):
                 continue  # save in progress: deaf
             self.requests_heard += 1
-            out.extend(self._handle(message, now))
-        return [o for o in out if not (o.solicited and self.rng.random() < self.faults.drop_rate)]
+            # Drops are decided per message, before the next one is handled: the next
+            # answer queues behind this one only if this one is really sent.
+            for o in self._handle(message, now):
+                if o.solicited and self.rng.random() < self.faults.drop_rate:
+                    continue
+                if o.solicited:
+                    end = o.not_before + len(o.frame) * char_time(o.baud)
+                    self.last_answer_end = max(self.last_answer_end, end)
+                out.append(o)
+        return out
 
     def due(self, now: float) -> list[Outgoing]:
         """Frames the sensor sends on its own by ``now``."""
@@ -258,6 +297,7 @@ class NativeSensor(SimSensor):
         if self.series not in command.request.series:
             return []  # a command this series lacks goes unanswered
         old_baud = self.baud
+        at = self._answer_start(now)  # also times save's deaf period and the first frame
         args = message.values
         answer: dict[str, Any] = {}
         match command.name:
@@ -273,7 +313,7 @@ class NativeSensor(SimSensor):
             case "read_address":
                 answer = {"address": self.address}
             case "save":
-                self.busy_until = now + self.answer_delay + self.save_duration
+                self.busy_until = at + self.save_duration
                 answer = {"result": "success"}
             case "set_zero_type":
                 self.set_zero_type(args["zero_type"], now)
@@ -287,7 +327,7 @@ class NativeSensor(SimSensor):
             case "set_output_rate":
                 hz = args["rate_hz"]
                 self.stream_interval = 1 / hz if hz else 0.0
-                self.next_stream = now + self.answer_delay
+                self.next_stream = at
                 answer = {"result": "success"}
             case "calibrate_gyro":
                 answer = {"code": 1}
@@ -306,7 +346,7 @@ class NativeSensor(SimSensor):
         shape = command.answer_for(self.series)
         assert shape is not None
         frame = native.encode(shape, self.address, **answer)
-        return [self._send(frame, now + self.answer_delay, baud=old_baud)]
+        return [self._send(frame, at, baud=old_baud)]
 
     def _stream_frame(self, now: float) -> list[Outgoing]:
         command = native.OUTPUT_TYPES[self.series][self.output_type]
@@ -360,13 +400,14 @@ class ModbusSensor(SimSensor):
             {r.name: values[r.name] for r in rtu.READABLE}
         )
 
-    def _answer_at(self, now: float) -> float:
-        return now + rtu_silence(self.baud) + self.answer_delay
+    def _silence(self) -> float:
+        return rtu_silence(self.baud)
 
     def _handle(self, message: rtu.RtuMessage, now: float) -> list[Outgoing]:
         if message.unit not in (self.address, 0):
             return []
         broadcast = message.unit == 0  # executed, never answered
+        at = self._answer_start(now)  # also times save's deaf period and the first frame
         answer: rtu.RtuMessage | None
         match message:
             case rtu.ReadRequest(_, start, count, rtu.READ_HOLDING):
@@ -378,7 +419,7 @@ class ModbusSensor(SimSensor):
                         self.address, tuple(image[a] for a in range(start, start + count))
                     )
             case rtu.WriteRegister(_, address, value):
-                answer = self._write(address, value, now)
+                answer = self._write(address, value, now, at)
             case rtu.ReadRequest() | rtu.WriteRegisters():
                 function = rtu.READ_INPUT if isinstance(message, rtu.ReadRequest) \
                     else rtu.WRITE_MULTIPLE
@@ -387,10 +428,12 @@ class ModbusSensor(SimSensor):
                 answer = None  # an answer from another device: not for us
         if answer is None or broadcast:
             return []
-        return [self._send(rtu.encode(answer), self._answer_at(now))]
+        return [self._send(rtu.encode(answer), at)]
 
-    def _write(self, address: int, value: int, now: float) -> rtu.RtuMessage | None:
-        """Carry out an FC06 and return its answer (``None``: none is sent)."""
+    def _write(self, address: int, value: int, now: float,
+               at: float) -> rtu.RtuMessage | None:
+        """Carry out an FC06 heard at ``now`` and return its answer (``None``: none is
+        sent); ``at`` is when the answer would start."""
         reg = rtu.REGISTERS_BY_ADDRESS.get(address)
         if reg is None or not reg.writable or self.series not in reg.series:
             return rtu.ExceptionAnswer(self.address, 6, _ILLEGAL_ADDRESS)
@@ -408,7 +451,7 @@ class ModbusSensor(SimSensor):
                 self.settings.address = value  # 2.7: the echo comes from the new address
                 return rtu.WriteRegister(self.address, address, value)
             case "save":
-                self.busy_until = self._answer_at(now) + self.save_duration
+                self.busy_until = at + self.save_duration
             case "calibrate_gyro":
                 self.gyro_cal_done_at = now + self.gyro_cal_duration
                 return rtu.WriteRegister(self.address, address, 0)  # 2.11: 0 = started
@@ -416,7 +459,7 @@ class ModbusSensor(SimSensor):
                 if 0 < value < 10:
                     return rtu.ExceptionAnswer(self.address, 6, _ILLEGAL_VALUE)
                 self.stream_interval = value / 1000
-                self.next_stream = self._answer_at(now)
+                self.next_stream = at
             case "output_registers":
                 start, count = decoded
                 if not (1 <= count <= rtu.MAX_READ and rtu.is_readable_span(start, count)):
@@ -442,7 +485,11 @@ class ModbusSensor(SimSensor):
 
 def make_sensor(protocol: Protocol, series: Series, address: int | None = None,
                 baud: int = 9600, **options: Any) -> SimSensor:
-    """A simulated sensor with the protocol's default address (native 0, Modbus 1)."""
+    """A simulated sensor with the protocol's default address (native 0, Modbus 1).
+
+    ``options`` are ``SimSensor``'s fields, e.g. ``answer_delay=0.005, jitter=0.035``
+    (seconds) for answers 5-40 ms late.
+    """
     cls: type[SimSensor] = NativeSensor if protocol is Protocol.NATIVE else ModbusSensor
     if address is None:
         address = 0 if protocol is Protocol.NATIVE else 1
