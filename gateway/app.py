@@ -24,6 +24,7 @@ from .config import GatewayConfig, HttpConfig, SensorConfig, config_from_dict
 from .frontends.modbus_tcp import ModbusTcpServer
 from .frontends.mqtt import MqttClient
 from .frontends.rest import HttpServer, openapi_document
+from .stats import BusStats, SensorStats
 
 log = logging.getLogger("gateway")
 
@@ -144,10 +145,10 @@ class Gateway:
         runner = self._runner_of[sensor]
         return await runner.call(runner.master.passthrough(sensor, pdu))
 
-    def stats(self) -> list[dict[str, Any]]:
+    def stats(self) -> list[BusStats]:
         return [m.bus_stats() for m in self.masters.values()]
 
-    def sensor_stats(self, name: str) -> dict[str, Any]:
+    def sensor_stats(self, name: str) -> SensorStats:
         return self._runner_of[name].master.sensor_stats(name)
 
     def frontend_stats(self) -> dict[str, dict[str, Any]]:
@@ -181,8 +182,8 @@ async def _log_stats(gateway: Gateway, stop: asyncio.Event, interval: float) -> 
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(stop.wait(), interval)
         for bus in gateway.stats():
-            log.info("bus %s: %.1f transactions/s, utilisation %.2f, errors %s", bus["name"],
-                     bus["transactions_per_s"], bus["utilisation"], bus["errors"] or "none")
+            log.info("bus %s: %.1f transactions/s, utilisation %.2f, errors %s", bus.name,
+                     bus.transactions_per_s, bus.utilisation, dict(bus.errors) or "none")
 
 
 def openapi_json() -> str:

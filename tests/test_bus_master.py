@@ -183,9 +183,9 @@ def test_asking_more_than_the_wire_slows_every_sensor_evenly_and_counts_the_shor
                 for a in range(3)], baudrate=9600, **PATIENT)) as gw:
                 await until(lambda: gw.cache.snapshot("s0").seq >= 15)
                 stats = [master(gw).sensor_stats(f"s{a}") for a in range(3)]
-                readings = [s["readings"] for s in stats]
+                readings = [s.readings for s in stats]
                 assert max(readings) - min(readings) <= 1
-                assert all(s["missed_polls"] > 0 for s in stats)
+                assert all(s.missed_polls > 0 for s in stats)
         run(body)
         no_overlap(sim)
 
@@ -207,7 +207,7 @@ def test_dead_address_costs_the_live_sensors_little_and_comes_back() -> None:
                 await until(lambda: gw.cache.snapshot("dead").status is Status.OFFLINE
                             and m.sensors["dead"].failures >= OFFLINE_AFTER + 2, 30)
                 await asyncio.sleep(2.0)
-                share = m.sensor_stats("dead")["bus_share"]
+                share = m.sensor_stats("dead").bus_share
                 assert share < 0.2, share
                 assert gw.cache.snapshot("ah").status is Status.OK
                 dead.stalled = False
@@ -263,7 +263,7 @@ def test_noisy_line_counts_bad_frames_and_keeps_reading() -> None:
             async with running(bus_config(sim.path, "native", [
                 {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0}], retries=2)) as gw:
                 await until(lambda: gw.cache.snapshot("ah").seq >= 40, 20)
-                errors = master(gw).bus_stats()["errors"]
+                errors = master(gw).bus_stats().errors
                 assert errors.get("bad_frame", 0) > 0
                 assert gw.cache.snapshot("ah").errors > 0
         run(body)
@@ -288,7 +288,7 @@ def test_port_removed_and_restored_readings_resume(tmp_path: Any) -> None:
                 sim.call(sim.bus.replug)
                 seq = gw.cache.snapshot("ah").seq
                 await until(lambda: gw.cache.snapshot("ah").seq > seq + 3, 15)
-                assert m.bus_stats()["errors"]["port_lost"] == 1
+                assert m.bus_stats().errors["port_lost"] == 1
         run(body)
         no_overlap(sim)
 
@@ -321,13 +321,13 @@ def test_save_keeps_the_sensor_busy_then_it_answers(protocol: str) -> None:
                 assert gw.cache.snapshot("vg").busy
                 busy = await gw.command("vg", "read_settings")
                 assert busy.kind is ErrorKind.BUSY
-                failures = m.bus_stats()["errors"]
+                failures = m.bus_stats().errors
                 await asyncio.sleep(0.2)  # the simulated save (0.05 s) is over
                 m.sensors["vg"].busy_until = 0.01  # the master would wait its 5 s
                 await until(lambda: not gw.cache.snapshot("vg").busy)
                 after = await gw.command("vg", "read_settings")
                 assert after.ok, after
-                assert m.bus_stats()["errors"] == failures  # nothing was sent while saving
+                assert m.bus_stats().errors == failures  # nothing was sent while saving
         run(body)
         no_overlap(sim)
 
@@ -344,7 +344,7 @@ def test_baud_change_the_gateway_follows(protocol: str) -> None:
                 await until(lambda: gw.cache.snapshot("ah").seq >= 2)
                 result = await gw.command("ah", "set_baudrate", {"baudrate": 115200})
                 assert result.ok, result
-                assert make.baud == 115200 and master(gw).baud == 115200
+                assert make.baud == 115200 and master(gw).schedule.baud == 115200
                 seq = gw.cache.snapshot("ah").seq
                 await until(lambda: gw.cache.snapshot("ah").seq >= seq + 3)
                 assert sim.bus.line_baud() == 115200
@@ -508,7 +508,7 @@ def test_a_stream_nobody_asked_for_is_stopped() -> None:
                 await until(lambda: sensor.stream_interval == 0.0, 10)
                 seq = gw.cache.snapshot("vg").seq
                 await until(lambda: gw.cache.snapshot("vg").seq >= seq + 3)  # polled again
-                assert master(gw).bus_stats()["errors"]["unexpected_frame"] >= 1
+                assert master(gw).bus_stats().errors["unexpected_frame"] >= 1
         run(body)
 
 

@@ -47,15 +47,18 @@ class SerialLink:
         self._thread: threading.Thread | None = None
         self._closing = threading.Event()
         self._expect = 0  # bytes of the answer now awaited (0: none known)
+        self._in_hand = 0  # bytes the reader has read but not yet handed to the loop
 
     @property
     def is_open(self) -> bool:
         return self._serial is not None
 
     async def open(
-        self, on_bytes: Callable[[bytes], None], on_lost: Callable[[Exception], None]
+        self, on_bytes: Callable[[bytes, float], None], on_lost: Callable[[Exception], None]
     ) -> None:
-        """Open the port and start delivering received bytes to ``on_bytes`` in the loop."""
+        """Open the port and start delivering received bytes to ``on_bytes(data, at)`` in
+        the loop; ``at`` is when they came in (``time.monotonic()``, the loop's clock),
+        which on a busy machine can be well before the loop gets round to them."""
         loop = asyncio.get_running_loop()
         if self.rs485 and "://" in self.port:
             # pyserial would accept the setting and silently ignore it.
@@ -90,7 +93,8 @@ class SerialLink:
                         loop.call_soon_threadsafe(self._lost, ser, on_lost, exc)
                     return
                 if data:
-                    loop.call_soon_threadsafe(on_bytes, data)
+                    loop.call_soon_threadsafe(on_bytes, data, time.monotonic())
+                    self._in_hand = 0
 
         self._thread = threading.Thread(target=reader, name=f"serial {self.port}", daemon=True)
         self._thread.start()
@@ -105,6 +109,7 @@ class SerialLink:
         would take, the answer was shorter (an error frame): hand over what is here.
         """
         data = ser.read(max(1, ser.in_waiting))
+        self._in_hand = len(data)
         expect, self._expect = self._expect, 0
         while data and len(data) < expect:
             time.sleep(max(expect - len(data) - ser.in_waiting, 1) * 10 / self.baudrate)
@@ -112,7 +117,20 @@ class SerialLink:
             if not more:
                 break
             data += more
+            self._in_hand = len(data)
         return data
+
+    def pending(self) -> int:
+        """Bytes that came in but have not reached the loop yet: in the driver's buffer,
+        or read by the reader thread and not handed over.  A bus master whose timer
+        fired late (a busy machine) looks here before it calls an answer missing."""
+        ser = self._serial
+        if ser is None:
+            return 0
+        try:
+            return int(ser.in_waiting) + self._in_hand
+        except (serial.SerialException, OSError, ValueError, TypeError):
+            return self._in_hand
 
     def _lost(self, ser: serial.Serial, on_lost: Callable[[Exception], None],
               exc: Exception) -> None:

@@ -9,6 +9,7 @@ from typing import Any, Protocol
 from ..cache import Cache
 from ..commands import CommandResult
 from ..config import GatewayConfig, SensorConfig
+from ..stats import BusStats, SensorStats
 
 
 class GatewayLike(Protocol):
@@ -24,11 +25,11 @@ class GatewayLike(Protocol):
 
     async def passthrough(self, sensor: str, pdu: bytes) -> bytes: ...
 
-    def stats(self) -> list[dict[str, Any]]:
+    def stats(self) -> list[BusStats]:
         """Every bus master's stats."""
         ...
 
-    def sensor_stats(self, name: str) -> dict[str, Any]: ...
+    def sensor_stats(self, name: str) -> SensorStats: ...
 
     def frontend_stats(self) -> dict[str, dict[str, Any]]:
         """Each running front end's ``stats()``, by name (``modbus``, ``mqtt``, ``http``)."""

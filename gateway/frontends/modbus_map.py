@@ -14,13 +14,14 @@ from __future__ import annotations
 import enum
 import math
 import struct
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from ..cache import Snapshot
 from ..model import CAPABILITIES, Group, Protocol, Reading, Series
 from ..normalise import GROUP_FIELDS, field_values
+from ..stats import BusStats
 
 INT32_MIN = -(2**31)
 NAN32 = struct.pack(">f", math.nan)
@@ -208,13 +209,13 @@ DIAG_REGISTERS: tuple[tuple[int, Type, str, str, float], ...] = (
 )
 
 
-def diagnostics_image(buses: list[dict[str, Any]]) -> bytes:
+def diagnostics_image(buses: Sequence[BusStats]) -> bytes:
     """Unit 255's registers for the buses' stats (``BusMaster.bus_stats``)."""
     out = bytearray()
     for bus in buses:
         block = bytearray(2 * DIAG_STRIDE)
         for offset, kind, key, _, scale in DIAG_REGISTERS:
-            value = bus[key]
+            value = getattr(bus, key)
             if key == "errors":
                 value = sum(value.values())
             raw = min(round(float(value) * scale), 0xFFFF if kind is Type.U16 else 2**32 - 1)

@@ -44,6 +44,7 @@ from .. import __version__
 from ..cache import EventKind, SensorUnavailable, Snapshot, Status
 from ..commands import CATALOGUE, ErrorKind
 from ..config import HttpConfig
+from ..stats import SensorStats
 from .common import GatewayLike, json_bytes
 
 log = logging.getLogger("gateway.http")
@@ -151,6 +152,14 @@ class SensorDetailOut(SensorOut):
     reading: ReadingOut | None
 
 
+class TimingOut(_Out):
+    latency_ms: float | None = Field(description="smoothed answer latency: the sensor's "
+                                     "turnaround plus the adapter's; null before an answer")
+    latency_dev_ms: float | None = Field(description="its mean deviation")
+    timeout_ms: float = Field(description="what the next attempt waits beyond the wire time")
+    late_answers: int
+
+
 class BusOut(_Out):
     name: str
     port: str
@@ -164,7 +173,10 @@ class BusOut(_Out):
     wire_utilisation: float
     busy_ms: int
     queue_depth: int
+    late_answers: int = Field(description="answers that came after their timeout, and "
+                              "were used")
     sensors: list[str]
+    timing: dict[str, TimingOut] = Field(description="each sensor's learned answer timing")
 
 
 class HealthOut(_Out):
@@ -377,12 +389,12 @@ class GatewayCollector:
                        ["bus"])
         port = family(GaugeMetricFamily, "bus_port_open", "1 when the port is open", ["bus"])
         for bus in g.stats():
-            tx.add_metric([bus["name"]], bus["transactions"])
-            for kind, count in bus["errors"].items():
-                errors.add_metric([bus["name"], kind], count)
-            util.add_metric([bus["name"]], bus["utilisation"])
-            queue.add_metric([bus["name"]], bus["queue_depth"])
-            port.add_metric([bus["name"]], 1.0 if bus["port_open"] else 0.0)
+            tx.add_metric([bus.name], bus.transactions)
+            for kind, count in bus.errors.items():
+                errors.add_metric([bus.name, kind], count)
+            util.add_metric([bus.name], bus.utilisation)
+            queue.add_metric([bus.name], bus.queue_depth)
+            port.add_metric([bus.name], 1.0 if bus.port_open else 0.0)
 
         rate = family(GaugeMetricFamily, "sensor_rate_hz", "readings per second", ["sensor"])
         age = family(GaugeMetricFamily, "sensor_age_seconds", "age of the latest reading",
@@ -393,9 +405,22 @@ class GatewayCollector:
                           ["sensor"])
         sensor_errors = family(CounterMetricFamily, "sensor_errors", "timeouts and bad frames",
                                ["sensor"])
+        latency = family(GaugeMetricFamily, "sensor_latency_seconds", "smoothed answer "
+                         "latency (the sensor's turnaround plus the adapter's)", ["sensor"])
+        timeout = family(GaugeMetricFamily, "sensor_timeout_seconds", "answer timeout beyond "
+                         "the wire time, learned from the latency", ["sensor"])
+        late = family(CounterMetricFamily, "sensor_late_answers", "answers after their "
+                      "timeout, used", ["sensor"])
+        stops = family(CounterMetricFamily, "sensor_stream_stops", "stops sent to a sensor "
+                       "found streaming unasked", ["sensor"])
         for snap in g.cache.snapshots():
             stats = g.sensor_stats(snap.name)
-            rate.add_metric([snap.name], stats["achieved_hz"])
+            rate.add_metric([snap.name], stats.achieved_hz)
+            if stats.latency_ms is not None:
+                latency.add_metric([snap.name], stats.latency_ms / 1000)
+            timeout.add_metric([snap.name], stats.timeout_ms / 1000)
+            late.add_metric([snap.name], stats.late_answers)
+            stops.add_metric([snap.name], stats.stream_stops)
             if snap.age_ms is not None:
                 age.add_metric([snap.name], snap.age_ms / 1000)
             for s in Status:
@@ -408,10 +433,10 @@ class GatewayCollector:
         requests = family(CounterMetricFamily, "frontend_requests", "requests served",
                           ["frontend"])
         frontends = g.frontend_stats()
-        for name, stats in frontends.items():
-            if "clients" in stats:  # the servers (the MQTT client has its own below)
-                clients.add_metric([name], stats["clients"])
-                requests.add_metric([name], stats["requests"])
+        for name, served in frontends.items():
+            if "clients" in served:  # the servers (the MQTT client has its own below)
+                clients.add_metric([name], served["clients"])
+                requests.add_metric([name], served["requests"])
         mqtt = frontends.get("mqtt")
         if mqtt is not None:
             family(GaugeMetricFamily, "mqtt_connected", "1 when connected to the broker",
@@ -501,20 +526,20 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     bus_of = {s.name: b for b, s in gateway.config.iter_sensors()}
     bodies: dict[str, tuple[tuple[int, Status], bytes]] = {}  # the latest reading's JSON
 
-    def sensor_out(snap: Snapshot, stats: dict[str, Any]) -> dict[str, Any]:
+    def sensor_out(snap: Snapshot, stats: SensorStats) -> dict[str, Any]:
         sensor, bus = gateway.sensors[snap.name], bus_of[snap.name]
         return {"name": snap.name, "bus": bus.name, "series": sensor.series.name,
                 "protocol": bus.protocol.name.lower(),
-                "address": stats["address"],  # the live one, after a set_address too
+                "address": stats.address,  # the live one, after a set_address too
                 "unit_id": sensor.unit_id, "status": snap.status.value, "online": snap.online,
                 "busy": snap.busy, "streaming": snap.streaming, "seq": snap.seq,
                 "age_ms": None if snap.age_ms is None else round(snap.age_ms, 1),
-                "achieved_hz": stats["achieved_hz"], "errors": snap.errors}
+                "achieved_hz": stats.achieved_hz, "errors": snap.errors}
 
     @app.get(f"{API}/health", response_model=HealthOut, dependencies=reads,
              responses={401: errors[401]}, summary="gateway and bus status")
     async def health() -> dict[str, Any]:
-        buses = {b["name"]: b["port_open"] for b in gateway.stats()}
+        buses = {b.name: b.port_open for b in gateway.stats()}
         counted = {s.value: 0 for s in Status}
         for snap in gateway.cache.snapshots():
             counted[snap.status.value] += 1
@@ -528,8 +553,15 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
              responses={401: errors[401]}, summary="every bus and its stats")
     async def buses() -> list[dict[str, Any]]:
         names = {b.name: [s.name for s in b.sensors] for b in gateway.config.buses}
-        return [{**{k: v for k, v in b.items() if k in BusOut.model_fields},
-                 "sensors": names[b["name"]]} for b in gateway.stats()]
+
+        def timing(name: str) -> dict[str, Any]:
+            stats = gateway.sensor_stats(name)
+            return {"latency_ms": stats.latency_ms, "latency_dev_ms": stats.latency_dev_ms,
+                    "timeout_ms": stats.timeout_ms, "late_answers": stats.late_answers}
+
+        return [{**{k: v for k, v in b.as_dict().items() if k in BusOut.model_fields},
+                 "sensors": names[b.name], "timing": {n: timing(n) for n in names[b.name]}}
+                for b in gateway.stats()]
 
     @app.get(f"{API}/sensors", response_model=list[SensorOut], dependencies=reads,
              responses={401: errors[401]}, summary="every sensor with its status")
@@ -547,7 +579,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
         return {**sensor_out(snap, stats),
                 "config": gateway.sensors[name].model_dump(mode="json"),
                 "settings": gateway.cache.settings(name),
-                "stats": stats,
+                "stats": stats.as_dict(),
                 "reading": snap.to_json() if snap.has_reading else None}
 
     @app.get(f"{API}/sensors/{{name}}/reading", response_model=ReadingOut,

@@ -1,0 +1,108 @@
+"""What the schedule hands its driver: jobs, the request to write, and events.
+
+Events say what happened, in order; the driver carries them out (the cache, the
+futures of whoever asked, the log).  None of them needs the driver to answer.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..commands import Command, CommandError, CommandResult
+from ..protocol.exchanges import Answer, Exchange
+from .sensor_state import SensorState
+
+
+class Kind(enum.Enum):
+    """What a job is for.  Who waits for it: COMMAND, PASSTHROUGH and READ."""
+
+    COMMAND = "command"
+    PASSTHROUGH = "pass-through"
+    STREAM_START = "stream set-up"
+    STREAM_STOP = "stream stop"
+    READ = "on-demand read"
+    POLL = "poll"
+
+
+@dataclass(eq=False, slots=True)
+class Job:
+    """Work for one sensor: one or more exchanges, in order."""
+
+    kind: Kind
+    sensor: SensorState
+    command: Command | None = None
+    plan: list[Exchange] = field(default_factory=list)
+    step: int = 0  # the exchange now due
+    tries: int = 0  # attempts of that exchange so far
+    values: dict[str, Any] = field(default_factory=dict)  # the answers' values, merged
+    started: bool = False
+
+
+@dataclass(slots=True)
+class Attempt:
+    """One request on the line, waiting for its answer."""
+
+    job: Job
+    exchange: Exchange
+    sent: float
+    wire: float  # request, answer and the gap between them, at the line's rate
+    deadline: float  # the answer is due by then: sent + wire + the sensor's timeout
+    give_up: float  # the line is held for a late answer until then
+    started: float  # the silent gap before the request began (busy time counts it)
+    garbage: int  # the framer's garbage count when it was sent (noise vs silence)
+    overdue: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class Request:
+    """Bytes to write now; ``expect`` is the answer's length (0: none comes)."""
+
+    data: bytes
+    expect: int
+
+
+@dataclass(frozen=True, slots=True)
+class Publish:
+    """A sensor's answer or stream frame: a reading for the cache."""
+
+    sensor: str
+    answer: Answer
+    at: float
+
+
+@dataclass(frozen=True, slots=True)
+class StateChange:
+    """What the cache shows of a sensor; None: unchanged."""
+
+    sensor: str
+    online: bool | None = None
+    busy: bool | None = None
+    streaming: bool | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class ErrorCounted:
+    sensor: str
+
+
+@dataclass(frozen=True, slots=True)
+class Finished:
+    """A job someone waits for is done: a command's result (success or not), a
+    pass-through answer PDU, or a read's reading (in the cache by now); or ``error``."""
+
+    job: Job
+    outcome: CommandResult | bytes | None
+    error: CommandError | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Note:
+    """A line for the log (``level`` as in ``logging``)."""
+
+    level: int
+    text: str
+
+
+Event = Publish | StateChange | ErrorCounted | Finished | Note

@@ -1,0 +1,134 @@
+"""One sensor's state on its bus, and the rules that change it: back-off, online and
+offline, the poll timetable, and the evidence that it streams unasked.  Sans-IO: every
+method takes the time as an argument.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+from ..config import SensorConfig
+from ..protocol.exchanges import Exchange, ProtocolAdapter
+from ..stats import Counters
+from .timing import AnswerTimer
+
+OFFLINE_AFTER = 3  # consecutive failed exchanges before a sensor is called offline
+BACKOFF_MIN, BACKOFF_MAX = 0.25, 10.0  # seconds between tries of a failing sensor
+STREAM_RETRY = 5.0  # seconds before setting up (or stopping) a stream again
+# A sensor is taken to stream unasked only on evidence a late answer cannot give:
+# EVIDENCE_FRAMES frames nobody asked for within EVIDENCE_WINDOW seconds, spread over
+# at least EVIDENCE_SPAN seconds, each arriving with no request to that sensor
+# outstanding and none of its unanswered requests left to explain it.
+EVIDENCE_FRAMES, EVIDENCE_SPAN, EVIDENCE_WINDOW = 5, 2.0, 5.0
+#: An unanswered request may still be answered (very late) this long after it was sent:
+#: a frame from its sensor within that time is taken for that answer, not for a stream.
+LATE_MEMORY = 10.0
+
+
+@dataclass(eq=False, slots=True)
+class SensorState:
+    """A sensor's run-time state on its bus."""
+
+    config: SensorConfig
+    address: int
+    timer: AnswerTimer = field(default_factory=AnswerTimer)
+    stats: Counters = field(default_factory=Counters)
+    next_due: float = 0.0
+    last_served: float = 0.0
+    failures: int = 0
+    online: bool | None = None  # None: not heard from yet
+    busy_until: float = 0.0
+    streaming: bool = False
+    last_stream: float = 0.0  # when its last stream frame's last byte came in
+    stream_retry_at: float = 0.0
+    stop_stream: bool = False  # it streams though nobody asked: tell it to stop
+    evidence: deque[float] = field(default_factory=deque)  # unexplained frames' times
+    unanswered: deque[float] = field(default_factory=lambda: deque(maxlen=64))
+    _poll: tuple[int, Exchange] | None = None
+
+    @property
+    def name(self) -> str:
+        return self.config.name
+
+    @property
+    def period(self) -> float:
+        return 1 / self.config.poll_hz if self.config.poll_hz > 0 else 0.0
+
+    @property
+    def stream_timeout(self) -> float:
+        """Frames missing this long mean the stream has stopped."""
+        return max(5 / self.config.stream_hz, 0.5) if self.config.stream_hz else 0.0
+
+    def poll(self, adapter: ProtocolAdapter) -> Exchange:
+        """Its poll, built once per address (it is sent hundreds of times a second, and
+        the time between an answer and the next request is the line's)."""
+        if self._poll is None or self._poll[0] != self.address:
+            self._poll = (self.address, adapter.poll(self.config.series, self.address))
+        return self._poll[1]
+
+    def wants_stream(self, now: float) -> bool:
+        return bool(self.config.stream_hz) and not self.streaming \
+            and now >= self.stream_retry_at and now >= self.busy_until
+
+    def due(self, now: float) -> bool:
+        return self.next_due <= now and self.busy_until <= now and not self.streaming
+
+    # ------------------------------------------------------------ answers and failures
+
+    def succeeded(self) -> str | None:
+        """It answered: "online" or "recovered" when that changes what it is, else None."""
+        self.failures = 0
+        if self.online is True:
+            return None
+        change = "recovered" if self.online is False else "online"
+        self.online = True
+        return change
+
+    def failed(self) -> bool:
+        """An exchange failed (all its attempts).  True when this makes it offline."""
+        self.failures += 1
+        if self.failures == OFFLINE_AFTER and self.online is not False:
+            self.online = False
+            return True
+        return False
+
+    def schedule_next_poll(self, now: float) -> None:
+        """After a poll: the next one at its rate, or after a back-off when failing.
+        Polls that fell more than a period behind are counted as missed, not fired
+        later as a burst of catch-up reads."""
+        if self.failures:
+            self.next_due = now + min(BACKOFF_MAX, BACKOFF_MIN * 2 ** (self.failures - 1))
+        elif self.period == 0:
+            self.next_due = now
+        else:
+            self.next_due += self.period
+            if self.next_due < now - self.period:
+                missed = int((now - self.next_due) / self.period)
+                self.stats.missed_polls += missed
+                self.next_due += missed * self.period
+            self.next_due = max(self.next_due, now - self.period)
+
+    # ------------------------------------------------------------ stream evidence
+
+    def explained(self, at: float) -> bool:
+        """Is a frame of this sensor at ``at`` the late answer to an unanswered request?
+        If so that request is answered now (one frame per request)."""
+        while self.unanswered and at - self.unanswered[0] > LATE_MEMORY:
+            self.unanswered.popleft()
+        if self.unanswered:
+            self.unanswered.popleft()
+            return True
+        return False
+
+    def unasked_frame(self, at: float) -> bool:
+        """A frame nobody asked for, that no request explains.  True when the frames
+        are now evidence enough that it streams (steady over seconds)."""
+        self.evidence.append(at)
+        while self.evidence and at - self.evidence[0] > EVIDENCE_WINDOW:
+            self.evidence.popleft()
+        if len(self.evidence) >= EVIDENCE_FRAMES and \
+                self.evidence[-1] - self.evidence[0] >= EVIDENCE_SPAN:
+            self.evidence.clear()
+            return True
+        return False
