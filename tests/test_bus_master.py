@@ -206,9 +206,9 @@ def test_dead_address_costs_the_live_sensors_little_and_comes_back() -> None:
                 m = master(gw)
                 await until(lambda: gw.cache.snapshot("dead").status is Status.OFFLINE
                             and m.sensors["dead"].failures >= OFFLINE_AFTER + 2, 30)
-                await asyncio.sleep(2.0)
-                share = m.sensor_stats("dead").bus_share
-                assert share < 0.2, share
+                # (its share of the bus once backed off: tests/test_schedule.py)
+                seq = gw.cache.snapshot("ah").seq
+                await until(lambda: gw.cache.snapshot("ah").seq > seq + 10)
                 assert gw.cache.snapshot("ah").status is Status.OK
                 dead.stalled = False
                 await until(lambda: gw.cache.snapshot("dead").status is Status.OK, 15)
@@ -551,21 +551,3 @@ def test_kernel_rs485_mode_where_it_cannot_work_is_a_clear_error(port: str) -> N
             asyncio.run(body(sim.path))
     else:
         asyncio.run(body(port))
-
-
-def test_one_late_answer_is_not_taken_for_a_stream() -> None:
-    """A busy machine makes an answer arrive after its timeout: that one unasked-for
-    frame must not be called a stream (and logged, and answered with a stop)."""
-    from gateway.bus.master import STRAY_EVIDENCE, STRAY_WINDOW, BusMaster, Sensor
-    from gateway.config import SensorConfig
-
-    s = Sensor(SensorConfig(name="vg", series="VG"), 0)
-    for i in range(STRAY_EVIDENCE - 1):
-        BusMaster._stray(s, 100.0 + i * 0.1)
-    assert not s.stop_stray_stream
-    BusMaster._stray(s, 100.0 + STRAY_WINDOW + 1)  # the first two are too old by now
-    assert not s.stop_stray_stream
-    for i in range(STRAY_EVIDENCE - 1):
-        BusMaster._stray(s, 200.0 + i * 0.02)
-    BusMaster._stray(s, 200.1)
-    assert s.stop_stray_stream

@@ -342,6 +342,8 @@ class Schedule:
             return now
         c = char_time(self.baud)
         period = 1 / streamer.config.stream_hz
+        if not streamer.stream_frames and now < streamer.last_stream + 2 * period:
+            return streamer.last_stream + 2 * period  # just set up: its first frame sets the phase
         frame = streamer.poll(self.adapter).answer_bytes * c
         gap = self.adapter.gap_before_request(self.baud)
         needs = (len(exchange.request) + exchange.answer_bytes) * c + 2 * gap + \
@@ -354,6 +356,8 @@ class Schedule:
         request_time = len(exchange.request) * c
         wire = request_time + exchange.answer_bytes * c + (gap if exchange.answer_bytes else 0)
         rto, hold = (s.timer.rto, s.timer.hold) if exchange.answer_bytes else (0.0, 0.0)
+        if s.online is False:
+            rto = hold  # probing an offline sensor: no back-off, it must cost the others little
         deadline = now + wire + rto
         self._attempt = Attempt(job, exchange, now, wire, deadline, deadline + hold,
                                 now - gap, self.adapter.garbage_seen(self._framer))
@@ -402,6 +406,7 @@ class Schedule:
             return
         if s.streaming:
             s.last_stream = at
+            s.stream_frames += 1
             self._reading(s, answer, at)
             return
         self.stats.errors["unexpected_frame"] += 1
@@ -546,7 +551,7 @@ class Schedule:
         self._job = None
         match job.kind:
             case Kind.STREAM_START:
-                s.streaming, s.last_stream = True, at
+                s.streaming, s.last_stream, s.stream_frames = True, at, 0
                 self._events.append(StateChange(s.name, streaming=True))
                 self._note(logging.INFO, f"sensor {s.name}: streaming at "
                            f"{s.config.stream_hz:g} Hz")

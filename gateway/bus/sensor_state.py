@@ -41,6 +41,7 @@ class SensorState:
     busy_until: float = 0.0
     streaming: bool = False
     last_stream: float = 0.0  # when its last stream frame's last byte came in
+    stream_frames: int = 0  # frames since the stream was set up (0: its phase is unknown)
     stream_retry_at: float = 0.0
     stop_stream: bool = False  # it streams though nobody asked: tell it to stop
     evidence: deque[float] = field(default_factory=deque)  # unexplained frames' times

@@ -1,0 +1,334 @@
+"""The bus schedule's rules in virtual time (``virtual_line``): no pty, no clock.
+
+Every figure below is computed from the line's own model (wire time, the sensors'
+answer delay), never from how fast this machine is; the whole file runs in a few
+seconds of real time however busy the machine.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+from virtual_line import VirtualLine, bus, jittery, sim
+
+from gateway.bus.schedule import Schedule, stream_wait
+from gateway.bus.sensor_state import (
+    BACKOFF_MAX,
+    EVIDENCE_SPAN,
+    SensorState,
+)
+from gateway.bus.timing import RTO_INITIAL, RTO_MAX, RTO_MIN, AnswerTimer
+from gateway.commands import ErrorKind
+from gateway.config import SensorConfig
+from gateway.model import Series
+from gateway.protocol.exchanges import NativeAdapter, adapter_for, char_time
+
+BAUD = 115200
+
+
+def flat_out(protocol: str, count: int, series: str = "AH",
+             **options: object) -> list[dict[str, Any]]:
+    first = 0 if protocol == "native" else 1
+    return [{"name": f"s{i}", "series": series, "address": first + i, "poll_hz": 0, **options}
+            for i in range(count)]
+
+
+def poll_time(protocol: str, series: str = "AH", baud: int = BAUD) -> float:
+    """One poll's wire time, with the RTU gaps: the line's own limit."""
+    adapter = adapter_for(bus(protocol, flat_out(protocol, 1)).protocol)
+    exchange = adapter.poll(Series[series], 1)
+    gaps = 2 * adapter.gap_before_request(baud)
+    return (len(exchange.request) + exchange.answer_bytes) * char_time(baud) + gaps
+
+
+def stops_written(line: VirtualLine, protocol: str, series: str = "AH") -> int:
+    adapter = adapter_for(bus(protocol, flat_out(protocol, 1)).protocol)
+    first = 0 if protocol == "native" else 1
+    return sum(line.writes_to(e.request) for i in range(len(line.sensors))
+               for e in adapter.stream_stop(Series[series], first + i))
+
+
+# ------------------------------------------------------------------ slow sensors
+
+
+@pytest.mark.parametrize("protocol", ["native", "modbus"])
+@pytest.mark.parametrize("jitter", [0.0, 0.035])
+def test_slow_sensors_with_default_config_get_what_their_latency_allows(
+        protocol: str, jitter: float) -> None:
+    """Two sensors answering 35 ms late (or 5-40 ms, jittered), 115200 baud, defaults."""
+    first = 0 if protocol == "native" else 1
+    delay = 0.035 if not jitter else 0.005
+    sensors = [sim(protocol, "AH", first + i, delay=delay, jitter=jitter, seed=i)
+               for i in range(2)]
+    line = VirtualLine(bus(protocol, flat_out(protocol, 2)), sensors)
+    line.run(30.0)
+    mean_delay = delay + jitter / 2
+    allowed = 30.0 / (poll_time(protocol) + mean_delay)
+    done = sum(len(line.readings(f"s{i}")) for i in range(2))
+    assert done >= 0.8 * allowed, (done, allowed)
+    assert abs(len(line.readings("s0")) - len(line.readings("s1"))) <= 1
+    assert line.overlaps == 0 and line.collisions == 0
+    assert not line.notes("stream") and stops_written(line, protocol) == 0
+    assert not line.notes("offline")
+
+
+def test_the_timeout_is_learned_from_each_sensor() -> None:
+    sensors = [sim("native", "AH", 0, delay=0.002), sim("native", "AH", 1, delay=0.035)]
+    line = VirtualLine(bus("native", flat_out("native", 2)), sensors)
+    fast, slow = (line.schedule.sensors[n].timer for n in ("s0", "s1"))
+    assert fast.rto == slow.rto == RTO_INITIAL  # generous before the first answer
+    line.run(5.0)
+    assert fast.srtt == pytest.approx(0.002, abs=1e-4)
+    assert slow.srtt == pytest.approx(0.035, abs=1e-4)
+    assert fast.rto == RTO_MIN  # the floor
+    assert slow.srtt is not None and slow.rto >= slow.srtt
+
+
+def test_the_timeout_follows_rfc6298() -> None:
+    timer = AnswerTimer()
+    timer.sample(0.020)
+    assert (timer.srtt, timer.rttvar) == (0.020, 0.010)
+    assert timer.rto == pytest.approx(0.020 + 4 * 0.010)
+    timer.sample(0.040)
+    assert timer.rttvar == pytest.approx(0.75 * 0.010 + 0.25 * 0.020)
+    assert timer.srtt == pytest.approx(0.875 * 0.020 + 0.125 * 0.040)
+    learned = timer.rto
+    timer.timed_out()
+    assert timer.rto == pytest.approx(min(RTO_MAX, 2 * learned))  # backed off
+    for _ in range(10):
+        timer.timed_out()
+    assert timer.rto == RTO_MAX
+    timer.sample(0.020)
+    assert timer.backoff == 0 and timer.rto < RTO_MAX
+    assert AnswerTimer(fixed=0.3).rto == 0.3  # timeout_ms overrides
+
+
+def test_an_answer_after_its_timeout_is_used_and_nothing_talks_over_it() -> None:
+    """A fixed 10 ms timeout and a sensor 15 ms late: every answer is late, and used."""
+    line = VirtualLine(bus("native", flat_out("native", 1), timeout_ms=10),
+                       [sim("native", "AH", 0, delay=0.015)])
+    line.run(2.0)
+    s = line.schedule.sensors["s0"]
+    assert len(line.readings("s0")) > 50
+    assert s.stats.late_answers == len(line.readings("s0"))
+    assert s.stats.errors["timeout"] == 0 and line.overlaps == 0
+
+
+def test_a_late_timer_looks_at_the_port_before_calling_a_timeout() -> None:
+    """The machine is so busy that every wake-up is up to 300 ms late (far beyond any
+    timeout); the sensors answer on time, so no answer may count as missing."""
+    sensors = [sim("native", "AH", a) for a in range(2)]
+    line = VirtualLine(bus("native", flat_out("native", 2)), sensors, late=jittery(1, 0.3))
+    line.run(60.0)
+    assert len(line.readings("s0")) > 50
+    errors = sum(line.schedule.stats.errors.values()) - \
+        line.schedule.stats.errors["unexpected_frame"]
+    assert errors == 0 and line.overlaps == 0
+    assert not line.notes("offline") and stops_written(line, "native") == 0
+
+
+@pytest.mark.parametrize("protocol", ["native", "modbus"])
+def test_a_busy_machine_invents_no_stream_and_writes_nothing_unasked(protocol: str) -> None:
+    """Wake-ups up to 60 ms late, sensors 5-40 ms late: late answers galore."""
+    first = 0 if protocol == "native" else 1
+    sensors = [sim(protocol, "AH", first + i, delay=0.005, jitter=0.035, seed=i)
+               for i in range(3)]
+    line = VirtualLine(bus(protocol, flat_out(protocol, 3)), sensors, late=jittery(7, 0.06))
+    line.run(60.0)
+    assert all(len(line.readings(f"s{i}")) > 250 for i in range(3))
+    assert not line.notes("stream") and stops_written(line, protocol) == 0
+    assert not line.notes("offline")
+    assert line.overlaps == 0 and line.collisions == 0
+
+
+# ------------------------------------------------------------------ priorities
+
+
+def test_commands_go_before_polls_and_reads_share_one_exchange() -> None:
+    sensors = [sim("native", "AH", a) for a in range(2)]
+    line = VirtualLine(bus("native", flat_out("native", 2, poll_hz=1)), sensors)
+    line.run(0.5)  # both polled at 0 s, next at 1 s: the line is idle
+    writes = len(line.writes)
+    first, second = line.command("s0", "read_settings"), line.command("s1", "read_settings")
+    read, new = line.read("s1")
+    again, again_new = line.read("s1")
+    assert new and not again_new and again is read
+    line.run(0.4, until=lambda: line.result(read) is not None)
+    adapter = NativeAdapter()
+    settings = [e.request for a in (0, 1) for e in adapter.command(Series.AH, a,
+                                                                  "read_settings", {})]
+    # commands in order, then the read (one poll of s1), before any other poll
+    assert [data for _, data in line.writes[writes:]] == \
+        [*settings, adapter.poll(Series.AH, 1).request]
+    results = [line.result(first), line.result(second), line.result(read)]
+    assert all(r is not None and r.error is None for r in results)
+    assert getattr(results[0].outcome if results[0] else None, "ok", False)
+
+
+def test_polling_flat_out_is_a_strict_round_robin() -> None:
+    line = VirtualLine(bus("native", flat_out("native", 3, "IMU")),
+                       [sim("native", "IMU", a) for a in range(3)])
+    line.run(3.0)
+    counts = [len(line.readings(f"s{i}")) for i in range(3)]
+    assert max(counts) - min(counts) <= 1 and min(counts) > 100
+
+
+def test_asking_more_than_the_wire_carries_slows_everyone_evenly() -> None:
+    config = bus("native", flat_out("native", 3, poll_hz=20), baudrate=9600)
+    line = VirtualLine(config, [sim("native", "AH", a, baud=9600) for a in range(3)])
+    line.run(10.0)
+    counts = [len(line.readings(f"s{i}")) for i in range(3)]
+    ceiling = 10.0 / (poll_time("native", baud=9600) + 0.002)
+    assert sum(counts) >= 0.9 * ceiling and max(counts) - min(counts) <= 1
+    assert all(line.schedule.sensors[f"s{i}"].stats.missed_polls > 0 for i in range(3))
+
+
+# ------------------------------------------------------------------ failures
+
+
+def test_a_dead_address_backs_off_goes_offline_once_and_costs_the_others_little() -> None:
+    sensors = [sim("native", "AH", 0), sim("native", "AH", 1), sim("native", "VG", 2)]
+    sensors[2].faults.stalled = True
+    dead_config = {"name": "dead", "series": "VG", "address": 2, "poll_hz": 0}
+    line = VirtualLine(bus("native", [*flat_out("native", 2, poll_hz=20), dead_config]),
+                       sensors)
+    dead = line.schedule.sensors["dead"]
+    line.run(60.0)
+    assert dead.online is False and len(line.notes("dead: offline")) == 1
+    assert dead.next_due - line.now <= BACKOFF_MAX
+    busy, now = dead.stats.busy_time, line.now
+    line.run(60.0)  # with the back-off at its cap
+    assert (dead.stats.busy_time - busy) / (line.now - now) < 0.05
+    sensors[2].faults.stalled = False
+    line.run(BACKOFF_MAX + 1, until=lambda: dead.online is True)
+    assert dead.online is True and len(line.notes("dead: recovered")) == 1
+    assert line.overlaps == 0
+
+
+def test_offline_sensors_are_refused_at_once_and_the_port_loss_fails_everything() -> None:
+    sensors = [sim("native", "AH", 0)]
+    sensors[0].faults.stalled = True
+    line = VirtualLine(bus("native", flat_out("native", 1)), sensors)
+    line.run(30.0, until=lambda: line.schedule.sensors["s0"].online is False)
+    refusal = line.schedule.refusal("s0")
+    assert refusal is not None and refusal.kind is ErrorKind.OFFLINE
+    sensors[0].faults.stalled = False
+    line.run(30.0, until=lambda: line.schedule.sensors["s0"].online is True)
+    job = line.command("s0", "read_settings")
+    line.lose_port()
+    result = line.result(job)
+    assert result is not None and getattr(result.outcome, "kind", None) is ErrorKind.OFFLINE
+    assert line.schedule.sensors["s0"].online is False
+    assert line.schedule.refusal("s0") is not None
+
+
+# ------------------------------------------------------------------ streams
+
+
+def test_one_late_answer_is_not_a_stream_but_steady_unasked_frames_are() -> None:
+    s = SensorState(SensorConfig(name="vg", series=Series.VG), 0)
+    s.unanswered.append(99.0)
+    assert s.explained(100.0)  # the answer to the request at 99 s, very late
+    assert not s.explained(100.5)
+    assert not any(s.unasked_frame(200.0 + i * 0.01) for i in range(50))  # a burst
+    frames = [300.0 + i * 0.1 for i in range(int(EVIDENCE_SPAN / 0.1) + 1)]
+    assert [s.unasked_frame(t) for t in frames][-1]
+
+
+def test_a_sensor_left_streaming_is_stopped_once_on_evidence() -> None:
+    sensor = sim("native", "VG", 0)
+    sensor.stream_interval = 0.02  # left streaming at 50 Hz by an earlier owner
+    line = VirtualLine(bus("native", [{"name": "vg", "series": "VG", "address": 0}]),
+                       [sensor])
+    line.run(10.0)
+    assert sensor.stream_interval == 0.0
+    assert len(line.notes("streams though stream_hz is 0")) == 1
+    assert line.schedule.sensors["vg"].stats.stream_stops == 1
+    stop = NativeAdapter().stream_stop(Series.VG, 0)[0].request
+    first = next(t for t, data in line.writes if data == stop)
+    assert first >= EVIDENCE_SPAN
+
+
+def test_a_stream_feeds_the_cache_and_polls_fit_between_its_frames() -> None:
+    sensors = [sim("native", "AH", 0), sim("native", "VG", 1)]
+    line = VirtualLine(bus("native", [
+        {"name": "st", "series": "AH", "address": 0, "stream_hz": 20},
+        {"name": "po", "series": "VG", "address": 1, "poll_hz": 0}]), sensors)
+    line.run(10.0)
+    assert line.schedule.sensors["st"].streaming
+    assert len(line.readings("st")) >= 0.9 * 20 * 10
+    assert len(line.readings("po")) > 100
+    assert line.collisions == 0 and line.overlaps == 0
+    sensors[0].faults.stalled = True  # power cut: polling takes over
+    line.run(2.0)
+    assert not line.schedule.sensors["st"].streaming
+    assert line.notes("its stream stopped")
+
+
+def test_stream_wait_goes_when_it_fits_else_after_the_next_frame() -> None:
+    # frames of 5 ms every 20 ms, the last ended at t=0
+    assert stream_wait(0.001, 0.005, 0.0, 0.02, 0.005) == 0.001  # fits
+    assert stream_wait(0.012, 0.005, 0.0, 0.02, 0.005) == 0.02  # after the next frame
+    assert stream_wait(0.0005, 0.030, 0.0, 0.02, 0.005) == 0.0005  # never fits: right after
+    assert stream_wait(0.05, 0.010, 0.0, 0.02, 0.005) == 0.05  # frames missing
+
+
+# ------------------------------------------------------------------ settings that move the bus
+
+
+@pytest.mark.parametrize("protocol", ["native", "modbus"])
+def test_baud_and_address_changes_are_followed(protocol: str) -> None:
+    first = 0 if protocol == "native" else 1
+    sensor = sim(protocol, "AH", first, baud=9600)
+    line = VirtualLine(bus(protocol, flat_out(protocol, 1), baudrate=9600), [sensor])
+    line.run(1.0)
+    job = line.command("s0", "set_baudrate", baudrate=115200)
+    line.run(5.0, until=lambda: line.result(job) is not None)
+    result = line.result(job)
+    assert result is not None and getattr(result.outcome, "ok", False), result
+    assert line.schedule.baud == 115200 == sensor.baud
+    job = line.command("s0", "set_address", address=first + 5)
+    line.run(5.0, until=lambda: line.result(job) is not None)
+    assert line.schedule.sensors["s0"].address == first + 5 == sensor.address
+    count = len(line.readings("s0"))
+    line.run(1.0)
+    assert len(line.readings("s0")) > count + 10
+    assert line.overlaps == 0
+
+
+def test_save_keeps_the_sensor_out_of_the_schedule() -> None:
+    sensor = sim("modbus", "AH", 1)
+    line = VirtualLine(bus("modbus", flat_out("modbus", 1)), [sensor])
+    line.run(0.5)
+    job = line.command("s0", "save")
+    line.run(1.0, until=lambda: line.result(job) is not None)
+    busy_from, writes = line.now, len(line.writes)
+    line.run(4.0)
+    assert len(line.writes) == writes  # nothing sent while it saves
+    assert line.schedule.refusal("s0") is None
+    late = line.command("s0", "read_settings")
+    line.run(0.1, until=lambda: line.result(late) is not None)
+    result = line.result(late)
+    assert result is not None and getattr(result.outcome, "kind", None) is ErrorKind.BUSY
+    line.run(2.0)
+    assert line.now - busy_from > 5.0 and len(line.writes) > writes
+    assert line.schedule.sensors["s0"].online
+
+
+def test_the_schedule_has_no_clock() -> None:
+    """Sans-IO: the module imports no clock, no asyncio, no threads and no serial port."""
+    import ast
+    import inspect
+
+    import gateway.bus.schedule as schedule
+    import gateway.bus.sensor_state as sensor_state
+    import gateway.bus.timing as timing
+    for module in (schedule, sensor_state, timing):
+        tree = ast.parse(inspect.getsource(module))
+        names = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import)
+                 for a in n.names}
+        names |= {(n.module or "").split(".")[0] for n in ast.walk(tree)
+                  if isinstance(n, ast.ImportFrom) and n.level == 0}
+        assert not names & {"time", "asyncio", "threading", "serial", "select"}, module
+    assert Schedule.__init__.__code__.co_varnames[:3] == ("self", "config", "adapter")

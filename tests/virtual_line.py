@@ -1,0 +1,190 @@
+"""The bus schedule against simulated sensors in virtual time: no pty, no clock.
+
+``VirtualLine`` drives ``gateway.bus.schedule.Schedule`` exactly as the bus master
+does (``next_request`` / ``receive`` / ``handle_timer`` / ``next_wake``), with the
+simulator's sans-IO sensors (``SimSensor.hear`` / ``due``) on a modelled wire: each
+byte takes 10 bits at the line's rate, a sensor's answer starts after its own
+turnaround, frames from two senders that meet on the wire are garbled.
+
+A busy machine is modelled too: ``late()`` is how late the driver gets round to each
+of its wake-ups (a timer, or bytes from the reader), in seconds.  Bytes that came in
+meanwhile wait in the port, where ``handle_timer`` can see them (``pending``).
+
+Everything the driver would write is recorded, so a test can say what went out and
+when; ``overlaps`` counts requests written while a sensor was answering or about to.
+"""
+
+from __future__ import annotations
+
+import random
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from gateway.bus.events import Event, Finished, Job, Note, Publish, StateChange
+from gateway.bus.schedule import Schedule
+from gateway.commands import Command
+from gateway.config import BusConfig, config_from_dict
+from gateway.model import Protocol
+from gateway.protocol.exchanges import adapter_for, char_time
+from gateway.simulator import SimSensor, make_sensor
+from gateway.simulator.sensor import Outgoing
+
+
+def bus(protocol: str, sensors: list[dict[str, Any]], baudrate: int = 115200,
+        **options: Any) -> BusConfig:
+    return config_from_dict({"gateway_id": "t", "buses": [
+        {"name": "line", "port": "/dev/null", "protocol": protocol, "baudrate": baudrate,
+         "sensors": sensors, **options}]}, env={}).buses[0]
+
+
+def sim(protocol: str, series: str, address: int, *, delay: float = 0.002,
+        jitter: float = 0.0, seed: int = 0, baud: int = 115200) -> SimSensor:
+    from gateway.model import Series
+    return make_sensor(Protocol[protocol.upper()], Series[series], address, baud=baud,
+                       answer_delay=delay, jitter=jitter, seed=seed)
+
+
+@dataclass(slots=True)
+class _OnWire:
+    start: float
+    end: float
+    data: bytes
+    sender: str
+    baud: int
+
+
+@dataclass
+class VirtualLine:
+    config: BusConfig
+    sensors: list[SimSensor]
+    late: Callable[[], float] = lambda: 0.0
+    now: float = 0.0
+    schedule: Schedule = field(init=False)
+    events: list[Event] = field(default_factory=list)
+    writes: list[tuple[float, bytes]] = field(default_factory=list)
+    overlaps: int = 0
+    collisions: int = 0
+    _queue: list[Outgoing] = field(default_factory=list)
+    _wire: list[_OnWire] = field(default_factory=list)
+    # bytes in, not yet received: (data, when they came in, when the reader hands them)
+    _port: list[tuple[bytes, float, float]] = field(default_factory=list)
+    _driver_at: float = 0.0
+    _line_end: float = 0.0  # when the wire is free of the last frame
+    _spins: int = 0
+
+    def __post_init__(self) -> None:
+        self.schedule = Schedule(self.config, adapter_for(self.config.protocol))
+        self.schedule.open(self.now)
+        self.schedule.started = self.now
+
+    # ------------------------------------------------------------ user side
+
+    def command(self, sensor: str, name: str, **args: Any) -> Job:
+        assert self.schedule.refusal(sensor) is None
+        self._driver_at = self.now  # the driver is woken by a new job
+        return self.schedule.command(sensor, Command(name, args))
+
+    def read(self, sensor: str) -> tuple[Job, bool]:
+        self._driver_at = self.now
+        return self.schedule.read(sensor)
+
+    def lose_port(self) -> None:
+        self.schedule.lost(self.now, "the adapter was pulled")
+        self.events += self.schedule.take_events()
+
+    def result(self, job: Job) -> Finished | None:
+        return next((e for e in self.events if isinstance(e, Finished) and e.job is job), None)
+
+    def readings(self, sensor: str) -> list[Publish]:
+        return [e for e in self.events if isinstance(e, Publish) and e.sensor == sensor]
+
+    def notes(self, text: str) -> list[str]:
+        return [e.text for e in self.events if isinstance(e, Note) and text in e.text]
+
+    def states(self, sensor: str) -> list[StateChange]:
+        return [e for e in self.events if isinstance(e, StateChange) and e.sensor == sensor]
+
+    def writes_to(self, request: bytes) -> int:
+        return sum(data == request for _, data in self.writes)
+
+    # ------------------------------------------------------------ time
+
+    def run(self, seconds: float, until: Callable[[], bool] | None = None) -> None:
+        end = self.now + seconds
+        while self.now < end and not (until is not None and until()):
+            self._step(end)
+
+    def _step(self, end: float) -> None:
+        frame_end = min((o.end for o in self._wire), default=float("inf"))
+        frame_start = min((o.not_before for o in self._queue), default=float("inf"))
+        # (a stalled sensor's stream stays due, and says nothing: not a reason to wake)
+        streams = min((t for s in self.sensors if (t := s.next_wakeup()) is not None
+                       and t > self.now), default=float("inf"))
+        self.now = max(self.now, min(self._driver_at, frame_end, frame_start, streams, end))
+        for s in self.sensors:
+            self._queue += s.due(self.now)
+        self._start_frames()
+        self._arrive()
+        if self.now >= self._driver_at:
+            self._drive()
+
+    def _start_frames(self) -> None:
+        for out in sorted((o for o in self._queue if o.not_before <= self.now),
+                          key=lambda o: o.not_before):
+            self._queue.remove(out)
+            start = max(out.not_before, self._line_end)
+            end = start + len(out.frame) * char_time(out.baud)
+            for other in self._wire:
+                if other.sender != out.sender and other.end > start:
+                    self.collisions += 1
+                    other.data = bytes(len(other.data))  # garbled: zeros are no frame
+                    out = Outgoing(bytes(len(out.frame)), out.not_before, out.baud,
+                                   out.solicited, out.sender)
+            self._line_end = max(self._line_end, end)
+            self._wire.append(_OnWire(start, end, out.frame, out.sender, out.baud))
+
+    def _arrive(self) -> None:
+        for frame in [o for o in self._wire if o.end <= self.now]:
+            self._wire.remove(frame)
+            data = frame.data if frame.baud == self.schedule.baud else bytes(len(frame.data))
+            # The reader thread hands the bytes over, and the driver runs, when the
+            # machine lets them: until then they wait in the port.
+            handed = self.now + self.late()
+            self._port.append((data, frame.end, handed))
+            self._driver_at = min(self._driver_at, handed)
+
+    # ------------------------------------------------------------ the driver
+
+    def _drive(self) -> None:
+        s = self.schedule
+        for data, at, _ in [p for p in self._port if p[2] <= self.now]:
+            s.receive(data, at)
+        self._port = [p for p in self._port if p[2] > self.now]
+        s.handle_timer(self.now, sum(len(p[0]) for p in self._port))
+        self._write(s.next_request(self.now))
+        self.events += s.take_events()
+        wake = s.next_wake(self.now)
+        # A schedule that asks to be woken now, again and again, for nothing, would spin
+        # the bus thread: that is a bug, and it fails the test here.
+        self._spins = self._spins + 1 if wake <= self.now else 0
+        assert self._spins < 1000, f"the schedule spins at {self.now:.6f} s"
+        self._driver_at = max(wake, self.now + 1e-6) + self.late()
+
+    def _write(self, request: Any) -> None:
+        if request is None:
+            return
+        if self._wire or any(o.solicited for o in self._queue):
+            self.overlaps += 1
+        self.writes.append((self.now, request.data))
+        heard_at = self.now + len(request.data) * char_time(self.schedule.baud)
+        for sensor in self.sensors:
+            data = request.data if sensor.baud == self.schedule.baud else \
+                bytes(len(request.data))
+            self._queue += sensor.hear(data, heard_at, after_silence=True)
+
+
+def jittery(seed: int, most: float) -> Callable[[], float]:
+    """A busy machine: each wake-up up to ``most`` seconds late, at random."""
+    rng = random.Random(seed)
+    return lambda: rng.uniform(0, most)
