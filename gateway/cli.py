@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 from . import __version__
+from .bus.timing import RTO_INITIAL
 from .decode import decode_all, to_json_line
 from .model import Protocol, Series
 from .protocol.modbus_rtu import UNIT_IDS
@@ -177,8 +178,10 @@ def build_parser() -> argparse.ArgumentParser:
                       help="only this baud rate (repeatable; default: all eight)")
     scan.add_argument("--address", type=_address, action="append",
                       help="only this address (repeatable; default: all)")
-    scan.add_argument("--margin-ms", type=_non_negative, default=30.0,
-                      help="wait this long beyond the wire time for an answer (default 30)")
+    scan.add_argument("--margin-ms", type=_non_negative, default=RTO_INITIAL * 1000,
+                      help="wait this long beyond the wire time for an answer (default "
+                      f"{RTO_INITIAL * 1000:g}: a slow sensor behind a USB adapter, the "
+                      "gateway's own first timeout)")
 
     sim = commands.add_parser(
         "simulate",

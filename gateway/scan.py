@@ -12,7 +12,10 @@ must not be running on it).  For each baud rate, most likely first:
   sensor that answers is read once more (the float block) to guess its series from
   which values are zero.
 
-Nothing is written to a sensor: only reads and the address query are sent.
+Nothing is written to a sensor: only reads and the address query are sent.  Each
+request waits its wire time plus ``margin`` for an answer: by default the gateway's own
+first timeout (``bus.timing.RTO_INITIAL``), generous enough for a sensor that answers
+40 ms late behind a USB adapter's 16 ms latency timer.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from typing import Any
 
 import serial
 
+from .bus.timing import RTO_INITIAL
 from .model import CAPABILITIES, Protocol, Series
 from .normalise import GROUP_FIELDS
 from .protocol import modbus_rtu as rtu
@@ -145,7 +149,7 @@ def scan_modbus(prober: Prober, units: Iterable[int]) -> Iterator[tuple[int, str
 
 
 def scan(port: str, protocols: Iterable[Protocol], bauds: Iterable[int],
-         addresses: Iterable[int] | None = None, margin: float = 0.03,
+         addresses: Iterable[int] | None = None, margin: float = RTO_INITIAL,
          progress: Callable[[str], None] | None = None) -> Iterator[Found]:
     """Every sensor that answers, as it is found.  Raises ``serial.SerialException``
     when the port cannot be opened."""

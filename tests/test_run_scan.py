@@ -83,7 +83,10 @@ def test_scan_tells_several_native_sensors_apart() -> None:
                make_sensor(Protocol.NATIVE, Series.VG, 2, baud=115200)]
     with simulated(sensors) as sim:
         done = subprocess.run(
-            gateway_cli("scan", "--port", sim.path, "--baud", "115200", "--protocol", "native"),
+            # 256 addresses are asked in turn: fast sensors, a short margin (the default
+            # margin is for slow ones: test_scan_finds_slow_sensors_with_its_defaults)
+            gateway_cli("scan", "--port", sim.path, "--baud", "115200", "--protocol", "native",
+                        "--margin-ms", "20"),
             capture_output=True, text=True, timeout=60, check=False)
     assert done.returncode == 0, done.stderr
     assert [line.split()[4] for line in done.stdout.splitlines()] == ["1", "2"]
@@ -115,6 +118,24 @@ def test_scan_finds_native_sensors_whose_address_answers_do_not_collide() -> Non
             capture_output=True, text=True, timeout=60, check=False)
     assert done.returncode == 0, done.stderr
     assert [line.split()[4] for line in done.stdout.splitlines()] == ["4", "9"]
+
+
+@pytest.mark.parametrize("protocol", ["native", "modbus"])
+def test_scan_finds_slow_sensors_with_its_defaults(protocol: str) -> None:
+    """Sensors that answer 35 ms late, and 5-40 ms late (jittered), behind defaults."""
+    first = 0 if protocol == "native" else 1
+    sensors = [make_sensor(Protocol[protocol.upper()], Series.AH, first + 4, baud=115200,
+                           answer_delay=0.035),
+               make_sensor(Protocol[protocol.upper()], Series.AH, first + 9, baud=115200,
+                           answer_delay=0.005, jitter=0.035, seed=3)]
+    with simulated(sensors) as sim:
+        done = subprocess.run(
+            gateway_cli("scan", "--port", sim.path, "--baud", "115200", "--protocol", protocol,
+                        *[f"--address={a}" for a in range(first, first + 12)]),
+            capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    assert [line.split()[4] for line in done.stdout.splitlines()] == \
+        [str(first + 4), str(first + 9)]
 
 
 def test_a_second_program_on_the_gateways_port_gets_a_clear_error() -> None:
