@@ -14,6 +14,11 @@ polls every sensor with ``poll_hz: 0``.  Printed per run:
 * a reference measured in the same run: a bare blocking pyserial loop polling the
   same simulator (the best it allows), and gateway/bare.
 
+The slow-sensor cases (``--no-slow`` leaves them out) play two sensors at 115200
+that answer 35 ms late, then 5-40 ms late (uniformly jittered), against the default
+config: the timeout is learned, not set.  Their ceiling counts the mean delay; their
+bare loop is told the answer length, so it waits exactly as long as needed.
+
 Run: ``.venv/bin/python bench/bus.py [--seconds 5] [--delay-ms 2]``; ``--protocol``,
 ``--baud`` and ``--sensors`` (each repeatable) run only some of the cases.
 """
@@ -41,6 +46,8 @@ class Case:
     protocol: str
     baud: int
     sensors: int
+    delay: float  # the sensors' answer delay, s
+    jitter: float = 0.0  # plus a uniform random 0..jitter, s
 
     def per_exchange(self, delay: float) -> float:
         """Seconds one poll takes at best: the wire, the gaps, the sensor's delay."""
@@ -77,9 +84,10 @@ def bare_loop(case: Case, port: str, seconds: float) -> float:
         return done / (time.perf_counter() - started)
 
 
-def start_simulator(case: Case, delay_ms: float) -> tuple[subprocess.Popen[str], str]:
+def start_simulator(case: Case) -> tuple[subprocess.Popen[str], str]:
     first = 0 if case.protocol == "native" else 1
-    args = [sys.executable, "-m", "gateway", "simulate", "--answer-delay-ms", str(delay_ms)]
+    args = [sys.executable, "-m", "gateway", "simulate", "--answer-delay-ms",
+            str(case.delay * 1000), "--jitter-ms", str(case.jitter * 1000)]
     for i in range(case.sensors):
         args += ["--sensor", f"{case.protocol}:AH:{first + i}:{case.baud}"]
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
@@ -109,10 +117,11 @@ async def measure(case: Case, port: str, seconds: float) -> dict[str, float]:
     await asyncio.sleep(seconds)
     t1, n1, busy1 = loop.time(), master.stats.transactions, master.stats.busy_time
     errors = sum(master.stats.errors.values())
+    late, stops = master.stats.late_answers, master.stats.stream_stops
     stop.set()
     await task
     return {"tps": (n1 - n0) / (t1 - t0), "utilisation": (busy1 - busy0) / (t1 - t0),
-            "errors": errors}
+            "errors": errors, "late": late, "stops": stops}
 
 
 def main() -> None:
@@ -126,30 +135,41 @@ def main() -> None:
                         help="run only this baud rate (repeatable; default: both)")
     parser.add_argument("--sensors", type=int, choices=(1, 4), action="append",
                         help="run only this sensor count (repeatable; default: both)")
+    parser.add_argument("--slow", action=argparse.BooleanOptionalAction, default=True,
+                        help="also the slow-sensor cases: two sensors at 115200 answering "
+                        "35 ms late, then 5-40 ms (jittered), with the default config")
     args = parser.parse_args()
     sys.setswitchinterval(GIL_SWITCH_INTERVAL)  # as `imu-gateway run` does
-    delay = args.delay_ms / 1000
-    cases = [Case(p, b, n) for p in args.protocol or ("native", "modbus")
+    protocols = args.protocol or ("native", "modbus")
+    cases = [Case(p, b, n, args.delay_ms / 1000) for p in protocols
              for b in args.baud or (9600, 115200) for n in args.sensors or (1, 4)]
-    print(f"bus master, poll_hz 0, AH sensors, answer delay {args.delay_ms} ms, "
-          f"{args.seconds} s per run, {os.cpu_count()} CPUs")
-    print(f"{'protocol':8} {'baud':>6} {'sensors':>7} {'tx/s':>8} {'wire max':>9} "
-          f"{'+delay max':>10} {'achieved/max':>12} {'utilisation':>11} {'errors':>6} "
-          f"{'bare loop':>9} {'gateway/bare':>12}")
+    if args.slow:
+        cases += [Case(p, 115200, 2, d, j) for p in protocols
+                  for d, j in ((0.035, 0.0), (0.005, 0.035))]
+    print(f"bus master, poll_hz 0, AH sensors, {args.seconds} s per run, "
+          f"{os.cpu_count()} CPUs")
+    print(f"{'protocol':8} {'baud':>6} {'sensors':>7} {'delay ms':>8} {'tx/s':>8} "
+          f"{'wire max':>9} {'+delay max':>10} {'achieved/max':>12} {'utilisation':>11} "
+          f"{'errors':>6} {'late':>5} {'stops':>5} {'bare loop':>9} {'gateway/bare':>12}")
     for case in cases:
-        proc, port = start_simulator(case, args.delay_ms)
-        try:
-            bare = bare_loop(case, port, args.seconds)
-            result = asyncio.run(measure(case, port, args.seconds))
-        finally:
-            proc.terminate()
-            proc.wait(10)
-        wire_max = 1 / case.per_exchange(0.0)
-        real_max = 1 / case.per_exchange(delay)
-        print(f"{case.protocol:8} {case.baud:6} {case.sensors:7} {result['tps']:8.1f} "
-              f"{wire_max:9.1f} {real_max:10.1f} {result['tps'] / real_max:12.3f} "
-              f"{result['utilisation']:11.3f} {result['errors']:6.0f} {bare:9.1f} "
-              f"{result['tps'] / bare:12.3f}", flush=True)
+        run_case(case, args.seconds)
+
+
+def run_case(case: Case, seconds: float) -> None:
+    proc, port = start_simulator(case)
+    try:
+        bare = bare_loop(case, port, seconds)
+        result = asyncio.run(measure(case, port, seconds))
+    finally:
+        proc.terminate()
+        proc.wait(10)
+    wire_max = 1 / case.per_exchange(0.0)
+    real_max = 1 / case.per_exchange(case.delay + case.jitter / 2)  # the mean delay
+    delay = f"{case.delay * 1000:g}" + (f"+{case.jitter * 1000:g}" if case.jitter else "")
+    print(f"{case.protocol:8} {case.baud:6} {case.sensors:7} {delay:>8} {result['tps']:8.1f} "
+          f"{wire_max:9.1f} {real_max:10.1f} {result['tps'] / real_max:12.3f} "
+          f"{result['utilisation']:11.3f} {result['errors']:6.0f} {result['late']:5.0f} "
+          f"{result['stops']:5.0f} {bare:9.1f} {result['tps'] / bare:12.3f}", flush=True)
 
 
 if __name__ == "__main__":
