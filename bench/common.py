@@ -48,6 +48,7 @@ buses:
         try:
             yield
         finally:
-            for proc in [*procs, simulator]:
+            running: list[subprocess.Popen[bytes] | subprocess.Popen[str]] = [*procs, simulator]
+            for proc in running:
                 proc.terminate()
                 proc.wait(10)

@@ -23,7 +23,7 @@ from typing import Any
 
 import paho.mqtt.client as paho
 from harness import free_port
-from paho.mqtt.enums import CallbackAPIVersion
+from paho.mqtt.enums import CallbackAPIVersion, MQTTProtocolVersion
 
 
 def find_mosquitto() -> str:
@@ -156,7 +156,8 @@ class Received:
 class Recorder:
     """A paho client that records every message of its subscriptions."""
 
-    def __init__(self, broker: Mosquitto, *topics: str, version: int = paho.MQTTv311,
+    def __init__(self, broker: Mosquitto, *topics: str,
+                 version: MQTTProtocolVersion = paho.MQTTv311,
                  username: str | None = None, password: str | None = None) -> None:
         self.client = paho.Client(CallbackAPIVersion.VERSION2, protocol=version)
         if username is not None:

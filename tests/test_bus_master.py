@@ -543,7 +543,7 @@ def test_kernel_rs485_mode_where_it_cannot_work_is_a_clear_error(port: str) -> N
     async def body(path: str) -> None:
         link = SerialLink(path, 9600, rs485=True)
         with pytest.raises(LinkError, match=r"RS-?485"):
-            await link.open(lambda data: None, lambda exc: None)
+            await link.open(lambda data, at: None, lambda exc: None)
         assert not link.is_open
 
     if port == "pty":

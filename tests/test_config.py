@@ -248,7 +248,7 @@ def test_effective_timeout_derived_from_baud(baud: int, expected: int) -> None:
 def test_models_are_frozen_and_dump_to_json_names() -> None:
     config = config_from_dict(base(), env={})
     with pytest.raises(ValueError, match="frozen"):
-        config.buses[0].sensors[0].poll_hz = 3  # type: ignore[misc]
+        config.buses[0].sensors[0].poll_hz = 3
     dumped = config.model_dump(mode="json")
     assert dumped["buses"][1]["protocol"] == "modbus"
     assert dumped["buses"][0]["sensors"][0]["series"] == "AH"

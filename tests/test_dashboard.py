@@ -12,6 +12,7 @@ Waits are deadlines on a condition.  Screenshots go to ``test-artifacts/``.
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import shutil
 import signal
@@ -183,12 +184,20 @@ def agrees(driver: Any, reading_url: str, sensor: str, token: str | None = None,
 
 def moves(driver: Any, sensor: str) -> dict[str, Any]:
     """The sensor's horizon once it has been drawn with two different pitches."""
-    first = wait(lambda: (s := shown(driver, sensor)) and s["horizon"] and
-                 "pitch" in s["horizon"] and s, f"{sensor}'s horizon is drawn")
+
+    def drawn() -> dict[str, Any] | None:
+        s = shown(driver, sensor)
+        return s if s and s["horizon"] and "pitch" in s["horizon"] else None
+
+    first = wait(drawn, f"{sensor}'s horizon is drawn")
     pitch, text = float(first["horizon"]["pitch"]), first["fields"]["pitch"]
-    return wait(lambda: (s := shown(driver, sensor)) and
-                abs(float(s["horizon"]["pitch"]) - pitch) > 0.01 and
-                s["fields"]["pitch"] != text and s, f"{sensor}'s pitch changes")
+
+    def changed() -> dict[str, Any] | None:
+        s = shown(driver, sensor)
+        return s if s and abs(float(s["horizon"]["pitch"]) - pitch) > 0.01 and \
+            s["fields"]["pitch"] != text else None
+
+    return wait(changed, f"{sensor}'s pitch changes")
 
 
 def test_the_dashboard_follows_the_sensors_the_buses_and_the_stream(tmp_path: Path) -> None:
@@ -206,7 +215,7 @@ def test_the_dashboard_follows_the_sensors_the_buses_and_the_stream(tmp_path: Pa
         with gateway(tmp_path, cfg) as base, chromium(tmp_path) as driver:
             driver.get(base + "/")
             for name in ("boom", "arm", "wrist"):
-                wait(lambda name=name: shown(driver, name), f"{name}'s card")
+                wait(functools.partial(shown, driver, name), f"{name}'s card")
 
             # The horizon and the values move with the sensor, and agree with REST.
             moves(driver, "boom")
@@ -222,14 +231,19 @@ def test_the_dashboard_follows_the_sensors_the_buses_and_the_stream(tmp_path: Pa
 
             arm_state = moves(driver, "arm")  # VG: angles, accel, gyro, quaternion; no mag
             assert "q3" in arm_state["fields"] and "mag_x" not in arm_state["fields"]
-            wrist_state = wait(lambda: (s := shown(driver, "wrist")) and "accel_z" in s["fields"]
-                               and s, "wrist's values")
+
+            def wrist_values() -> dict[str, Any] | None:
+                s = shown(driver, "wrist")
+                return s if s and "accel_z" in s["fields"] else None
+
+            wrist_state = wait(wrist_values, "wrist's values")
             assert wrist_state["noAttitude"] and wrist_state["horizon"] is None
             assert "pitch" not in wrist_state["fields"]  # IMU: no angles
 
             # Each bus's health, from GET /api/v1/buses.
             for name, protocol, sensors in (("a", "native", "boom"), ("b", "modbus", "arm")):
-                text = wait(lambda name=name: driver.execute_script(
+                text = wait(functools.partial(
+                    driver.execute_script,
                     "const b = document.querySelector(`[data-bus=\"${arguments[0]}\"]`);"
                     "return b && b.textContent.includes('port open') && b.innerText;", name),
                     f"bus {name}'s health")

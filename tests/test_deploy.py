@@ -31,6 +31,7 @@ import yaml
 from broker import Mosquitto
 from harness import free_port
 from paho.mqtt.enums import CallbackAPIVersion
+from paho.mqtt.reasoncodes import ReasonCode
 
 from gateway.cli import build_parser
 from gateway.config import GatewayConfig, load_config
@@ -456,9 +457,10 @@ class Client:
         if user is not None:
             self.client.username_pw_set(user, f"demo-{user}")
         connected, subscribed = threading.Event(), threading.Event()
-        self.reason: Any = None
+        self.reason: ReasonCode | None = None
 
-        def on_connect(client: paho.Client, _u: Any, _f: Any, reason: Any, _p: Any) -> None:
+        def on_connect(client: paho.Client, _u: Any, _f: Any, reason: ReasonCode,
+                       _p: Any) -> None:
             self.reason = reason
             connected.set()
             for topic in subscribe:
@@ -474,6 +476,7 @@ class Client:
         self.client.connect("127.0.0.1", broker.port)
         self.client.loop_start()
         assert connected.wait(10)
+        assert self.reason is not None
         if subscribe and not self.reason.is_failure:
             assert subscribed.wait(10)
 
@@ -501,6 +504,7 @@ def test_broker_acl_gateway_publishes_dashboard_reads_operator_commands(
     try:
         anonymous = Client(broker, None)
         clients.append(anonymous)
+        assert anonymous.reason is not None
         assert anonymous.reason.is_failure  # allow_anonymous false
         gateway = Client(broker, "gateway", "imu/+/+/cmd/#")
         dashboard = Client(broker, "dashboard", "imu/#", "homeassistant/#")

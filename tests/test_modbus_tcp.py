@@ -28,7 +28,7 @@ from pymodbus.exceptions import ModbusException
 
 from gateway.app import Gateway
 from gateway.model import Protocol, Series
-from gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
+from gateway.simulator import Faults, ModbusSensor, SimSensor, hold, make_sensor, simulated
 from gateway.simulator.motion import Motion
 
 FAST = 115200
@@ -183,13 +183,21 @@ async def registers(client: AsyncModbusTcpClient, unit: int, address: int, count
 
 
 def floats(client: AsyncModbusTcpClient, words: list[int]) -> list[float]:
-    return [float(client.convert_from_registers(words[i:i + 2], client.DATATYPE.FLOAT32))
-            for i in range(0, len(words), 2)]
+    values: list[float] = []
+    for i in range(0, len(words), 2):
+        value = client.convert_from_registers(words[i:i + 2], client.DATATYPE.FLOAT32)
+        assert isinstance(value, int | float), value
+        values.append(float(value))
+    return values
 
 
 def int32s(client: AsyncModbusTcpClient, words: list[int]) -> list[int]:
-    return [int(client.convert_from_registers(words[i:i + 2], client.DATATYPE.INT32))
-            for i in range(0, len(words), 2)]
+    values: list[int] = []
+    for i in range(0, len(words), 2):
+        value = client.convert_from_registers(words[i:i + 2], client.DATATYPE.INT32)
+        assert isinstance(value, int), value
+        values.append(value)
+    return values
 
 
 async def error_code(call: Awaitable[Any]) -> int | None:
@@ -578,7 +586,8 @@ def test_malformed_mbap_closes_that_connection_only() -> None:
     async def body() -> None:
         async with two_protocols() as (gw, _, _), pymodbus_client(port_of(gw)) as client:
             port = port_of(gw)
-            stop, results = asyncio.Event(), []
+            stop = asyncio.Event()
+            results: list[bool] = []
             healthy = asyncio.create_task(read_forever(client, 1, stop, results))
             bystander = await Raw.connect(port)
             try:
@@ -591,7 +600,11 @@ def test_malformed_mbap_closes_that_connection_only() -> None:
                     await bad.close()
                     # the others keep their answers
                     assert (await bystander.ask(1, read(4, 200, 2)))[:2] == b"\x04\x04", what
-                    await until(lambda mark=mark: len(results) > mark + 2)
+
+                    def grown(mark: int = mark) -> bool:
+                        return len(results) > mark + 2
+
+                    await until(grown)
             finally:
                 stop.set()
                 await healthy
@@ -707,6 +720,7 @@ def test_silent_sensor_sets_the_status_bits_then_writes_answer_0b() -> None:
 def test_passthrough_unit_reaches_the_modbus_sensors_own_registers() -> None:
     faults = Faults()
     vg = sensor(Protocol.MODBUS, Series.VG, 1, source=hold(READING), faults=faults)
+    assert isinstance(vg, ModbusSensor)
     with simulated([vg]) as line:
         cfg = config([bus("line", line.path, "modbus", [
             {"name": "vg", "series": "VG", "address": 1, "unit_id": 2, "raw_unit_id": 50,
@@ -772,6 +786,7 @@ def test_passthrough_never_answers_with_another_requests_answer() -> None:
     # answer arrives while the next request is on the bus.  A pass-through read of N
     # registers must never come back with the answer to a read of M != N registers.
     vg = sensor(Protocol.MODBUS, Series.VG, 1, source=hold(READING), answer_delay=0.15)
+    assert isinstance(vg, ModbusSensor)
     with simulated([vg]) as line:
         cfg = config([bus("line", line.path, "modbus", [
             {"name": "vg", "series": "VG", "address": 1, "raw_unit_id": 50,
@@ -933,7 +948,8 @@ def test_fuzzed_frames_leave_a_well_behaved_client_served(
     async def body() -> None:
         async with two_protocols() as (gw, ah, vg), pymodbus_client(port_of(gw)) as client:
             port = port_of(gw)
-            stop, results = asyncio.Event(), []
+            stop = asyncio.Event()
+            results: list[bool] = []
             good = [asyncio.create_task(read_forever(client, unit, stop, results))
                     for unit in (1, 2)]
             mark = len(results)

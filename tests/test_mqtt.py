@@ -96,7 +96,8 @@ def test_state_json_carries_the_simulators_values(tmp_path: Path) -> None:
 
         async def body() -> None:
             async with running(cfg):
-                await until(lambda: rec.on(f"{BASE}/boom/state") and rec.on(f"{BASE}/arm/state"))
+                await until(lambda: bool(rec.on(f"{BASE}/boom/state")
+                                         and rec.on(f"{BASE}/arm/state")))
 
         run(body)
         for name, sim, protocol in (("boom", ah, Protocol.NATIVE),
@@ -231,7 +232,8 @@ def test_command_round_trip(tmp_path: Path, version: str,
                 assert result["ok"] is True and ah.settings.zero_type == "relative"
 
                 if version == "5":
-                    props = Properties(PacketTypes.PUBLISH)
+                    # paho's Properties.__init__ is unannotated
+                    props = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
                     props.ResponseTopic = "replies/me"
                     props.CorrelationData = b"req-42"
                     result = await ask(f"{cmd}/read_settings", "", properties=props,
@@ -259,8 +261,8 @@ def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
     ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
     vg = sensor(Protocol.NATIVE, Series.VG, address=1, source=hold(READING))
     with Mosquitto(tmp_path) as broker, simulated([ah, vg]) as line:
-        both = [{"name": "boom", "series": "AH"},
-                {"name": "arm", "series": "VG", "address": 1}]
+        both: list[dict[str, Any]] = [{"name": "boom", "series": "AH"},
+                                      {"name": "arm", "series": "VG", "address": 1}]
         cfg = config([bus("a", line.path, "native", both)], broker,
                      homeassistant_discovery=True)
 
@@ -430,7 +432,7 @@ def test_tls_with_a_test_ca_client_certificate_and_password(
         async def body() -> None:
             async with running(config(buses, broker, **_secure(tls)),
                                env={"MQTT_PASSWORD": "s3cret"}):
-                await until(lambda: rec.on(f"{BASE}/boom/state"))
+                await until(lambda: bool(rec.on(f"{BASE}/boom/state")))
             # A wrong password: the broker's reason, once.
             async with running(config(buses, broker, **_secure(tls)),
                                env={"MQTT_PASSWORD": "wrong"}) as gateway:
@@ -481,7 +483,7 @@ def test_min_interval_deadband_and_per_field_topics(tmp_path: Path) -> None:
             # min_interval: at most one message per 400 ms, however fast the polls.
             async with running(config(buses, broker, min_interval_ms=400,
                                       per_field_topics=True)) as gateway:
-                await until(lambda: rec.on(f"{BASE}/boom/state"))
+                await until(lambda: bool(rec.on(f"{BASE}/boom/state")))
                 first_seq = gateway.cache.snapshot("boom").seq
                 start = asyncio.get_running_loop().time()
                 rec.clear()
@@ -493,14 +495,14 @@ def test_min_interval_deadband_and_per_field_topics(tmp_path: Path) -> None:
                 assert 1 <= sent <= elapsed / 0.4 + 1
                 # per_field_topics: plain numbers equal to the state JSON's.
                 last = fields_of(state(rec.on(f"{BASE}/boom/state")[-1]))
-                await until(lambda: rec.on(f"{BASE}/boom/q3"))
+                await until(lambda: bool(rec.on(f"{BASE}/boom/q3")))
                 for name in FIELDS:
                     assert float(rec.last(f"{BASE}/boom/{name}").text) == last[name]  # type: ignore[union-attr]
 
             # deadband: a still sensor sends one message; a move past the band, another.
             rec.clear()
             async with running(config(buses, broker, deadband={"angles": 1.0})) as gateway:
-                await until(lambda: rec.on(f"{BASE}/boom/state"))
+                await until(lambda: bool(rec.on(f"{BASE}/boom/state")))
                 seq = gateway.cache.snapshot("boom").seq
                 await until(lambda: gateway.cache.snapshot("boom").seq > seq + 20)
                 assert len(rec.on(f"{BASE}/boom/state")) == 1
@@ -615,8 +617,11 @@ def test_a_connection_that_worked_resets_the_reconnect_back_off(tmp_path: Path) 
                     broker.stop()
                     await until(lambda: not mqtt.connected)
                     broker.start()
+
+                    def reconnected(r: int = restart) -> bool:
+                        return mqtt.counters.connects == r + 1
+
                     # 0.5 s each time; without the reset the fifth would wait 8 s
-                    await until(lambda r=restart: mqtt.counters.connects == r + 1,
-                                timeout=4)
+                    await until(reconnected, timeout=4)
 
         run(body)

@@ -21,7 +21,7 @@ from gateway.model import Angles, Protocol, Quaternion, Reading, Series, Vector3
 from gateway.protocol import modbus_rtu as rtu
 from gateway.protocol import native
 from gateway.protocol.exchanges import char_time, rtu_silence
-from gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
+from gateway.simulator import Faults, SimSensor, SimulatorThread, hold, make_sensor, simulated
 
 ZERO = Reading(
     Angles(0, 0, 0), Vector3(0, 0, 1), Vector3(0, 0, 0), Vector3(0, 0, 0), Quaternion(1, 0, 0, 0)
@@ -35,10 +35,16 @@ def reading_with(values: dict[str, float]) -> Reading:
     return to_reading({**field_values(ZERO), **values}, Series.AH) or ZERO
 
 
+class SimPort(serial.Serial):
+    """A port on a simulated line, with that line's simulator as ``sim``."""
+
+    sim: SimulatorThread
+
+
 @contextmanager
-def line(*sensors: SimSensor, baud: int = 9600, **options: Any) -> Iterator[serial.Serial]:
-    with simulated(sensors, **options) as sim, serial.Serial(sim.path, baud, timeout=1) as port:
-        port.sim = sim  # type: ignore[attr-defined]
+def line(*sensors: SimSensor, baud: int = 9600, **options: Any) -> Iterator[SimPort]:
+    with simulated(sensors, **options) as sim, SimPort(sim.path, baud, timeout=1) as port:
+        port.sim = sim
         yield port
     assert sim.bus.stats.internal_errors == 0
 
