@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import logging
 import math
 import signal
@@ -356,6 +357,12 @@ def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
         for sensor in sensors:
             print(f"sensor {sensor.name} at {sensor.baud} baud", file=sys.stderr, flush=True)
         await bus.serve(stop)
+        # What the line saw, for whoever drove it (a benchmark, a test, a curious user).
+        stats = bus.stats
+        summary = {"requests_bytes": stats.requests_bytes, "answer_frames": stats.answer_frames,
+                   "overlaps": stats.overlaps, "collisions": stats.collisions,
+                   "writes_heard": {s.name: dict(s.writes_heard) for s in sensors}}
+        print(f"simulate: stopped: {json.dumps(summary)}", file=sys.stderr, flush=True)
 
     asyncio.run(main())
     return 0

@@ -34,6 +34,7 @@ The rules, each in one place:
 from __future__ import annotations
 
 import logging
+import math
 from collections import deque
 from typing import Any
 
@@ -74,16 +75,23 @@ ARRIVING_GRACE = 0.05
 def stream_wait(now: float, needs: float, last_end: float, period: float,
                 frame: float) -> float:
     """When an exchange of ``needs`` seconds may start next to a stream whose frames
-    take ``frame`` seconds every ``period``, the last ending at ``last_end``."""
-    margin = min(0.02, period / 10) + MIN_QUIET  # the frame's own timing wobbles
-    next_end = last_end + period
-    if now > next_end + period / 2:
-        return now  # frames are missing: do not hold the line for them
+    take ``frame`` seconds every ``period``, the last one seen ending at ``last_end``.
+
+    The stream keeps its phase: a frame that was lost (garbled, or dropped by the
+    port) does not make the next one come at another time, so the frames are expected
+    at ``last_end + k·period``.  A frame due but not seen yet is given ``margin`` to
+    arrive before the line is taken."""
+    margin = min(0.02, period / 10) + MIN_QUIET  # the frames' own timing wobbles
+    k = max(1, math.ceil((now - last_end) / period))
+    due = last_end + (k - 1) * period  # the latest frame that should have ended by now
+    if k > 1 and now < due + margin:
+        return due + margin  # it may still be coming in
+    next_end = due + period
     if now + needs + margin <= next_end - frame:
         return now  # fits before the next frame
-    if needs + margin > period - frame and now - last_end <= margin:
+    if needs + margin > period - frame and now - due <= margin:
         return now  # never fits a pause: right after a frame is the least harm
-    return next_end if now < next_end else next_end + period / 2
+    return next_end  # in the pause after the next frame (its arrival wakes us sooner)
 
 
 class Schedule:

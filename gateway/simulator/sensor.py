@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 import random
 from abc import ABC, abstractmethod
+from collections import Counter
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -76,6 +77,9 @@ class SimSensor(ABC):
     next_stream: float = 0.0
     gyro_cal_done_at: float | None = None
     requests_heard: int = 0
+    #: every write it heard addressed to it (settings, stream set-up or stop), by name:
+    #: what lets a test say the gateway wrote nothing nobody asked for
+    writes_heard: Counter[str] = field(default_factory=Counter)
     last_answer_end: float = 0.0  # when this sensor's latest answer leaves the wire
     rng: random.Random = field(init=False)
 
@@ -183,6 +187,8 @@ class SimSensor(ABC):
             if self.busy(now):
                 continue  # save in progress: deaf
             self.requests_heard += 1
+            if (write := self._write_name(message)) is not None:
+                self.writes_heard[write] += 1
             # Drops are decided per message, before the next one is handled: the next
             # answer queues behind this one only if this one is really sent.
             for o in self._handle(message, now):
@@ -231,6 +237,10 @@ class SimSensor(ABC):
 
     @abstractmethod
     def _handle(self, message: Any, now: float) -> list[Outgoing]: ...
+
+    @abstractmethod
+    def _write_name(self, message: Any) -> str | None:
+        """The name of the write ``message`` is, if it is one addressed to this sensor."""
 
     @abstractmethod
     def _stream_frame(self, now: float) -> list[Outgoing]: ...
@@ -289,6 +299,12 @@ class NativeSensor(SimSensor):
         assert shape is not None
         values = field_values(self.measure(now))
         return {f.name: _clamp(f.name, values.get(f.name, 0.0)) for f in shape.fields}
+
+    def _write_name(self, message: native.NativeMessage) -> str | None:
+        command = _REQUESTS[message.shape.key]
+        if message.address != self.address or command.name.startswith("read_"):
+            return None
+        return command.name
 
     def _handle(self, message: native.NativeMessage, now: float) -> list[Outgoing]:
         command = _REQUESTS[message.shape.key]
@@ -402,6 +418,13 @@ class ModbusSensor(SimSensor):
 
     def _silence(self) -> float:
         return rtu_silence(self.baud)
+
+    def _write_name(self, message: rtu.RtuMessage) -> str | None:
+        if message.unit not in (self.address, 0):
+            return None
+        if isinstance(message, rtu.WriteRegister | rtu.WriteRegisters):
+            return f"register 0x{message.address:02X}"
+        return None
 
     def _handle(self, message: rtu.RtuMessage, now: float) -> list[Outgoing]:
         if message.unit not in (self.address, 0):

@@ -1,0 +1,176 @@
+"""The gateway on a busy machine: does it keep the bus's rules when the CPU is taken?
+
+Beside it run ``--burners`` processes that spin (CPU burners, like ``stress-ng --cpu``)
+and ``--chatty`` processes that wake a few thousand times a second, so the
+scheduler is busy as well as the cores.  Each line's simulated sensors run in a
+process of their own (like real sensors, they share no interpreter with the gateway),
+the gateway in its own (``imu-gateway run``), on three lines:
+
+* ``slow``: native at 115200, two AH and a VG answering 5-40 ms late (jittered), all
+  polled flat out;
+* ``modbus``: Modbus RTU at 115200, two AH answering 5-40 ms late, flat out;
+* ``stream``: native at 460800, a MINS streaming at 100 Hz and an AH polled at 10 Hz
+  between its frames.
+
+Printed at the end, per sensor: readings, offline events, late answers and learned
+timeout, and what the simulator saw: overlaps (a request sent while a sensor was
+answering), collisions (two senders at once) and writes nobody asked for (anything
+but the stream set-up of the streaming MINS).  Exit 1 if any rule was broken: a live
+sensor reported offline, a stream invented, a write unasked, an overlap or a
+collision.
+
+Run: ``.venv/bin/python bench/busy.py [--seconds 60] [--burners 4] [--chatty 2]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from common import free_port
+
+BURN = "while True: pass"
+CHATTY = "import time\nwhile True:\n    time.sleep(0.0003)\n    sum(range(300))"
+STREAM_SETUP = {"set_output_type", "set_output_rate"}
+
+
+@dataclass(frozen=True)
+class Line:
+    baud: int
+    protocol: str
+    simulate: tuple[str, ...]  # the simulator's options besides --sensor
+    sensors: tuple[tuple[str, str, int, str], ...]  # name, series, address, config extra
+
+
+LINES = {
+    "slow": Line(115200, "native", ("--answer-delay-ms", "5", "--jitter-ms", "35"), (
+        ("n1", "AH", 1, "poll_hz: 0"), ("n2", "AH", 2, "poll_hz: 0"),
+        ("n3", "VG", 3, "poll_hz: 0"))),
+    "modbus": Line(115200, "modbus", ("--answer-delay-ms", "5", "--jitter-ms", "35"), (
+        ("m1", "AH", 1, "poll_hz: 0"), ("m2", "AH", 2, "poll_hz: 0"))),
+    "stream": Line(460800, "native", (), (
+        ("s1", "MINS", 1, "stream_hz: 100"), ("s2", "AH", 2, "poll_hz: 10"))),
+}
+
+
+@contextlib.contextmanager
+def simulator(line: Line, seed: int) -> Iterator[tuple[str, subprocess.Popen[str]]]:
+    """``imu-gateway simulate`` for one line, in a process of its own."""
+    args = [sys.executable, "-m", "gateway", "simulate", "--seed", str(seed), *line.simulate]
+    for _, series, address, _ in line.sensors:
+        args += ["--sensor", f"{line.protocol}:{series}:{address}:{line.baud}"]
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    try:
+        yield proc.stdout.readline().split()[1], proc
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
+            proc.wait(30)
+
+
+def stopped(proc: subprocess.Popen[str]) -> dict[str, Any]:
+    """Stop a simulator; what it says it saw."""
+    proc.terminate()
+    _, err = proc.communicate(timeout=30)
+    line = next(x for x in err.splitlines() if x.startswith("simulate: stopped: "))
+    summary: dict[str, Any] = json.loads(line.removeprefix("simulate: stopped: "))
+    return summary
+
+
+@contextlib.contextmanager
+def load(burners: int, chatty: int) -> Iterator[None]:
+    procs = [subprocess.Popen([sys.executable, "-c", code])
+             for code in [BURN] * burners + [CHATTY] * chatty]
+    try:
+        yield
+    finally:
+        for proc in procs:
+            proc.kill()
+            proc.wait()
+
+
+def get(port: int, path: str) -> Any:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=30) as answer:
+        return json.loads(answer.read())
+
+
+def config_yaml(ports: dict[str, str], http: int) -> str:
+    out = "buses:\n"
+    for name, line in LINES.items():
+        sensors = ", ".join(f"{{name: {n}, series: {series}, address: {a}, {extra}}}"
+                            for n, series, a, extra in line.sensors)
+        out += (f"  - {{name: {name}, port: {ports[name]}, baudrate: {line.baud}, "
+                f"protocol: {line.protocol}, sensors: [{sensors}]}}\n")
+    return out + f"http: {{listen: '127.0.0.1:{http}'}}\n"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--burners", type=int, default=4)
+    parser.add_argument("--chatty", type=int, default=2)
+    args = parser.parse_args()
+    with contextlib.ExitStack() as stack, tempfile.TemporaryDirectory() as tmp:
+        sims = {name: stack.enter_context(simulator(line, seed))
+                for seed, (name, line) in enumerate(LINES.items())}
+        http = free_port()
+        config = Path(tmp) / "busy.yaml"
+        config.write_text(config_yaml({n: port for n, (port, _) in sims.items()}, http))
+        log = Path(tmp) / "gateway.log"
+        stack.enter_context(load(args.burners, args.chatty))
+        with log.open("w") as out:
+            gateway = subprocess.Popen([sys.executable, "-m", "gateway", "run", "-c",
+                                        str(config)], stderr=out)
+            try:
+                time.sleep(args.seconds)  # the measurement's length, not a wait for an event
+                sensors, buses = get(http, "/api/v1/sensors"), get(http, "/api/v1/buses")
+            finally:
+                gateway.terminate()
+                gateway.wait(30)
+        seen = {name: stopped(proc) for name, (_, proc) in sims.items()}
+        return report(seen, sensors, buses, log.read_text(), args)
+
+
+def report(seen: dict[str, dict[str, Any]], sensors: list[dict[str, Any]],
+           buses: list[dict[str, Any]], log: str, args: argparse.Namespace) -> int:
+    timing = {n: t for b in buses for n, t in b["timing"].items()}
+    readings = {s["name"]: s["seq"] for s in sensors}
+    print(f"{args.seconds:g} s, {args.burners} CPU burners, {args.chatty} chatty processes")
+    print(f"{'sensor':6} {'line':7} {'readings':>8} {'offline':>7} {'late':>5} "
+          f"{'latency ms':>10} {'timeout ms':>10} {'unasked writes':>14}")
+    broken = 0
+    for line_name, line in LINES.items():
+        writes = list(seen[line_name]["writes_heard"].values())
+        for (name, _, _, extra), heard in zip(line.sensors, writes, strict=True):
+            unasked = {k: v for k, v in heard.items()
+                       if not (extra.startswith("stream_hz") and k in STREAM_SETUP)}
+            offline = sum(f"sensor {name}: offline" in row for row in log.splitlines())
+            t = timing[name]
+            print(f"{name:6} {line_name:7} {readings[name]:8} {offline:7} "
+                  f"{t['late_answers']:5} {t['latency_ms'] or 0:10.1f} {t['timeout_ms']:10.1f} "
+                  f"{sum(unasked.values()):14}")
+            broken += offline + sum(unasked.values()) + (readings[name] == 0)
+    for line_name, stats in seen.items():
+        print(f"line {line_name}: overlaps {stats['overlaps']}, "
+              f"collisions {stats['collisions']}")
+        broken += stats["overlaps"] + stats["collisions"]
+    invented = log.count("streams though stream_hz is 0")
+    print(f"streams invented: {invented}")
+    broken += invented
+    print("rules kept" if not broken else f"RULES BROKEN ({broken})")
+    return 0 if not broken else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
