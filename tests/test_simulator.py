@@ -22,6 +22,7 @@ from gateway.protocol import modbus_rtu as rtu
 from gateway.protocol import native
 from gateway.protocol.exchanges import char_time, rtu_silence
 from gateway.simulator import Faults, SimSensor, SimulatorThread, hold, make_sensor, simulated
+from gateway.simulator.bus import BusStats
 
 ZERO = Reading(
     Angles(0, 0, 0), Vector3(0, 0, 1), Vector3(0, 0, 0), Vector3(0, 0, 0), Quaternion(1, 0, 0, 0)
@@ -401,6 +402,7 @@ def test_cli_simulate_gives_every_sensor_the_delay_and_jitter(
     class Bus:
         def __init__(self, sensors: list[SimSensor], **_: Any) -> None:
             built.extend(sensors)
+            self.stats = BusStats()
 
         def open(self) -> str:
             return "/dev/null"
