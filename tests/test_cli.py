@@ -125,11 +125,21 @@ def test_simulate_prints_pty_first_and_stops_cleanly_on_sigint() -> None:
             port.write(native.encode_request("read_all"))
             answer = native.decode(port.read(57))
             assert answer.name == "read_all" and -90 <= answer.values["pitch"] <= 90
+            port.write(native.encode_request("set_output_rate", rate_hz=0))  # a write
+            assert len(port.read(6)) == 6
         proc.send_signal(signal.SIGINT)
         try:
             assert proc.wait(10) == 0, proc.stderr.read() if proc.stderr else ""
         finally:
             proc.kill()
+        # what the line saw, for whoever drove it
+        assert proc.stderr is not None
+        said = proc.stderr.read().splitlines()[-1]
+        assert said.startswith("simulate: stopped: ")
+        seen = json.loads(said.removeprefix("simulate: stopped: "))
+        assert seen["overlaps"] == seen["collisions"] == 0 and seen["answer_frames"] == 2
+        assert seen["writes_heard"] == {"native:AH@0": {"set_output_rate": 1},
+                                        "modbus:VG@3": {}}
 
 
 def test_decode_bad_read_count_is_one_clear_line() -> None:
