@@ -6,7 +6,7 @@ import asyncio
 import signal
 import subprocess
 import sys
-import time
+import threading
 from pathlib import Path
 
 import pytest
@@ -40,9 +40,22 @@ buses:
 """)
         with subprocess.Popen(gateway_cli("run", "-c", str(config)), stderr=subprocess.PIPE,
                               text=True) as proc:
-            time.sleep(4)  # several back-off rounds of the silent sensor
-            proc.send_signal(sig)
-            _, err = proc.communicate(timeout=20)
+            # Wait for the event (the silent sensor called offline), not for a time;
+            # a watchdog ends a gateway that never says it.
+            watchdog = threading.Timer(60, proc.kill)
+            watchdog.start()
+            assert proc.stderr is not None
+            lines = []
+            try:
+                for line in proc.stderr:
+                    lines.append(line)
+                    if "sensor cab: offline" in line:
+                        break
+                proc.send_signal(sig)
+                _, rest = proc.communicate(timeout=20)
+            finally:
+                watchdog.cancel()
+            err = "".join(lines) + rest
         assert proc.returncode == 0, err
         assert sim.bus.stats.overlaps == 0
     assert err.count("sensor boom: online") == 1

@@ -79,17 +79,18 @@ def stream_wait(now: float, needs: float, last_end: float, period: float,
 
     The stream keeps its phase: a frame that was lost (garbled, or dropped by the
     port) does not make the next one come at another time, so the frames are expected
-    at ``last_end + k·period``.  A frame due but not seen yet is given ``margin`` to
-    arrive before the line is taken."""
+    at ``last_end + k·period``.  A frame due but not seen yet is given half a period
+    to arrive (a busy machine, or a sensor's own clock, makes frames late) before it
+    is taken for lost and the line is used."""
     margin = min(0.02, period / 10) + MIN_QUIET  # the frames' own timing wobbles
     k = max(1, math.ceil((now - last_end) / period))
     due = last_end + (k - 1) * period  # the latest frame that should have ended by now
-    if k > 1 and now < due + margin:
-        return due + margin  # it may still be coming in
+    if k > 1 and now < due + period / 2:
+        return due + period / 2  # it may still be coming in
     next_end = due + period
     if now + needs + margin <= next_end - frame:
         return now  # fits before the next frame
-    if needs + margin > period - frame and now - due <= margin:
+    if needs + margin > period - frame and now - due <= margin and k == 1:
         return now  # never fits a pause: right after a frame is the least harm
     return next_end  # in the pause after the next frame (its arrival wakes us sooner)
 
