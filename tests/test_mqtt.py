@@ -400,6 +400,7 @@ def test_the_broker_says_offline_when_the_gateway_goes(tmp_path: Path, how: str)
         finally:
             if gateway.poll() is None:
                 gateway.kill()
+            gateway.wait()  # reaped, whatever happened: no process outlives its test
         rec.wait(lambda: rec.last(f"{BASE}/status") is not None
                  and rec.last(f"{BASE}/status").text == "offline")  # type: ignore[union-attr]
         if how == "interrupted":
