@@ -24,7 +24,6 @@ import contextlib
 import difflib
 import ipaddress
 import json
-import math
 import os
 import re
 import socket
@@ -80,11 +79,6 @@ ADDRESS_RANGE: Mapping[Protocol, tuple[int, int]] = {
 DEFAULT_ADDRESS: Mapping[Protocol, int] = {Protocol.NATIVE: 0, Protocol.MODBUS: 1}
 UNIT_ID_RANGE = (1, 247)
 
-# The default per-attempt timeout: 30 characters of wire time plus 10 ms, at least 20 ms.
-BITS_PER_CHAR = 10  # 8N1
-TIMEOUT_CHARS = 30
-TIMEOUT_SLACK_MS = 10
-TIMEOUT_MIN_MS = 20
 
 #: pyserial's URL handlers (serial.serial_for_url).
 PYSERIAL_SCHEMES = ("socket", "rfc2217", "loop", "spy", "alt", "hwgrep", "cp2110")
@@ -426,8 +420,9 @@ class BusConfig(_Model):
     protocol: ProtocolField = Field(description="`native` or `modbus` (any case)")
     timeout_ms: PositiveInt | None = Field(default=None, description=(
         "> 0; how long to wait for an answer per attempt, on top of the wire time of the "
-        "request and the answer"),
-        json_schema_extra={_SHOWN_DEFAULT: "null: derived from `baudrate` (below)"})
+        "request and the answer, for every sensor of the bus. Leave it out: each "
+        "sensor's timeout is then learned from its answers"),
+        json_schema_extra={_SHOWN_DEFAULT: "null: learned per sensor (below)"})
     retries: Annotated[int, _between(0, 10)] = Field(default=1, description=(
         "0-10; attempts after the first before an exchange counts as failed"))
     rs485: bool = Field(default=False, description=(
@@ -439,16 +434,6 @@ class BusConfig(_Model):
     @classmethod
     def _default_addresses(cls, data: Any) -> Any:
         return _fill_bus_defaults(data)
-
-    def effective_timeout_ms(self) -> int:
-        """Per-attempt answer timeout, on top of the transaction's wire time: ``timeout_ms``
-        when given, else ``max(20, round(30 characters of wire time in ms) + 10)`` with a
-        character 10 bits and rounding half up (135 ms at 2400 baud, 41 ms at 9600, 26 ms
-        at 19200, 20 ms from 38400 up)."""
-        if self.timeout_ms is not None:
-            return self.timeout_ms
-        wire_ms = TIMEOUT_CHARS * BITS_PER_CHAR * 1000 / self.baudrate
-        return max(TIMEOUT_MIN_MS, math.floor(wire_ms + 0.5) + TIMEOUT_SLACK_MS)  # half up
 
 
 class ModbusConfig(_Model):

@@ -19,8 +19,8 @@ from typing import Annotated, Any, Literal, Union, get_args, get_origin
 from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 
+from .bus.timing import RTO_INITIAL, RTO_MAX, RTO_MIN
 from .config import (
-    BAUD_RATES,
     BusConfig,
     GatewayConfig,
     HttpConfig,
@@ -131,16 +131,6 @@ def table(model: type[BaseModel]) -> list[str]:
     return lines
 
 
-def _timeout_table() -> list[str]:
-    rates = list(BAUD_RATES)
-    timeouts = [BusConfig.model_construct(baudrate=b).effective_timeout_ms() for b in rates]
-    return [
-        "| baud | " + " | ".join(map(str, rates)) + " |",
-        "|---|" + "---|" * len(rates),
-        "| default timeout, ms | " + " | ".join(map(str, timeouts)) + " |",
-    ]
-
-
 def markdown() -> str:
     """``docs/config-reference.md``."""
     lines = [
@@ -160,12 +150,11 @@ def markdown() -> str:
         if model is BusConfig:
             lines += [
                 "",
-                "Without `timeout_ms`, the timeout per attempt is 30 characters of wire time "
-                "plus 10 ms, at least 20 ms (a character is 10 bits, 8N1; rounded half up): "
-                "`max(20, round(30 × 10 × 1000 / baudrate) + 10)`. "
-                "`BusConfig.effective_timeout_ms()` returns it.",
-                "",
-                *_timeout_table(),
+                "Without `timeout_ms`, each sensor's timeout is learned from its answers "
+                "(RFC 6298: smoothed latency + 4 deviations, "
+                f"{RTO_MIN * 1000:g}-{RTO_MAX * 1000:g} ms, {RTO_INITIAL * 1000:g} ms "
+                "before its first answer); see [bus-master.md](bus-master.md#the-timing-rule-"
+                "how-long-to-wait-for-an-answer).",
             ]
     return "\n".join(lines) + "\n"
 

@@ -234,15 +234,9 @@ def test_ca_file_with_mqtts(tmp_path: Path) -> None:
     assert config.mqtt is not None and config.mqtt.ca_file == str(ca)
 
 
-@pytest.mark.parametrize(("baud", "expected"), [
-    (2400, 135), (4800, 73), (9600, 41), (19200, 26), (38400, 20), (115200, 20), (460800, 20),
-])
-def test_effective_timeout_derived_from_baud(baud: int, expected: int) -> None:
-    bus = config_from_dict(with_bus(0, baudrate=baud), env={}).buses[0]
-    assert bus.timeout_ms is None
-    assert bus.effective_timeout_ms() == expected
-    assert config_from_dict(with_bus(0, baudrate=baud, timeout_ms=7), env={}) \
-        .buses[0].effective_timeout_ms() == 7
+def test_timeout_ms_is_optional_and_positive() -> None:
+    assert config_from_dict(with_bus(0), env={}).buses[0].timeout_ms is None  # learned
+    assert config_from_dict(with_bus(0, timeout_ms=7), env={}).buses[0].timeout_ms == 7
 
 
 def test_models_are_frozen_and_dump_to_json_names() -> None:
