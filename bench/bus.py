@@ -5,7 +5,7 @@ For each protocol, baud rate and sensor count, the simulator runs in its own pro
 polls every sensor with ``poll_hz: 0``.  Printed per run:
 
 * achieved transactions/s;
-* the wire ceiling for those frames at that baud (DESIGN.md §4: bytes × 10 / baud,
+* the wire ceiling for those frames at that baud (bytes × 10 / baud,
   plus the RTU silent gaps), and the ceiling once the simulator's answer delay is
   added, which is the most any master could do against these sensors;
 * ``achieved/ceiling``: the share of that most the gateway gets;

@@ -54,7 +54,7 @@ class Snapshot:
         return self.reading is not None
 
     def to_json(self) -> dict[str, Any]:
-        """The reading JSON of SPEC.md §4 (MQTT state and REST use the same)."""
+        """The reading JSON (docs/mqtt.md; MQTT state and REST use the same)."""
         out: dict[str, Any] = {"sensor": self.name, "ts": iso_time(self.timestamp),
                                "seq": self.seq, "status": self.status.value}
         if self.reading is not None:

@@ -1,4 +1,4 @@
-"""The ``imu-gateway`` command line (SPEC.md §1).
+"""The ``imu-gateway`` command line.
 
 Every bad input ends in one line on stderr and exit status 2, never a traceback.
 """

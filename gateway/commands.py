@@ -1,4 +1,4 @@
-"""The command catalogue (SPEC.md §5): the same names on REST, MQTT, Modbus TCP and CLI.
+"""The command catalogue (docs/commands.md): the same names on REST, MQTT, Modbus TCP and CLI.
 
 One table: each command's argument model (pydantic, so every front end gets the same
 validation and the same messages) and its summary.  Which series has which command

@@ -1,4 +1,4 @@
-"""The config file (SPEC.md §2): a YAML schema, validated at load.
+"""The config file (docs/configuration.md): a YAML schema, validated at load.
 
 ``load_config(path)`` returns a :class:`GatewayConfig` or raises :class:`ConfigError`,
 whose ``problems`` are one line each, ``<yaml path>: <message>``

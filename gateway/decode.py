@@ -1,6 +1,6 @@
 """``imu-gateway decode``: captured frames to JSON, for a field engineer with a capture.
 
-A data answer becomes the value groups of the reading JSON (SPEC.md §4); any other
+A data answer becomes the value groups of the reading JSON (docs/mqtt.md); any other
 frame becomes ``{"command": …, "direction": …, "address": …, "fields": {…}}``.
 A Modbus read answer is read in the light of the read request before it in the same
 call, or of ``--start``.

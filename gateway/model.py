@@ -30,7 +30,7 @@ class Protocol(enum.Enum):
 
 
 class Group(enum.Enum):
-    """The value groups of a reading, named as in the reading JSON (SPEC.md §4)."""
+    """The value groups of a reading, named as in the reading JSON (docs/mqtt.md)."""
 
     ANGLES = "angles"
     ACCEL = "accel"
@@ -89,7 +89,7 @@ class Reading:
         return Reading(**{g.value: getattr(self, g.value) for g in groups})
 
     def to_json_groups(self) -> dict[str, dict[str, float | None]]:
-        """The value groups of the reading JSON of SPEC.md §4, absent groups left out.
+        """The value groups of the reading JSON (docs/mqtt.md), absent groups left out.
         A value that is not a finite number (a Modbus float register can hold NaN) is
         ``None``: JSON has no NaN, and one would break every client's parser."""
         out: dict[str, dict[str, float | None]] = {}
@@ -113,7 +113,8 @@ class Capabilities:
     commands: frozenset[str]
 
 
-# Commands every series has (SPEC.md §5); the series-specific ones are listed per row.
+# Commands every series has (the catalogue, docs/commands.md); the series-specific ones
+# are listed per row.
 COMMON_COMMANDS = frozenset(
     {"set_zero_type", "save", "calibrate_gyro", "set_address", "set_baudrate", "read_settings"}
 )

@@ -1,8 +1,8 @@
 """Data answers of both protocols to the normalised ``Reading``.
 
-Both protocol modules name the values they decode with the per-field names of
-SPEC.md §4 (``pitch``, ``accel_x``, ``q0`` …), so normalising is one table from field
-name to (group, member) and no per-command code.
+Both protocol modules name the values they decode with the per-field names of the
+reading JSON (``pitch``, ``accel_x``, ``q0`` …; ``GROUP_FIELDS`` below), so normalising
+is one table from field name to (group, member) and no per-command code.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ GROUP_FIELDS: dict[Group, tuple[type, tuple[str, ...]]] = {
     Group.MAG: (Vector3, tuple(f"mag_{a}" for a in _XYZ)),
     Group.QUATERNION: (Quaternion, ("q0", "q1", "q2", "q3")),
 }
-#: every per-field name (SPEC.md §4's list, in order)
+#: every per-field name, in the reading JSON's order
 FIELD_NAMES: tuple[str, ...] = tuple(n for _, names in GROUP_FIELDS.values() for n in names)
 
 

@@ -15,7 +15,8 @@ from gateway.model import Protocol
 from gateway.normalise import field_values
 from gateway.simulator import SimSensor
 
-# SPEC.md §4's field list, written out here so the tests do not trust the gateway's.
+# The reading JSON's per-field names in order, written out here so the tests do not trust
+# the gateway's.
 FIELDS = ("pitch", "roll", "yaw", "accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y",
           "gyro_z", "mag_x", "mag_y", "mag_z", "q0", "q1", "q2", "q3")
 GROUP_OF = {**dict.fromkeys(FIELDS[0:3], "angles"), **dict.fromkeys(FIELDS[3:6], "accel"),
@@ -27,7 +28,7 @@ NATIVE_STEP = {"angles": 0.005, "accel": 0.00005, "gyro": 0.005, "mag": 0.000005
 
 
 def fields_of(reading_json: dict[str, Any]) -> dict[str, float]:
-    """The reading JSON's values (SPEC.md §4) by its per-field names."""
+    """The reading JSON's values (docs/mqtt.md) by its per-field names."""
     out = {}
     for name in FIELDS:
         group = reading_json.get(GROUP_OF[name])

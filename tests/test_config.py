@@ -1,4 +1,4 @@
-"""The config file (SPEC.md §2) and ``imu-gateway check-config``.
+"""The config file (docs/configuration.md) and ``imu-gateway check-config``.
 
 Schema rules are checked through ``load_config_text``/``load_config``; a few cases run
 the real command as a subprocess.  Every bad config must come back as problems of the

@@ -1,4 +1,4 @@
-"""The live dashboard at ``GET /`` (SPEC.md §6, issue 6) in a real headless Chromium.
+"""The live dashboard at ``GET /`` (docs/dashboard.md, issue 6) in a real headless Chromium.
 
 The gateway runs in a subprocess (``python -m gateway run``) on simulated sensors on
 real pseudo-terminals, served from this process; selenium drives Chromium through

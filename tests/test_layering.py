@@ -1,4 +1,4 @@
-"""The protocol layer stays sans-IO (DESIGN.md section 1).
+"""The protocol layer stays sans-IO (the layering rule, docs/architecture.md).
 
 Every module of ``gateway/protocol`` may import only the standard library, pymodbus,
 ``gateway.protocol`` and ``gateway.model``, and none of the standard library's I/O,
@@ -90,8 +90,9 @@ def frontend_imports(path: Path) -> list[str]:
 
 @pytest.mark.parametrize("path", sorted(FRONTENDS.glob("*.py")), ids=lambda p: p.name)
 def test_front_ends_use_neither_protocol_nor_bus_nor_each_other(path: Path) -> None:
-    """DESIGN.md section 1: a front end reads the cache and asks the gateway; it never
-    touches the wire's code, and a change to one front end cannot break another."""
+    """The layering rule (docs/architecture.md): a front end reads the cache and asks the
+    gateway; it never touches the wire's code, and a change to one front end cannot
+    break another."""
     for name in frontend_imports(path):
         assert not _within(name, "gateway.protocol"), f"{path.name} imports {name}"
         assert not _within(name, "gateway.bus"), f"{path.name} imports {name}"

@@ -1,10 +1,10 @@
-"""The Modbus TCP server (SPEC.md §3, issue 4) against real peers.
+"""The Modbus TCP server (docs/modbus-tcp.md, issue 4) against real peers.
 
 The gateway runs on simulated sensors of both protocols; the clients are pymodbus's
 async client, the ``mbpoll`` command and plain sockets (for the framing: pipelining,
 malformed MBAP headers, fuzzing).  Expected values come from the simulator and from
-SPEC.md, never from the server's own map module.  Waits are deadlines on a condition
-(``until``), never measurements of speed.
+the register map as documented (docs/register-map.md), never from the server's own map
+module.  Waits are deadlines on a condition (``until``), never measurements of speed.
 """
 
 from __future__ import annotations
@@ -36,7 +36,8 @@ PATIENT_MS = 300
 READING = Motion.from_seed(3).sample(10.0)
 MBAP = struct.Struct(">HHHB")
 
-# SPEC.md §3, written out here so the test does not trust the server's own table.
+# The register map's codes and i32 scales (docs/register-map.md), written out here so the
+# test does not trust the server's own table.
 SCALE = {"angles": 100, "accel": 10000, "gyro": 100, "mag": 100000, "quaternion": 1000000}
 SERIES_CODE = {Series.IMU: 1, Series.VG: 2, Series.AH: 3, Series.MINS: 4}
 PROTOCOL_CODE = {Protocol.NATIVE: 0, Protocol.MODBUS: 1}

@@ -1,9 +1,9 @@
-"""MQTT (SPEC.md §4, issue 5) against a real mosquitto broker.
+"""MQTT (docs/mqtt.md, issue 5) against a real mosquitto broker.
 
 Every test starts its own broker (``broker.Mosquitto``) on a free port and listens
 with a paho client of its own (``broker.Recorder``).  The gateway runs on simulated
 sensors on real pseudo-terminals.  Expected values come from the simulator and
-SPEC.md, never from the gateway's MQTT module.  Waits are deadlines on a condition.
+docs/mqtt.md, never from the gateway's MQTT module.  Waits are deadlines on a condition.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ FAST = 115200
 READING = Motion.from_seed(3).sample(10.0)
 GID = "test"
 BASE = f"imu/{GID}"
-# SPEC.md §4: which groups each series' state JSON carries.
+# Which groups each series' state JSON carries (an AH measures all five, a VG no mag).
 GROUPS = {Series.AH: {"angles", "accel", "gyro", "mag", "quaternion"},
           Series.VG: {"angles", "accel", "gyro", "quaternion"}}
 

@@ -2,7 +2,8 @@
 
 A reading carries exactly the groups the series measures (``model.CAPABILITIES``),
 whichever protocol the values came from; partial groups are left out; the AH
-example of the native document gives exactly the value groups of SPEC.md section 4's reading JSON.
+example of the native document gives exactly the value groups of the example reading JSON
+in docs/mqtt.md.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from gateway.normalise import FIELD_NAMES, group_values, to_reading
 from gateway.protocol import modbus_rtu as rtu
 from gateway.protocol import native
 
-# SPEC.md section 4, the reading JSON's value groups (the AH example of native 2.15).
+# The reading JSON's value groups of the AH example of native 2.15 (as in docs/mqtt.md).
 SPEC_JSON_GROUPS = {
     "angles": {"pitch": -13.15, "roll": 25.58, "yaw": 251.87},
     "accel": {"x": -0.1807, "y": -0.2816, "z": 1.0265},

@@ -1,4 +1,5 @@
-"""The Modbus TCP register map table against SPEC.md §3, and its generated document."""
+"""The Modbus TCP register map table against the layout written out here, and its
+generated document."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
-"""The REST API, live stream and metrics (SPEC.md §6, issue 6) through a real HTTP
+"""The REST API, live stream and metrics (docs/rest.md, issue 6) through a real HTTP
 client (httpx) against the running gateway on simulated sensors.
 
-Expected values come from the simulator, the config and SPEC.md.  Waits are
+Expected values come from the simulator, the config and docs/rest.md.  Waits are
 deadlines on conditions, never measurements of speed.
 """
 

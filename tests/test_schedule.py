@@ -12,7 +12,8 @@ from typing import Any
 import pytest
 from virtual_line import VirtualLine, bus, jittery, sim
 
-from gateway.bus.schedule import Schedule, stream_wait
+from gateway.bus.line import stream_wait
+from gateway.bus.schedule import Schedule
 from gateway.bus.sensor_state import (
     BACKOFF_MAX,
     EVIDENCE_SPAN,
@@ -324,10 +325,14 @@ def test_the_schedule_has_no_clock() -> None:
     import ast
     import inspect
 
+    import gateway.bus.events as events
+    import gateway.bus.jobs as jobs
+    import gateway.bus.line as line
+    import gateway.bus.outcomes as outcomes
     import gateway.bus.schedule as schedule
     import gateway.bus.sensor_state as sensor_state
     import gateway.bus.timing as timing
-    for module in (schedule, sensor_state, timing):
+    for module in (events, jobs, line, outcomes, schedule, sensor_state, timing):
         tree = ast.parse(inspect.getsource(module))
         names = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import)
                  for a in n.names}

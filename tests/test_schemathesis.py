@@ -3,8 +3,9 @@
 The gateway runs as its own process (``imu-gateway run``) on two simulated lines, with
 commands allowed, so the generated requests reach real sensors.  Every check runs but
 one: ``positive_data_acceptance`` expects every schema-valid request to succeed, and
-SPEC.md §6 answers 422 to schema-valid commands a series lacks (``clear_heading`` on
-an AH) or a protocol cannot carry, and 404 to a sensor name that is not configured.
+the API (docs/rest.md) answers 422 to schema-valid commands a series lacks
+(``clear_heading`` on an AH) or a protocol cannot carry, and 404 to a sensor name that
+is not configured.
 The live streams are left out (a stream never ends; tests/test_rest.py covers them).
 """
 

@@ -1,7 +1,7 @@
 """Every example frame printed in the two protocol documents, as one declarative table.
 
-Native: ``../shared/seeds/000_bbbe5c168b2d62bb.txt`` (sections 2.1-2.26).
-Modbus RTU: ``../shared/seeds/001_7a536bae5754791e.txt`` (sections 2.1-2.13).
+Native: the vendor's native protocol document (sections 2.1-2.26).
+Modbus RTU: the vendor's Modbus document (sections 2.1-2.13).
 
 Each row holds the hex string exactly as printed and what it must decode to:
 
@@ -127,7 +127,7 @@ NATIVE_VECTORS: tuple[Vector, ...] = (
        "10 22 83 75 10 18 33 49 10 16 55 78 00 93 99 14 58",
        "read_all", AH,
        note="the document's text cuts the yaw to '+251.'; the bytes 02 51 87 and "
-            "SPEC.md section 4 say 251.87",
+            "the example reading JSON of docs/mqtt.md say 251.87",
        pitch=-13.15, roll=25.58, yaw=251.87,
        accel_x=-0.1807, accel_y=-0.2816, accel_z=1.0265,
        gyro_x=-6.48, gyro_y=124.13, gyro_z=3.88,

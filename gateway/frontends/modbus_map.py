@@ -1,4 +1,4 @@
-"""The Modbus TCP register map of SPEC.md §3, as one declarative table.
+"""The Modbus TCP register map, as one declarative table.
 
 The server answers from it, ``docs/register-map.md`` is generated from it
 (``python -m gateway.frontends.modbus_map > docs/register-map.md``; a test fails when
@@ -52,7 +52,8 @@ class Register:
 
 STATUS_BITS = {"online": 0, "stale": 1, "busy": 2, "streaming": 3, "no_reading": 4}
 
-#: Per group: the i32 copy's scale (SPEC.md §3) and the unit.
+#: Per group: the i32 copy's scale (the i32 register holds round(value × scale)) and the
+#: unit.
 _SCALE_AND_UNIT: dict[Group, tuple[int, str]] = {
     Group.ANGLES: (100, "deg"), Group.ACCEL: (10000, "g"), Group.GYRO: (100, "deg/s"),
     Group.MAG: (100000, "gauss"), Group.QUATERNION: (1000000, ""),

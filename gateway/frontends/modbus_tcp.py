@@ -1,14 +1,14 @@
-"""The Modbus TCP server: the register map of SPEC.md §3 for PLCs and SCADA.
+"""The Modbus TCP server: the register map (docs/register-map.md) for PLCs and SCADA.
 
 Why not pymodbus's server: measured on pymodbus 3.16.1, it answers only the first of
 several requests that arrive in one TCP segment, answers an unknown unit id with
 exception 04 (not 0A) and a read of 126 registers with function code 0x80 (not
 exception 03).  Those are the server's framing and dispatch, so this module owns
 them: the MBAP header over an ``asyncio.Protocol``, every request of a segment
-answered in order, and the exceptions SPEC.md lists.  pymodbus still decodes the
-write PDUs and encodes the write and exception answers.  The hot path, a read, is a
-bounds check and a slice of the sensor's ready byte image (``modbus_map``): a read
-never waits for the serial bus, so a hundred clients cost the bus nothing.
+answered in order, and the exceptions docs/register-map.md lists.  pymodbus still
+decodes the write PDUs and encodes the write and exception answers.  The hot path, a
+read, is a bounds check and a slice of the sensor's ready byte image (``modbus_map``):
+a read never waits for the serial bus, so a hundred clients cost the bus nothing.
 
 Writes to the command registers become commands; the answer is sent after the sensor
 acknowledged.  A sensor with ``raw_unit_id`` also answers on that unit with its own
@@ -46,7 +46,7 @@ BACKLOG_BYTES = 16 * 1024  # stop reading a client that sends faster than it is 
 ILLEGAL_FUNCTION, ILLEGAL_ADDRESS, ILLEGAL_VALUE, DEVICE_FAILURE = 0x01, 0x02, 0x03, 0x04
 BUSY, GATEWAY_PATH, TARGET_FAILED = 0x06, 0x0A, 0x0B
 
-#: How a failed command is told to a Modbus client (SPEC.md §3).
+#: How a failed command is told to a Modbus client (the exceptions of docs/modbus-tcp.md).
 EXCEPTION_FOR: Mapping[ErrorKind, int] = {
     ErrorKind.UNKNOWN: ILLEGAL_ADDRESS,
     ErrorKind.UNSUPPORTED: ILLEGAL_ADDRESS,

@@ -1,5 +1,5 @@
 """The MQTT client: state, availability, commands and Home Assistant discovery
-(SPEC.md §4).
+(docs/mqtt.md).
 
 Threads.  paho-mqtt's network loop runs on its own thread (``loop_start``); everything
 else here runs on the gateway's event loop, where the cache calls its listeners.  paho's

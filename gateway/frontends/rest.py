@@ -1,4 +1,4 @@
-"""The REST API, the live stream, the metrics and the dashboard (SPEC.md §6).
+"""The REST API, the live stream, the metrics and the dashboard (docs/rest.md).
 
 FastAPI on uvicorn, inside the gateway's own event loop: the gateway owns the signals
 and the shutdown (uvicorn would install handlers of its own; ``_Server`` stops it).
@@ -6,7 +6,7 @@ Every read is answered from the cache; ``max_age_ms`` is the one way a client ca
 cause bus traffic, and identical on-demand reads share one transaction.
 
 Errors are one JSON shape, ``{"error": "...", "kind": "..."}``, with the status codes
-SPEC.md lists: 401/403 auth, 404 unknown sensor or command, 409 busy, 422 bad
+docs/rest.md lists: 401/403 auth, 404 unknown sensor or command, 409 busy, 422 bad
 arguments or a command the series lacks, 503 no reading yet, 504 the sensor did not
 answer; 502 when the sensor answered that the command failed.
 
@@ -115,7 +115,7 @@ class QuaternionOut(_Out):
 
 
 class ReadingOut(_Out):
-    """The reading JSON of SPEC.md §4; groups the series does not measure are absent."""
+    """The reading JSON (as on MQTT); groups the series does not measure are absent."""
 
     sensor: str
     ts: str | None = Field(description="when the sample arrived, UTC")
@@ -459,7 +459,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
         title="imu-gateway",
         version=__version__,
         description="Readings, commands, live streams and metrics of IMU/VG/AH/MINS "
-                    "attitude sensors behind one gateway (SPEC.md §6).",
+                    "attitude sensors behind one gateway.",
         docs_url=None,  # Swagger UI loads from a CDN: not on a plant network
         redoc_url=None,
     )

@@ -1,4 +1,4 @@
-"""The sensors' Modbus RTU protocol (``001_7a536bae5754791e.txt``), sans-IO.
+"""The sensors' Modbus RTU protocol (the vendor's Modbus document), sans-IO.
 
 pymodbus does the Modbus work proper: PDU classes, their encoding, the RTU frame size
 of each function code, and the CRC.  What it does not do well for us is *finding*
@@ -147,7 +147,8 @@ FLOAT_BLOCK_COUNT = 2 * len(_FLOAT_FIELDS)  # one FC03 of 32 registers reads all
 MINS = frozenset({Series.MINS})
 
 # The sensor's register list (document 1.2).  Field names of readable registers are the
-# per-field names of SPEC.md §4 (X-axis angle = pitch, Y = roll, Z = yaw).
+# per-field names of the reading JSON (``pitch``, ``accel_x``, ``q0`` …; X-axis angle =
+# pitch, Y = roll, Z = yaw).
 REGISTERS: tuple[SensorRegister, ...] = (
     SensorRegister("pitch", 0x01, Kind.ANGLE, section="2.1"),
     SensorRegister("roll", 0x02, Kind.ANGLE, section="2.2"),

@@ -1,4 +1,4 @@
-"""The sensors' native binary protocol (``000_bbbe5c168b2d62bb.txt``), sans-IO.
+"""The sensors' native binary protocol (the vendor's native protocol document), sans-IO.
 
 Frame::
 
@@ -168,7 +168,8 @@ def _triple(prefix: str, codec: Codec) -> tuple[Field, ...]:
     return _fields((f"{prefix}_x", codec), (f"{prefix}_y", codec), (f"{prefix}_z", codec))
 
 
-# Field names are the per-field names of SPEC.md §4 so that normalising is a lookup.
+# Field names are the reading JSON's per-field names (``pitch``, ``accel_x``, ``q0`` …)
+# so that normalising is a lookup.
 ANGLES3 = _fields(("pitch", ANGLE), ("roll", ANGLE), ("yaw", ANGLE))
 ACCEL3 = _triple("accel", ACCEL)
 GYRO3 = _triple("gyro", RATE)

@@ -22,7 +22,7 @@
   const POLL_MS = 2000; // sensors and buses
   const D2R = Math.PI / 180;
 
-  // The reading JSON's groups (SPEC.md §4), with the digits of the sensors' resolution.
+  // The reading JSON's groups (docs/mqtt.md), with the digits of the sensors' resolution.
   const GROUPS = [
     { key: "angles", label: "angles", unit: "°", digits: 2,
       members: [["pitch", "pitch"], ["roll", "roll"], ["yaw", "yaw"]] },

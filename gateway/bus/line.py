@@ -1,0 +1,183 @@
+"""The wire as the schedule sees it, sans-IO: the attempt in flight and its deadlines,
+when the line is free for the next request, and what is coming in.
+
+The timing rules, each in one place:
+
+* **When a request may go** (``free_at``): never while an attempt is in flight,
+  including the time its answer may still come late; after a whole answer, once the
+  protocol's gap has passed; after noise or half a frame, only once the line has been
+  quiet 3.5 characters (at least 1 ms), and a half frame that stopped coming is
+  dropped then.  Next to a streaming sensor, only if the exchange fits before its
+  next frame (``stream_wait``).
+* **Deadlines** (``check``): an attempt's answer is due by its wire time plus the
+  sensor's timeout (``timing.AnswerTimer``).  Past that it is *overdue*, but the line
+  stays held for another timeout: an answer then is late, and still used.  Only
+  after that has the attempt failed.  A timer that fires while the port holds bytes
+  not yet received waits for them first: on a busy machine the answer may be in.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Callable
+from typing import Any
+
+from ..protocol.exchanges import Exchange, ProtocolAdapter, char_time
+from ..stats import Counters
+from .events import Attempt, Job, Request
+
+MIN_QUIET = 0.001  # after noise, the line must have been quiet this long
+#: An attempt past its hold with bytes still arriving is waited for this much longer.
+ARRIVING_GRACE = 0.05
+
+
+class Due(enum.Enum):
+    """What ``Line.check`` found of the attempt in flight."""
+
+    NOTHING = 0  # still waiting (or none in flight)
+    SENT = 1  # a request nobody answers is out: it is done
+    FAILED = 2  # no answer, not even late: the attempt failed
+
+
+def stream_wait(now: float, needs: float, last_end: float, period: float,
+                frame: float) -> float:
+    """When an exchange of ``needs`` seconds may start next to a stream whose frames
+    take ``frame`` seconds every ``period``, the last one seen ending at ``last_end``.
+
+    The stream keeps its phase: a frame that was lost (garbled, or dropped by the
+    port) does not make the next one come at another time, so the frames are expected
+    at ``last_end + k·period``.  A frame due but not seen yet is given half a period
+    to arrive (a busy machine, or a sensor's own clock, makes frames late) before it
+    is taken for lost and the line is used."""
+    margin = min(0.02, period / 10) + MIN_QUIET  # the frames' own timing wobbles
+    k = max(1, math.ceil((now - last_end) / period))
+    due = last_end + (k - 1) * period  # the latest frame that should have ended by now
+    if k > 1 and now < due + period / 2:
+        return due + period / 2  # it may still be coming in
+    next_end = due + period
+    if now + needs + margin <= next_end - frame:
+        return now  # fits before the next frame
+    if needs + margin > period - frame and now - due <= margin and k == 1:
+        return now  # never fits a pause: right after a frame is the least harm
+    return next_end  # in the pause after the next frame (its arrival wakes us sooner)
+
+
+class Line:
+    """One serial line's timing; ``on_frame(frame, at)`` is told of every frame."""
+
+    def __init__(self, adapter: ProtocolAdapter, baud: int, stats: Counters,
+                 on_frame: Callable[[Any, float], None]) -> None:
+        self.adapter = adapter
+        self.baud = baud
+        self.stats = stats
+        self.on_frame = on_frame
+        self.framer = adapter.new_framer()
+        self.attempt: Attempt | None = None
+        self.last_rx = 0.0
+        self.last_tx_end = 0.0
+        self.busy_end = 0.0  # the end of the last attempt counted as busy time
+        self.dirty = False  # noise or half a frame came in: wait for quiet
+
+    def reset(self, now: float) -> None:
+        """The port (re)opened: nothing is known to be on the line."""
+        self.framer = self.adapter.new_framer()
+        self.attempt = None
+        self.dirty = False
+        self.last_rx = self.last_tx_end = now
+
+    @property
+    def gap(self) -> float:
+        return self.adapter.gap_before_request(self.baud)
+
+    def wire(self, exchange: Exchange) -> float:
+        """The exchange's request and answer at the line's rate, the gap between."""
+        c = char_time(self.baud)
+        return (len(exchange.request) + exchange.answer_bytes) * c + \
+            (self.gap if exchange.answer_bytes else 0.0)
+
+    def free_at(self, now: float) -> float:
+        """When the line is quiet enough for a request (the attempt in flight aside)."""
+        quiet = max(self.gap, 3.5 * char_time(self.baud), MIN_QUIET)
+        if self.framer.pending:
+            if now < self.last_rx + quiet:
+                return self.last_rx + quiet
+            self.flush(now)
+        settle = quiet if self.dirty else self.gap
+        return max(self.last_rx + settle, self.last_tx_end + self.gap)
+
+    def send(self, job: Job, exchange: Exchange, now: float, timeout: float,
+             hold: float) -> Request:
+        """``exchange`` goes out now; its answer is due ``timeout`` beyond the wire
+        time, and the line is held ``hold`` more for a late one."""
+        wire = self.wire(exchange)
+        if not exchange.answer_bytes:
+            timeout = hold = 0.0
+        deadline = now + wire + timeout
+        self.attempt = Attempt(job, exchange, now, wire, deadline, deadline + hold,
+                               now - self.gap, self.adapter.garbage_seen(self.framer))
+        self.last_tx_end = now + len(exchange.request) * char_time(self.baud)
+        job.tries += 1
+        return Request(exchange.request, exchange.answer_bytes)
+
+    def receive(self, data: bytes, at: float) -> None:
+        """Bytes from the line; ``at``: when the last of them came in."""
+        self.last_rx = at
+        garbage = self.adapter.garbage_seen(self.framer)
+        for frame in self.framer.feed(data):
+            self.on_frame(frame, at)
+        # Bytes that did not end in a whole frame (noise, half a frame) may be followed
+        # by more: the next request then waits for the line to be quiet.
+        self.dirty = bool(self.framer.pending) or \
+            self.adapter.garbage_seen(self.framer) > garbage
+
+    def check(self, now: float, pending: int) -> Due:
+        """The attempt's deadlines at ``now``; ``pending``: bytes the port holds that
+        ``receive`` has not had yet."""
+        a = self.attempt
+        if a is None:
+            return Due.NOTHING
+        if not a.exchange.answer_bytes:
+            return Due.SENT if now >= a.deadline else Due.NOTHING
+        arriving = pending > 0 or bool(self.framer.pending)
+        more = max(pending, 1) * char_time(self.baud) + MIN_QUIET  # for what is arriving
+        if not a.overdue:
+            if now < a.deadline:
+                return Due.NOTHING
+            if arriving:  # the answer is coming in: wait for it, not for the timeout
+                a.deadline = now + more
+                a.give_up = max(a.give_up, a.deadline)
+                return Due.NOTHING
+            a.overdue = True
+        if now < a.give_up:
+            return Due.NOTHING
+        if arriving and now < a.give_up + ARRIVING_GRACE:
+            a.give_up = now + more
+            return Due.NOTHING
+        return Due.FAILED
+
+    def failure_kind(self, a: Attempt) -> str:
+        """``bad_frame`` when noise or a bad checksum came during the attempt."""
+        return "bad_frame" if self.adapter.garbage_seen(self.framer) > a.garbage else "timeout"
+
+    def close(self, a: Attempt, end: float, answered: bool) -> None:
+        """The attempt is over at ``end``: its time on the line is counted (the silent
+        gap before the request too, but not twice: it starts at the exchange before,
+        counted up to its end)."""
+        self.attempt = None
+        took = max(0.0, end - max(a.started, self.busy_end))
+        self.busy_end = max(self.busy_end, end)
+        self.stats.busy_time += took
+        a.job.sensor.stats.busy_time += took
+        if answered:
+            self.stats.transactions += 1
+            a.job.sensor.stats.transactions += 1
+            self.stats.rate.add(end)
+            self.stats.wire_time += a.wire + self.gap
+
+    def flush(self, now: float) -> None:
+        """A half frame that stopped coming will never complete: whatever it held."""
+        while self.framer.pending:
+            for frame in self.framer.expire():
+                self.on_frame(frame, now)
+        self.dirty = False

@@ -1,0 +1,224 @@
+"""What the answers, silences and stray frames on a line mean, sans-IO: the outcome
+of each attempt and job (results, readings, effects on the bus), online and offline,
+late answers, and the evidence that a sensor streams unasked.  Part of ``Schedule``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+from ..commands import CommandError, CommandResult, ErrorKind
+from ..config import BusConfig
+from ..protocol.exchanges import GYRO_CAL_SECONDS, Answer, Effect, ProtocolAdapter
+from ..stats import Counters
+from .events import Attempt, ErrorCounted, Event, Job, Kind, Note, Publish, StateChange
+from .jobs import JobQueue
+from .line import Line
+from .sensor_state import STREAM_RETRY, SensorState
+
+
+class Outcomes:
+    def __init__(self, config: BusConfig, adapter: ProtocolAdapter,
+                 sensors: dict[str, SensorState], jobs: JobQueue, line: Line,
+                 stats: Counters, emit: Callable[[Event], None]) -> None:
+        self.config = config
+        self.adapter = adapter
+        self.sensors = sensors
+        self.jobs = jobs
+        self.line = line
+        self.stats = stats
+        self.emit = emit
+
+    def frame(self, frame: Any, at: float) -> None:
+        """A whole frame came in at ``at``: the answer in flight, a stream frame, a
+        late answer, or evidence of a stream nobody asked for."""
+        a = self.line.attempt
+        if a is not None:
+            answer = a.exchange.match(frame)
+            if answer is not None:
+                self.answered(a, answer, at)
+                return
+        for s in self.sensors.values():
+            answer = self.adapter.unsolicited(frame, s.config.series, s.address)
+            if answer is not None:
+                self._unsolicited(s, answer, at)
+                return
+        self.stats.errors["unexpected_frame"] += 1
+        # Some other frame from one of ours (a sensor left streaming its angles alone,
+        # say): evidence of a stream, though not a reading of what it is polled for.
+        sender = getattr(frame, "unit", getattr(frame, "address", None))
+        for s in self.sensors.values():
+            if s.address == sender and not s.streaming:
+                self._stray(s, None, at)
+
+    def _unsolicited(self, s: SensorState, answer: Answer, at: float) -> None:
+        if answer.values.get("done"):
+            s.busy_until = 0.0
+            self._note(logging.INFO, f"sensor {s.name}: gyro calibration done")
+            self.emit(StateChange(s.name, busy=False))
+            return
+        if s.streaming:
+            s.last_stream = at
+            s.stream_frames += 1
+            self._reading(s, answer, at)
+            return
+        self.stats.errors["unexpected_frame"] += 1
+        self._stray(s, answer, at)
+
+    def _stray(self, s: SensorState, answer: Answer | None, at: float) -> None:
+        """A frame from ``s`` that answers nothing of ours: a late answer, or a stream."""
+        s.stats.errors["unexpected_frame"] += 1
+        a = self.line.attempt
+        outstanding = a is not None and a.job.sensor is s
+        if outstanding or s.explained(at):
+            return  # an answer to a request of ours, too late to use: not a reading
+        if s.unasked_frame(at):
+            if s.config.stream_hz and answer is not None:
+                s.streaming, s.last_stream = True, at
+                self.emit(StateChange(s.name, streaming=True))
+                self._note(logging.INFO, f"sensor {s.name}: its stream is back")
+            elif not s.config.stream_hz:
+                s.stop_stream = True
+        if answer is not None:
+            self._reading(s, answer, at)
+
+    def _reading(self, s: SensorState, answer: Answer, at: float) -> None:
+        """A reading of ``s``: to the cache, and to whoever asked for a fresh one."""
+        self.emit(Publish(s.name, answer, at))
+        self._succeeded(s)
+        job = self.jobs.reads.get(s.name)
+        if job is not None:  # a fresh reading, from a poll or a stream frame
+            self.jobs.finish(job)
+
+    def timed_out(self, a: Attempt, now: float) -> None:
+        """The attempt got no answer, not even late: retry it, or fail its job."""
+        s, job = a.job.sensor, a.job
+        kind = self.line.failure_kind(a)
+        self._count_error(s, kind)
+        self.line.close(a, now, answered=False)
+        s.unanswered.append(a.sent)
+        s.timer.timed_out()
+        self.line.flush(now)
+        if job.tries <= self.config.retries:
+            return  # the same exchange goes again
+        self.fail_job(job, now, kind, f"{s.name} did not answer ({kind})")
+
+    def answered(self, a: Attempt, answer: Answer, at: float) -> None:
+        """The attempt's answer (a late one too): on to the job's next step."""
+        s, job = a.job.sensor, a.job
+        if a.exchange.answer_bytes:
+            s.timer.sample(at - a.sent - a.wire)
+            if a.overdue:
+                s.stats.late_answers += 1
+                self.stats.late_answers += 1
+        self.line.close(a, at, answered=True)
+        job.tries = 0
+        if job.kind in (Kind.POLL, Kind.READ):
+            self._polled(job, answer, at)
+            return
+        if a.exchange.answer_bytes:  # a write nobody answers proves nothing about s
+            self._succeeded(s)
+        if not answer.ok:
+            self._refused(job, answer, at)
+            return
+        self._apply(s, a.exchange.effect, at)
+        job.values.update(answer.values)
+        job.step += 1
+        if job.step == len(job.plan):
+            self._done(job, at)
+
+    def _polled(self, job: Job, answer: Answer, at: float) -> None:
+        s = job.sensor
+        self.jobs.current = None
+        if not answer.ok:  # a Modbus exception, or a frame that did not decode
+            self._count_error(s, "refused")
+            self.fail_job(job, at, "refused", f"{s.name} did not answer (refused)")
+            return
+        s.last_served = at
+        self._reading(s, answer, at)
+        s.schedule_next_poll(at)
+
+    def _refused(self, job: Job, answer: Answer, at: float) -> None:
+        s = job.sensor
+        self.jobs.current = None
+        if job.kind is Kind.STREAM_START:
+            self._note(logging.WARNING, f"sensor {s.name}: refused auto-output: {answer.detail}")
+            s.stream_retry_at = at + STREAM_RETRY
+            return
+        if job.kind is Kind.COMMAND:
+            assert job.command is not None
+            self.jobs.finish(job, CommandResult(
+                s.name, job.command.name, False, dict(answer.values),
+                f"{s.name}: {answer.detail}", ErrorKind.FAILURE))
+            return
+        self.jobs.finish(job, answer.values.get("pdu"))
+
+    def _done(self, job: Job, at: float) -> None:
+        s = job.sensor
+        self.jobs.current = None
+        match job.kind:
+            case Kind.STREAM_START:
+                s.streaming, s.last_stream, s.stream_frames = True, at, 0
+                self.emit(StateChange(s.name, streaming=True))
+                self._note(logging.INFO, f"sensor {s.name}: streaming at "
+                           f"{s.config.stream_hz:g} Hz")
+            case Kind.COMMAND:
+                assert job.command is not None
+                if job.command.name == "read_settings":
+                    job.values["address"] = s.address
+                self._note(logging.INFO, f"sensor {s.name}: {job.command.name} "
+                           f"{dict(job.command.args) or ''} done")
+                self.jobs.finish(job, CommandResult(s.name, job.command.name, True, job.values))
+            case Kind.PASSTHROUGH:
+                self.jobs.finish(job, job.values.get("pdu"))
+            case _:
+                pass
+
+    def fail_job(self, job: Job, now: float, kind: str, message: str) -> None:
+        s = job.sensor
+        if job is self.jobs.current:
+            self.jobs.current = None
+        was = s.online
+        if kind != "port_lost" and s.failed():
+            self._note(logging.WARNING, f"sensor {s.name}: offline "
+                       f"({'never answered' if was is None else kind})")
+            self.emit(StateChange(s.name, online=False))
+        error_kind = {"port_lost": ErrorKind.OFFLINE, "refused": ErrorKind.FAILURE}.get(
+            kind, ErrorKind.TIMEOUT)
+        if job.kind is Kind.STREAM_START:
+            s.stream_retry_at = now + STREAM_RETRY
+        if job.kind in (Kind.POLL, Kind.READ):
+            s.last_served = now
+            s.schedule_next_poll(now)
+        self.jobs.finish(job, error=CommandError(error_kind, message))
+
+    def _apply(self, s: SensorState, effect: Effect, at: float) -> None:
+        if effect.new_baud is not None and effect.new_baud != self.line.baud:
+            self._note(logging.WARNING, f"bus {self.config.name}: following {s.name} from "
+                       f"{self.line.baud} to {effect.new_baud} baud")
+            self.line.baud = effect.new_baud  # the driver switches the port before writing
+        if effect.new_address is not None and effect.new_address != s.address:
+            self._note(logging.WARNING, f"sensor {s.name}: now at address "
+                       f"{effect.new_address} (the config says {s.config.address})")
+            s.address = effect.new_address
+        if effect.busy_for or effect.busy_until_done:
+            s.busy_until = at + (GYRO_CAL_SECONDS if effect.busy_until_done else effect.busy_for)
+            self.emit(StateChange(s.name, busy=True))
+
+    # ------------------------------------------------------------ bookkeeping
+
+    def _count_error(self, s: SensorState, kind: str) -> None:
+        self.stats.errors[kind] += 1
+        s.stats.errors[kind] += 1
+        self.emit(ErrorCounted(s.name))
+
+    def _succeeded(self, s: SensorState) -> None:
+        change = s.succeeded()
+        if change is not None:
+            self._note(logging.INFO, f"sensor {s.name}: {change}")
+            self.emit(StateChange(s.name, online=True))
+
+    def _note(self, level: int, text: str) -> None:
+        self.emit(Note(level, text))
