@@ -27,6 +27,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -42,6 +44,10 @@ from common import free_port
 BURN = "while True: pass"
 CHATTY = "import time\nwhile True:\n    time.sleep(0.0003)\n    sum(range(300))"
 STREAM_SETUP = {"set_output_type", "set_output_rate"}
+#: The simulators play hardware, and real sensors do not share the gateway's CPU: they
+#: run with real-time priority where this machine allows it (root and chrt), so that
+#: what is measured is the gateway's behaviour, not a starved simulator's lateness.
+REALTIME = ["chrt", "--fifo", "10"] if shutil.which("chrt") and os.geteuid() == 0 else []
 
 
 @dataclass(frozen=True)
@@ -66,7 +72,8 @@ LINES = {
 @contextlib.contextmanager
 def simulator(line: Line, seed: int) -> Iterator[tuple[str, subprocess.Popen[str]]]:
     """``imu-gateway simulate`` for one line, in a process of its own."""
-    args = [sys.executable, "-m", "gateway", "simulate", "--seed", str(seed), *line.simulate]
+    args = [*REALTIME, sys.executable, "-m", "gateway", "simulate", "--seed", str(seed),
+            *line.simulate]
     for _, series, address, _ in line.sensors:
         args += ["--sensor", f"{line.protocol}:{series}:{address}:{line.baud}"]
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -120,6 +127,8 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--burners", type=int, default=4)
     parser.add_argument("--chatty", type=int, default=2)
+    parser.add_argument("-v", "--verbose", action="store_true",
+                        help="print the first overlaps and collisions with what led to them")
     args = parser.parse_args()
     with contextlib.ExitStack() as stack, tempfile.TemporaryDirectory() as tmp:
         sims = {name: stack.enter_context(simulator(line, seed))
@@ -146,7 +155,8 @@ def report(seen: dict[str, dict[str, Any]], sensors: list[dict[str, Any]],
            buses: list[dict[str, Any]], log: str, args: argparse.Namespace) -> int:
     timing = {n: t for b in buses for n, t in b["timing"].items()}
     readings = {s["name"]: s["seq"] for s in sensors}
-    print(f"{args.seconds:g} s, {args.burners} CPU burners, {args.chatty} chatty processes")
+    print(f"{args.seconds:g} s, {args.burners} CPU burners, {args.chatty} chatty processes; "
+          f"simulators {'real-time (chrt --fifo 10)' if REALTIME else 'at normal priority'}")
     print(f"{'sensor':6} {'line':7} {'readings':>8} {'offline':>7} {'late':>5} "
           f"{'latency ms':>10} {'timeout ms':>10} {'unasked writes':>14}")
     broken = 0
@@ -165,6 +175,8 @@ def report(seen: dict[str, dict[str, Any]], sensors: list[dict[str, Any]],
         print(f"line {line_name}: overlaps {stats['overlaps']}, "
               f"collisions {stats['collisions']}")
         broken += stats["overlaps"] + stats["collisions"]
+        for incident in stats["incidents"][:3] if args.verbose else []:
+            print("   ", " | ".join(incident))
     invented = log.count("streams though stream_hz is 0")
     print(f"streams invented: {invented}")
     broken += invented

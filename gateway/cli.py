@@ -361,7 +361,8 @@ def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
         stats = bus.stats
         summary = {"requests_bytes": stats.requests_bytes, "answer_frames": stats.answer_frames,
                    "overlaps": stats.overlaps, "collisions": stats.collisions,
-                   "writes_heard": {s.name: dict(s.writes_heard) for s in sensors}}
+                   "writes_heard": {s.name: dict(s.writes_heard) for s in sensors},
+                   "incidents": stats.incidents}
         print(f"simulate: stopped: {json.dumps(summary)}", file=sys.stderr, flush=True)
 
     asyncio.run(main())

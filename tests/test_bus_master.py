@@ -551,3 +551,40 @@ def test_kernel_rs485_mode_where_it_cannot_work_is_a_clear_error(port: str) -> N
             asyncio.run(body(sim.path))
     else:
         asyncio.run(body(port))
+
+
+def test_bytes_on_their_way_count_as_pending_until_the_master_has_them() -> None:
+    """A busy machine's timer can run before the reader's bytes, already handed to the
+    loop: ``pending`` must still count them, or an answer that came is called missing."""
+    import os
+    import time
+    import tty
+
+    from gateway.bus.link import SerialLink
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    got: list[bytes] = []
+
+    async def body() -> None:
+        link = SerialLink(os.ttyname(slave), 115200)
+        await link.open(lambda data, at: got.append(data), lambda exc: None)
+        try:
+            os.write(master, b"\x77\x04\x00\x04\x08")
+            deadline = time.monotonic() + 10
+            # The loop is held here (no await): the reader reads and hands the bytes
+            # over, but they cannot reach on_bytes yet.
+            while link._flow.handed < 5:
+                assert time.monotonic() < deadline
+                time.sleep(0.001)
+            assert link.pending() == 5 and not got
+            await until(lambda: bool(got))
+            assert b"".join(got) == b"\x77\x04\x00\x04\x08" and link.pending() == 0
+        finally:
+            link.close()
+
+    try:
+        run(body)
+    finally:
+        os.close(master)
+        os.close(slave)

@@ -17,6 +17,7 @@ import ctypes
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import serial
 import serial.rs485
@@ -38,6 +39,17 @@ class LinkError(Exception):
     """The port cannot be opened, or is gone."""
 
 
+@dataclass(slots=True)
+class _Flow:
+    """Bytes of one open on their way to ``on_bytes``, in counters each written by one
+    thread only (so no lock): the reader's (read and not handed over yet; handed to the
+    loop in all) and the loop's (taken in all)."""
+
+    in_hand: int = 0
+    handed: int = 0
+    taken: int = 0
+
+
 class SerialLink:
     def __init__(self, port: str, baudrate: int, *, rs485: bool = False) -> None:
         self.port = port
@@ -47,7 +59,7 @@ class SerialLink:
         self._thread: threading.Thread | None = None
         self._closing = threading.Event()
         self._expect = 0  # bytes of the answer now awaited (0: none known)
-        self._in_hand = 0  # bytes the reader has read but not yet handed to the loop
+        self._flow = _Flow()
 
     @property
     def is_open(self) -> bool:
@@ -83,23 +95,30 @@ class SerialLink:
         # winding down can never touch this port.
         closing = self._closing = threading.Event()
 
+        flow = self._flow = _Flow()  # this open's count of bytes on their way
+
+        def take(data: bytes, at: float) -> None:
+            flow.taken += len(data)
+            on_bytes(data, at)
+
         def reader() -> None:
             tighten_timers()
             while not closing.is_set():
                 try:
-                    data = self._read_answer(ser)
+                    data = self._read_answer(ser, flow)
                 except Exception as exc:  # any failure of the device means it is gone
                     if not closing.is_set():
                         loop.call_soon_threadsafe(self._lost, ser, on_lost, exc)
                     return
-                if data:
-                    loop.call_soon_threadsafe(on_bytes, data, time.monotonic())
-                    self._in_hand = 0
+                if data and not closing.is_set():
+                    flow.handed += len(data)
+                    loop.call_soon_threadsafe(take, data, time.monotonic())
+                flow.in_hand = 0
 
         self._thread = threading.Thread(target=reader, name=f"serial {self.port}", daemon=True)
         self._thread.start()
 
-    def _read_answer(self, ser: serial.Serial) -> bytes:
+    def _read_answer(self, ser: serial.Serial, flow: _Flow) -> bytes:
         """The next bytes from the line: a whole answer when its length is known.
 
         The answer's bytes cannot come faster than the wire, so rather than waking up
@@ -109,7 +128,7 @@ class SerialLink:
         would take, the answer was shorter (an error frame): hand over what is here.
         """
         data = ser.read(max(1, ser.in_waiting))
-        self._in_hand = len(data)
+        flow.in_hand = len(data)
         expect, self._expect = self._expect, 0
         while data and len(data) < expect:
             time.sleep(max(expect - len(data) - ser.in_waiting, 1) * 10 / self.baudrate)
@@ -117,20 +136,23 @@ class SerialLink:
             if not more:
                 break
             data += more
-            self._in_hand = len(data)
+            flow.in_hand = len(data)
         return data
 
     def pending(self) -> int:
-        """Bytes that came in but have not reached the loop yet: in the driver's buffer,
-        or read by the reader thread and not handed over.  A bus master whose timer
-        fired late (a busy machine) looks here before it calls an answer missing."""
+        """Bytes that came in but have not reached ``on_bytes`` yet: in the driver's
+        buffer, in the reader thread's hands, or handed to the loop and waiting their
+        turn behind the very timer that asks.  A bus master whose timer fired late (a
+        busy machine) looks here before it calls an answer missing."""
         ser = self._serial
         if ser is None:
             return 0
+        flow = self._flow
+        unseen = flow.in_hand + max(0, flow.handed - flow.taken)
         try:
-            return int(ser.in_waiting) + self._in_hand
+            return int(ser.in_waiting) + unseen
         except (serial.SerialException, OSError, ValueError, TypeError):
-            return self._in_hand
+            return unseen
 
     def _lost(self, ser: serial.Serial, on_lost: Callable[[Exception], None],
               exc: Exception) -> None:

@@ -70,6 +70,8 @@ class BusStats:
     overrun_bytes: int = 0  # the client did not read and the pty buffer was full
     internal_errors: int = 0  # a bug in a simulated sensor: logged, the line carries on
     events: deque[str] = field(default_factory=lambda: deque(maxlen=200))
+    #: the first overlaps and collisions, each with the events that led to it
+    incidents: list[list[str]] = field(default_factory=list)
 
 
 class PtyBus:
@@ -98,6 +100,7 @@ class PtyBus:
         self._slave = -1
         self.path = ""
         self._queue: list[Outgoing] = []
+        self._recent: deque[str] = deque(maxlen=8)
         self._rx_wire_end = 0.0
         self._tx_end = 0.0
         self._wakeup: asyncio.Event | None = None
@@ -157,7 +160,14 @@ class PtyBus:
     # ------------------------------------------------------------ the wire
 
     def _note(self, text: str) -> None:
+        self._timeline(text)
+        if text.startswith(("OVERLAP", "COLLISION")) and len(self.stats.incidents) < 10:
+            self.stats.incidents.append(list(self._recent))
         self.stats.events.append(text)
+
+    def _timeline(self, text: str) -> None:
+        """What happened lately, timed: the context of an incident."""
+        self._recent.append(f"{time.monotonic():.4f} {text}")
         if self.verbose:
             print(f"sim: {text}", file=sys.stderr, flush=True)
 
@@ -179,6 +189,7 @@ class PtyBus:
             self.stats.overlaps += 1
             self._note(f"OVERLAP: master sent {data.hex(' ')} while a sensor was answering")
         self.stats.requests_bytes += len(data)
+        self._timeline(f"master -> {data.hex(' ')}")
         # A gap of more than 3.5 characters ends any frame in progress (RTU's rule; the
         # native sensors' own inter-character timeout is modelled the same way).
         after_silence = now - self._rx_wire_end > 3.5 * char_time(baud or 9600)
@@ -246,7 +257,11 @@ class PtyBus:
     def _guarded(self, sensor: SimSensor, act: Callable[[], list[Outgoing]]) -> None:
         """Queue what a sensor sends; a bug in it is reported, and the line lives on."""
         try:
-            self._queue.extend(act())
+            out = act()
+            for o in out:
+                if o.solicited:
+                    self._timeline(f"{o.sender} answers from {o.not_before:.4f}")
+            self._queue.extend(out)
         except Exception:
             self.stats.internal_errors += 1
             self._note(f"INTERNAL ERROR in {sensor.name}")
