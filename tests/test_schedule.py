@@ -7,6 +7,7 @@ seconds of real time however busy the machine.
 
 from __future__ import annotations
 
+import random
 from typing import Any
 
 import pytest
@@ -141,6 +142,21 @@ def test_a_busy_machine_invents_no_stream_and_writes_nothing_unasked(protocol: s
     assert not line.notes("stream") and stops_written(line, protocol) == 0
     assert not line.notes("offline")
     assert line.overlaps == 0 and line.collisions == 0
+
+
+def test_an_answer_hidden_past_the_hold_is_not_talked_over_by_the_retry() -> None:
+    """Now and then the kernel keeps a whole answer from the port for 15-40 ms (a busy
+    machine): the attempt fails and is retried, and the old answer then comes during
+    the retry.  It is used, and the line stays held for the retry's own answer."""
+    rng = random.Random(3)
+    sensors = [sim("native", "AH", a) for a in range(2)]
+    line = VirtualLine(bus("native", flat_out("native", 2)), sensors,
+                       hidden=lambda: rng.uniform(0.015, 0.04) if rng.random() < 0.05 else 0.0)
+    line.run(30.0)
+    late = sum(s.stats.late_answers for s in line.schedule.sensors.values())
+    assert late > 5  # the scenario happened
+    assert line.overlaps == 0 and line.collisions == 0
+    assert not line.notes("offline") and not line.notes("stream")
 
 
 # ------------------------------------------------------------------ priorities
@@ -340,3 +356,16 @@ def test_the_schedule_has_no_clock() -> None:
                   if isinstance(n, ast.ImportFrom) and n.level == 0}
         assert not names & {"time", "asyncio", "threading", "serial", "select"}, module
     assert Schedule.__init__.__code__.co_varnames[:3] == ("self", "config", "adapter")
+
+
+def test_a_streams_phase_is_the_earliest_its_frames_are_seen() -> None:
+    """Frames are seen late, never early (adapter, reader, busy machine): the phase
+    estimate follows the earliest arrivals, so the next frame is not expected late."""
+    import random
+
+    s = SensorState(SensorConfig(name="st", series=Series.MINS, stream_hz=100), 1)
+    rng = random.Random(5)
+    for k in range(200):
+        s.stream_frame(1.0 + k * 0.01 + rng.uniform(0, 0.005))  # true ends at 1.00, 1.01, …
+    assert s.frame_end_before(3.0) == pytest.approx(1.0 + 199 * 0.01, abs=0.0005)
+    assert s.last_stream > s.frame_end_before(3.0)  # the last one was seen late

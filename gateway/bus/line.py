@@ -4,7 +4,9 @@ when the line is free for the next request, and what is coming in.
 The timing rules, each in one place:
 
 * **When a request may go** (``free_at``): never while an attempt is in flight,
-  including the time its answer may still come late; after a whole answer, once the
+  including the time its answer may still come late; after an answer to a retry, not
+  before the retry's own answer could have come (the one used may have been the
+  attempt before's, late); after a whole answer, once the
   protocol's gap has passed; after noise or half a frame, only once the line has been
   quiet 3.5 characters (at least 1 ms), and a half frame that stopped coming is
   dropped then.  Next to a streaming sensor, only if the exchange fits before its
@@ -78,6 +80,7 @@ class Line:
         self.last_tx_end = 0.0
         self.busy_end = 0.0  # the end of the last attempt counted as busy time
         self.dirty = False  # noise or half a frame came in: wait for quiet
+        self.hold_until = 0.0  # a retry's own answer may still come until then
 
     def reset(self, now: float) -> None:
         """The port (re)opened: nothing is known to be on the line."""
@@ -85,6 +88,12 @@ class Line:
         self.attempt = None
         self.dirty = False
         self.last_rx = self.last_tx_end = now
+        self.hold_until = 0.0
+
+    @property
+    def char(self) -> float:
+        """One character's time on the wire."""
+        return char_time(self.baud)
 
     @property
     def gap(self) -> float:
@@ -104,7 +113,7 @@ class Line:
                 return self.last_rx + quiet
             self.flush(now)
         settle = quiet if self.dirty else self.gap
-        return max(self.last_rx + settle, self.last_tx_end + self.gap)
+        return max(self.last_rx + settle, self.last_tx_end + self.gap, self.hold_until)
 
     def send(self, job: Job, exchange: Exchange, now: float, timeout: float,
              hold: float) -> Request:

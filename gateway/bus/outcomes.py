@@ -37,7 +37,10 @@ class Outcomes:
         a = self.line.attempt
         if a is not None:
             answer = a.exchange.match(frame)
-            if answer is not None:
+            # An answer cannot be in before its request and itself have crossed the
+            # wire: one that is, with this attempt's shape, is an older request's,
+            # late (a busy machine held it back).  This attempt's own is still to come.
+            if answer is not None and at >= a.sent + a.wire - self.line.char:
                 self.answered(a, answer, at)
                 return
         for s in self.sensors.values():
@@ -60,8 +63,7 @@ class Outcomes:
             self.emit(StateChange(s.name, busy=False))
             return
         if s.streaming:
-            s.last_stream = at
-            s.stream_frames += 1
+            s.stream_frame(at)
             self._reading(s, answer, at)
             return
         self.stats.errors["unexpected_frame"] += 1
@@ -108,11 +110,16 @@ class Outcomes:
     def answered(self, a: Attempt, answer: Answer, at: float) -> None:
         """The attempt's answer (a late one too): on to the job's next step."""
         s, job = a.job.sensor, a.job
-        if a.exchange.answer_bytes:
+        if a.exchange.answer_bytes and job.tries > 1:
+            # A retry answered: the answer may be the attempt before's, late, with this
+            # one's own still to come.  Nothing goes out while that one may still come
+            # (and, as Karn's rule says, the answer times nothing: whose is it?).
+            self.line.hold_until = max(self.line.hold_until, a.give_up)
+        elif a.exchange.answer_bytes:
             s.timer.sample(at - a.sent - a.wire)
-            if a.overdue:
-                s.stats.late_answers += 1
-                self.stats.late_answers += 1
+        if a.exchange.answer_bytes and a.overdue:
+            s.stats.late_answers += 1
+            self.stats.late_answers += 1
         self.line.close(a, at, answered=True)
         job.tries = 0
         if job.kind in (Kind.POLL, Kind.READ):

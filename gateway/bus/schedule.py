@@ -212,7 +212,8 @@ class Schedule:
             return streamer.last_stream + 2 * period
         frame = streamer.poll(self.adapter).answer_bytes * char_time(self.baud)
         needs = self.line.wire(exchange) + self.line.gap + s.timer.expected()
-        return stream_wait(now, needs, streamer.last_stream, period, frame)
+        last_end = streamer.frame_end_before(now)  # in phase: not as late as it was seen
+        return stream_wait(now, needs, last_end, period, frame)
 
     # ------------------------------------------------------------ what comes in
 

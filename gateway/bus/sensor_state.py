@@ -42,6 +42,7 @@ class SensorState:
     streaming: bool = False
     last_stream: float = 0.0  # when its last stream frame's last byte came in
     stream_frames: int = 0  # frames since the stream was set up (0: its phase is unknown)
+    stream_anchor: float = 0.0  # the earliest its frames have been seen to end, in phase
     stream_retry_at: float = 0.0
     stop_stream: bool = False  # it streams though nobody asked: tell it to stop
     evidence: deque[float] = field(default_factory=deque)  # unexplained frames' times
@@ -109,6 +110,31 @@ class SensorState:
                 self.stats.missed_polls += missed
                 self.next_due += missed * self.period
             self.next_due = max(self.next_due, now - self.period)
+
+    # ------------------------------------------------------------ its stream's phase
+
+    def stream_frame(self, at: float) -> None:
+        """A frame of its stream ended at ``at`` (as far as this machine can tell)."""
+        period = 1 / self.config.stream_hz if self.config.stream_hz else 0.0
+        if not self.stream_frames or not period:
+            self.stream_anchor = at
+        else:
+            # A frame is never seen early, only late (the adapter, the reader, a busy
+            # machine): the earliest arrivals, in phase, say when the frames really
+            # end.  A later one moves the estimate a sixteenth of the way, enough to
+            # follow the sensor's clock.
+            predicted = self.stream_anchor + round((at - self.stream_anchor) / period) * period
+            self.stream_anchor = at if at < predicted else predicted + (at - predicted) / 16
+        self.last_stream = at
+        self.stream_frames += 1
+
+    def frame_end_before(self, at: float) -> float:
+        """The true end, in phase, of the frame last seen at ``at`` or before."""
+        if not self.stream_frames or not self.config.stream_hz:
+            return self.last_stream
+        period = 1 / self.config.stream_hz
+        return self.stream_anchor + round((self.last_stream - self.stream_anchor) / period) \
+            * period
 
     # ------------------------------------------------------------ stream evidence
 
