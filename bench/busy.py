@@ -127,6 +127,9 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--burners", type=int, default=4)
     parser.add_argument("--chatty", type=int, default=2)
+    parser.add_argument("--gateway-realtime", action="store_true",
+                        help="run the gateway at real-time priority too (as systemd's "
+                        "CPUSchedulingPolicy=fifo would)")
     parser.add_argument("-v", "--verbose", action="store_true",
                         help="print the first overlaps and collisions with what led to them")
     args = parser.parse_args()
@@ -139,7 +142,8 @@ def main() -> int:
         log = Path(tmp) / "gateway.log"
         stack.enter_context(load(args.burners, args.chatty))
         with log.open("w") as out:
-            gateway = subprocess.Popen([sys.executable, "-m", "gateway", "run", "-c",
+            gateway = subprocess.Popen([*(REALTIME if args.gateway_realtime else []),
+                                        sys.executable, "-m", "gateway", "run", "-c",
                                         str(config)], stderr=out)
             try:
                 time.sleep(args.seconds)  # the measurement's length, not a wait for an event
@@ -156,7 +160,8 @@ def report(seen: dict[str, dict[str, Any]], sensors: list[dict[str, Any]],
     timing = {n: t for b in buses for n, t in b["timing"].items()}
     readings = {s["name"]: s["seq"] for s in sensors}
     print(f"{args.seconds:g} s, {args.burners} CPU burners, {args.chatty} chatty processes; "
-          f"simulators {'real-time (chrt --fifo 10)' if REALTIME else 'at normal priority'}")
+          f"simulators {'real-time (chrt --fifo 10)' if REALTIME else 'at normal priority'}"
+          f"{', gateway real-time' if args.gateway_realtime and REALTIME else ''}")
     print(f"{'sensor':6} {'line':7} {'readings':>8} {'offline':>7} {'late':>5} "
           f"{'latency ms':>10} {'timeout ms':>10} {'unasked writes':>14}")
     broken = 0
