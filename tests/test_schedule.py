@@ -159,6 +159,22 @@ def test_an_answer_hidden_past_the_hold_is_not_talked_over_by_the_retry() -> Non
     assert not line.notes("offline") and not line.notes("stream")
 
 
+@pytest.mark.parametrize("protocol", ["native", "modbus"])
+def test_garbled_answers_cost_an_attempt_never_the_bus(protocol: str) -> None:
+    """A bad checksum can leave half a frame in the framer; the attempt must still end
+    (it once waited for the rest for ever, and the bus stood still)."""
+    first = 0 if protocol == "native" else 1
+    sensor = sim(protocol, "AH", first)
+    sensor.faults.corrupt_rate = 0.3
+    line = VirtualLine(bus(protocol, flat_out(protocol, 1)), [sensor])
+    line.run(10.0)
+    s = line.schedule.sensors["s0"]
+    assert s.stats.errors["bad_frame"] > 10
+    assert len(line.readings("s0")) > 100
+    assert line.writes[-1][0] > line.now - 0.5  # still polling at the end
+    assert line.overlaps == 0
+
+
 # ------------------------------------------------------------------ priorities
 
 

@@ -32,6 +32,8 @@ from .events import Attempt, Job, Request
 MIN_QUIET = 0.001  # after noise, the line must have been quiet this long
 #: An attempt past its hold with bytes still arriving is waited for this much longer.
 ARRIVING_GRACE = 0.05
+#: Bytes stuck in the port (a starved reader thread) are waited for at most this long.
+STUCK_MAX = 1.0
 
 
 class Due(enum.Enum):
@@ -105,9 +107,14 @@ class Line:
         return (len(exchange.request) + exchange.answer_bytes) * c + \
             (self.gap if exchange.answer_bytes else 0.0)
 
+    @property
+    def quiet(self) -> float:
+        """How long the line must be silent after noise or half a frame."""
+        return max(self.gap, 3.5 * self.char, MIN_QUIET)
+
     def free_at(self, now: float) -> float:
         """When the line is quiet enough for a request (the attempt in flight aside)."""
-        quiet = max(self.gap, 3.5 * char_time(self.baud), MIN_QUIET)
+        quiet = self.quiet
         if self.framer.pending:
             if now < self.last_rx + quiet:
                 return self.last_rx + quiet
@@ -142,28 +149,43 @@ class Line:
 
     def check(self, now: float, pending: int) -> Due:
         """The attempt's deadlines at ``now``; ``pending``: bytes the port holds that
-        ``receive`` has not had yet."""
+        ``receive`` has not had yet.  Bytes on their way (or half a frame still coming
+        in) push a deadline back, but never past the hold plus ``ARRIVING_GRACE``: a
+        line that chatters must not keep an attempt open for ever."""
         a = self.attempt
         if a is None:
             return Due.NOTHING
         if not a.exchange.answer_bytes:
             return Due.SENT if now >= a.deadline else Due.NOTHING
+        limit = a.give_up + ARRIVING_GRACE
+        if self.framer.pending and now >= self.last_rx + self.quiet:
+            self.flush(now)  # a half frame that stopped coming: it never completes
+            if self.attempt is not a:
+                return Due.NOTHING  # what it held answered the attempt
         arriving = pending > 0 or bool(self.framer.pending)
-        more = max(pending, 1) * char_time(self.baud) + MIN_QUIET  # for what is arriving
         if not a.overdue:
             if now < a.deadline:
                 return Due.NOTHING
-            if arriving:  # the answer is coming in: wait for it, not for the timeout
-                a.deadline = now + more
-                a.give_up = max(a.give_up, a.deadline)
+            if arriving and self._wait_for_bytes(a, now, pending, limit):
                 return Due.NOTHING
             a.overdue = True
         if now < a.give_up:
             return Due.NOTHING
-        if arriving and now < a.give_up + ARRIVING_GRACE:
-            a.give_up = now + more
+        if arriving and self._wait_for_bytes(a, now, pending, limit):
             return Due.NOTHING
         return Due.FAILED
+
+    def _wait_for_bytes(self, a: Attempt, now: float, pending: int, limit: float) -> bool:
+        """Bytes are coming in at a deadline: wait for them rather than call the answer
+        missing.  Up to ``limit`` while they arrive; past it only for bytes stuck in
+        the port while nothing has reached ``receive`` since the limit (the reader
+        thread is starved on a busy machine, not the line chattering), and never past
+        ``STUCK_MAX``: a line that chatters must not keep the attempt open."""
+        if now >= limit and not (pending and self.last_rx < limit and
+                                 now < limit + STUCK_MAX):
+            return False
+        a.deadline = max(a.deadline, now + max(pending, 1) * self.char + MIN_QUIET)
+        return True
 
     def failure_kind(self, a: Attempt) -> str:
         """``bad_frame`` when noise or a bad checksum came during the attempt."""

@@ -179,7 +179,7 @@ class Schedule:
         """When ``handle_timer`` or ``next_request`` next has something to do."""
         a = self.line.attempt
         if a is not None:
-            return a.give_up if a.overdue else a.deadline
+            return max(a.give_up, a.deadline) if a.overdue else a.deadline
         times = [now + 1.0]  # housekeeping: busy periods and streams that end
         work = [now] if self.jobs.current or self.jobs else []
         for s in self.sensors.values():
