@@ -144,13 +144,16 @@ def test_a_busy_machine_invents_no_stream_and_writes_nothing_unasked(protocol: s
     assert line.overlaps == 0 and line.collisions == 0
 
 
-def test_an_answer_hidden_past_the_hold_is_not_talked_over_by_the_retry() -> None:
+@pytest.mark.parametrize(("retries", "count"), [(0, 1), (1, 2)])
+def test_an_answer_hidden_past_the_hold_is_not_talked_over_by_the_retry(
+        retries: int, count: int) -> None:
     """Now and then the kernel keeps a whole answer from the port for 15-40 ms (a busy
-    machine): the attempt fails and is retried, and the old answer then comes during
-    the retry.  It is used, and the line stays held for the retry's own answer."""
+    machine): the attempt fails, and the old answer comes during the next request to
+    that sensor (its retry, or with no retries its next poll).  It is used, and the line
+    stays held for that request's own answer."""
     rng = random.Random(3)
-    sensors = [sim("native", "AH", a) for a in range(2)]
-    line = VirtualLine(bus("native", flat_out("native", 2)), sensors,
+    sensors = [sim("native", "AH", a) for a in range(count)]
+    line = VirtualLine(bus("native", flat_out("native", count), retries=retries), sensors,
                        hidden=lambda: rng.uniform(0.015, 0.04) if rng.random() < 0.05 else 0.0)
     line.run(30.0)
     late = sum(s.stats.late_answers for s in line.schedule.sensors.values())
@@ -297,6 +300,16 @@ def test_a_stream_feeds_the_cache_and_polls_fit_between_its_frames() -> None:
     line.run(2.0)
     assert not line.schedule.sensors["st"].streaming
     assert line.notes("its stream stopped")
+
+
+def test_a_read_of_a_streaming_sensor_waits_for_its_next_frame_without_spinning() -> None:
+    line = VirtualLine(bus("native", [{"name": "st", "series": "AH", "address": 0,
+                                       "stream_hz": 5}]), [sim("native", "AH", 0)])
+    line.run(3.0, until=lambda: line.schedule.sensors["st"].stream_frames > 2)
+    writes = len(line.writes)
+    read, _ = line.read("st")
+    line.run(1.0, until=lambda: line.result(read) is not None)  # (the harness fails a spin)
+    assert line.result(read) is not None and len(line.writes) == writes
 
 
 def test_stream_wait_goes_when_it_fits_else_after_the_next_frame() -> None:

@@ -41,6 +41,14 @@ class JobQueue:
     def __bool__(self) -> bool:
         return bool(self.commands or self.reads or self.stops)
 
+    def ready(self, stopping: bool) -> bool:
+        """Is a queued job ready to go as soon as the line is free?  (A read of a
+        streaming sensor is not: its next frame serves it.)"""
+        if stopping:
+            return bool(self.stops)
+        return bool(self.commands) or any(
+            not j.sensor.streaming and not j.started for j in self.reads.values())
+
     def full(self, s: SensorState) -> CommandError | None:
         if sum(j.sensor is s for j in self.commands) >= MAX_QUEUED_PER_SENSOR:
             return CommandError(ErrorKind.BUSY, f"{MAX_QUEUED_PER_SENSOR} requests for "

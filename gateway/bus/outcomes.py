@@ -100,8 +100,9 @@ class Outcomes:
         kind = self.line.failure_kind(a)
         self._count_error(s, kind)
         self.line.close(a, now, answered=False)
-        s.unanswered.append(a.sent)
-        s.timer.timed_out()
+        if kind == "timeout":  # silence: its answer may still come (a garbled one came)
+            s.unanswered.append(a.sent)
+            s.timer.timed_out()
         self.line.flush(now)
         if job.tries <= self.config.retries:
             return  # the same exchange goes again
@@ -110,10 +111,11 @@ class Outcomes:
     def answered(self, a: Attempt, answer: Answer, at: float) -> None:
         """The attempt's answer (a late one too): on to the job's next step."""
         s, job = a.job.sensor, a.job
-        if a.exchange.answer_bytes and job.tries > 1:
-            # A retry answered: the answer may be the attempt before's, late, with this
-            # one's own still to come.  Nothing goes out while that one may still come
-            # (and, as Karn's rule says, the answer times nothing: whose is it?).
+        if a.exchange.answer_bytes and (job.tries > 1 or s.suspect(a.sent)):
+            # A retry answered, or any request to a sensor that lately left one
+            # unanswered: the answer may be that request's, late, with this one's own
+            # still to come.  Nothing goes out while that one may still come (and, as
+            # Karn's rule says, the answer times nothing: whose is it?).
             self.line.hold_until = max(self.line.hold_until, a.give_up)
         elif a.exchange.answer_bytes:
             s.timer.sample(at - a.sent - a.wire)

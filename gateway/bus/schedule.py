@@ -181,7 +181,7 @@ class Schedule:
         if a is not None:
             return max(a.give_up, a.deadline) if a.overdue else a.deadline
         times = [now + 1.0]  # housekeeping: busy periods and streams that end
-        work = [now] if self.jobs.current or self.jobs else []
+        work = [now] if self.jobs.current or self.jobs.ready(self.stopping) else []
         for s in self.sensors.values():
             if s.busy_until > now:
                 times.append(s.busy_until)

@@ -24,6 +24,9 @@ EVIDENCE_FRAMES, EVIDENCE_SPAN, EVIDENCE_WINDOW = 5, 2.0, 5.0
 #: An unanswered request may still be answered (very late) this long after it was sent:
 #: a frame from its sensor within that time is taken for that answer, not for a stream.
 LATE_MEMORY = 10.0
+#: A request sent this soon after one that went unanswered may get that one's answer:
+#: its own answer is then not trusted to time anything, and is waited for.
+SUSPECT = 1.0
 
 
 @dataclass(eq=False, slots=True)
@@ -137,6 +140,11 @@ class SensorState:
             * period
 
     # ------------------------------------------------------------ stream evidence
+
+    def suspect(self, sent: float) -> bool:
+        """Did a request to it go unanswered shortly before ``sent``?  Then an answer to
+        the request sent at ``sent`` may be that one's, late."""
+        return bool(self.unanswered) and sent - self.unanswered[-1] < SUSPECT
 
     def explained(self, at: float) -> bool:
         """Is a frame of this sensor at ``at`` the late answer to an unanswered request?
