@@ -588,3 +588,35 @@ def test_bytes_on_their_way_count_as_pending_until_the_master_has_them() -> None
     finally:
         os.close(master)
         os.close(slave)
+
+
+def test_a_bug_costs_one_request_not_the_bus(monkeypatch: pytest.MonkeyPatch,
+                                             caplog: pytest.LogCaptureFixture) -> None:
+    from gateway.bus.outcomes import Outcomes
+
+    real = Outcomes._done
+    failed: list[bool] = []
+
+    def broken_once(self: Outcomes, job: Any, at: float) -> None:
+        if not failed:
+            failed.append(True)
+            raise RuntimeError("a bug in the schedule")
+        real(self, job, at)
+
+    monkeypatch.setattr(Outcomes, "_done", broken_once)
+    with simulated([native(Series.AH, 0)]) as sim:
+        async def body() -> None:
+            async with running(bus_config(sim.path, "native", [
+                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 20}])) as gw:
+                await until(lambda: gw.cache.snapshot("ah").seq >= 1)
+                first = await gw.command("ah", "read_settings")  # meets the bug
+                assert not first.ok and first.kind is ErrorKind.OFFLINE
+                assert "internal error" in (first.error or "")
+                second = await gw.command("ah", "read_settings")
+                assert second.ok, second
+                seq = gw.cache.snapshot("ah").seq
+                await until(lambda: gw.cache.snapshot("ah").seq >= seq + 3)
+        with caplog.at_level("ERROR", logger="gateway.bus"):
+            run(body)
+        no_overlap(sim)
+    assert any("a bug in the schedule" in r.getMessage() or r.exc_info for r in caplog.records)

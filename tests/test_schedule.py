@@ -312,6 +312,21 @@ def test_a_read_of_a_streaming_sensor_waits_for_its_next_frame_without_spinning(
     assert line.result(read) is not None and len(line.writes) == writes
 
 
+def test_stopping_during_a_stream_set_up_still_leaves_the_line_quiet() -> None:
+    from gateway.bus.events import Kind
+
+    sensor = sim("native", "AH", 0)
+    line = VirtualLine(bus("native", [{"name": "st", "series": "AH", "address": 0,
+                                       "stream_hz": 20}]), [sensor])
+    jobs = line.schedule.jobs
+    line.run(1.0, until=lambda: jobs.current is not None and
+             jobs.current.kind is Kind.STREAM_START and jobs.current.step == 1)
+    line.schedule.stop(line.now)  # between the set-up's two exchanges
+    line.run(2.0, until=lambda: line.schedule.finished)
+    assert line.schedule.finished
+    assert sensor.stream_interval == 0.0  # set up, then stopped: quiet for the next owner
+
+
 def test_stream_wait_goes_when_it_fits_else_after_the_next_frame() -> None:
     # frames of 5 ms every 20 ms, the last ended at t=0
     assert stream_wait(0.001, 0.005, 0.0, 0.02, 0.005) == 0.001  # fits

@@ -14,9 +14,11 @@ published: the time between an answer and the next request is the line's.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import typing
-from typing import Any
+from collections.abc import Callable
+from typing import Any, TypeVar
 
 from ..cache import SensorUnavailable
 from ..commands import Command, CommandError, CommandResult, ErrorKind
@@ -25,7 +27,7 @@ from ..model import Reading
 from ..normalise import to_reading
 from ..protocol.exchanges import ModbusAdapter, adapter_for
 from ..stats import BusStats, Counters, SensorStats, ms, share
-from .events import ErrorCounted, Finished, Job, Note, Publish, StateChange
+from .events import ErrorCounted, Event, Finished, Job, Note, Publish, StateChange
 from .link import LinkError, SerialLink
 from .schedule import Schedule
 from .sensor_state import OFFLINE_AFTER, SensorState
@@ -35,6 +37,9 @@ log = logging.getLogger("gateway.bus")
 REOPEN_MIN, REOPEN_MAX = 0.5, 5.0  # seconds between tries to reopen a lost port
 #: The shortest wait for the schedule's timer: a guard against a spin, never a rule.
 MIN_WAIT = 0.0001
+#: After an internal error, the bus waits this long before it goes on.
+BUG_PAUSE = 0.1
+T = TypeVar("T")
 
 #: the master's on-demand read of one sensor
 ReadNow = typing.Callable[[str], typing.Coroutine[typing.Any, typing.Any, None]]
@@ -143,16 +148,37 @@ class BusMaster:
                 if not self.port_open and not self.schedule.stopping:
                     await self._open_port()
                     continue
-                now = loop.time()
-                self.schedule.handle_timer(now, self.link.pending())
-                self._send(now)
-                self._dispatch()
-                await self._sleep_until(self.schedule.next_wake(loop.time()))
+                wake = self._guarded(self._step)
+                await self._sleep_until(wake if wake is not None else loop.time() + BUG_PAUSE)
         finally:
             self.link.close()
             self.schedule.port_open = False
+            self.schedule.abort(self._now(), "the gateway is stopping")
             self.schedule.fail_pending(ErrorKind.OFFLINE, "the gateway is stopping")
             self._dispatch()
+
+    def _step(self) -> float:
+        """The timer's turn: deadlines, the next request, the events; when to wake."""
+        assert self._loop is not None
+        now = self._loop.time()
+        self.schedule.handle_timer(now, self.link.pending())
+        self._send(now)
+        wake = self.schedule.next_wake(self._loop.time())
+        self._dispatch()  # (next_wake may have flushed a half frame: its events too)
+        return wake
+
+    def _guarded(self, step: Callable[[], T]) -> T | None:
+        """A bug must cost one request, not the bus: logged, the job in flight answered
+        as failed, and the bus carries on."""
+        try:
+            return step()
+        except Exception:
+            log.exception("bus %s: internal error; the request in flight is dropped",
+                          self.name)
+            with contextlib.suppress(Exception):
+                self.schedule.abort(self._now(), "internal error in the gateway (logged)")
+                self._dispatch()
+            return None
 
     def _now(self) -> float:
         return self._loop.time() if self._loop is not None else 0.0
@@ -212,10 +238,13 @@ class BusMaster:
 
     def _on_bytes(self, data: bytes, at: float) -> None:
         """From the serial reader, in this loop; ``at``: when the bytes came in."""
+        self._guarded(lambda: self._received(data, at))
+        self._poke()  # the timer to wait for has changed
+
+    def _received(self, data: bytes, at: float) -> None:
         self.schedule.receive(data, at)
         self._send(self._now())  # the next request first: publishing can wait
         self._dispatch()
-        self._poke()  # the timer to wait for has changed
 
     def _send(self, now: float) -> None:
         request = self.schedule.next_request(now)
@@ -233,21 +262,27 @@ class BusMaster:
     def _dispatch(self) -> None:
         """Carry out what the schedule says happened, in order."""
         for event in self.schedule.take_events():
-            match event:
-                case Publish(name, answer, at):
-                    reading = to_reading(answer.values, self.sensors[name].config.series)
-                    if reading is not None:
-                        self.cache.publish(name, reading, at)
-                        self.sensors[name].stats.readings += 1
-                        self.sensors[name].stats.rate.add(at)
-                case StateChange(name, online, busy, streaming):
-                    self.cache.set_state(name, online=online, busy=busy, streaming=streaming)
-                case ErrorCounted(name):
-                    self.cache.count_error(name)
-                case Finished(job, outcome, error):
-                    self._resolve(job, outcome, error)
-                case Note(level, text):
-                    log.log(level, "%s", text)
+            try:
+                self._carry_out(event)
+            except Exception:  # one event's failure must not lose the others
+                log.exception("bus %s: internal error carrying out %s", self.name, event)
+
+    def _carry_out(self, event: Event) -> None:
+        match event:
+            case Publish(name, answer, at):
+                reading = to_reading(answer.values, self.sensors[name].config.series)
+                if reading is not None:
+                    self.cache.publish(name, reading, at)
+                    self.sensors[name].stats.readings += 1
+                    self.sensors[name].stats.rate.add(at)
+            case StateChange(name, online, busy, streaming):
+                self.cache.set_state(name, online=online, busy=busy, streaming=streaming)
+            case ErrorCounted(name):
+                self.cache.count_error(name)
+            case Finished(job, outcome, error):
+                self._resolve(job, outcome, error)
+            case Note(level, text):
+                log.log(level, "%s", text)
 
     def _resolve(self, job: Job, outcome: Any, error: CommandError | None) -> None:
         future = self._futures.pop(job, None)

@@ -78,7 +78,8 @@ class Outcomes:
             return  # an answer to a request of ours, too late to use: not a reading
         if s.unasked_frame(at):
             if s.config.stream_hz and answer is not None:
-                s.streaming, s.last_stream = True, at
+                s.streaming, s.stream_frames = True, 0
+                s.stream_frame(at)
                 self.emit(StateChange(s.name, streaming=True))
                 self._note(logging.INFO, f"sensor {s.name}: its stream is back")
             elif not s.config.stream_hz:
@@ -190,12 +191,12 @@ class Outcomes:
         if job is self.jobs.current:
             self.jobs.current = None
         was = s.online
-        if kind != "port_lost" and s.failed():
+        if kind not in ("port_lost", "internal") and s.failed():
             self._note(logging.WARNING, f"sensor {s.name}: offline "
                        f"({'never answered' if was is None else kind})")
             self.emit(StateChange(s.name, online=False))
-        error_kind = {"port_lost": ErrorKind.OFFLINE, "refused": ErrorKind.FAILURE}.get(
-            kind, ErrorKind.TIMEOUT)
+        error_kind = {"port_lost": ErrorKind.OFFLINE, "internal": ErrorKind.OFFLINE,
+                      "refused": ErrorKind.FAILURE}.get(kind, ErrorKind.TIMEOUT)
         if job.kind is Kind.STREAM_START:
             s.stream_retry_at = now + STREAM_RETRY
         if job.kind in (Kind.POLL, Kind.READ):

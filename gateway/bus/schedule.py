@@ -114,7 +114,9 @@ class Schedule:
         self.port_open = True
         self.line.reset(now)
         for s in self.sensors.values():
-            s.next_due, s.streaming, s.stream_retry_at = now, False, now
+            s.next_due, s.streaming, s.stream_frames = now, False, 0
+            s.stream_retry_at = min(s.stream_retry_at, now)  # (inf: a rate it cannot do)
+            s.timer.backoff = 0
 
     def lost(self, now: float, reason: str) -> None:
         """The port is gone (or could not be opened): everything fails as offline."""
@@ -127,6 +129,9 @@ class Schedule:
             self.outcomes.fail_job(self.jobs.current, now, "port_lost",
                                    f"bus {self.config.name}: {reason}")
         for s in self.sensors.values():
+            # What was seen before the loss proves nothing about what is there after it.
+            s.stop_stream = False
+            s.evidence.clear()
             if s.online is not False or s.streaming:
                 s.online, s.streaming = False, False
                 self._events.append(StateChange(s.name, online=False, streaming=False))
@@ -139,11 +144,25 @@ class Schedule:
             return
         self.stopping = True
         self.jobs.fail_all(ErrorKind.OFFLINE, "the gateway is stopping")
-        if self.port_open:
-            for s in self.sensors.values():
-                if s.streaming:
-                    # Leave the line quiet for the next owner: stop the auto-output.
-                    self.jobs.stops.append(Job(Kind.STREAM_STOP, s))
+        if not self.port_open:
+            return
+        current = self.jobs.current
+        for s in self.sensors.values():
+            setting_up = current is not None and current.kind is Kind.STREAM_START and \
+                current.sensor is s
+            if s.streaming or s.stop_stream or setting_up:
+                # Leave the line quiet for the next owner: stop the auto-output (also of
+                # a stream being set up now, or found streaming unasked).
+                self.jobs.stops.append(Job(Kind.STREAM_STOP, s))
+
+    def abort(self, now: float, message: str) -> None:
+        """Drop the exchange in flight and answer its job as failed (an internal error,
+        or the bus thread ending); it does not count against the sensor."""
+        if self.line.attempt is not None:
+            self.line.close(self.line.attempt, now, answered=False)
+        self.line.flush(now)
+        if self.jobs.current is not None:
+            self.outcomes.fail_job(self.jobs.current, now, "internal", message)
 
     @property
     def finished(self) -> bool:
@@ -180,6 +199,8 @@ class Schedule:
         a = self.line.attempt
         if a is not None:
             return max(a.give_up, a.deadline) if a.overdue else a.deadline
+        if not self.port_open and not self.stopping:
+            return now  # the driver reopens it
         times = [now + 1.0]  # housekeeping: busy periods and streams that end
         work = [now] if self.jobs.current or self.jobs.ready(self.stopping) else []
         for s in self.sensors.values():
@@ -234,8 +255,9 @@ class Schedule:
         elif a is not None and due is Due.FAILED:
             self.outcomes.timed_out(a, now)
         for s in self.sensors.values():
-            if s.streaming and now - s.last_stream > s.stream_timeout:
-                s.streaming = False
+            # (frames may be in the port, not yet received, on a busy machine)
+            if s.streaming and now - s.last_stream > s.stream_timeout and not pending:
+                s.streaming, s.stream_frames = False, 0
                 s.stream_retry_at = now + STREAM_RETRY
                 s.next_due = now
                 self._events.append(StateChange(s.name, streaming=False))

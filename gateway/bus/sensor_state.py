@@ -5,6 +5,7 @@ method takes the time as an argument.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -126,7 +127,7 @@ class SensorState:
             # machine): the earliest arrivals, in phase, say when the frames really
             # end.  A later one moves the estimate a sixteenth of the way, enough to
             # follow the sensor's clock.
-            predicted = self.stream_anchor + round((at - self.stream_anchor) / period) * period
+            predicted = self._in_phase(at, period)
             self.stream_anchor = at if at < predicted else predicted + (at - predicted) / 16
         self.last_stream = at
         self.stream_frames += 1
@@ -135,9 +136,14 @@ class SensorState:
         """The true end, in phase, of the frame last seen at ``at`` or before."""
         if not self.stream_frames or not self.config.stream_hz:
             return self.last_stream
-        period = 1 / self.config.stream_hz
-        return self.stream_anchor + round((self.last_stream - self.stream_anchor) / period) \
-            * period
+        return self._in_phase(self.last_stream, 1 / self.config.stream_hz)
+
+    def _in_phase(self, at: float, period: float) -> float:
+        """The frame end in phase that a frame seen at ``at`` had: the one at or before
+        it (frames are seen late, never early), or a little after it (a quarter of a
+        period: the sensor's clock may run a little fast)."""
+        return self.stream_anchor + \
+            math.floor((at - self.stream_anchor) / period + 0.25) * period
 
     # ------------------------------------------------------------ stream evidence
 
