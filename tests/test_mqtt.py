@@ -9,6 +9,7 @@ docs/mqtt.md, never from the gateway's MQTT module.  Waits are deadlines on a co
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import logging
 import signal
@@ -506,19 +507,26 @@ def test_min_interval_deadband_and_per_field_topics(tmp_path: Path) -> None:
                 await until(lambda: bool(rec.on(f"{BASE}/boom/state")))
                 seq = gateway.cache.snapshot("boom").seq
                 await until(lambda: gateway.cache.snapshot("boom").seq > seq + 20)
-                assert len(rec.on(f"{BASE}/boom/state")) == 1
+                assert value_messages(rec.on(f"{BASE}/boom/state")) == 1
                 a = READING.angles
                 assert a is not None
                 ah.source = hold(_replace_angles(READING, Angles(a.pitch + 0.5, a.roll, a.yaw)))
                 seq = gateway.cache.snapshot("boom").seq
                 await until(lambda: gateway.cache.snapshot("boom").seq > seq + 20)
-                assert len(rec.on(f"{BASE}/boom/state")) == 1  # within the band
+                assert value_messages(rec.on(f"{BASE}/boom/state")) == 1  # within the band
                 ah.source = hold(_replace_angles(READING, Angles(a.pitch + 5, a.roll, a.yaw)))
-                await until(lambda: len(rec.on(f"{BASE}/boom/state")) == 2)
+                await until(lambda: value_messages(rec.on(f"{BASE}/boom/state")) == 2)
                 moved = state(rec.on(f"{BASE}/boom/state")[-1])["angles"]["pitch"]
                 assert abs(moved - (a.pitch + 5)) < 0.01
 
         run(body)
+
+
+def value_messages(messages: list[Any]) -> int:
+    """State messages sent for a value, not for a change of status: a status change is
+    always published (a busy machine may make a still sensor stale for a moment)."""
+    statuses = [str(state(m)["status"]) for m in messages]
+    return len(statuses) - sum(a != b for a, b in itertools.pairwise(statuses))
 
 
 def _replace_angles(reading: Any, angles: Angles) -> Any:
