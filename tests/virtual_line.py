@@ -167,10 +167,11 @@ class VirtualLine:
         for data, at, _ in [p for p in self._port if p[2] <= self.now]:
             s.receive(data, at)
         self._port = [p for p in self._port if p[2] > self.now]
-        s.handle_timer(self.now, sum(len(p[0]) for p in self._port if p[1] <= self.now))
-        self._write(s.next_request(self.now))
+        pending = sum(len(p[0]) for p in self._port if p[1] <= self.now)
+        s.handle_timer(self.now, pending)
+        self._write(s.next_request(self.now, pending))
         self.events += s.take_events()
-        wake = s.next_wake(self.now)
+        wake = s.next_wake(self.now, pending)
         # A schedule that asks to be woken now, again and again, for nothing, would spin
         # the bus thread: that is a bug, and it fails the test here.
         self._spins = self._spins + 1 if wake <= self.now else 0

@@ -112,20 +112,27 @@ class Line:
         """How long the line must be silent after noise or half a frame."""
         return max(self.gap, 3.5 * self.char, MIN_QUIET)
 
-    def free_at(self, now: float) -> float:
-        """When the line is quiet enough for a request (the attempt in flight aside)."""
+    def free_at(self, now: float, pending: int = 0) -> float:
+        """When the line is quiet enough for a request (the attempt in flight aside).
+        ``pending``: bytes the port holds that ``receive`` has not had yet; while there
+        are any, half a frame is not taken to have stopped (the rest is in the port: the
+        loop is late, not the line quiet)."""
         quiet = self.quiet
         if self.framer.pending:
-            if now < self.last_rx + quiet:
-                return self.last_rx + quiet
-            self.flush(now)
+            if pending:
+                return now + pending * self.char + MIN_QUIET
+            return max(self.last_rx + quiet, self.last_tx_end + self.gap, self.hold_until)
         settle = quiet if self.dirty else self.gap
         return max(self.last_rx + settle, self.last_tx_end + self.gap, self.hold_until)
 
     def send(self, job: Job, exchange: Exchange, now: float, timeout: float,
              hold: float) -> Request:
-        """``exchange`` goes out now; its answer is due ``timeout`` beyond the wire
-        time, and the line is held ``hold`` more for a late one."""
+        """``exchange`` goes out now (``free_at`` said the line is free); its answer is
+        due ``timeout`` beyond the wire time, and the line is held ``hold`` more for a
+        late one.  Half a frame still in the framer has stopped coming (the line has
+        been quiet): it is dropped now, not while nothing needed the line (its rest may
+        yet come, late, on a busy machine)."""
+        self.flush(now)
         wire = self.wire(exchange)
         if not exchange.answer_bytes:
             timeout = hold = 0.0
@@ -158,7 +165,7 @@ class Line:
         if not a.exchange.answer_bytes:
             return Due.SENT if now >= a.deadline else Due.NOTHING
         limit = a.give_up + ARRIVING_GRACE
-        if self.framer.pending and now >= self.last_rx + self.quiet:
+        if self.framer.pending and not pending and now >= self.last_rx + self.quiet:
             self.flush(now)  # a half frame that stopped coming: it never completes
             if self.attempt is not a:
                 return Due.NOTHING  # what it held answered the attempt

@@ -163,7 +163,7 @@ class BusMaster:
         now = self._loop.time()
         self.schedule.handle_timer(now, self.link.pending())
         self._send(now)
-        wake = self.schedule.next_wake(self._loop.time())
+        wake = self.schedule.next_wake(self._loop.time(), self.link.pending())
         self._dispatch()  # (next_wake may have flushed a half frame: its events too)
         return wake
 
@@ -247,7 +247,7 @@ class BusMaster:
         self._dispatch()
 
     def _send(self, now: float) -> None:
-        request = self.schedule.next_request(now)
+        request = self.schedule.next_request(now, self.link.pending())
         if request is None:
             return
         try:

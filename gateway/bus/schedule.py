@@ -171,9 +171,11 @@ class Schedule:
 
     # ------------------------------------------------------------ what goes next
 
-    def next_request(self, now: float) -> Request | None:
-        """The request to write now, or None (see ``next_wake``)."""
-        if not self.port_open or self.line.attempt is not None or now < self.line.free_at(now):
+    def next_request(self, now: float, pending: int = 0) -> Request | None:
+        """The request to write now, or None (see ``next_wake``).  ``pending``: bytes the
+        port holds that ``receive`` has not had yet."""
+        if not self.port_open or self.line.attempt is not None or \
+                now < self.line.free_at(now, pending):
             return None
         job = self.jobs.current
         if job is None:
@@ -184,7 +186,7 @@ class Schedule:
                 self.stats.stream_stops += 1
             if not self.jobs.begin(job, self.adapter):
                 self.jobs.current = None
-                return self.next_request(now)
+                return self.next_request(now, pending)
         exchange = job.plan[job.step]
         if self._stream_allows_at(job.sensor, exchange, now) > now:
             return None
@@ -194,7 +196,7 @@ class Schedule:
         timeout = s.timer.hold if s.online is False else s.timer.rto
         return self.line.send(job, exchange, now, timeout, s.timer.hold)
 
-    def next_wake(self, now: float) -> float:
+    def next_wake(self, now: float, pending: int = 0) -> float:
         """When ``handle_timer`` or ``next_request`` next has something to do."""
         a = self.line.attempt
         if a is not None:
@@ -214,7 +216,7 @@ class Schedule:
             if (s.config.stream_hz and not s.streaming) or s.stop_stream:
                 work.append(s.stream_retry_at)
         if work and self.port_open:
-            ready = max(min(work), self.line.free_at(now))
+            ready = max(min(work), self.line.free_at(now, pending))
             if self.jobs.current is not None:
                 ready = max(ready, self._stream_allows_at(
                     self.jobs.current.sensor, self.jobs.current.plan[self.jobs.current.step], now))
