@@ -38,6 +38,7 @@ class Job:
     tries: int = 0  # attempts of that exchange so far
     values: dict[str, Any] = field(default_factory=dict)  # the answers' values, merged
     started: bool = False
+    blocked_since: float | None = None  # waiting for a place next to a stream since
 
 
 @dataclass(slots=True)

@@ -34,6 +34,9 @@ MIN_QUIET = 0.001  # after noise, the line must have been quiet this long
 ARRIVING_GRACE = 0.05
 #: Bytes stuck in the port (a starved reader thread) are waited for at most this long.
 STUCK_MAX = 1.0
+#: An exchange that found no place next to a stream for this many periods takes the
+#: next pause it can, fitting or not.
+PATIENCE = 10
 
 
 class Due(enum.Enum):
@@ -45,15 +48,21 @@ class Due(enum.Enum):
 
 
 def stream_wait(now: float, needs: float, last_end: float, period: float,
-                frame: float) -> float:
+                frame: float, waited: float = 0.0) -> float:
     """When an exchange of ``needs`` seconds may start next to a stream whose frames
-    take ``frame`` seconds every ``period``, the last one seen ending at ``last_end``.
+    take ``frame`` seconds every ``period``, the last one seen ending at ``last_end``;
+    ``waited``: how long it has waited for a place already.
 
     The stream keeps its phase: a frame that was lost (garbled, or dropped by the
     port) does not make the next one come at another time, so the frames are expected
     at ``last_end + k·period``.  A frame due but not seen yet is given half a period
     to arrive (a busy machine, or a sensor's own clock, makes frames late) before it
-    is taken for lost and the line is used."""
+    is taken for lost and the line is used.
+
+    An exchange that fits no pause, or only one it cannot be on time for (it has to
+    start within ``margin`` of a frame's end), goes right after a frame: the least
+    harm.  One that has waited ``PATIENCE`` periods takes any pause it is woken in: a
+    busy machine must not keep a command from the sensor for ever."""
     margin = min(0.02, period / 10) + MIN_QUIET  # the frames' own timing wobbles
     k = max(1, math.ceil((now - last_end) / period))
     due = last_end + (k - 1) * period  # the latest frame that should have ended by now
@@ -62,8 +71,12 @@ def stream_wait(now: float, needs: float, last_end: float, period: float,
     next_end = due + period
     if now + needs + margin <= next_end - frame:
         return now  # fits before the next frame
-    if needs + margin > period - frame and now - due <= margin and k == 1:
-        return now  # never fits a pause: right after a frame is the least harm
+    slack = period - frame - needs - margin  # how long after a frame's end it still fits
+    after = period - frame if waited >= PATIENCE * period else margin
+    if slack < margin and now - due <= after and k == 1:
+        return now  # (almost) never fits: right after a frame is the least harm
+    if waited >= PATIENCE * period and now - due <= after and k == 1:
+        return now
     return next_end  # in the pause after the next frame (its arrival wakes us sooner)
 
 

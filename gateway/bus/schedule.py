@@ -188,8 +188,11 @@ class Schedule:
                 self.jobs.current = None
                 return self.next_request(now, pending)
         exchange = job.plan[job.step]
-        if self._stream_allows_at(job.sensor, exchange, now) > now:
+        if self._stream_allows_at(job, exchange, now) > now:
+            if job.blocked_since is None:
+                job.blocked_since = now
             return None
+        job.blocked_since = None
         s = job.sensor
         # An offline sensor is probed without the timeout's back-off: it must cost the
         # others little.
@@ -219,11 +222,11 @@ class Schedule:
             ready = max(min(work), self.line.free_at(now, pending))
             if self.jobs.current is not None:
                 ready = max(ready, self._stream_allows_at(
-                    self.jobs.current.sensor, self.jobs.current.plan[self.jobs.current.step], now))
+                    self.jobs.current, self.jobs.current.plan[self.jobs.current.step], now))
             times.append(ready)
         return min(times)
 
-    def _stream_allows_at(self, s: SensorState, exchange: Exchange, now: float) -> float:
+    def _stream_allows_at(self, job: Job, exchange: Exchange, now: float) -> float:
         """When ``exchange`` (to ``s``) may go next to the line's streaming sensor: with
         the sensor's answer latency as learned (``line.stream_wait``).  After a stream
         is set up, nothing goes until its first frame has set the phase."""
@@ -234,9 +237,10 @@ class Schedule:
         if not streamer.stream_frames and now < streamer.last_stream + 2 * period:
             return streamer.last_stream + 2 * period
         frame = streamer.poll(self.adapter).answer_bytes * char_time(self.baud)
-        needs = self.line.wire(exchange) + self.line.gap + s.timer.expected()
+        needs = self.line.wire(exchange) + self.line.gap + job.sensor.timer.expected()
         last_end = streamer.frame_end_before(now)  # in phase: not as late as it was seen
-        return stream_wait(now, needs, last_end, period, frame)
+        waited = 0.0 if job.blocked_since is None else now - job.blocked_since
+        return stream_wait(now, needs, last_end, period, frame, waited)
 
     # ------------------------------------------------------------ what comes in
 
