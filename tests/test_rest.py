@@ -91,6 +91,11 @@ def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
             assert buses_out["a"]["baudrate"] == FAST and buses_out["a"]["sensors"] == ["boom"]
             assert buses_out["a"]["transactions"] >= 2 and buses_out["a"]["port_open"] is True
             assert 0 < buses_out["a"]["utilisation"] <= 1.0
+            # each sensor's learned answer timing: never less than the simulator's delay
+            timing = buses_out["a"]["timing"]["boom"]
+            assert timing["latency_ms"] >= 0.9 * ah.answer_delay * 1000
+            assert timing["timeout_ms"] >= timing["latency_ms"]
+            assert set(buses_out["b"]["timing"]) == {"arm"}
 
             listed = {s["name"]: s for s in (await http.get(f"{API}/sensors")).json()}
             assert listed["boom"]["series"] == "AH" and listed["arm"]["protocol"] == "modbus"
@@ -402,6 +407,10 @@ def test_metrics(two_lines: Any) -> None:
                               (("sensor", "arm"), ("status", "ok")): 0.0,
                               (("sensor", "arm"), ("status", "stale")): 0.0}
             assert samples[("imu_gateway_sensor_rate_hz", (("sensor", "boom"),))] > 0
+            latency = samples[("imu_gateway_sensor_latency_seconds", (("sensor", "boom"),))]
+            timeout = samples[("imu_gateway_sensor_timeout_seconds", (("sensor", "boom"),))]
+            assert 0 < latency <= timeout
+            assert ("imu_gateway_sensor_late_answers_total", (("sensor", "arm"),)) in samples
             assert samples[("imu_gateway_sensor_age_seconds", (("sensor", "boom"),))] >= 0
             assert samples[("imu_gateway_frontend_requests_total", (("frontend", "http"),))] >= 2
             assert ("imu_gateway_frontend_clients", (("frontend", "http"),)) in samples
