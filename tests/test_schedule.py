@@ -347,15 +347,30 @@ def test_a_command_next_to_a_stream_is_never_kept_waiting_for_ever(late: float) 
         assert result is not None and getattr(result.outcome, "ok", False), result
 
 
+def test_a_request_placed_next_to_a_stream_is_withdrawn_when_written_too_late() -> None:
+    """A decision to go in a stream's pause holds only until the request's ``latest``:
+    a driver kept from writing longer (preempted on a busy machine) withdraws it, and
+    it goes in a later pause instead of into the next frame."""
+    rng = random.Random(4)
+    line = VirtualLine(bus("native", [
+        {"name": "st", "series": "MINS", "address": 0, "stream_hz": 100},
+        {"name": "po", "series": "AH", "address": 1, "poll_hz": 10}], baudrate=460800),
+        [sim("native", "MINS", 0, baud=460800), sim("native", "AH", 1, baud=460800)],
+        stall=lambda: rng.uniform(0, 0.006) if rng.random() < 0.3 else 0.0)
+    line.run(20.0)
+    assert line.withdrawn > 10  # the guard was needed
+    assert len(line.readings("po")) > 150 and line.collisions == 0 and line.overlaps == 0
+
+
 def test_stream_wait_goes_when_it_fits_else_after_the_next_frame() -> None:
     # frames of 5 ms every 20 ms, the last ended at t=0
-    assert stream_wait(0.001, 0.005, 0.0, 0.02, 0.005) == 0.001  # fits
-    assert stream_wait(0.012, 0.005, 0.0, 0.02, 0.005) == 0.02  # after the next frame
-    assert stream_wait(0.0005, 0.030, 0.0, 0.02, 0.005) == 0.0005  # never fits: right after
+    assert stream_wait(0.001, 0.005, 0.0, 0.02, 0.005)[0] == 0.001  # fits
+    assert stream_wait(0.012, 0.005, 0.0, 0.02, 0.005)[0] == 0.02  # after the next frame
+    assert stream_wait(0.0005, 0.030, 0.0, 0.02, 0.005)[0] == 0.0005  # never fits: right after
     # frames lost: the phase holds (the frames end at 0.02, 0.04, 0.06, ...)
-    assert stream_wait(0.0401, 0.005, 0.0, 0.02, 0.005) == pytest.approx(0.05)  # may be late
-    assert stream_wait(0.0505, 0.001, 0.0, 0.02, 0.005) == pytest.approx(0.0505)  # lost: fits
-    assert stream_wait(0.05, 0.010, 0.0, 0.02, 0.005) == pytest.approx(0.06)
+    assert stream_wait(0.0401, 0.005, 0.0, 0.02, 0.005)[0] == pytest.approx(0.05)  # may be late
+    assert stream_wait(0.0505, 0.001, 0.0, 0.02, 0.005)[0] == pytest.approx(0.0505)  # lost: fits
+    assert stream_wait(0.05, 0.010, 0.0, 0.02, 0.005)[0] == pytest.approx(0.06)
 
 
 # ------------------------------------------------------------------ settings that move the bus

@@ -62,6 +62,11 @@ class VirtualLine:
     #: how long a frame's bytes stay invisible even to the port's buffer after they
     #: came (the kernel's own work deferred on a busy machine): nothing can see them
     hidden: Callable[[], float] = lambda: 0.0
+    #: how long the driver is kept from writing a request it was handed (preempted
+    #: between the decision and the write): past the request's ``latest`` it is
+    #: withdrawn, as the bus master does; otherwise it goes out that much later
+    stall: Callable[[], float] = lambda: 0.0
+    withdrawn: int = 0
     now: float = 0.0
     schedule: Schedule = field(init=False)
     events: list[Event] = field(default_factory=list)
@@ -182,10 +187,19 @@ class VirtualLine:
     def _write(self, request: Any) -> None:
         if request is None:
             return
-        if self._wire or any(o.solicited for o in self._queue):
+        at = self.now + self.stall()
+        if at > request.latest:
+            self.schedule.withdraw()
+            self.withdrawn += 1
+            return
+        # (a stalled write is heard later; whether it meets a frame is judged at the
+        # decision's time, when a frame on the wire is surely an overlap)
+        if self._wire or any(o.solicited for o in self._queue) or any(
+                o.not_before < at + len(request.data) * char_time(self.schedule.baud)
+                for o in self._queue):
             self.overlaps += 1
         self.writes.append((self.now, request.data))
-        heard_at = self.now + len(request.data) * char_time(self.schedule.baud)
+        heard_at = at + len(request.data) * char_time(self.schedule.baud)
         for sensor in self.sensors:
             data = request.data if sensor.baud == self.schedule.baud else \
                 bytes(len(request.data))

@@ -7,6 +7,7 @@ futures of whoever asked, the log).  None of them needs the driver to answer.
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -54,14 +55,17 @@ class Attempt:
     started: float  # the silent gap before the request began (busy time counts it)
     garbage: int  # the framer's garbage count when it was sent (noise vs silence)
     overdue: bool = False
+    tx_end_before: float = 0.0  # the line's last request end before this one
 
 
 @dataclass(frozen=True, slots=True)
 class Request:
-    """Bytes to write now; ``expect`` is the answer's length (0: none comes)."""
+    """Bytes to write now; ``expect`` is the answer's length (0: none comes).  Not
+    written by ``latest`` (the driver was kept from it), it must be withdrawn."""
 
     data: bytes
     expect: int
+    latest: float = math.inf
 
 
 @dataclass(frozen=True, slots=True)

@@ -48,10 +48,12 @@ class Due(enum.Enum):
 
 
 def stream_wait(now: float, needs: float, last_end: float, period: float,
-                frame: float, waited: float = 0.0) -> float:
+                frame: float, waited: float = 0.0) -> tuple[float, float]:
     """When an exchange of ``needs`` seconds may start next to a stream whose frames
-    take ``frame`` seconds every ``period``, the last one seen ending at ``last_end``;
-    ``waited``: how long it has waited for a place already.
+    take ``frame`` seconds every ``period``, the last one seen ending at ``last_end``
+    (``waited``: how long it has waited for a place already); and, when that is now,
+    the latest it may still start (the decision is stale after that: a busy machine
+    may keep the thread from writing for milliseconds).
 
     The stream keeps its phase: a frame that was lost (garbled, or dropped by the
     port) does not make the next one come at another time, so the frames are expected
@@ -67,17 +69,16 @@ def stream_wait(now: float, needs: float, last_end: float, period: float,
     k = max(1, math.ceil((now - last_end) / period))
     due = last_end + (k - 1) * period  # the latest frame that should have ended by now
     if k > 1 and now < due + period / 2:
-        return due + period / 2  # it may still be coming in
+        return due + period / 2, 0.0  # it may still be coming in
     next_end = due + period
     if now + needs + margin <= next_end - frame:
-        return now  # fits before the next frame
+        return now, next_end - frame - needs - margin  # fits before the next frame
     slack = period - frame - needs - margin  # how long after a frame's end it still fits
-    after = period - frame if waited >= PATIENCE * period else margin
-    if slack < margin and now - due <= after and k == 1:
-        return now  # (almost) never fits: right after a frame is the least harm
-    if waited >= PATIENCE * period and now - due <= after and k == 1:
-        return now
-    return next_end  # in the pause after the next frame (its arrival wakes us sooner)
+    patient = waited >= PATIENCE * period
+    after = period - frame if patient else margin
+    if (slack < margin or patient) and now - due <= after and k == 1:
+        return now, due + after  # right after a frame: the least harm
+    return next_end, 0.0  # in the pause after the next frame (its arrival wakes us sooner)
 
 
 class Line:
@@ -139,7 +140,7 @@ class Line:
         return max(self.last_rx + settle, self.last_tx_end + self.gap, self.hold_until)
 
     def send(self, job: Job, exchange: Exchange, now: float, timeout: float,
-             hold: float) -> Request:
+             hold: float, latest: float = math.inf) -> Request:
         """``exchange`` goes out now (``free_at`` said the line is free); its answer is
         due ``timeout`` beyond the wire time, and the line is held ``hold`` more for a
         late one.  Half a frame still in the framer has stopped coming (the line has
@@ -151,10 +152,20 @@ class Line:
             timeout = hold = 0.0
         deadline = now + wire + timeout
         self.attempt = Attempt(job, exchange, now, wire, deadline, deadline + hold,
-                               now - self.gap, self.adapter.garbage_seen(self.framer))
+                               now - self.gap, self.adapter.garbage_seen(self.framer),
+                               tx_end_before=self.last_tx_end)
         self.last_tx_end = now + len(exchange.request) * char_time(self.baud)
         job.tries += 1
-        return Request(exchange.request, exchange.answer_bytes)
+        return Request(exchange.request, exchange.answer_bytes, latest)
+
+    def withdraw(self) -> None:
+        """The request handed out was not written (it was too late for its place):
+        as if it had never been sent."""
+        a = self.attempt
+        if a is not None:
+            self.attempt = None
+            self.last_tx_end = a.tx_end_before
+            a.job.tries -= 1
 
     def receive(self, data: bytes, at: float) -> None:
         """Bytes from the line; ``at``: when the last of them came in."""

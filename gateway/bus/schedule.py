@@ -18,6 +18,7 @@ asyncio.  Its driver (``master.BusMaster``) owns the port and does only this::
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any
 
 from ..commands import Command, CommandError, ErrorKind
@@ -188,7 +189,8 @@ class Schedule:
                 self.jobs.current = None
                 return self.next_request(now, pending)
         exchange = job.plan[job.step]
-        if self._stream_allows_at(job, exchange, now) > now:
+        at, latest = self._stream_place(job, exchange, now)
+        if at > now:
             if job.blocked_since is None:
                 job.blocked_since = now
             return None
@@ -197,7 +199,11 @@ class Schedule:
         # An offline sensor is probed without the timeout's back-off: it must cost the
         # others little.
         timeout = s.timer.hold if s.online is False else s.timer.rto
-        return self.line.send(job, exchange, now, timeout, s.timer.hold)
+        return self.line.send(job, exchange, now, timeout, s.timer.hold, latest)
+
+    def withdraw(self) -> None:
+        """The request ``next_request`` handed out was not written by its ``latest``."""
+        self.line.withdraw()
 
     def next_wake(self, now: float, pending: int = 0) -> float:
         """When ``handle_timer`` or ``next_request`` next has something to do."""
@@ -221,21 +227,22 @@ class Schedule:
         if work and self.port_open:
             ready = max(min(work), self.line.free_at(now, pending))
             if self.jobs.current is not None:
-                ready = max(ready, self._stream_allows_at(
-                    self.jobs.current, self.jobs.current.plan[self.jobs.current.step], now))
+                ready = max(ready, self._stream_place(
+                    self.jobs.current, self.jobs.current.plan[self.jobs.current.step], now)[0])
             times.append(ready)
         return min(times)
 
-    def _stream_allows_at(self, job: Job, exchange: Exchange, now: float) -> float:
-        """When ``exchange`` (to ``s``) may go next to the line's streaming sensor: with
-        the sensor's answer latency as learned (``line.stream_wait``).  After a stream
-        is set up, nothing goes until its first frame has set the phase."""
+    def _stream_place(self, job: Job, exchange: Exchange, now: float) -> tuple[float, float]:
+        """When ``exchange`` may go next to the line's streaming sensor, and the latest it
+        may then still be written: with its sensor's answer latency as learned
+        (``line.stream_wait``).  After a stream is set up, nothing goes until its first
+        frame has set the phase."""
         streamer = next((t for t in self.sensors.values() if t.streaming), None)
         if streamer is None:
-            return now
+            return now, math.inf
         period = 1 / streamer.config.stream_hz
         if not streamer.stream_frames and now < streamer.last_stream + 2 * period:
-            return streamer.last_stream + 2 * period
+            return streamer.last_stream + 2 * period, 0.0
         frame = streamer.poll(self.adapter).answer_bytes * char_time(self.baud)
         needs = self.line.wire(exchange) + self.line.gap + job.sensor.timer.expected()
         last_end = streamer.frame_end_before(now)  # in phase: not as late as it was seen
