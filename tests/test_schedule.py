@@ -362,6 +362,22 @@ def test_a_request_placed_next_to_a_stream_is_withdrawn_when_written_too_late() 
     assert len(line.readings("po")) > 150 and line.collisions == 0 and line.overlaps == 0
 
 
+def test_a_poll_waiting_next_to_a_stream_gives_way_to_a_command() -> None:
+    """An AH poll that fits a 100 Hz MINS stream's pauses only if its driver is on time
+    (it never is on this machine): it waits, and a command does not wait behind it."""
+    line = VirtualLine(bus("native", [
+        {"name": "st", "series": "MINS", "address": 0, "stream_hz": 100},
+        {"name": "po", "series": "AH", "address": 1, "poll_hz": 10}], baudrate=460800),
+        [sim("native", "MINS", 0, baud=460800), sim("native", "AH", 1, baud=460800)],
+        late=lambda: 0.004)
+    line.run(2.0)
+    assert line.collisions == 0 and line.overlaps == 0
+    job = line.command("po", "read_settings")
+    line.run(1.0, until=lambda: line.result(job) is not None)
+    result = line.result(job)
+    assert result is not None and getattr(result.outcome, "ok", False), result
+
+
 def test_stream_wait_goes_when_it_fits_else_after_the_next_frame() -> None:
     # frames of 5 ms every 20 ms, the last ended at t=0
     assert stream_wait(0.001, 0.005, 0.0, 0.02, 0.005)[0] == 0.001  # fits

@@ -64,7 +64,8 @@ def stream_wait(now: float, needs: float, last_end: float, period: float,
     An exchange that fits no pause, or only one it cannot be on time for (it has to
     start within ``margin`` of a frame's end), goes right after a frame: the least
     harm.  One that has waited ``PATIENCE`` periods takes any pause it is woken in: a
-    busy machine must not keep a command from the sensor for ever."""
+    busy machine must not keep a command from the sensor for ever (the caller passes
+    ``waited`` 0 for what may wait, a poll)."""
     margin = min(0.02, period / 10) + MIN_QUIET  # the frames' own timing wobbles
     k = max(1, math.ceil((now - last_end) / period))
     due = last_end + (k - 1) * period  # the latest frame that should have ended by now

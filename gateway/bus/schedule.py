@@ -179,6 +179,9 @@ class Schedule:
                 now < self.line.free_at(now, pending):
             return None
         job = self.jobs.current
+        if job is not None and job.kind is Kind.POLL and not job.tries and \
+                self.jobs.ready(self.stopping):
+            job = self.jobs.current = None  # a poll not sent yet gives way to a command
         if job is None:
             job = self.jobs.current = self.jobs.pick(now, self.sensors.values(), self.stopping)
             if job is None:
@@ -246,7 +249,10 @@ class Schedule:
         frame = streamer.poll(self.adapter).answer_bytes * char_time(self.baud)
         needs = self.line.wire(exchange) + self.line.gap + job.sensor.timer.expected()
         last_end = streamer.frame_end_before(now)  # in phase: not as late as it was seen
-        waited = 0.0 if job.blocked_since is None else now - job.blocked_since
+        # Someone waits for anything but a poll: those must get their place in the end.
+        # A poll can wait (its miss is counted): it never goes where it does not fit.
+        waited = 0.0 if job.blocked_since is None or job.kind is Kind.POLL else \
+            now - job.blocked_since
         return stream_wait(now, needs, last_end, period, frame, waited)
 
     # ------------------------------------------------------------ what comes in
