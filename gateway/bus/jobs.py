@@ -21,6 +21,7 @@ from collections.abc import Callable, Iterable
 from ..commands import Command, CommandError, CommandResult, ErrorKind
 from ..protocol.errors import UsageError
 from ..protocol.exchanges import Exchange, ProtocolAdapter, Unsupported
+from ..stats import Counters
 from .events import Event, Finished, Job, Kind, Note
 from .sensor_state import STREAM_RETRY, SensorState
 
@@ -28,8 +29,9 @@ MAX_QUEUED_PER_SENSOR = 16  # commands waiting for one sensor before more are re
 
 
 class JobQueue:
-    def __init__(self, emit: Callable[[Event], None]) -> None:
+    def __init__(self, emit: Callable[[Event], None], stats: Counters) -> None:
         self.emit = emit
+        self.stats = stats  # the bus's
         self.commands: deque[Job] = deque()
         self.reads: dict[str, Job] = {}
         self.stops: deque[Job] = deque()  # streams to stop on shutdown
@@ -122,6 +124,7 @@ class JobQueue:
     def _stop_unasked(self, s: SensorState, now: float) -> Job:
         s.stop_stream, s.stream_retry_at = False, now + STREAM_RETRY
         s.stats.stream_stops += 1
+        self.stats.stream_stops += 1
         self.emit(Note(logging.WARNING, f"sensor {s.name}: streams though stream_hz is 0 "
                        "(steady frames nobody asked for); stopping it"))
         return Job(Kind.STREAM_STOP, s)

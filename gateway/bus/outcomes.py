@@ -78,8 +78,8 @@ class Outcomes:
             return  # an answer to a request of ours, too late to use: not a reading
         if s.unasked_frame(at):
             if s.config.stream_hz and answer is not None:
-                s.streaming, s.stream_frames = True, 0
-                s.stream_frame(at)
+                s.stream_started(at)
+                s.stream_frame(at)  # (this frame is one of it)
                 self.emit(StateChange(s.name, streaming=True))
                 self._note(logging.INFO, f"sensor {s.name}: its stream is back")
             elif not s.config.stream_hz:
@@ -170,7 +170,7 @@ class Outcomes:
         self.jobs.current = None
         match job.kind:
             case Kind.STREAM_START:
-                s.streaming, s.last_stream, s.stream_frames = True, at, 0
+                s.stream_started(at)
                 self.emit(StateChange(s.name, streaming=True))
                 self._note(logging.INFO, f"sensor {s.name}: streaming at "
                            f"{s.config.stream_hz:g} Hz")

@@ -57,7 +57,7 @@ class Schedule:
         self.port_open = False
         self.stopping = False
         self._events: list[Event] = []
-        self.jobs = JobQueue(self._events.append)
+        self.jobs = JobQueue(self._events.append, self.stats)
         self.line = Line(adapter, config.baudrate, self.stats, self._frame)
         self.outcomes = Outcomes(config, adapter, self.sensors, self.jobs, self.line,
                                  self.stats, self._events.append)
@@ -115,7 +115,8 @@ class Schedule:
         self.port_open = True
         self.line.reset(now)
         for s in self.sensors.values():
-            s.next_due, s.streaming, s.stream_frames = now, False, 0
+            s.next_due = now
+            s.stream_ended()
             s.stream_retry_at = min(s.stream_retry_at, now)  # (inf: a rate it cannot do)
             s.timer.backoff = 0
 
@@ -134,7 +135,8 @@ class Schedule:
             s.stop_stream = False
             s.evidence.clear()
             if s.online is not False or s.streaming:
-                s.online, s.streaming = False, False
+                s.online = False
+                s.stream_ended()
                 self._events.append(StateChange(s.name, online=False, streaming=False))
         self.jobs.fail_all(ErrorKind.OFFLINE, f"the port of bus {self.config.name} is not open")
         self.jobs.stops.clear()
@@ -186,8 +188,6 @@ class Schedule:
             job = self.jobs.current = self.jobs.pick(now, self.sensors.values(), self.stopping)
             if job is None:
                 return None
-            if job.kind is Kind.STREAM_STOP and not self.stopping:
-                self.stats.stream_stops += 1
             if not self.jobs.begin(job, self.adapter):
                 self.jobs.current = None
                 return self.next_request(now, pending)
@@ -276,7 +276,7 @@ class Schedule:
         for s in self.sensors.values():
             # (frames may be in the port, not yet received, on a busy machine)
             if s.streaming and now - s.last_stream > s.stream_timeout and not pending:
-                s.streaming, s.stream_frames = False, 0
+                s.stream_ended()
                 s.stream_retry_at = now + STREAM_RETRY
                 s.next_due = now
                 self._events.append(StateChange(s.name, streaming=False))

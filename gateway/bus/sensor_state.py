@@ -115,6 +115,15 @@ class SensorState:
                 self.next_due += missed * self.period
             self.next_due = max(self.next_due, now - self.period)
 
+    # ------------------------------------------------------------ its stream
+
+    def stream_started(self, at: float) -> None:
+        """It streams from ``at`` on; the phase is unknown until its first frame."""
+        self.streaming, self.last_stream, self.stream_frames = True, at, 0
+
+    def stream_ended(self) -> None:
+        self.streaming, self.stream_frames = False, 0
+
     # ------------------------------------------------------------ its stream's phase
 
     def stream_frame(self, at: float) -> None:
