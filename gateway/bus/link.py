@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import ctypes
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -23,25 +21,12 @@ from dataclasses import dataclass
 import serial
 import serial.rs485
 
-#: prctl(2)'s PR_SET_TIMERSLACK.
-_PR_SET_TIMERSLACK = 29
-#: The bus and reader threads' niceness, where the system allows it (see tighten_timers).
+from ..threads import tighten_timers
+
+#: The bus and reader threads' niceness, where the system allows it: a line's timing
+#: is the machine's to keep even when other work takes the CPU (the systemd unit can
+#: grant CAP_SYS_NICE).
 BUS_NICE = -10
-
-
-def tighten_timers() -> None:
-    """Ask Linux to wake the calling thread on time: its timer slack (by default up to
-    50 µs added to every sleep, to batch wake-ups) becomes 1 ns.  The bus's waits are
-    fractions of a millisecond, each between an answer and the next request.
-    Elsewhere, or if refused, sleeps are simply a little longer."""
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_TIMERSLACK, 1, 0, 0, 0)
-    # A line's timing is the machine's to keep even when other work takes the CPU: the
-    # bus and reader threads ask for a higher scheduling weight (nice -10).  Linux
-    # allows it to root or with CAP_SYS_NICE (the systemd unit grants it); refused,
-    # they run at the process's priority.
-    with contextlib.suppress(OSError, AttributeError):
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), BUS_NICE)
 
 
 class LinkError(Exception):
@@ -111,7 +96,7 @@ class SerialLink:
             on_bytes(data, at)
 
         def reader() -> None:
-            tighten_timers()
+            tighten_timers(BUS_NICE)
             while not closing.is_set():
                 try:
                     data = self._read_answer(ser, flow)

@@ -161,9 +161,11 @@ class BusMaster:
         """The timer's turn: deadlines, the next request, the events; when to wake."""
         assert self._loop is not None
         now = self._loop.time()
-        self.schedule.handle_timer(now, self.link.pending())
-        self._send(now)
-        wake = self.schedule.next_wake(self._loop.time(), self.link.pending())
+        # (asked once: the bytes reach the schedule only through _on_bytes, after this)
+        pending = self.link.pending()
+        self.schedule.handle_timer(now, pending)
+        self._send(now, pending)
+        wake = self.schedule.next_wake(self._loop.time(), pending)
         self._dispatch()  # (next_wake may have flushed a half frame: its events too)
         return wake
 
@@ -243,11 +245,11 @@ class BusMaster:
 
     def _received(self, data: bytes, at: float) -> None:
         self.schedule.receive(data, at)
-        self._send(self._now())  # the next request first: publishing can wait
+        self._send(self._now(), self.link.pending())  # the next request first: publishing can wait
         self._dispatch()
 
-    def _send(self, now: float) -> None:
-        request = self.schedule.next_request(now, self.link.pending())
+    def _send(self, now: float, pending: int) -> None:
+        request = self.schedule.next_request(now, pending)
         if request is None:
             return
         try:

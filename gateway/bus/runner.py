@@ -26,7 +26,8 @@ from ..cache import Cache, SensorUnavailable
 from ..commands import ErrorKind
 from ..config import BusConfig
 from ..model import Reading
-from .link import tighten_timers
+from ..threads import tighten_timers
+from .link import BUS_NICE
 from .master import BusMaster, ReadNow
 
 log = logging.getLogger("gateway.bus")
@@ -88,7 +89,7 @@ class BusRunner:
             self._ready.set()
             await self.master.run()
 
-        tighten_timers()
+        tighten_timers(BUS_NICE)
         try:
             # select() rather than epoll: epoll's timeouts are whole milliseconds, and
             # the waits here (a Modbus silent interval is 1.75 ms) are not.  The loop

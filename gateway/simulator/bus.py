@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import ctypes
 import functools
 import os
 import random
@@ -38,6 +37,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..protocol.exchanges import char_time
+from ..threads import tighten_timers
 from .sensor import Outgoing, SimSensor
 
 #: The event loop's timers are good to about a millisecond (epoll); waits shorter than
@@ -50,9 +50,9 @@ PRECISE = 0.002
 #: spinning on the clock instead.
 SPIN = 0.00015
 
-#: prctl(2)'s PR_SET_TIMERSLACK.
-_PR_SET_TIMERSLACK = 29
-#: The simulator thread's niceness where allowed (it plays hardware).
+#: The simulator thread's niceness where allowed: it plays hardware, which shares the
+#: CPU with nothing, and a starved simulator (tests run beside CPU burners) would play
+#: a sensor that stops streaming for half a second.
 SIM_NICE = -15
 
 _SPEEDS = {
@@ -276,7 +276,7 @@ class PtyBus:
         bytes written to the pty are being listened to."""
         self._loop = asyncio.get_running_loop()
         self._wakeup = asyncio.Event()
-        _tighten_timers()
+        tighten_timers(SIM_NICE)
         if self._master < 0:
             self.open()
         else:
@@ -350,20 +350,6 @@ class PtyBus:
         finally:
             for waiter in waiters:
                 waiter.cancel()
-
-
-def _tighten_timers() -> None:
-    """Ask Linux to wake this thread on time (timer slack 1 ns instead of 50 µs): the
-    simulated wire's timing is made of short waits.  Elsewhere, or if refused, the
-    waits are simply a little later."""
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_TIMERSLACK, 1, 0, 0, 0)
-    # The simulator plays hardware, which does not share the CPU with anything: on a
-    # busy machine (tests run beside CPU burners) it asks for a higher scheduling
-    # weight, where Linux allows it, so that a starved simulator does not play a
-    # sensor that stops streaming for half a second.
-    with contextlib.suppress(OSError, AttributeError):
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), SIM_NICE)
 
 
 class SimulatorThread:
