@@ -183,6 +183,10 @@ def test_unit_runs_the_gateway_as_its_own_user_with_the_serial_ports() -> None:
         assert one[key] == "yes", key
     assert one["ProtectSystem"] == "strict"
     assert one["CapabilityBoundingSet"] == "" and one["AmbientCapabilities"] == ""
+    # the bus master's timing on a loaded machine: systemd grants real-time scheduling,
+    # the process itself may not take it
+    assert (one["CPUSchedulingPolicy"], one["RestrictRealtime"]) == ("fifo", "yes")
+    assert 1 <= int(one["CPUSchedulingPriority"]) <= 49
     assert set(one["RestrictAddressFamilies"].split()) == {"AF_INET", "AF_INET6", "AF_UNIX"}
     # serial adapters must stay reachable: a closed device policy that lets them in,
     # and no PrivateDevices (it would hide them)
