@@ -25,6 +25,7 @@ from .frontends.modbus_tcp import ModbusTcpServer
 from .frontends.mqtt import MqttClient
 from .frontends.rest import HttpServer, openapi_document
 from .stats import BusStats, SensorStats
+from .supervise import Frontend, Supervisor
 
 log = logging.getLogger("gateway")
 
@@ -54,6 +55,9 @@ class Gateway:
         self.modbus = ModbusTcpServer(self, config.modbus) if config.modbus else None
         self.mqtt = MqttClient(self, config.mqtt) if config.mqtt else None
         self.http = HttpServer(self, config.http) if config.http else None
+        # the supervised front ends
+        self.frontends: list[Frontend] = [f for f in (self.modbus, self.mqtt) if f]
+        self.supervisor = Supervisor()
         self.started = time.monotonic()
 
     async def command(self, sensor: str, name: str,
@@ -101,6 +105,8 @@ class Gateway:
     async def start_frontends(self) -> None:
         """Open the listening sockets (once); raises ``StartupError`` when one cannot be
         bound."""
+        for frontend in self.frontends:
+            frontend.arm()
         for name, server in (("modbus", self.modbus), ("http", self.http)):
             if server is not None and not server.listening:
                 try:
@@ -115,7 +121,8 @@ class Gateway:
         """Run until ``stop`` is set, then stop: the front ends first (MQTT says
         "offline" while the buses still run; HTTP and Modbus TCP finish the requests
         they have, which may need a bus), then every bus after its exchange in flight.
-        Each step runs even if one before it failed."""
+        Each step runs even if one before it failed.  A front end that fails on the
+        way is restarted by the supervisor; nothing a peer does ends this."""
         await self.start_frontends()
         async with contextlib.AsyncExitStack() as stopping:  # unwinds last in, first out
             stopping.push_async_callback(self._stop_buses)
@@ -126,7 +133,14 @@ class Gateway:
                     stopping.push_async_callback(frontend.stop)
             if self.mqtt is not None:  # connects in the background, retrying: never fails
                 await self.mqtt.start()
-            await self._watch_staleness(stop)
+            watchers = [asyncio.create_task(self.supervisor.watch(f), name=f"watch {f.name}")
+                        for f in self.frontends]
+            try:
+                await self._watch_staleness(stop)
+            finally:
+                for watcher in watchers:
+                    watcher.cancel()
+                await asyncio.gather(*watchers, return_exceptions=True)
             log.info("stopping")
 
     async def _stop_buses(self) -> None:
@@ -153,7 +167,8 @@ class Gateway:
 
     def frontend_stats(self) -> dict[str, dict[str, Any]]:
         running = {"modbus": self.modbus, "mqtt": self.mqtt, "http": self.http}
-        return {name: f.stats() for name, f in running.items() if f is not None}
+        return {name: {**f.stats(), "restarts": self.supervisor.restarts[name]}
+                for name, f in running.items() if f is not None}
 
 
 async def run_until_signalled(config: GatewayConfig, stats_interval: float = 0.0,

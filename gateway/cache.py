@@ -18,6 +18,7 @@ Staleness changes with time alone, so ``check_staleness()`` is called periodical
 from __future__ import annotations
 
 import enum
+import logging
 import time
 from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass, field
@@ -26,6 +27,8 @@ from typing import Any
 
 from .commands import ErrorKind
 from .model import Reading
+
+log = logging.getLogger("gateway.cache")
 
 
 class Status(enum.Enum):
@@ -76,6 +79,7 @@ class EventKind(enum.Enum):
 
 
 Listener = Callable[[EventKind, Snapshot], None]
+ErrorHook = Callable[[BaseException], None]
 #: asks a bus master for a new reading of the named sensor; resolves when it is in
 Requester = Callable[[str], Awaitable[None]]
 
@@ -117,7 +121,7 @@ class Cache:
         bus masters time their readings with (the event loop's, by default monotonic)."""
         self._entries = {name: _Entry(stale_ms / 1000) for name, stale_ms in sensors}
         self._clock = clock
-        self._listeners: list[Listener] = []
+        self._listeners: list[tuple[Listener, ErrorHook | None]] = []
         self._requesters: dict[str, Requester] = {}
 
     @property
@@ -148,11 +152,15 @@ class Cache:
     def snapshots(self) -> list[Snapshot]:
         return [self.snapshot(name) for name in self._entries]
 
-    def subscribe(self, listener: Listener) -> Callable[[], None]:
+    def subscribe(self, listener: Listener,
+                  on_error: ErrorHook | None = None) -> Callable[[], None]:
         """Call ``listener(kind, snapshot)`` on every change; returns the unsubscriber.
-        Listeners run in the event loop and must not block."""
-        self._listeners.append(listener)
-        return lambda: self._listeners.remove(listener) if listener in self._listeners else None
+        Listeners run in the event loop and must not block.  An exception in one goes
+        to its ``on_error`` (its front end's supervisor), or is logged: it never
+        reaches the bus that published, nor the other listeners."""
+        entry = (listener, on_error)
+        self._listeners.append(entry)
+        return lambda: self._listeners.remove(entry) if entry in self._listeners else None
 
     def set_requester(self, name: str, requester: Requester) -> None:
         self._entry(name)
@@ -222,6 +230,12 @@ class Cache:
         self._notify(kind, self.snapshot(name))
 
     def _notify(self, kind: EventKind, snap: Snapshot) -> None:
-        for listener in list(self._listeners):
-            listener(kind, snap)
+        for listener, on_error in list(self._listeners):
+            try:
+                listener(kind, snap)
+            except Exception as exc:  # one listener's fault stays its own
+                if on_error is None:
+                    log.exception("a cache listener failed")
+                else:
+                    on_error(exc)
 

@@ -453,7 +453,11 @@ class ModbusConfig(_Model):
             "elsewhere are disconnected at once"),
     )
     max_connections: PositiveInt = Field(default=100, description=(
-        "> 0; clients beyond this are disconnected at once"))
+        "> 0; a client beyond this takes the place of the longest-idle connection, "
+        "which is closed"))
+    max_connections_per_address: PositiveInt = Field(default=20, description=(
+        "> 0; a client address beyond this many connections takes the place of its own "
+        "longest-idle one"))
     idle_timeout_s: NonNegative = Field(default=60.0, description=(
         ">= 0; a client connection idle this long is closed; 0: never"))
 

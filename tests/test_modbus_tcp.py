@@ -838,31 +838,42 @@ def test_clients_outside_allow_from_are_refused_at_connect(tmp_path: Path) -> No
     run(body)
 
 
-def test_connection_limit(tmp_path: Path) -> None:
+def test_a_full_server_closes_the_longest_idle_connection_for_a_newcomer(
+        tmp_path: Path) -> None:
     async def body() -> None:
-        async with running(no_bus(tmp_path, max_connections=2)) as gw:
+        async with running(no_bus(tmp_path, max_connections=3)) as gw:
             port = port_of(gw)
+            held = await Raw.connect(port)  # never asks: goes first
             first, second = await Raw.connect(port), await Raw.connect(port)
             for raw in (first, second):
                 answer = await raw.ask(1, read(3, 6, 3))
                 assert answer == bytes((3, 6)) + struct.pack(">HHH", 3, 0, 0)
             third = await Raw.connect(port)
-            assert await third.closed_by_server()
-            await third.close()
-            assert (await first.ask(1, read(3, 6, 1)))[:2] == b"\x03\x02"
-            await second.close()
+            assert (await third.ask(1, read(3, 6, 1)))[:2] == b"\x03\x02"
+            assert await held.closed_by_server()
+            fourth = await Raw.connect(port)  # then the one quiet longest
+            assert (await fourth.ask(1, read(3, 6, 1)))[:2] == b"\x03\x02"
+            assert await first.closed_by_server()
+            assert (await second.ask(1, read(3, 6, 1)))[:2] == b"\x03\x02"
+            assert gw.modbus is not None and gw.modbus.counts["evicted_limit"] == 2
+            for raw in (held, first, second, third, fourth):
+                await raw.close()
+    run(body)
 
-            async def accepted() -> bool:
-                raw = await Raw.connect(port)
-                try:
-                    await raw.ask(1, read(3, 6, 1), timeout=2)
-                    return True
-                except (ConnectionError, asyncio.IncompleteReadError, TimeoutError):
-                    return False
-                finally:
-                    await raw.close()
-            await until(accepted)
-            await first.close()
+
+def test_one_address_makes_room_among_its_own_connections(tmp_path: Path) -> None:
+    async def body() -> None:
+        async with running(no_bus(tmp_path, max_connections_per_address=2)) as gw:
+            port = port_of(gw)
+            clients = [await Raw.connect(port) for _ in range(2)]
+            for raw in clients:
+                await raw.ask(1, read(3, 6, 1))
+            newcomer = await Raw.connect(port)
+            await newcomer.ask(1, read(3, 6, 1))
+            assert await clients[0].closed_by_server()
+            assert gw.modbus is not None and gw.modbus.counts["evicted_per_address"] == 1
+            for raw in (*clients, newcomer):
+                await raw.close()
     run(body)
 
 

@@ -15,18 +15,20 @@ import logging
 import signal
 import subprocess
 import sys
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
 import paho.mqtt.client as paho
 import pytest
 import yaml
-from broker import Mosquitto, Tls, make_tls, recording
+from broker import Mosquitto, Recorder, Tls, make_tls, recording
 from harness import FIELDS, GROUP_OF, expected, fields_of, run, running, tolerance, until
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from gateway.app import Gateway
+from gateway.frontends.mqtt import Message, MqttClient
 from gateway.model import Angles, Protocol, Series
 from gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
 from gateway.simulator.motion import Motion
@@ -81,6 +83,10 @@ def retained(broker: Mosquitto, topic: str, **options: Any) -> list[Any]:
         fresh.client.publish(marker, b"x", qos=1)
         fresh.wait(lambda: fresh.on(marker))
         return [m for m in fresh.messages if m.retain]
+
+
+async def nothing_retained(broker: Mosquitto, topic: str) -> bool:
+    return not await asyncio.to_thread(retained, broker, topic)
 
 
 # ------------------------------------------------------------------ state and status
@@ -200,7 +206,7 @@ def test_command_round_trip(tmp_path: Path, version: str,
                 result = await ask(f"{cmd}/set_zero_type", '{"type": "relative"}')
                 assert result["ok"] is True and result["error"] is None
                 assert ah.settings.zero_type == "relative"
-                result = await ask(f"{cmd}/read_settings", "")
+                result = await ask(f"{cmd}/read_settings", "{}")
                 assert result["ok"] is True
                 assert result["answer"]["zero_type"] == "relative"
 
@@ -216,42 +222,62 @@ def test_command_round_trip(tmp_path: Path, version: str,
                 assert bad["kind"] == "unknown_command"
                 bad = await ask(f"{BASE}/arm/cmd/set_declination", '{"degrees": 3}')
                 assert bad["kind"] == "unsupported"
-                bad = await ask(f"{BASE}/nobody/cmd/save", "")
+                bad = await ask(f"{BASE}/nobody/cmd/save", "{}")
                 assert bad["ok"] is False and "nobody" in bad["error"]
                 bad = await ask(f"{cmd}/set_zero_type", b"\xff\xfe")
                 assert bad["kind"] == "bad_arguments"
                 bad = await ask(f"{cmd}/set_zero_type", "[" * 100_000)  # too deep to parse
                 assert bad["kind"] == "bad_arguments"
 
-                # A command published with the retain flag is carried out when it is
-                # published; the broker's replay of it to a new subscription is not (or
-                # it would run again at every reconnect).
-                result = await ask(f"{cmd}/set_zero_type", '{"type": "absolute"}',
-                                   retain=True)
-                assert result["ok"] is True and ah.settings.zero_type == "absolute"
-                result = await ask(f"{cmd}/set_zero_type", '{"type": "relative"}')
-                assert result["ok"] is True and ah.settings.zero_type == "relative"
+                await _retained_commands(broker, rec, cmd, version, ah, ask)
 
                 if version == "5":
                     # paho's Properties.__init__ is unannotated
                     props = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
                     props.ResponseTopic = "replies/me"
                     props.CorrelationData = b"req-42"
-                    result = await ask(f"{cmd}/read_settings", "", properties=props,
+                    result = await ask(f"{cmd}/read_settings", "{}", properties=props,
                                        result_topic="replies/me")
                     assert result["ok"] is True
                     answer = rec.on("replies/me")[-1]
                     assert answer.properties.CorrelationData == b"req-42"
 
-            before = len(rec.messages)
+            # A retained command left on the broker (published while no gateway ran)
+            # is not run when the broker replays it, and the gateway clears it.
+            rec.client.publish(f"{cmd}/set_zero_type", '{"type": "absolute"}', qos=1,
+                               retain=True).wait_for_publish(10)
+            before = len(rec.on(f"{cmd}/set_zero_type/result"))
             async with running(cfg) as gateway:  # subscribes anew: the broker replays
                 await until(lambda: gateway.mqtt is not None and gateway.mqtt.connected)
                 await until(lambda: any("retained command" in r.getMessage()
                                         for r in caplog.records))
-            assert ah.settings.zero_type == "relative" and len(rec.messages) == before
-            rec.client.publish(f"{cmd}/set_zero_type", b"", qos=1, retain=True)  # clear
+                await until(lambda: nothing_retained(broker, f"{cmd}/+"))
+            assert ah.settings.zero_type == "relative"
+            assert len(rec.on(f"{cmd}/set_zero_type/result")) == before
 
         run(body)
+
+
+Ask = Callable[..., Awaitable[dict[str, Any]]]
+
+
+async def _retained_commands(broker: Mosquitto, rec: Recorder, cmd: str, version: str,
+                             ah: SimSensor, ask: Ask) -> None:
+    """What comes with the retain flag, or empty, is never run as a command."""
+    writes = ah.writes_heard.copy()
+    # Clearing a retained command (an empty retained message): nothing runs, no result.
+    rec.client.publish(f"{cmd}/save", b"", qos=1, retain=True).wait_for_publish(10)
+    rec.client.publish(f"{cmd}/save", b"", qos=1).wait_for_publish(10)
+    if version == "5":
+        # MQTT 5 shows the retain flag of a live message: never run, and cleared.
+        rec.client.publish(f"{cmd}/set_zero_type", '{"type": "absolute"}', qos=1,
+                           retain=True).wait_for_publish(10)
+        await until(lambda: nothing_retained(broker, f"{cmd}/+"))
+    # A command sent after them all is answered first: nothing ran before it.
+    result = await ask(f"{cmd}/read_settings", "{}")
+    assert result["ok"] is True and result["answer"]["zero_type"] == "relative"
+    assert ah.writes_heard == writes
+    assert rec.on(f"{cmd}/save/result") == []
 
 
 # ------------------------------------------------------------------ Home Assistant
@@ -409,6 +435,108 @@ def test_the_broker_says_offline_when_the_gateway_goes(tmp_path: Path, how: str)
             assert rec.last(f"{BASE}/boom/availability").text == "offline"  # type: ignore[union-attr]
         else:
             assert code == -signal.SIGKILL  # the last will spoke for it
+
+
+@pytest.mark.parametrize("response_topic", ["x/#", "r/+/x", "t" * 65_000],
+                         ids=["wildcard", "plus", "longest-possible"])
+def test_a_bad_response_topic_gets_an_error_and_the_gateway_goes_on(
+        tmp_path: Path, response_topic: str) -> None:
+    """An MQTT 5 command whose response topic the gateway cannot (or will not) publish
+    to: an error result on the default result topic, and states keep flowing.  (An
+    MQTT property is at most 65,535 bytes: 65,000 is about the longest a client can
+    send.)"""
+    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    cmd = f"{BASE}/boom/cmd/read_settings"
+    with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
+            recording(broker, f"{cmd}/result", f"{BASE}/boom/state",
+                      version=paho.MQTTv5) as rec:
+        cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])],
+                     broker, allow_commands=True, protocol="5", retain=False)
+        gateway = _run_gateway(tmp_path, cfg)
+        try:
+            rec.wait(lambda: rec.on(f"{BASE}/boom/state"), timeout=30)
+            props = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
+            props.ResponseTopic = response_topic
+            props.CorrelationData = b"c-1"
+            rec.client.publish(cmd, b"{}", qos=1, properties=props)
+            rec.wait(lambda: rec.on(f"{cmd}/result"), timeout=30)
+            result = state(rec.on(f"{cmd}/result")[0])
+            assert result["ok"] is False and result["kind"] == "bad_arguments"
+            assert "response topic" in result["error"]
+            states = len(rec.on(f"{BASE}/boom/state"))
+            rec.wait(lambda: len(rec.on(f"{BASE}/boom/state")) > states + 10, timeout=30)
+            assert gateway.poll() is None
+        finally:
+            gateway.send_signal(signal.SIGINT)
+            try:
+                code = gateway.wait(20)
+            finally:
+                if gateway.poll() is None:
+                    gateway.kill()
+                gateway.wait()
+    assert code == 0
+    log_text = (tmp_path / "gateway.log").read_text()
+    assert "Traceback" not in log_text and "failed (" not in log_text, log_text[-2000:]
+
+
+def test_a_message_paho_cannot_send_is_dropped_and_the_queue_goes_on(
+        tmp_path: Path) -> None:
+    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
+            recording(broker, f"{BASE}/boom/state") as rec:
+        cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])],
+                     broker, retain=False)
+
+        async def body() -> None:
+            async with running(cfg) as gateway:
+                mqtt = gateway.mqtt
+                assert mqtt is not None
+                await until(lambda: mqtt.connected and bool(rec.on(f"{BASE}/boom/state")))
+                # first in the queue that never drops: it must not hold the rest up
+                mqtt._send_control(Message("bad/#", b"x", 1, False))
+                before = len(rec.on(f"{BASE}/boom/state"))
+                await until(lambda: len(rec.on(f"{BASE}/boom/state")) > before + 5)
+                stats = mqtt.stats()
+                assert stats["undeliverable"] == 1 and stats["connected"] is True
+
+        run(body)
+
+
+def test_a_failed_mqtt_client_is_restarted_and_the_rest_goes_on(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """A fault inside the MQTT front end (here: its cache listener raises once) is
+    logged, counted, and that front end alone restarts; the bus goes on."""
+    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    failures = iter([True])
+    original = MqttClient._publish_state
+
+    def flaky(self: MqttClient, snap: Any) -> None:
+        if next(failures, False):
+            raise RuntimeError("boom")
+        original(self, snap)
+
+    monkeypatch.setattr(MqttClient, "_publish_state", flaky)
+    with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
+            recording(broker, f"{BASE}/boom/state", f"{BASE}/status") as rec:
+        cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])],
+                     broker, retain=False)
+
+        async def body() -> None:
+            async with running(cfg) as gateway:
+                await until(lambda: gateway.supervisor.restarts["mqtt"] == 1)
+                seq = gateway.cache.snapshot("boom").seq
+                before = len(rec.on(f"{BASE}/boom/state"))
+                await until(lambda: len(rec.on(f"{BASE}/boom/state")) > before + 5)
+                assert gateway.cache.snapshot("boom").seq > seq
+                assert gateway.frontend_stats()["mqtt"]["restarts"] == 1
+
+        run(body)
+    failed = [r.getMessage() for r in caplog.records if "mqtt failed" in r.getMessage()]
+    assert len(failed) == 1 and "RuntimeError: boom" in failed[0]
+    # the restart said so; then the stop at the end
+    assert [m.text for m in rec.on(f"{BASE}/status")] == ["online", "offline", "online",
+                                                          "offline"]
 
 
 # ------------------------------------------------------------------ TLS and passwords

@@ -13,6 +13,14 @@ a read never waits for the serial bus, so a hundred clients cost the bus nothing
 Writes to the command registers become commands; the answer is sent after the sensor
 acknowledged.  A sensor with ``raw_unit_id`` also answers on that unit with its own
 registers, passed through the bus master unchanged.
+
+Careless and hostile clients (docs/reliability.md).  A client's answers that it does
+not read stop its requests from being read (``WRITE_BOUND``); a frame must be whole
+within ``FRAME_DEADLINE_S``; a full server, or a client address at its limit, closes
+the longest-idle connection to make room for the newcomer (as the Modbus Messaging
+Implementation Guide advises), so that clients who only hold sockets cannot lock SCADA
+out; every request that came before a client's FIN is answered; warnings about
+peers are rate-limited.
 """
 
 from __future__ import annotations
@@ -22,6 +30,7 @@ import functools
 import logging
 import math
 import struct
+import time
 from collections import Counter
 from collections.abc import Awaitable, Mapping
 from typing import Any
@@ -32,6 +41,7 @@ from pymodbus.pdu.register_message import WriteMultipleRegistersResponse
 from ..cache import EventKind, SensorUnavailable, Snapshot
 from ..commands import ErrorKind
 from ..config import ModbusConfig, SensorConfig
+from ..supervise import Frontend, PeerLog
 from . import modbus_map as mm
 from .common import GatewayLike
 
@@ -42,6 +52,9 @@ MAX_READ, MAX_WRITE = 125, 123
 MBAP = struct.Struct(">HHHB")  # transaction id, protocol id, length, unit id
 MAX_LENGTH = 254  # unit id + the longest PDU (253 bytes)
 BACKLOG_BYTES = 16 * 1024  # stop reading a client that sends faster than it is answered
+WRITE_BOUND = 64 * 1024  # answers a client has not read: beyond this its requests wait
+FRAME_DEADLINE_S = 5.0  # a started frame must be whole within this (a trickle is closed)
+HOUSEKEEPING_S = 1.0  # how often the rate-limited peer warnings are summed up
 
 ILLEGAL_FUNCTION, ILLEGAL_ADDRESS, ILLEGAL_VALUE, DEVICE_FAILURE = 0x01, 0x02, 0x03, 0x04
 BUSY, GATEWAY_PATH, TARGET_FAILED = 0x06, 0x0A, 0x0B
@@ -75,8 +88,11 @@ class _Unit:
                                     sensor.stale_after_ms)
 
 
-class ModbusTcpServer:
+class ModbusTcpServer(Frontend):
+    name = "modbus"
+
     def __init__(self, gateway: GatewayLike, config: ModbusConfig) -> None:
+        super().__init__()
         self.gateway = gateway
         self.config = config
         protocols = {s.name: b.protocol for b, s in gateway.config.iter_sensors()}
@@ -88,7 +104,9 @@ class ModbusTcpServer:
         self.connections: set[_Connection] = set()
         self.counts: Counter[str] = Counter()
         self._server: asyncio.Server | None = None
-        gateway.cache.subscribe(self._on_cache_event)
+        self.peers = PeerLog(log)
+        self._housekeeping: asyncio.TimerHandle | None = None
+        gateway.cache.subscribe(self._on_cache_event, self.fail)
         for name, unit in self._by_name.items():
             unit.image.set_reading(gateway.cache.snapshot(name).reading)
 
@@ -101,8 +119,32 @@ class ModbusTcpServer:
         listen = self.config.listen
         self._server = await asyncio.get_running_loop().create_server(
             lambda: _Connection(self), listen.host, listen.port)
+        self._tidy()
         log.info("Modbus TCP on %s:%d, units %s", listen.host, self.port,
                  sorted(self.units) + sorted(self.raw_units))
+
+    def _tidy(self) -> None:
+        self.peers.flush_due()
+        self._housekeeping = asyncio.get_running_loop().call_later(HOUSEKEEPING_S,
+                                                                   self._tidy)
+
+    def admit(self, newcomer: _Connection) -> None:
+        """Make room for a new connection: close the longest-idle one of its address,
+        or of all, when either is at its limit."""
+        config = self.config
+        for why, limit in (("per_address", config.max_connections_per_address),
+                           ("limit", config.max_connections)):
+            crowd = [c for c in self.connections
+                     if why == "limit" or c.address == newcomer.address]
+            if len(crowd) < limit:
+                continue
+            victim = min(crowd, key=_Connection.idle_rank)
+            self.counts[f"evicted_{why}"] += 1
+            self.peers.warning(f"evicted_{why}", "Modbus TCP: closed %s, idle longest, to "
+                               "make room for %s (%s)", victim.peer, newcomer.peer,
+                               "max_connections_per_address" if why == "per_address"
+                               else "max_connections")
+            victim.evict()
 
     @property
     def listening(self) -> bool:
@@ -118,11 +160,15 @@ class ModbusTcpServer:
         return int(self._server.sockets[0].getsockname()[1])
 
     async def stop(self) -> None:
+        if self._housekeeping is not None:
+            self._housekeeping.cancel()
+        self.peers.flush()
         if self._server is not None:
             self._server.close()
             for connection in list(self.connections):
                 connection.close()
             await self._server.wait_closed()
+            self._server = None
 
     # ------------------------------------------------------------ requests
 
@@ -261,101 +307,170 @@ def _command_args(reg: mm.Register, words: list[int]) -> dict[str, Any] | None:
 
 
 class _Connection(asyncio.Protocol):
-    """One client: MBAP framing, requests answered in order, idle timeout."""
+    """One client: MBAP framing, requests answered in order, deadlines, back-pressure."""
 
     def __init__(self, server: ModbusTcpServer) -> None:
         self.server = server
         self.transport: asyncio.Transport | None = None
         self.buffer = bytearray()
         self.waiting = False  # a write or pass-through is in progress: later ones queue
+        self.blocked = False  # the client does not read its answers (WRITE_BOUND)
+        self.ended = False  # the client sent FIN: answer what came, then close
         self.idle: asyncio.TimerHandle | None = None
+        self.frame_timer: asyncio.TimerHandle | None = None
         self.peer = "?"
+        self.address = "?"
+        self.requests = 0
+        self.last_request = time.monotonic()  # or the connect, before the first
+
+    def idle_rank(self) -> tuple[bool, float]:
+        """Sorts first the connection to close for room: one that never completed a
+        request (a trickle, a held socket), then the one quiet longest."""
+        return (self.requests > 0, self.last_request)
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
         self.transport = transport
         peer = transport.get_extra_info("peername") or ("?", 0)
-        self.peer = f"{peer[0]}:{peer[1]}"
-        server, config = self.server, self.server.config
-        if not config.allows(str(peer[0])):
+        self.peer, self.address = f"{peer[0]}:{peer[1]}", str(peer[0])
+        server = self.server
+        if not server.config.allows(self.address):
             server.counts["refused_address"] += 1
-            log.warning("Modbus TCP: refused %s (not in allow_from)", self.peer)
+            server.peers.warning("refused_address", "Modbus TCP: refused %s (not in "
+                                 "allow_from)", self.peer)
             transport.abort()
             return
-        if len(server.connections) >= config.max_connections:
-            server.counts["refused_limit"] += 1
-            log.warning("Modbus TCP: refused %s (%d connections is the limit)", self.peer,
-                        config.max_connections)
-            transport.abort()
-            return
+        server.admit(self)
+        transport.set_write_buffer_limits(high=WRITE_BOUND)
         server.connections.add(self)
         server.counts["connections"] += 1
         self._touch()
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.server.connections.discard(self)
-        if self.idle is not None:
-            self.idle.cancel()
+        for timer in (self.idle, self.frame_timer):
+            if timer is not None:
+                timer.cancel()
 
     def close(self) -> None:
         if self.transport is not None:
             self.transport.close()
+
+    def evict(self) -> None:
+        self.server.connections.discard(self)  # its room is taken now
+        if self.transport is not None:
+            self.transport.abort()
 
     def _touch(self) -> None:
         timeout = self.server.config.idle_timeout_s
         if self.idle is not None:
             self.idle.cancel()
         if timeout:
-            self.idle = asyncio.get_running_loop().call_later(timeout, self._idle_out)
+            self.idle = asyncio.get_running_loop().call_later(timeout, self._time_out,
+                                                              "idle_closed")
 
-    def _idle_out(self) -> None:
-        self.server.counts["idle_closed"] += 1
-        self.close()
+    def _time_out(self, why: str) -> None:
+        self.server.counts[why] += 1
+        if self.transport is not None:
+            self.transport.abort()
+
+    # ------------------------------------------------------------ flow control
+
+    def pause_writing(self) -> None:
+        """The client's unread answers passed ``WRITE_BOUND``: read no more of it."""
+        self.blocked = True
+        self.server.counts["paused_unread"] += 1
+        assert self.transport is not None
+        self.transport.pause_reading()
+
+    def resume_writing(self) -> None:
+        self.blocked = False
+        self._answer_what_is_complete()
+
+    def eof_received(self) -> bool:
+        """The client is done sending; what it sent before is still answered."""
+        self.ended = True
+        self._answer_what_is_complete()
+        return True  # the transport stays open for the answers: _finish_if_ended closes
 
     def data_received(self, data: bytes) -> None:
         self.buffer += data
-        self._touch()
         self._answer_what_is_complete()
 
+    # ------------------------------------------------------------ requests
+
     def _answer_what_is_complete(self) -> None:
-        assert self.transport is not None
+        transport = self.transport
+        assert transport is not None
         buffer = self.buffer
-        while not self.waiting and len(buffer) >= MBAP.size:
+        while not (self.waiting or self.blocked) and len(buffer) >= MBAP.size:
             transaction, protocol, length, unit = MBAP.unpack_from(buffer)
             if protocol != 0 or not 2 <= length <= MAX_LENGTH:
                 # Not Modbus, or framing lost: nothing after this can be trusted.
                 self.server.counts["bad_mbap"] += 1
-                log.warning("Modbus TCP: closing %s: MBAP protocol id %d, length %d",
-                            self.peer, protocol, length)
-                self.transport.abort()
+                self.server.peers.warning("bad_mbap", "Modbus TCP: closing %s: MBAP "
+                                          "protocol id %d, length %d", self.peer, protocol,
+                                          length)
+                transport.abort()
                 buffer.clear()
                 return
             if len(buffer) < 6 + length:
                 break
             pdu = bytes(buffer[MBAP.size: 6 + length])
             del buffer[: 6 + length]
-            answer = self.server.handle(unit, pdu)
-            if isinstance(answer, bytes):
-                self._send(transaction, unit, answer)
-            else:
-                self.waiting = True
-                task = asyncio.ensure_future(answer)
-                task.add_done_callback(functools.partial(self._done, transaction=transaction,
-                                                         unit=unit))
-        # Back-pressure: a client pipelining faster than writes are answered waits.
-        if len(buffer) > BACKLOG_BYTES:
-            self.transport.pause_reading()
-        elif self.waiting is False:
-            self.transport.resume_reading()
+            self._request(transaction, unit, pdu)
+        self._arm_frame_deadline()
+        # Back-pressure: a client pipelining faster than it is answered, or not
+        # reading its answers, is not read either.
+        if self.blocked or len(buffer) > BACKLOG_BYTES or self.ended:
+            transport.pause_reading()
+        elif not self.waiting:
+            transport.resume_reading()
+        self._finish_if_ended()
 
-    def _done(self, task: asyncio.Future[bytes], transaction: int, unit: int) -> None:
+    def _request(self, transaction: int, unit: int, pdu: bytes) -> None:
+        self.requests += 1
+        self.last_request = time.monotonic()
+        self._touch()
+        try:
+            answer = self.server.handle(unit, pdu)
+        except Exception:  # a fault of ours must not cost the client its connection
+            log.exception("Modbus TCP: a request from %s failed", self.peer)
+            answer = exception(pdu[0], DEVICE_FAILURE)
+        if isinstance(answer, bytes):
+            self._send(transaction, unit, answer)
+            return
+        self.waiting = True
+        task = asyncio.ensure_future(answer)
+        task.add_done_callback(functools.partial(self._done, transaction=transaction,
+                                                 unit=unit, function=pdu[0]))
+
+    def _arm_frame_deadline(self) -> None:
+        """A started frame must be whole in time; a complete one waiting its turn is
+        not late (it waits for the answers before it, not for the client)."""
+        started = bool(self.buffer) and not (self.waiting or self.blocked)
+        if started and self.frame_timer is None:
+            self.frame_timer = asyncio.get_running_loop().call_later(
+                FRAME_DEADLINE_S, self._time_out, "frame_timeouts")
+        elif not started and self.frame_timer is not None:
+            self.frame_timer.cancel()
+            self.frame_timer = None
+
+    def _finish_if_ended(self) -> None:
+        # Every whole request that came before the FIN is answered by now (or is
+        # in progress, or waits for the client to read): what is left is a fragment.
+        if self.ended and not (self.waiting or self.blocked) and self.transport is not None:
+            self.transport.close()  # after the answers written so far
+
+    def _done(self, task: asyncio.Future[bytes], transaction: int, unit: int,
+              function: int) -> None:
         self.waiting = False
         if task.cancelled():
             return
         error = task.exception()
         if error is not None:
             log.error("Modbus TCP: request from %s failed: %r", self.peer, error)
-            answer = exception(0, TARGET_FAILED)
+            answer = exception(function, DEVICE_FAILURE)
         else:
             answer = task.result()
         self._send(transaction, unit, answer)

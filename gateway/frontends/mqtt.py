@@ -47,6 +47,7 @@ from paho.mqtt.enums import CallbackAPIVersion, MQTTErrorCode
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 from paho.mqtt.reasoncodes import ReasonCode
+from paho.mqtt.subscribeoptions import SubscribeOptions
 
 from .. import __version__
 from ..cache import EventKind, Snapshot, Status
@@ -54,6 +55,7 @@ from ..commands import CommandError, CommandResult, ErrorKind
 from ..config import MqttConfig
 from ..model import CAPABILITIES, GROUP_UNITS
 from ..normalise import GROUP_FIELDS, field_values, member_name
+from ..supervise import Frontend, PeerLog
 from .common import GatewayLike, json_bytes
 
 log = logging.getLogger("gateway.mqtt")
@@ -65,6 +67,11 @@ WINDOW = 100  # messages handed to paho and not yet written or acknowledged
 MAX_COMMANDS = 16  # commands carried out at once; more are answered "busy"
 DISCOVERY_SWEEP_S = 5.0  # how long after connecting old discovery configs are looked for
 CONTROL_QOS = 1  # status, availability, discovery: small and must arrive
+MAX_COMMAND_PAYLOAD = 64 * 1024  # bytes; the largest command's arguments are a few dozen
+MAX_TOPIC_BYTES = 1024  # a response topic longer than this is not a mistake worth keeping
+MAX_CORRELATION_BYTES = 1024
+#: messages handed to paho and none written for this long: publishing does not work
+STALLED_S = 2 * KEEPALIVE_S
 ONLINE, OFFLINE = b"online", b"offline"
 
 
@@ -121,16 +128,21 @@ class _Counters:
     published: int = 0  # handed to paho
     written: int = 0  # written (QoS 0) or acknowledged: paho's on_publish, on its thread
     refused: int = 0  # paho would not take a message (the connection just went)
+    undeliverable: int = 0  # paho can never send it (a bad topic): dropped
+    ignored: int = 0  # commands not run: retained, empty, too large, bad properties
     lost_in_flight: int = 0  # handed to paho, unwritten or unacknowledged when it went
     commands: int = 0
     command_errors: int = 0
     connects: int = 0
 
 
-class MqttClient:
+class MqttClient(Frontend):
     """The gateway's MQTT connection; ``start()`` and ``stop()`` on the gateway's loop."""
 
+    name = "mqtt"
+
     def __init__(self, gateway: GatewayLike, config: MqttConfig) -> None:
+        super().__init__()
         self.gateway = gateway
         self.config = config
         gid = gateway.config.gateway_id
@@ -163,6 +175,8 @@ class MqttClient:
         self._results = 0  # command results sent (their control-queue keys)
         self._stopping = False
         self._last_problem: str | None = None
+        self._peers = PeerLog(log)
+        self._progress = (0, 0.0)  # (counters.written, loop time) when it last moved
 
     # ------------------------------------------------------------ topics
 
@@ -179,9 +193,15 @@ class MqttClient:
     # ------------------------------------------------------------ lifecycle
 
     async def start(self) -> None:
+        """Connect in the background (again, after ``stop``: the supervisor restarts
+        a failed client this way)."""
         self._loop = asyncio.get_running_loop()
-        self._unsubscribe = self.gateway.cache.subscribe(self._on_cache_event)
+        self._stopping = False
+        self.connected = False
+        self._commands.clear()
+        self._unsubscribe = self.gateway.cache.subscribe(self._on_cache_event, self.fail)
         self._runner = asyncio.create_task(self._keep_connected(), name="mqtt")
+        self.guarded(self._runner)
 
     def _make_client(self) -> paho.Client:
         c = self.config
@@ -293,7 +313,14 @@ class MqttClient:
     def _hand_over(self, fn: Any, *args: Any) -> None:
         assert self._loop is not None
         with contextlib.suppress(RuntimeError):  # the loop closed during shutdown
-            self._loop.call_soon_threadsafe(fn, *args)
+            self._loop.call_soon_threadsafe(self._guard, fn, *args)
+
+    def _guard(self, fn: Any, *args: Any) -> None:
+        """Run a handed-over event; a failure is this client's, for its supervisor."""
+        try:
+            fn(*args)
+        except Exception as exc:  # the supervisor logs and restarts
+            self.fail(exc)
 
     def _paho_connect(self, client: paho.Client, userdata: Any, flags: Any,
                       reason: ReasonCode, properties: Properties | None) -> None:
@@ -351,7 +378,14 @@ class MqttClient:
     def _subscribe(self) -> None:
         assert self._client is not None
         if self.config.allow_commands:
-            self._client.subscribe(f"{self.prefix}/+/cmd/+", qos=1)
+            # MQTT 5: the retain flag as published, so that a retained command is
+            # known as one even when it arrives live (3.1.1 brokers clear the flag).
+            topic = f"{self.prefix}/+/cmd/+"
+            if self.config.protocol == "5":
+                self._client.subscribe(topic, options=SubscribeOptions(
+                    qos=1, retainAsPublished=True))
+            else:
+                self._client.subscribe(topic, qos=1)
         if self.config.homeassistant_discovery:
             assert self._loop is not None
             self._sweep_until = self._loop.time() + DISCOVERY_SWEEP_S
@@ -416,10 +450,21 @@ class MqttClient:
         self._waiting_for_window = False
 
     def _hand_to_paho(self, message: Message) -> bool:
+        """True when the message is done with: handed to paho, or dropped because
+        paho can never send it (it must not block the queue behind it); False when
+        paho refused it for now (no connection), to be tried again."""
         assert self._client is not None
-        info = self._client.publish(message.topic, message.payload, message.qos,
-                                    message.retain, message.properties)
+        try:
+            info = self._client.publish(message.topic, message.payload, message.qos,
+                                        message.retain, message.properties)
+        except (ValueError, TypeError) as exc:
+            self.counters.undeliverable += 1
+            self._peers.warning("undeliverable", "mqtt: dropped a message to %.80r: %s",
+                                message.topic, exc)
+            return True
         if info.rc == MQTTErrorCode.MQTT_ERR_SUCCESS:
+            if not self._in_window() and self._loop is not None:  # the wait starts now
+                self._progress = (self.counters.written, self._loop.time())
             self._handed += 1
             self.counters.published += 1
             return True
@@ -500,14 +545,12 @@ class MqttClient:
                 self._sweep(message)
             return
         sensor, _, command = parts
-        if message.retain:
-            # A retained command would be carried out again at every reconnect.
-            log.warning("mqtt: ignored a retained command on %s; publish commands "
-                        "without the retain flag", topic)
+        if not self._runnable(message):
             return
         self.counters.commands += 1
         try:
             args = _command_args(bytes(message.payload))
+            _check_properties(message.properties)
         except CommandError as exc:
             self._answer(message, CommandResult.failed(sensor, command, exc))
             return
@@ -519,6 +562,27 @@ class MqttClient:
         self._commands.add(task)
         task.add_done_callback(self._commands.discard)
 
+    def _runnable(self, message: paho.MQTTMessage) -> bool:
+        """Whether a message on a command topic asks for a command at all.
+
+        A retained command would run again at every reconnect: it is never run, and
+        is cleared once.  An empty payload is how anyone clears a retained message
+        (the broker passes the clearing on to subscribers): it never runs either."""
+        topic = message.topic
+        if not message.payload:
+            self.counters.ignored += 1
+            log.debug("mqtt: an empty message on %s is not a command (send {} to run "
+                      "one)", topic)
+            return False
+        if message.retain:
+            self.counters.ignored += 1
+            self._send_control(Message(topic, b"", CONTROL_QOS, True))
+            self._peers.warning("retained", "mqtt: a retained command on %s was not run, "
+                                "and is cleared; publish commands without the retain "
+                                "flag", topic)
+            return False
+        return True
+
     async def _carry_out(self, message: paho.MQTTMessage, sensor: str, command: str,
                          args: Mapping[str, Any]) -> None:
         result = await self.gateway.command(sensor, command, args)
@@ -527,13 +591,15 @@ class MqttClient:
     def _answer(self, request: paho.MQTTMessage, result: CommandResult) -> None:
         if not result.ok:
             self.counters.command_errors += 1
-        # MQTT 5: the asker's response topic and correlation data win.
-        topic = getattr(request.properties, "ResponseTopic", None) or f"{request.topic}/result"
-        properties = None
-        correlation = getattr(request.properties, "CorrelationData", None)
-        if correlation is not None:
-            properties = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
-            properties.CorrelationData = correlation
+        # MQTT 5: the asker's response topic and correlation data win, where usable
+        # (_check_properties refused the request otherwise, answered here).
+        topic, properties = f"{request.topic}/result", None
+        if _properties_problem(request.properties) is None:
+            topic = getattr(request.properties, "ResponseTopic", None) or topic
+            correlation = getattr(request.properties, "CorrelationData", None)
+            if correlation is not None:
+                properties = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
+                properties.CorrelationData = correlation
         self._results += 1
         self._send_control(Message(topic, json_bytes(result.to_json()),
                                    max(self.config.qos, 1), False, properties),
@@ -592,17 +658,36 @@ class MqttClient:
 
     # ------------------------------------------------------------ stats
 
+    @property
+    def publishing(self) -> bool:
+        """Connected, and what was handed to paho is being written: messages in its
+        hands with none written for ``STALLED_S`` mean a connection that only looks
+        up (a broker that stopped reading)."""
+        if not self.connected or self._loop is None:
+            return False
+        now, written = self._loop.time(), self.counters.written
+        if written != self._progress[0]:
+            self._progress = (written, now)
+        if not self._in_window():
+            return True
+        return now - self._progress[1] < STALLED_S
+
     def stats(self) -> dict[str, Any]:
-        return {"connected": self.connected, "published": self.counters.published,
+        return {"connected": self.publishing, "published": self.counters.published,
                 "queued": len(self.outbox) + len(self._control),
                 "dropped": self.outbox.dropped + self.counters.lost_in_flight,
                 "in_flight": self._in_window(), "connects": self.counters.connects,
                 "commands": self.counters.commands,
-                "command_errors": self.counters.command_errors}
+                "command_errors": self.counters.command_errors,
+                "undeliverable": self.counters.undeliverable,
+                "ignored_commands": self.counters.ignored}
 
 
 def _command_args(payload: bytes) -> dict[str, Any]:
-    """A command's payload: empty or a JSON object."""
+    """A command's arguments: a JSON object (blank: none)."""
+    if len(payload) > MAX_COMMAND_PAYLOAD:
+        raise CommandError(ErrorKind.BAD_ARGUMENTS, f"the payload is {len(payload)} bytes; "
+                           f"at most {MAX_COMMAND_PAYLOAD}")
     if not payload.strip():
         return {}
     try:
@@ -612,6 +697,40 @@ def _command_args(payload: bytes) -> dict[str, Any]:
     if not isinstance(args, dict):
         raise CommandError(ErrorKind.BAD_ARGUMENTS, "the payload must be a JSON object")
     return args
+
+
+def topic_problem(topic: str) -> str | None:
+    """Why a topic from a peer (an MQTT 5 response topic) cannot be published to."""
+    if not topic:
+        return "is empty"
+    if "+" in topic or "#" in topic:
+        return "has a wildcard (+ or #); results go to one topic"
+    if "\0" in topic:
+        return "has a NUL character"
+    size = len(topic.encode("utf-8", "surrogatepass"))
+    if size > MAX_TOPIC_BYTES:
+        return f"is {size} bytes long; at most {MAX_TOPIC_BYTES}"
+    return None
+
+
+def _properties_problem(properties: Properties | None) -> str | None:
+    response = getattr(properties, "ResponseTopic", None)
+    if response is not None:
+        problem = topic_problem(str(response))
+        if problem is not None:
+            return f"the response topic {str(response)[:60]!r} {problem}"
+    correlation = getattr(properties, "CorrelationData", None)
+    if correlation is not None and len(correlation) > MAX_CORRELATION_BYTES:
+        return (f"the correlation data is {len(correlation)} bytes; "
+                f"at most {MAX_CORRELATION_BYTES}")
+    return None
+
+
+def _check_properties(properties: Properties | None) -> None:
+    """Raise ``CommandError`` when the MQTT 5 properties of a command are unusable."""
+    problem = _properties_problem(properties)
+    if problem is not None:
+        raise CommandError(ErrorKind.BAD_ARGUMENTS, problem)
 
 
 def _close_sockets(client: paho.Client) -> None:
