@@ -56,7 +56,7 @@ class Gateway:
         self.mqtt = MqttClient(self, config.mqtt) if config.mqtt else None
         self.http = HttpServer(self, config.http) if config.http else None
         # the supervised front ends
-        self.frontends: list[Frontend] = [f for f in (self.modbus, self.mqtt) if f]
+        self.frontends: list[Frontend] = [f for f in (self.modbus, self.http, self.mqtt) if f]
         self.supervisor = Supervisor()
         self.started = time.monotonic()
 

@@ -195,8 +195,12 @@ def test_requests_before_a_half_close_are_answered(tmp_path: Path, pipelined: in
         while chunk := sock.recv(4096):
             received += chunk
         sock.close()
-        assert received[:len(write)] == write  # FC06's answer echoes the request
-        rest = received[len(write):]
+        tid, _, length, _ = MBAP.unpack_from(received)
+        answer, rest = received[:6 + length], received[6 + length:]
+        # Answered: FC06 echoes the request; should the sensor not have answered in
+        # time on a loaded machine, exception 0B is an answer too (the log says why).
+        assert tid == 1 and (answer == write or answer[7:] == bytes((0x86, 0x0B))), \
+            (answer.hex(), gw.log.read_text()[-3000:])
         for i in range(pipelined):
             tid, _, length, _ = MBAP.unpack_from(rest)
             assert tid == 2 + i and rest[7] == 3

@@ -20,8 +20,6 @@ from harness import expected, fields_of, run, running, tolerance, until
 from prometheus_client.parser import text_string_to_metric_families
 
 from gateway.app import Gateway, StartupError, openapi_json
-from gateway.cache import Cache
-from gateway.frontends.rest import STREAM_QUEUE, StreamHub
 from gateway.model import Protocol, Series
 from gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
 from gateway.simulator.motion import Motion
@@ -348,30 +346,6 @@ def test_a_stream_client_that_does_not_read_is_dropped(two_lines: Any) -> None:
             finally:
                 sock.close()
             await until(lambda: hub.open == 0)  # its stream ended with its connection
-
-    run(body)
-
-
-def test_stream_hub_drops_a_subscriber_that_falls_behind() -> None:
-    """The hub's own rule, on a real cache: more than STREAM_QUEUE events behind."""
-    from gateway.config import config_from_dict
-
-    async def body() -> None:
-        config = config_from_dict({"buses": [{"name": "a", "port": "/dev/null",
-                                              "protocol": "native",
-                                              "sensors": [{"name": "s", "series": "AH"}]}]},
-                                  env={})
-        gateway = Gateway(config)
-        cache: Cache = gateway.cache
-        hub = StreamHub(gateway)
-        slow = hub.stream("s")
-        first = await anext(slow)  # subscribed; it reads no further
-        assert b"event: status" in first
-        for _ in range(STREAM_QUEUE + 1):
-            cache.publish("s", READING)
-        assert hub.dropped == 1 and not hub.subscribers
-        assert [event async for event in slow] == []  # its stream ends
-        hub.close()
 
     run(body)
 

@@ -26,9 +26,11 @@ peers are rate-limited.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 import logging
 import math
+import socket
 import struct
 import time
 from collections import Counter
@@ -53,6 +55,7 @@ MBAP = struct.Struct(">HHHB")  # transaction id, protocol id, length, unit id
 MAX_LENGTH = 254  # unit id + the longest PDU (253 bytes)
 BACKLOG_BYTES = 16 * 1024  # stop reading a client that sends faster than it is answered
 WRITE_BOUND = 64 * 1024  # answers a client has not read: beyond this its requests wait
+SEND_BUFFER = 64 * 1024  # bytes of kernel send buffer per connection
 FRAME_DEADLINE_S = 5.0  # a started frame must be whole within this (a trickle is closed)
 HOUSEKEEPING_S = 1.0  # how often the rate-limited peer warnings are summed up
 
@@ -342,6 +345,13 @@ class _Connection(asyncio.Protocol):
             return
         server.admit(self)
         transport.set_write_buffer_limits(high=WRITE_BOUND)
+        sock = transport.get_extra_info("socket")
+        if sock is not None:
+            # The kernel's own send buffer grows to megabytes for a client that does
+            # not read; answered into it, a flood of requests holds the loop for a
+            # third of a second before WRITE_BOUND is reached.  A fixed one does not.
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
         server.connections.add(self)
         server.counts["connections"] += 1
         self._touch()

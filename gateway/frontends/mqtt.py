@@ -176,6 +176,7 @@ class MqttClient(Frontend):
         self._stopping = False
         self._last_problem: str | None = None
         self._peers = PeerLog(log)
+        self._clearing: set[str] = set()  # retained commands being cleared by us
         self._progress = (0, 0.0)  # (counters.written, loop time) when it last moved
 
     # ------------------------------------------------------------ topics
@@ -570,12 +571,17 @@ class MqttClient(Frontend):
         (the broker passes the clearing on to subscribers): it never runs either."""
         topic = message.topic
         if not message.payload:
+            if topic in self._clearing:  # our own clearing, back from the broker
+                self._clearing.discard(topic)
+                return False
             self.counters.ignored += 1
-            log.debug("mqtt: an empty message on %s is not a command (send {} to run "
-                      "one)", topic)
+            self._peers.warning("empty", "mqtt: an empty message on %s was not run: an "
+                                "empty payload clears a retained message; send {} to run "
+                                "a command", topic)
             return False
         if message.retain:
             self.counters.ignored += 1
+            self._clearing.add(topic)
             self._send_control(Message(topic, b"", CONTROL_QOS, True))
             self._peers.warning("retained", "mqtt: a retained command on %s was not run, "
                                 "and is cleared; publish commands without the retain "

@@ -6,9 +6,15 @@ Every read is answered from the cache; ``max_age_ms`` is the one way a client ca
 cause bus traffic, and identical on-demand reads share one transaction.
 
 Errors are one JSON shape, ``{"error": "...", "kind": "..."}``, with the status codes
-docs/rest.md lists: 401/403 auth, 404 unknown sensor or command, 409 busy, 422 bad
-arguments or a command the series lacks, 503 no reading yet, 504 the sensor did not
-answer; 502 when the sensor answered that the command failed.
+docs/rest.md lists: 401/403 auth, 404 unknown sensor or command, 408 a request that
+did not come in time, 409 busy, 422 bad arguments or a command the series lacks, 503
+no reading yet, 504 the sensor did not answer; 502 when the sensor answered that the
+command failed.
+
+A client cannot hold the server: a connection is closed when a request's headers or
+body are late, or when it stays idle (``_GuardedProtocol``), and a stream client is
+dropped when its own socket stays full, never because the gateway is behind
+(``StreamHub``).
 
 The command routes are made from the command catalogue, so the OpenAPI document shows
 each command's own arguments.
@@ -23,10 +29,11 @@ import inspect
 import logging
 import socket
 import time
+import typing
 from collections import deque
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncGenerator, Awaitable, Callable
 from importlib import resources
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 import uvicorn
 from fastapi import Depends, FastAPI, Query, Request
@@ -39,22 +46,28 @@ from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 from .. import __version__
 from ..cache import EventKind, SensorUnavailable, Snapshot, Status
 from ..commands import CATALOGUE, ErrorKind
 from ..config import HttpConfig
 from ..stats import SensorStats
+from ..supervise import Frontend
 from .common import GatewayLike, json_bytes
 
 log = logging.getLogger("gateway.http")
 
 API = "/api/v1"
-STREAM_QUEUE = 64  # events a slow stream client may fall behind before it is dropped
+STREAM_QUEUE = 64  # events queued per stream client; past it, the oldest are skipped
+STALL_S = 5.0  # a stream client whose socket has been full this long (queue full): dropped
 KEEPALIVE_S = 15.0  # a comment line on an idle stream, so proxies keep it open
 MAX_STREAMS = 1000
 SEND_BUFFER = 64 * 1024  # bytes of kernel send buffer per connection
 MAX_BODY = 16 * 1024  # a command's arguments are a few bytes
+HEADER_DEADLINE_S = 10.0  # a request's headers, from connecting or from the previous answer
+BODY_DEADLINE_S = 10.0  # a request's body, from the end of its headers
+IDLE_S = 5  # a connection with no request under way (uvicorn's timeout_keep_alive)
 
 STATUS_FOR: dict[ErrorKind, int] = {
     ErrorKind.UNKNOWN: 404,
@@ -188,6 +201,9 @@ class HealthOut(_Out):
     buses: dict[str, bool] = Field(description="bus name -> port open")
     sensors: dict[str, int] = Field(description="how many sensors are ok, stale, offline")
     interfaces: list[str]
+    frontends: dict[str, dict[str, float]] = Field(description=(
+        "front end -> its counters: clients, requests, restarts (after a failure) and "
+        "those of docs/reliability.md"))
 
 
 class CommandOut(_Out):
@@ -202,9 +218,20 @@ class CommandOut(_Out):
 # ------------------------------------------------------------------ the live stream
 
 
+class StreamPeer(typing.Protocol):
+    """A stream client's connection, as the hub judges it (``_GuardedProtocol``)."""
+
+    @property
+    def write_stalled(self) -> bool:
+        """The client's socket has been full, nothing taken from it, for ``STALL_S``."""
+
+    def abort(self) -> None: ...
+
+
 class _Subscriber:
-    def __init__(self, sensor: str | None) -> None:
+    def __init__(self, sensor: str | None, peer: StreamPeer | None) -> None:
         self.sensor = sensor
+        self.peer = peer  # None: no socket to judge by (the hub used on its own)
         self.events: deque[bytes] = deque()
         self.wake = asyncio.Event()
         self.dropped = False
@@ -212,20 +239,28 @@ class _Subscriber:
 
 class StreamHub:
     """Server-Sent Events: every reading (and status change) to every subscriber of
-    its sensor.  An event is formatted once, whatever the number of subscribers.  A
-    subscriber more than ``STREAM_QUEUE`` events behind is dropped: its stream ends
-    and its client may reconnect, rather than the gateway buffering without bound."""
+    its sensor.  An event is formatted once, whatever the number of subscribers.
 
-    def __init__(self, gateway: GatewayLike) -> None:
+    At most ``STREAM_QUEUE`` events wait per subscriber.  When one more comes, the
+    subscriber is judged by its own socket, never by how far behind its queue is (the
+    queue also fills while the gateway's loop is behind, its client reading well):
+
+    - its client has taken nothing for ``STALL_S`` (the socket stayed full): dropped,
+      its connection closed, rather than the gateway buffering without bound;
+    - otherwise its oldest event is skipped (and counted): the client stays, and
+      catches up with the newest readings."""
+
+    def __init__(self, gateway: GatewayLike,
+                 on_error: Callable[[BaseException], None] | None = None) -> None:
         self.gateway = gateway
         self.subscribers: set[_Subscriber] = set()  # those events go to
-        # Streams not yet ended, dropped ones included: a dropped client that stops
-        # reading keeps its connection until the operating system gives up on it, so
-        # it still counts against MAX_STREAMS.
+        # Streams not yet ended, dropped ones included (until their connection has
+        # closed): they count against MAX_STREAMS.
         self.open = 0
-        self.dropped = 0
+        self.dropped = 0  # subscribers dropped as stalled
+        self.skipped = 0  # events skipped for subscribers whose queue was full
         self.closing = asyncio.Event()
-        self._unsubscribe = gateway.cache.subscribe(self._on_cache_event)
+        self._unsubscribe = gateway.cache.subscribe(self._on_cache_event, on_error)
 
     def _on_cache_event(self, kind: EventKind, snap: Snapshot) -> None:
         if not self.subscribers:
@@ -235,16 +270,29 @@ class StreamHub:
             if sub.sensor is not None and sub.sensor != snap.name:
                 continue
             if len(sub.events) >= STREAM_QUEUE:
-                sub.dropped = True
-                self.subscribers.discard(sub)
-                self.dropped += 1
-                log.info("http: dropped a stream client %d events behind", STREAM_QUEUE)
-            else:
-                sub.events.append(event)
+                if sub.peer is not None and sub.peer.write_stalled:
+                    self._drop(sub)
+                    continue
+                sub.events.popleft()
+                self.skipped += 1
+            sub.events.append(event)
             sub.wake.set()
 
-    async def stream(self, sensor: str | None) -> AsyncIterator[bytes]:
-        sub = _Subscriber(sensor)
+    def _drop(self, sub: _Subscriber) -> None:
+        sub.dropped = True
+        sub.events.clear()
+        self.subscribers.discard(sub)
+        self.dropped += 1
+        log.info("http: dropped a stream client that took nothing for %g s", STALL_S)
+        # Its send waits on a full socket, so the stream could only end once the client
+        # read again (a zero window is kept open for ever): the connection goes now.
+        assert sub.peer is not None
+        sub.peer.abort()
+        sub.wake.set()
+
+    async def stream(self, sensor: str | None,
+                     peer: StreamPeer | None = None) -> AsyncGenerator[bytes, None]:
+        sub = _Subscriber(sensor, peer)
         self.subscribers.add(sub)
         self.open += 1
         try:
@@ -363,6 +411,16 @@ class _CountRequests:
 # ------------------------------------------------------------------ metrics
 
 
+HTTP_COUNTERS = (  # the HTTP server's own: metric, its key in HttpServer.stats(), help
+    ("http_request_timeouts", "request_timeouts",
+     "connections closed: a request's headers or body did not come in time"),
+    ("http_streams_dropped", "dropped_streams", "stream clients dropped: their socket "
+     "stayed full"),
+    ("http_stream_events_skipped", "skipped_events", "events skipped for stream clients "
+     "behind, the oldest first"),
+)
+
+
 class GatewayCollector:
     """Prometheus metrics, read from the gateway's stats at each scrape."""
 
@@ -432,11 +490,16 @@ class GatewayCollector:
                          ["frontend"])
         requests = family(CounterMetricFamily, "frontend_requests", "requests served",
                           ["frontend"])
+        restarts = family(CounterMetricFamily, "frontend_restarts", "restarts after a "
+                          "failure (docs/reliability.md)", ["frontend"])
         frontends = g.frontend_stats()
         for name, served in frontends.items():
+            restarts.add_metric([name], served["restarts"])
             if "clients" in served:  # the servers (the MQTT client has its own below)
                 clients.add_metric([name], served["clients"])
                 requests.add_metric([name], served["requests"])
+        for name, key, doc in HTTP_COUNTERS if "http" in frontends else ():
+            family(CounterMetricFamily, name, doc, []).add_metric([], frontends["http"][key])
         mqtt = frontends.get("mqtt")
         if mqtt is not None:
             family(GaugeMetricFamily, "mqtt_connected", "1 when connected to the broker",
@@ -547,7 +610,8 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
         return {"status": "degraded" if degraded else "ok",
                 "gateway_id": gateway.config.gateway_id, "version": __version__,
                 "uptime_s": round(time.monotonic() - gateway.started, 1),
-                "buses": buses, "sensors": counted, "interfaces": gateway.config.interfaces()}
+                "buses": buses, "sensors": counted, "interfaces": gateway.config.interfaces(),
+                "frontends": gateway.frontend_stats()}
 
     @app.get(f"{API}/buses", response_model=list[BusOut], dependencies=reads,
              responses={401: errors[401]}, summary="every bus and its stats")
@@ -608,10 +672,11 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
 
     streams_hub = hub if hub is not None else StreamHub(gateway)
 
-    def stream_response(sensor: str | None) -> StreamingResponse:
+    def stream_response(sensor: str | None, request: Request) -> StreamingResponse:
         if streams_hub.open >= MAX_STREAMS:
             raise ApiError(503, "too_many_streams", f"{MAX_STREAMS} streams are open")
-        return StreamingResponse(streams_hub.stream(sensor), media_type="text/event-stream",
+        return StreamingResponse(streams_hub.stream(sensor, stream_peer(request)),
+                                 media_type="text/event-stream",
                                  headers={"Cache-Control": "no-cache",
                                           "X-Accel-Buffering": "no"})
 
@@ -623,15 +688,15 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
              response_class=StreamingResponse,
              responses={200: sse, 401: errors[401], 404: errors[404], 503: errors[503]},
              summary="Server-Sent Events: one reading per event")
-    async def stream(name: str) -> StreamingResponse:
+    async def stream(name: str, request: Request) -> StreamingResponse:
         sensor_or_404(name)
-        return stream_response(name)
+        return stream_response(name, request)
 
     @app.get(f"{API}/stream", dependencies=streams, response_class=StreamingResponse,
              responses={200: sse, 401: errors[401], 503: errors[503]},
              summary="Server-Sent Events of every sensor")
-    async def stream_all() -> StreamingResponse:
-        return stream_response(None)
+    async def stream_all(request: Request) -> StreamingResponse:
+        return stream_response(None, request)
 
     for spec in CATALOGUE.values():
         _command_route(app, gateway, spec.name, spec.args, spec.summary, command_access,
@@ -712,6 +777,138 @@ def _command_route(app: FastAPI, gateway: GatewayLike, command: str, args: type[
 # ------------------------------------------------------------------ the server
 
 
+PEER = "imu_gateway.peer"  # the ASGI scope extension that carries a request's connection
+
+
+def stream_peer(request: Request) -> StreamPeer | None:
+    """The connection a request came on, when ``_GuardedProtocol`` serves it."""
+    peer = request.scope.get("extensions", {}).get(PEER, {}).get("connection")
+    return peer if isinstance(peer, _GuardedProtocol) else None
+
+
+def _cancel(timer: asyncio.TimerHandle | None) -> None:
+    if timer is not None:
+        timer.cancel()
+
+
+class _GuardedProtocol(HttpToolsProtocol):
+    """uvicorn's HTTP/1.1 protocol with the deadlines uvicorn lacks.  (httptools, named
+    rather than uvicorn's "auto", so the behaviour does not depend on what is installed.)
+
+    uvicorn waits for ever for a request's headers and body, so a client that sends
+    part of a request, or nothing, holds its connection, and a few hundred such hold
+    the connection cap (``limit_concurrency``).  Here:
+
+    - a connection that sends nothing is closed after ``IDLE_S``, as a kept-alive one
+      is (uvicorn arms that timer only after an answer);
+    - a request's headers must be complete ``HEADER_DEADLINE_S`` after connecting, or
+      after the previous answer on a kept-alive connection (a trickle of bytes does
+      not extend it);
+    - its body ``BODY_DEADLINE_S`` after its headers.
+
+    A late request is answered 408 if no answer is under way, and its connection closed.
+
+    For the stream hub, ``write_stalled`` says the client's socket has been full, with
+    nothing taken from it, for ``STALL_S``."""
+
+    counters: ClassVar[dict[str, int]] = {}  # the server's (``_protocol_for``)
+    write_stalled = False
+    _header_timer: asyncio.TimerHandle | None = None
+    _body_timer: asyncio.TimerHandle | None = None
+    _stall_timer: asyncio.TimerHandle | None = None
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self.timeout_keep_alive_task = self.loop.call_later(
+            self.timeout_keep_alive, self.timeout_keep_alive_handler)
+        self._await_headers()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        for timer in (self._header_timer, self._body_timer, self._stall_timer):
+            _cancel(timer)
+        super().connection_lost(exc)
+
+    def on_message_begin(self) -> None:
+        super().on_message_begin()
+        self.scope["extensions"] = {PEER: {"connection": self}}  # for stream_peer
+
+    def on_headers_complete(self) -> None:
+        _cancel(self._header_timer)
+        super().on_headers_complete()
+        # Disarmed by on_message_complete, which comes at once when there is no body.
+        self._body_timer = self.loop.call_later(BODY_DEADLINE_S, self._late, "body",
+                                                BODY_DEADLINE_S)
+
+    def on_message_complete(self) -> None:
+        _cancel(self._body_timer)
+        super().on_message_complete()
+
+    def on_response_complete(self) -> None:
+        pipelined = bool(self.pipeline)  # a request whose headers are in starts now
+        super().on_response_complete()
+        if not pipelined and not self.transport.is_closing():
+            self._await_headers()
+
+    def _await_headers(self) -> None:
+        _cancel(self._header_timer)
+        self._header_timer = self.loop.call_later(HEADER_DEADLINE_S, self._late, "headers",
+                                                  HEADER_DEADLINE_S)
+
+    def _late(self, part: str, seconds: float) -> None:
+        if self.transport.is_closing():
+            return
+        self.counters["request_timeouts"] += 1
+        log.debug("http: %s: the request's %s did not come within %g s", self.client,
+                  part, seconds)
+        if self.cycle is None or self.cycle.response_complete or not self.cycle.response_started:
+            body = json_bytes({"error": f"the request's {part} did not come within "
+                                        f"{seconds:g} s", "kind": "request_timeout"})
+            head = [b"HTTP/1.1 408 Request Timeout\r\n",
+                    *(b"%s: %s\r\n" % h for h in self.server_state.default_headers),
+                    b"content-type: application/json\r\n",
+                    b"content-length: %d\r\n" % len(body), b"connection: close\r\n\r\n"]
+            self.transport.write(b"".join(head) + body)
+        # close() waits until what is buffered is sent: for a client that does not
+        # read, for ever.
+        if self.transport.get_write_buffer_size():
+            self.transport.abort()
+        else:
+            self.transport.close()
+
+    # The client's socket: asyncio pauses writing when the bytes the kernel would not
+    # take pass the high-water mark, and resumes once most are sent.
+    def pause_writing(self) -> None:
+        super().pause_writing()
+        if self._stall_timer is None:
+            self._stall_timer = self.loop.call_later(STALL_S, self._stalled)
+
+    def resume_writing(self) -> None:
+        super().resume_writing()
+        _cancel(self._stall_timer)
+        self._stall_timer = None
+        self.write_stalled = False
+
+    def _stalled(self) -> None:
+        # A timer rather than comparing clocks at the next event: a turn of the loop
+        # runs the I/O callbacks before the due timers, so after the loop was merely
+        # behind, the socket has been written to (and writing resumed) before this.
+        self._stall_timer = None
+        self.write_stalled = True
+
+    def abort(self) -> None:
+        self.transport.abort()
+
+
+def _protocol_for(server_counters: dict[str, int]) -> type[_GuardedProtocol]:
+    """The protocol class for one server, counting into its counters (uvicorn makes
+    each connection's protocol itself, from the class)."""
+
+    class Protocol(_GuardedProtocol):
+        counters = server_counters
+
+    return Protocol
+
+
 class _Server(uvicorn.Server):
     """uvicorn without its signal handlers: the gateway owns SIGINT and SIGTERM."""
 
@@ -720,11 +917,14 @@ class _Server(uvicorn.Server):
         yield
 
 
-class HttpServer:
+class HttpServer(Frontend):
+    name = "http"
+
     def __init__(self, gateway: GatewayLike, config: HttpConfig) -> None:
+        super().__init__()
         self.gateway = gateway
         self.config = config
-        self.counters = {"requests": 0}
+        self.counters = {"requests": 0, "request_timeouts": 0}
         self.hub: StreamHub | None = None
         self._socket: socket.socket | None = None
         self._server: _Server | None = None
@@ -750,15 +950,23 @@ class HttpServer:
             raise
         sock.setblocking(False)
         self._socket = sock
-        self.hub = StreamHub(self.gateway)
+        self.hub = StreamHub(self.gateway, on_error=self.fail)
         app = create_app(self.gateway, self.config, self.hub, self.counters)
         self._server = _Server(uvicorn.Config(
             app, log_config=None, log_level="warning", access_log=False, lifespan="off",
             timeout_graceful_shutdown=2, server_header=False,
+            http=_protocol_for(self.counters), ws="none", timeout_keep_alive=IDLE_S,
             # every connection and request at once, stalled ones included: 503 beyond
             limit_concurrency=MAX_STREAMS + 100))
         self._task = asyncio.create_task(self._server.serve(sockets=[sock]), name="http")
+        self._task.add_done_callback(self._ended)
         log.info("HTTP on http://%s:%d/ (API %s)", listen.host, self.port, API)
+
+    def _ended(self, task: asyncio.Task[None]) -> None:
+        """uvicorn's server ends only when told to: otherwise it failed."""
+        if task.cancelled() or (self._server is not None and self._server.should_exit):
+            return
+        self.fail(task.exception() or RuntimeError("the HTTP server stopped"))
 
     @property
     def listening(self) -> bool:
@@ -774,7 +982,9 @@ class HttpServer:
         connections = len(self._server.server_state.connections) if self._server else 0
         return {"clients": connections, "streams": streams,
                 "requests": self.counters["requests"],
-                "dropped_streams": self.hub.dropped if self.hub is not None else 0}
+                "request_timeouts": self.counters["request_timeouts"],
+                "dropped_streams": self.hub.dropped if self.hub is not None else 0,
+                "skipped_events": self.hub.skipped if self.hub is not None else 0}
 
     async def stop(self) -> None:
         if self.hub is not None:
@@ -784,7 +994,7 @@ class HttpServer:
             await self._task
         if self._socket is not None:
             self._socket.close()
-
+            self._socket = None  # a restart listens anew
 
 def openapi_document(gateway: GatewayLike, config: HttpConfig) -> dict[str, Any]:
     return create_app(gateway, config).openapi()

@@ -1,0 +1,35 @@
+"""The soak (bench/soak.py, docs/reliability.md) in its shortest form: every fault and
+hostile client once, with the minimum hold of 2 s, against the real gateway process,
+mosquitto and the simulators.  About a minute; the 30-minute run is done by hand."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+def test_a_short_soak_passes_every_check(tmp_path: Path) -> None:
+    summary_file = tmp_path / "soak.json"
+    # Its own timeout below the test's: on a loaded machine the recoveries take longer,
+    # and the soak's own output is worth more than pytest-timeout's stack dump.
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "bench" / "soak.py"), "--minutes", "0.5", "--quiet",
+         "--json", str(summary_file), "--keep", str(tmp_path / "files")],
+        capture_output=True, text=True, timeout=220, cwd=ROOT)
+    report = f"stdout:\n{done.stdout}\nstderr (end):\n{done.stderr[-3000:]}"
+    assert done.returncode in (0, 1), report  # 2: it could not even be set up
+    assert "RESULT: " in done.stdout, report
+    summary = json.loads(summary_file.read_text())
+    ran = {phase["name"] for phase in summary["phases"]}
+    assert ran == set(summary["phases_planned"]), "every phase runs at least once"
+    assert summary["final"]["alive"], report
+    # The failures, one per line, are the message: which check and in which phase.
+    assert done.returncode == 0 and not summary["failures"], report
