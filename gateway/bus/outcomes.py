@@ -11,8 +11,10 @@ from typing import Any
 
 from ..commands import CommandError, CommandResult, ErrorKind
 from ..config import BusConfig
+from ..model import Protocol
 from ..protocol.exchanges import GYRO_CAL_SECONDS, Answer, Effect, ProtocolAdapter
 from ..stats import Counters
+from .diagnosis import Diagnosis
 from .events import Attempt, ErrorCounted, Event, Job, Kind, Note, Publish, StateChange
 from .jobs import JobQueue
 from .line import Line
@@ -22,7 +24,8 @@ from .sensor_state import STREAM_RETRY, SensorState
 class Outcomes:
     def __init__(self, config: BusConfig, adapter: ProtocolAdapter,
                  sensors: dict[str, SensorState], jobs: JobQueue, line: Line,
-                 stats: Counters, emit: Callable[[Event], None]) -> None:
+                 stats: Counters, emit: Callable[[Event], None],
+                 diagnosis: Diagnosis) -> None:
         self.config = config
         self.adapter = adapter
         self.sensors = sensors
@@ -30,10 +33,12 @@ class Outcomes:
         self.line = line
         self.stats = stats
         self.emit = emit
+        self.diagnosis = diagnosis
 
     def frame(self, frame: Any, at: float) -> None:
         """A whole frame came in at ``at``: the answer in flight, a stream frame, a
         late answer, or evidence of a stream nobody asked for."""
+        self.diagnosis.frame(frame, {s.address for s in self.sensors.values()})
         a = self.line.attempt
         if a is not None:
             answer = a.exchange.match(frame)
@@ -53,8 +58,13 @@ class Outcomes:
         # say): evidence of a stream, though not a reading of what it is polled for.
         sender = getattr(frame, "unit", getattr(frame, "address", None))
         for s in self.sensors.values():
-            if s.address == sender and not s.streaming:
+            if s.address != sender or s.streaming:
+                continue
+            misfit = self.diagnosis.misfit(frame, s.config.series)
+            if misfit is None:
                 self._stray(s, None, at)
+            elif self.diagnosis.first(s.name, misfit):  # an answer, of the wrong shape: no stream
+                self._note(logging.WARNING, f"sensor {s.name}: {misfit}")
 
     def _unsolicited(self, s: SensorState, answer: Answer, at: float) -> None:
         if answer.values.get("done"):
@@ -192,8 +202,7 @@ class Outcomes:
             self.jobs.current = None
         was = s.online
         if kind not in ("port_lost", "internal") and s.failed():
-            self._note(logging.WARNING, f"sensor {s.name}: offline "
-                       f"({'never answered' if was is None else kind})")
+            self._note(logging.WARNING, self._offline(s, kind, never=was is None))
             self.emit(StateChange(s.name, online=False))
         error_kind = {"port_lost": ErrorKind.OFFLINE, "internal": ErrorKind.OFFLINE,
                       "refused": ErrorKind.FAILURE}.get(kind, ErrorKind.TIMEOUT)
@@ -203,6 +212,17 @@ class Outcomes:
             s.last_served = now
             s.schedule_next_poll(now)
         self.jobs.finish(job, error=CommandError(error_kind, message))
+
+    def _offline(self, s: SensorState, kind: str, never: bool) -> str:
+        """The log line for a sensor going offline: where it was asked, and for one
+        that never answered, what the line suggests is wrong."""
+        baud = self.line.baud
+        where = (f"native address {s.address}" if self.config.protocol is Protocol.NATIVE
+                 else f"Modbus unit {s.address}") + f" at {baud} baud"
+        if never:
+            cause = self.diagnosis.cause(s.name, s.address, baud)
+            return f"sensor {s.name}: offline (never answered, {where}): {cause}"
+        return f"sensor {s.name}: offline ({kind}, {where})"
 
     def _apply(self, s: SensorState, effect: Effect, at: float) -> None:
         if effect.new_baud is not None and effect.new_baud != self.line.baud:

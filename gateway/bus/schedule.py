@@ -30,6 +30,7 @@ from ..protocol.exchanges import (
     char_time,
 )
 from ..stats import Counters
+from .diagnosis import Diagnosis
 from .events import (
     Event,
     Job,
@@ -59,8 +60,9 @@ class Schedule:
         self._events: list[Event] = []
         self.jobs = JobQueue(self._events.append, self.stats)
         self.line = Line(adapter, config.baudrate, self.stats, self._frame)
+        self.diagnosis = Diagnosis(config.protocol, config.port)
         self.outcomes = Outcomes(config, adapter, self.sensors, self.jobs, self.line,
-                                 self.stats, self._events.append)
+                                 self.stats, self._events.append, self.diagnosis)
 
     @property
     def baud(self) -> int:
@@ -259,6 +261,7 @@ class Schedule:
 
     def receive(self, data: bytes, at: float) -> None:
         """Bytes from the line; ``at``: when the last of them came in."""
+        self.diagnosis.received(data)
         self.line.receive(data, at)  # each whole frame goes to ``outcomes.frame``
 
     # ------------------------------------------------------------ timers
