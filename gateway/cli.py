@@ -10,6 +10,7 @@ import asyncio
 import json
 import logging
 import math
+import os
 import signal
 import sys
 from collections.abc import Callable, Sequence
@@ -144,6 +145,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("-c", "--config", required=True, metavar="FILE", help="the YAML config")
     run.add_argument("--log-level", default="info",
                      choices=["debug", "info", "warning", "error"], help="default: info")
+    run.add_argument("--trace", action="append", default=[], metavar="BUS",
+                     help="log every exchange of this bus (repeatable; see the bus's "
+                     "`trace` setting)")
     run.add_argument("--stats-interval", type=_non_negative, default=0.0, metavar="SECONDS",
                      help="log each bus's rate and utilisation this often (0: never)")
 
@@ -170,15 +174,31 @@ def build_parser() -> argparse.ArgumentParser:
         "scan",
         help="find the sensors on a port",
         description="Find the sensors on a port: both protocols, every baud rate, every "
-        "address. Only reads are sent. The gateway must not be running on the port.",
+        "address. Only reads are sent. The gateway must not be running on the port. "
+        "Progress, with an estimate of the time left, goes to stderr; so does, when "
+        "something was found, the narrower scan that would have been enough.",
     )
+
+    def count(text: str) -> int:
+        if not text.isdigit() or int(text) < 1:
+            raise argparse.ArgumentTypeError(f"must be a whole number >= 1, not {text!r}")
+        return int(text)
+
     scan.add_argument("--port", required=True, help="a device path or a pyserial URL")
     scan.add_argument("--protocol", type=_protocol, action="append",
                       help="only this protocol (repeatable; default: both)")
     scan.add_argument("--baud", type=_baud, action="append",
                       help="only this baud rate (repeatable; default: all eight)")
     scan.add_argument("--address", type=_address, action="append",
-                      help="only this address (repeatable; default: all)")
+                      help="only this address (repeatable; default: native 0-255, Modbus "
+                      "1-247)")
+    scan.add_argument("--all-addresses", action="store_true",
+                      help="Modbus units 248-255 too, which Modbus reserves (the config "
+                      "refuses them) but a sensor can be set to. Never unit 0: it is "
+                      "broadcast, which a sensor carries out without answering, so a read "
+                      "sent to it finds nothing")
+    scan.add_argument("--stop-after", type=count, metavar="N",
+                      help="stop once N sensors are found")
     scan.add_argument("--margin-ms", type=_non_negative, default=RTO_INITIAL * 1000,
                       help="wait this long beyond the wire time for an answer (default "
                       f"{RTO_INITIAL * 1000:g}: a slow sensor behind a USB adapter, the "
@@ -257,6 +277,15 @@ def cmd_run(args: argparse.Namespace) -> int:
     config = _load_or_report(args.config)
     if config is None:
         return EXIT_BAD_INPUT
+    names = [b.name for b in config.buses]
+    unknown = [name for name in args.trace if name not in names]
+    if unknown:
+        print(f"imu-gateway run: error: --trace {unknown[0]}: no such bus (the buses: "
+              f"{', '.join(names)})", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    config = config.model_copy(update={"buses": [
+        b.model_copy(update={"trace": True}) if b.name in args.trace else b
+        for b in config.buses]})
     logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
                         format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
     try:
@@ -289,23 +318,52 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_scan(args: argparse.Namespace) -> int:
     import serial
 
-    from .scan import BAUD_ORDER, scan
+    from .scan import (
+        BAUD_ORDER,
+        Found,
+        Progress,
+        Throttle,
+        modbus_units,
+        next_time,
+        port_problem,
+        scan,
+    )
 
-    found = 0
+    protocols = args.protocol or list(Protocol)
+    if args.address and Protocol.MODBUS in protocols:
+        # Said rather than silently skipped: the engineer asked for these addresses.
+        skipped = sorted(set(args.address) - set(modbus_units(args.address, args.all_addresses)))
+        if skipped:
+            print(f"imu-gateway scan: note: Modbus does not ask {', '.join(map(str, skipped))} "
+                  "(0 is broadcast, never answered; 248-255 need --all-addresses)",
+                  file=sys.stderr)
+
+    def show(progress: Progress) -> None:
+        print(progress.line(), file=sys.stderr, flush=True)
+
+    found: list[Found] = []
+    sensors = scan(args.port, protocols, args.baud or BAUD_ORDER, args.address,
+                   args.margin_ms / 1000, Throttle(show), args.all_addresses)
     try:
-        for sensor in scan(args.port, args.protocol or list(Protocol), args.baud or BAUD_ORDER,
-                           args.address, args.margin_ms / 1000,
-                           progress=lambda text: print(f"scanning {text}", file=sys.stderr,
-                                                       flush=True)):
+        for sensor in sensors:
             print(sensor.line(), flush=True)
-            found += 1
+            found.append(sensor)
+            if len(found) == args.stop_after:
+                break
     except serial.SerialException as exc:
-        print(f"imu-gateway scan: error: {args.port}: {exc}", file=sys.stderr)
+        print(f"imu-gateway scan: error: {port_problem(args.port, exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print("imu-gateway scan: interrupted", file=sys.stderr)
         return 130
-    print(f"{found} sensor{'s' if found != 1 else ''} found", file=sys.stderr)
+    finally:
+        sensors.close()  # frees the port at once, also when --stop-after ends the scan
+    stopped = f" (stopped: --stop-after {args.stop_after})" if len(found) == args.stop_after \
+        else ""
+    print(f"{len(found)} sensor{'s' if len(found) != 1 else ''} found{stopped}", file=sys.stderr)
+    if found:
+        margin = None if args.margin_ms == RTO_INITIAL * 1000 else args.margin_ms
+        print(next_time(args.port, found, margin), file=sys.stderr)
     return 0 if found else 1
 
 
@@ -370,10 +428,22 @@ def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
 
 
 def cmd_check_config(args: argparse.Namespace) -> int:
+    from .capacity import line_loads
+
     config = _load_or_report(args.config)
     if config is None:
         return EXIT_BAD_INPUT
     print(f"config OK: {config.summary()}")
+    for load in line_loads(config.buses):
+        print(load.describe())
+        if load.over:
+            print(f"warning: {load.advice()}")
+    for bus in config.buses:
+        # Not an error: the adapter may be unplugged now, and the gateway waits for it.
+        if bus.port.startswith("/") and not os.path.exists(bus.port):
+            print(f"warning: bus {bus.name}: the port {bus.port} does not exist now (an "
+                  "adapter unplugged? a udev name not set up?); the gateway keeps trying "
+                  "to open it")
     return 0
 
 

@@ -425,6 +425,10 @@ class BusConfig(_Model):
         json_schema_extra={_SHOWN_DEFAULT: "null: learned per sensor (below)"})
     retries: Annotated[int, _between(0, 10)] = Field(default=1, description=(
         "0-10; attempts after the first before an exchange counts as failed"))
+    trace: bool = Field(default=False, description=(
+        "log one line per exchange on this bus (the bytes out and in, the time, the "
+        "outcome), at most 50 a second; also `run --trace BUS`, and on every bus with "
+        "`--log-level debug`"))
     rs485: bool = Field(default=False, description=(
         "put the port into the kernel's RS-485 mode (the driver switches the transmitter)"))
     sensors: Annotated[list[SensorConfig], Field(min_length=1)] = Field(description=(

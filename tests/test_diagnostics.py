@@ -3,6 +3,7 @@ process on a simulated line, set up with each of the usual mistakes."""
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import threading
@@ -97,3 +98,73 @@ def test_the_wrong_series_is_named_at_once_and_nothing_is_written(
     assert text.count("answers like") == 1
     assert "stream" not in log  # not taken for a stream nobody asked for
     assert not sim.writes_heard  # and nothing was written to it
+
+
+def test_the_frame_trace_shows_each_exchange_and_is_rate_limited(tmp_path: Path) -> None:
+    """``--trace BUS``: one line per exchange (bytes out, bytes in, time, outcome);
+    a sensor polled flat out makes more than the 50 a second shown."""
+    ah = make_sensor(Protocol.NATIVE, Series.AH, 0, baud=FAST)
+    silent = make_sensor(Protocol.NATIVE, Series.VG, 4, baud=9600)  # never answers
+    config = tmp_path / "gateway.yaml"
+    config.write_text(yaml.safe_dump({"gateway_id": "diag", "buses": [{
+        "name": "line", "port": "PORT", "baudrate": FAST, "protocol": "native",
+        "sensors": [{"name": "boom", "series": "AH", "poll_hz": 0},
+                    {"name": "mast", "series": "VG", "address": 4}]}]}))
+    with simulated([ah, silent]) as line:
+        config.write_text(config.read_text().replace("PORT", line.path))
+        with subprocess.Popen([sys.executable, "-m", "gateway", "run", "-c", str(config),
+                               "--trace", "line"], stderr=subprocess.PIPE, text=True) as proc:
+            watchdog = threading.Timer(60, proc.kill)
+            watchdog.start()
+            assert proc.stderr is not None
+            lines: list[str] = []
+            try:
+                for text in proc.stderr:
+                    lines.append(text)
+                    if "exchanges not shown" in text and any("timeout" in x for x in lines):
+                        break
+            finally:
+                watchdog.cancel()
+                proc.terminate()
+                proc.communicate(timeout=20)
+    log = "".join(lines)
+    ok = re.compile(r"gateway\.trace: bus line: boom tx 77 04 00 59 5D \| rx 77 38 00 59 "
+                    r"(?:[0-9A-F]{2} ){6}… [0-9A-F]{2} [0-9A-F]{2} \(57 B, \d+\.\d ms\) ok$",
+                    re.MULTILINE)
+    assert ok.search(log), log[-3000:]
+    assert re.search(r"bus line: mast tx 77 04 04 59 61 \| rx nothing \(\d+\.\d ms\) "
+                     r"timeout \(try 1 of 2\)", log), log[-3000:]
+    assert re.search(r"bus line: trace: \d+ exchanges not shown \(more than 50 a second\)",
+                     log)
+
+
+def test_a_bad_trace_bus_is_refused(tmp_path: Path) -> None:
+    config = tmp_path / "gateway.yaml"
+    config.write_text(yaml.safe_dump({"buses": [{
+        "name": "line", "port": "/dev/null", "protocol": "native",
+        "sensors": [{"name": "boom", "series": "AH"}]}]}))
+    done = subprocess.run([sys.executable, "-m", "gateway", "run", "-c", str(config),
+                           "--trace", "lime"], capture_output=True, text=True, timeout=60,
+                          check=False)
+    assert done.returncode == 2
+    assert "--trace lime: no such bus (the buses: line)" in done.stderr
+
+
+def test_check_config_warns_of_an_overloaded_line_and_a_missing_port(tmp_path: Path) -> None:
+    config = tmp_path / "gateway.yaml"
+    config.write_text(yaml.safe_dump({"buses": [{
+        "name": "slow", "port": str(tmp_path / "ttyUSB9"), "protocol": "native",
+        "baudrate": 9600, "sensors": [{"name": "a", "series": "AH", "poll_hz": 10},
+                                      {"name": "b", "series": "AH", "address": 1,
+                                       "poll_hz": 10}]}]}))
+    done = subprocess.run([sys.executable, "-m", "gateway", "check-config", "-c",
+                           str(config)], capture_output=True, text=True, timeout=60,
+                          check=False)
+    assert done.returncode == 0, done.stderr
+    out = done.stdout
+    # 2 x 10/s x (5 + 57 B) x 10 / 9600 = 1.29 s/s of wire, plus 2 ms a turnaround
+    assert "bus slow at 9600 baud: a 10/s (poll), b 10/s (poll): wire 1.29 s/s" in out, out
+    assert "= 1.33 of the line" in out, out
+    assert "warning: bus slow: the configured rates ask 1.33 times what 9600 baud " \
+           "carries" in out, out
+    assert f"warning: bus slow: the port {tmp_path / 'ttyUSB9'} does not exist now" in out

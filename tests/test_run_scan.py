@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import re
 import signal
 import subprocess
 import sys
@@ -10,9 +11,11 @@ import threading
 from pathlib import Path
 
 import pytest
+import serial
 from harness import run, running, until
 
 from gateway.model import Protocol, Series
+from gateway.protocol import modbus_rtu as rtu
 from gateway.simulator import Faults, make_sensor, simulated
 
 
@@ -88,6 +91,8 @@ def test_scan_finds_sensors_of_both_protocols() -> None:
     assert "native  19200 baud  address   7  series AH" in lines[0]
     assert lines[1].startswith("modbus  19200 baud  address   3  series IMU")
     assert sim.bus.stats.internal_errors == 0
+    # Both protocols found, at one rate: the rate alone would have been enough.
+    assert f"next time: imu-gateway scan --port {sim.path} --baud 19200\n" in done.stderr
 
 
 def test_scan_tells_several_native_sensors_apart() -> None:
@@ -165,9 +170,81 @@ def test_a_second_program_on_the_gateways_port_gets_a_clear_error() -> None:
                     subprocess.run, gateway_cli("scan", "--port", sim.path, "--baud", "115200"),
                     capture_output=True, text=True, timeout=60, check=False)
                 assert done.returncode == 2, done.stderr
-                assert "exclusively lock" in done.stderr and "Traceback" not in done.stderr
+                assert f"{sim.path} is in use by another process: stop the gateway first" \
+                    in done.stderr and "Traceback" not in done.stderr
                 seq = gw.cache.snapshot("boom").seq
                 await until(lambda: gw.cache.snapshot("boom").seq > seq + 5)
                 assert sim.bus.stats.overlaps == 0
 
         run(body)
+
+
+def test_scan_reports_progress_with_an_estimate_of_the_time_left() -> None:
+    """A line at each step's start, and within a step one about every second: 16 units
+    at the default margin (100 ms each when silent) last over a second whatever the
+    machine's speed, so at least one line names an address."""
+    with simulated([make_sensor(Protocol.MODBUS, Series.AH, 16, baud=115200)]) as sim:
+        done = subprocess.run(
+            gateway_cli("scan", "--port", sim.path, "--protocol", "modbus", "--baud", "9600",
+                        "--baud", "115200", *[f"--address={a}" for a in range(1, 17)]),
+            capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("modbus 115200 baud  address  16")
+    progress = [line for line in done.stderr.splitlines() if line.startswith("scanning")]
+    assert re.fullmatch(r"scanning modbus 9600 baud, 16 addresses \(about \d s left\)",
+                        progress[0]), progress
+    assert any(re.fullmatch(r"scanning modbus 115200 baud, 16 addresses "
+                            r"\(about \d s left\)", line) for line in progress), progress
+    assert any(re.fullmatch(r"scanning modbus \d+ baud, address \d+ \(\d+ of 16; "
+                            r"about \d s left\)", line) for line in progress), progress
+    seconds = [int(m[1]) for line in progress if (m := re.search(r"about (\d+) s", line))]
+    assert seconds == sorted(seconds, reverse=True)
+
+
+def test_scan_stop_after_ends_the_scan_at_the_first_sensor_found() -> None:
+    sensors = [make_sensor(Protocol.NATIVE, Series.AH, 7, baud=9600),
+               make_sensor(Protocol.NATIVE, Series.VG, 8, baud=115200)]
+    with simulated(sensors) as sim:
+        done = subprocess.run(
+            gateway_cli("scan", "--port", sim.path, "--protocol", "native", "--baud", "9600",
+                        "--baud", "115200", "--stop-after", "1"),
+            capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == ["native   9600 baud  address   7  series AH"]
+    # Every step's start is reported (not throttled): 115200 was never begun.
+    assert "scanning native 9600 baud" in done.stderr
+    assert "115200 baud" not in done.stderr
+    assert "1 sensor found (stopped: --stop-after 1)" in done.stderr
+    assert done.stderr.rstrip().endswith(
+        f"next time: imu-gateway scan --port {sim.path} --protocol native --baud 9600")
+
+
+def test_scan_of_a_port_held_open_exclusively_says_it_is_in_use() -> None:
+    with simulated([]) as sim, serial.Serial(sim.path, exclusive=True):  # as the gateway does
+        done = subprocess.run(gateway_cli("scan", "--port", sim.path, "--baud", "115200"),
+                              capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 2
+    assert done.stderr == (f"imu-gateway scan: error: {sim.path} is in use by another "
+                           f"process: stop the gateway first (it holds {sim.path}); "
+                           f"`fuser -v {sim.path}` shows who has it\n")
+
+
+@pytest.mark.parametrize("all_addresses", [False, True])
+def test_scan_asks_reserved_modbus_units_only_with_all_addresses(all_addresses: bool) -> None:
+    """The requests on the line (the simulator cannot play a sensor at 248-255: its
+    framing drops such units, like the gateway's; tests/test_scan.py hears one)."""
+    addresses = [f"--address={a}" for a in (0, 247, *range(248, 256))]
+    asked = 9 if all_addresses else 1  # 247 (and 248-255), never 0
+    request_bytes = len(rtu.read_request(1, 0x04, 1))
+    with simulated([]) as sim:
+        done = subprocess.run(
+            gateway_cli("scan", "--port", sim.path, "--protocol", "modbus", "--baud", "115200",
+                        "--margin-ms", "10", *addresses,
+                        *(["--all-addresses"] if all_addresses else [])),
+            capture_output=True, text=True, timeout=60, check=False)
+        # The simulator thread may take the last request in after the scan has ended.
+        run(lambda: until(lambda: sim.bus.stats.requests_bytes >= asked * request_bytes))
+        assert sim.bus.stats.requests_bytes == asked * request_bytes
+    assert done.returncode == 1, done.stderr
+    skipped = "0" if all_addresses else "0, 248, 249, 250, 251, 252, 253, 254, 255"
+    assert f"note: Modbus does not ask {skipped} (0 is broadcast" in done.stderr

@@ -103,6 +103,19 @@ class Finished:
 
 
 @dataclass(frozen=True, slots=True)
+class Trace:
+    """One exchange for the frame trace: what went out, what came in, how long from
+    the request's start to the last byte in, and the outcome ("ok", "late",
+    "timeout", "garbled", "refused", …)."""
+
+    sensor: str
+    tx: bytes
+    rx: bytes
+    took: float
+    outcome: str
+
+
+@dataclass(frozen=True, slots=True)
 class Note:
     """A line for the log (``level`` as in ``logging``)."""
 
@@ -110,4 +123,4 @@ class Note:
     text: str
 
 
-Event = Publish | StateChange | ErrorCounted | Finished | Note
+Event = Publish | StateChange | ErrorCounted | Finished | Note | Trace

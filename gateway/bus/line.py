@@ -36,6 +36,7 @@ ARRIVING_GRACE = 0.05
 STUCK_MAX = 1.0
 #: An exchange that found no place next to a stream for this many periods takes the
 #: next pause it can, fitting or not.
+HEARD_MAX = 512  # bytes of an exchange's answer kept for the trace
 PATIENCE = 10
 
 
@@ -98,6 +99,7 @@ class Line:
         self.busy_end = 0.0  # the end of the last attempt counted as busy time
         self.dirty = False  # noise or half a frame came in: wait for quiet
         self.hold_until = 0.0  # a retry's own answer may still come until then
+        self.heard = bytearray()  # what came in since the last request (for the trace)
 
     def reset(self, now: float) -> None:
         """The port (re)opened: nothing is known to be on the line."""
@@ -156,6 +158,7 @@ class Line:
                                now - self.gap, self.adapter.garbage_seen(self.framer),
                                tx_end_before=self.last_tx_end)
         self.last_tx_end = now + len(exchange.request) * char_time(self.baud)
+        self.heard.clear()
         job.tries += 1
         return Request(exchange.request, exchange.answer_bytes, latest)
 
@@ -171,6 +174,8 @@ class Line:
     def receive(self, data: bytes, at: float) -> None:
         """Bytes from the line; ``at``: when the last of them came in."""
         self.last_rx = at
+        if len(self.heard) < HEARD_MAX:
+            self.heard += data[:HEARD_MAX - len(self.heard)]
         garbage = self.adapter.garbage_seen(self.framer)
         for frame in self.framer.feed(data):
             self.on_frame(frame, at)

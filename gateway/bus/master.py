@@ -27,10 +27,11 @@ from ..model import Reading
 from ..normalise import to_reading
 from ..protocol.exchanges import ModbusAdapter, adapter_for
 from ..stats import BusStats, Counters, SensorStats, ms, share
-from .events import ErrorCounted, Event, Finished, Job, Note, Publish, StateChange
+from .events import ErrorCounted, Event, Finished, Job, Note, Publish, StateChange, Trace
 from .link import LinkError, SerialLink
 from .schedule import Schedule
 from .sensor_state import OFFLINE_AFTER, SensorState
+from .trace import TraceLog
 
 log = logging.getLogger("gateway.bus")
 
@@ -75,6 +76,9 @@ class BusMaster:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._reopen_delay = REOPEN_MIN
         self._port_problem_logged = False
+        self.trace_log = TraceLog(self.name)
+        if logging.getLogger("gateway").isEnabledFor(logging.DEBUG):
+            self.schedule.outcomes.tracing = True  # --log-level debug: every bus
 
     @property
     def sensors(self) -> dict[str, SensorState]:
@@ -290,6 +294,8 @@ class BusMaster:
                 self._resolve(job, outcome, error)
             case Note(level, text):
                 log.log(level, "%s", text)
+            case Trace():
+                self.trace_log.write(event, self._now())
 
     def _resolve(self, job: Job, outcome: Any, error: CommandError | None) -> None:
         future = self._futures.pop(job, None)

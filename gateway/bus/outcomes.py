@@ -15,7 +15,17 @@ from ..model import Protocol
 from ..protocol.exchanges import GYRO_CAL_SECONDS, Answer, Effect, ProtocolAdapter
 from ..stats import Counters
 from .diagnosis import Diagnosis
-from .events import Attempt, ErrorCounted, Event, Job, Kind, Note, Publish, StateChange
+from .events import (
+    Attempt,
+    ErrorCounted,
+    Event,
+    Job,
+    Kind,
+    Note,
+    Publish,
+    StateChange,
+    Trace,
+)
 from .jobs import JobQueue
 from .line import Line
 from .sensor_state import STREAM_RETRY, SensorState
@@ -34,6 +44,7 @@ class Outcomes:
         self.stats = stats
         self.emit = emit
         self.diagnosis = diagnosis
+        self.tracing = config.trace  # emit a Trace per exchange (the driver may turn it on)
 
     def frame(self, frame: Any, at: float) -> None:
         """A whole frame came in at ``at``: the answer in flight, a stream frame, a
@@ -109,6 +120,7 @@ class Outcomes:
         """The attempt got no answer, not even late: retry it, or fail its job."""
         s, job = a.job.sensor, a.job
         kind = self.line.failure_kind(a)
+        self._trace(a, now, f"{kind} (try {job.tries} of {self.config.retries + 1})")
         self._count_error(s, kind)
         self.line.close(a, now, answered=False)
         if kind == "timeout":  # silence: its answer may still come (a garbled one came)
@@ -133,6 +145,9 @@ class Outcomes:
         if a.exchange.answer_bytes and a.overdue:
             s.stats.late_answers += 1
             self.stats.late_answers += 1
+        if self.tracing:
+            self._trace(a, at, "ok" if answer.ok and not a.overdue else
+                        "late" if answer.ok else f"refused ({answer.detail})")
         self.line.close(a, at, answered=True)
         job.tries = 0
         if job.kind in (Kind.POLL, Kind.READ):
@@ -212,6 +227,11 @@ class Outcomes:
             s.last_served = now
             s.schedule_next_poll(now)
         self.jobs.finish(job, error=CommandError(error_kind, message))
+
+    def _trace(self, a: Attempt, at: float, outcome: str) -> None:
+        if self.tracing:
+            self.emit(Trace(a.job.sensor.name, a.exchange.request, bytes(self.line.heard),
+                            at - a.sent, outcome if a.exchange.answer_bytes else "sent"))
 
     def _offline(self, s: SensorState, kind: str, never: bool) -> str:
         """The log line for a sensor going offline: where it was asked, and for one
