@@ -19,6 +19,7 @@ from typing import Any
 
 from .bus.runner import BusRunner
 from .cache import Cache, SensorUnavailable
+from .capacity import line_loads
 from .commands import CommandError, CommandResult, ErrorKind, validate
 from .config import GatewayConfig, HttpConfig, SensorConfig, config_from_dict
 from .frontends.modbus_tcp import ModbusTcpServer
@@ -94,7 +95,7 @@ class Gateway:
                 if "degrees" in answer:
                     note(sensor, declination=answer["degrees"])
             case "set_declination" | "set_relative_heading":
-                # the sensor's echo, at its resolution (-1.25 is stored as -1.2)
+                # the sensor's echo, at its resolution (-1.25 is sent and stored as -1.3)
                 key = "declination" if name == "set_declination" else "relative_heading"
                 note(sensor, **{key: answer.get("degrees", args["degrees"])})
             case "mag_calibration":
@@ -155,9 +156,18 @@ class Gateway:
                 await asyncio.wait_for(stop.wait(), STALENESS_TICK)
 
     async def passthrough(self, sensor: str, pdu: bytes) -> bytes:
-        """A Modbus PDU to a Modbus sensor's own registers (``raw_unit_id``)."""
+        """A Modbus PDU to a Modbus sensor's own registers (``raw_unit_id``).  A setting
+        the exchange shows (a zero type written or read, a relative heading written) is
+        noted as a command's would be: the map's registers 1000-1008 read it back
+        whichever way it was set."""
+        # a local import keeps this pass-through concern inside the method
+        from .protocol.modbus_rtu import settings_shown
+
         runner = self._runner_of[sensor]
-        return await runner.call(runner.master.passthrough(sensor, pdu))
+        answer = await runner.call(runner.master.passthrough(sensor, pdu))
+        if learnt := settings_shown(pdu, answer):
+            self.cache.note_settings(sensor, **learnt)
+        return answer
 
     def stats(self) -> list[BusStats]:
         return [m.bus_stats() for m in self.masters.values()]
@@ -182,6 +192,10 @@ async def run_until_signalled(config: GatewayConfig, stats_interval: float = 0.0
     sys.setswitchinterval(GIL_SWITCH_INTERVAL)
     gateway = Gateway(config)
     log.info("%s", config.summary())
+    for load in line_loads(config.buses):
+        log.info("%s", load.describe())
+        if load.over:
+            log.warning("%s", load.advice())
     await gateway.start_frontends()  # before the task group: a StartupError stays plain
     if on_started is not None:
         on_started(gateway)

@@ -199,6 +199,8 @@ class Cache:
             e.online = online
         if busy is not None:
             e.busy = busy
+            if not busy:  # what it was busy with is over
+                e.settings.pop("busy_with", None)
         if streaming is not None:
             e.streaming = streaming
         self._check(name)
@@ -207,8 +209,14 @@ class Cache:
         self._entry(name).errors += 1
 
     def note_settings(self, name: str, **values: Any) -> None:
-        """Settings learnt from a command's answer (zero type, declination, …)."""
-        self._entry(name).settings.update(values)
+        """Settings learnt from a command's answer (zero type, declination, …).
+        ``busy_with`` is kept only while the sensor is busy: the busy period starts
+        before the command's answer is noted, and may be over (or never have begun: a
+        calibration answered "complete") by then."""
+        e = self._entry(name)
+        if not e.busy:
+            values.pop("busy_with", None)
+        e.settings.update(values)
 
     def settings(self, name: str) -> dict[str, Any]:
         """The sensor's settings as far as the gateway knows them."""

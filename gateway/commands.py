@@ -18,6 +18,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from .model import CAPABILITIES, Protocol, Series, commands_for
+from .protocol.bcd import ANGLE, DECLINATION, BcdFormat
 from .protocol.native import BAUD_CODES
 
 
@@ -34,20 +35,40 @@ class ZeroTypeArgs(_Args):
     type: Literal["absolute", "relative"]
 
 
+def _at_resolution(value: Any, fmt: BcdFormat) -> Any:
+    """A number rounded to what the sensor can hold, halves away from zero (0.25 is
+    0.3 at one decimal, as the sensor shows it), before the range is checked: a Modbus
+    client's float32 99.9 is 99.90000153, and must pass as the 99.9 it means.  Anything
+    else goes on unchanged, for the strict type check to refuse."""
+    if isinstance(value, float | int) and not isinstance(value, bool) and math.isfinite(value):
+        return fmt.rounded(value)
+    return value
+
+
 class HeadingArgs(_Args):
-    degrees: float = Field(ge=0, lt=360, description="heading start point, degrees")
+    # 2.20 sends SXXX.YY, a signed angle: every value it can carry is accepted (Modbus
+    # carries less, -200 to 455.35, and its encoding refuses the rest).
+    degrees: float = Field(ge=-ANGLE.max_value, le=ANGLE.max_value, allow_inf_nan=False,
+                           description="heading start point, degrees (0.01 resolution, "
+                                       "rounded half away from zero)")
+
+    @field_validator("degrees", mode="before")
+    @classmethod
+    def _round(cls, value: Any) -> Any:
+        return _at_resolution(value, ANGLE)
 
 
 class DeclinationArgs(_Args):
     # 2.21 sends SXX.Y: two integer digits and one decimal.
-    degrees: float = Field(ge=-99.9, le=99.9, description="magnetic declination, degrees")
+    degrees: float = Field(ge=-DECLINATION.max_value, le=DECLINATION.max_value,
+                           allow_inf_nan=False,
+                           description="magnetic declination, degrees (0.1 resolution, "
+                                       "rounded half away from zero)")
 
-    @field_validator("degrees")
+    @field_validator("degrees", mode="before")
     @classmethod
-    def _finite(cls, value: float) -> float:
-        if not math.isfinite(value):
-            raise ValueError("must be a finite number")
-        return value
+    def _round(cls, value: Any) -> Any:
+        return _at_resolution(value, DECLINATION)
 
 
 class MagCalibrationArgs(_Args):

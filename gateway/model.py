@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import enum
 import math
+import struct
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -103,6 +104,24 @@ class Reading:
 
 def _finite(value: float) -> float | None:
     return value if math.isfinite(value) else None
+
+
+def shortest_float32(value: float) -> float:
+    """A float32 (widened to a Python float) as the shortest decimal that is the same
+    float32: 0.011224, not 0.011223999783396721; 99.9, not 99.90000152587891.
+
+    A float32 holds about seven digits and the rest is noise of the widening, so this
+    is the number the sender meant, whether a sensor's register (Modbus RTU) or a
+    client's write (Modbus TCP) carried it.
+    """
+    if not math.isfinite(value):
+        return value
+    packed = struct.pack("<f", value)
+    for digits in range(6, 10):
+        shortest = float(f"{value:.{digits}g}")
+        if struct.pack("<f", shortest) == packed:
+            return shortest
+    return value  # pragma: no cover - nine significant digits always round-trip
 
 
 @dataclass(frozen=True, slots=True)

@@ -29,8 +29,10 @@ from vectors import (
     ids,
 )
 
+from gateway.model import Series
 from gateway.protocol import modbus_rtu as rtu
 from gateway.protocol.errors import BadChecksum, BadLength, UnknownFrame, UsageError
+from gateway.protocol.exchanges import NO_EFFECT, Answer, ModbusAdapter
 
 VECTOR_IDS = ids(MODBUS_VECTORS)
 REQUESTS = [v for v in MODBUS_VECTORS if v.direction == REQUEST]
@@ -197,6 +199,38 @@ def test_decode_frame_refuses(raw: bytes, error: type[Exception]) -> None:
         rtu.decode_frame(raw)
 
 
+@pytest.mark.parametrize(("hex_", "error", "reason"), [
+    # 2.2's answer cut after 7 of its 9 bytes: its byte count says 9
+    ("01 03 04 50 A7 4C EE", BadLength, "truncated: 7 of 9 bytes"),
+    ("01 03 00 01 00 01 D5", BadLength, "truncated: 7 of 8 bytes"),  # 2.1's request
+    ("01 03 02", BadLength, "truncated: 3 of 7 bytes"),
+    ("01 83 02 C0", BadLength, "truncated: 4 of 5 bytes"),
+    ("01 10 00 01 00 02 04 00 01 00", BadLength, "truncated: 10 of 13 bytes"),
+    ("01 03 02 4E 7D 4D C5 12 34", BadLength, "a whole 7-byte FC03 frame, then 2 more bytes"),
+    ("01 03 02 4E 7D 4D C6", BadChecksum, "CRC 4DC6, expected 4DC5"),
+    (MODBUS_SAVE_AS_PRINTED, BadChecksum, "CRC B9C9"),  # a stray byte inside: no frame
+])
+def test_decode_frame_says_what_is_wrong(hex_: str, error: type[Exception],
+                                         reason: str) -> None:
+    """A frame cut short is reported as such, with the size its header promises, not
+    as a CRC error (the CRC is simply not there yet)."""
+    with pytest.raises(error, match=reason):
+        rtu.decode_frame(bytes.fromhex(hex_))
+
+
+@pytest.mark.parametrize("unit", [0, 248, 255])
+def test_decode_frame_reads_any_unit_whose_crc_holds(unit: int) -> None:
+    """A capture may hold a broadcast (0) or a reserved address (248-255): a frame with
+    a valid CRC is decoded whatever its address; a live line's framer still refuses
+    them (no sensor may sit there)."""
+    for message in (rtu.ReadResponse(unit, (1, 2)), rtu.WriteRegister(unit, 0x0A, 1),
+                    rtu.ExceptionAnswer(unit, 3, 2), rtu.ReadRequest(unit, 0x22, 32),
+                    rtu.WriteRegistersResponse(unit, 0x1F, 1)):
+        assert rtu.decode_frame(rtu.encode(message)) == message
+    answer = rtu.encode(rtu.ReadResponse(unit, (1, 2)))
+    assert rtu.RtuFramer(requests=False).feed(answer) == []
+
+
 @pytest.mark.parametrize(
     "message",
     [
@@ -232,6 +266,57 @@ def test_write_request_refuses() -> None:
 
 
 # --------------------------------------------------------------------------- values
+
+
+def test_angle_register_rounds_half_away_from_zero() -> None:
+    """As the native BCD angles: 1.005 deg is 20101, -1.005 is 19899 (round() would
+    give 20100 from the 100.49999… the product is)."""
+    assert rtu.angle_to_register(1.005) == 20101
+    assert rtu.angle_to_register(-1.005) == 19899
+    assert rtu.angle_to_register(-45.5) == 15450
+    assert rtu.angle_to_register(-200) == 0 and rtu.angle_to_register(455.35) == 0xFFFF
+
+
+@pytest.mark.parametrize(("request_hex", "answer_hex", "learnt"), [
+    ("06 00 0A 00 01", "06 00 0A 00 01", {"zero_type": "relative"}),  # FC06 acknowledged
+    ("06 00 0A 00 00", "06 00 0A 00 00", {"zero_type": "absolute"}),
+    ("06 00 0A 00 01", "86 02", {}),  # refused: nothing changed
+    ("03 00 05 00 01", "03 02 00 01", {"zero_type": "relative"}),  # 2.6's read
+    ("03 00 04 00 02", "03 04 00 01 00 00", {"zero_type": "absolute"}),
+    ("03 00 22 00 02", "03 04 00 00 00 00", {}),  # a value, not a setting
+    ("10 00 1F 00 01 02 4E 84", "10 00 1F 00 01", {"relative_heading": 1.0}),
+    ("06 00 0F 00 00", "06 00 0F 00 00", {}),  # save: nothing to show
+])
+def test_settings_shown_by_a_passthrough_exchange(request_hex: str, answer_hex: str,
+                                                  learnt: dict[str, object]) -> None:
+    assert rtu.settings_shown(bytes.fromhex(request_hex), bytes.fromhex(answer_hex)) == learnt
+
+
+def test_gyro_calibration_answer_decides_the_busy_period() -> None:
+    """Modbus 2.11: the echo's value says 0 "started" (the exchange's busy period, the
+    sensor still read) or 1 "complete" (no busy period at all: ``NO_EFFECT``)."""
+    (exchange,) = ModbusAdapter().command(Series.VG, 1, "calibrate_gyro", {})
+    assert exchange.effect.busy_until_done and exchange.effect.read_while_busy
+    assert exchange.effect.busy_for == 0.0
+    started = exchange.match(rtu.WriteRegister(1, 0x10, 0))
+    assert started is not None and started.ok
+    assert dict(started.values) == {"value": 0}
+    assert started.effect is None  # the exchange's own effect applies
+    complete = exchange.match(rtu.WriteRegister(1, 0x10, 1))
+    assert complete is not None and complete.ok
+    assert dict(complete.values) == {"value": 1}
+    assert complete.effect == NO_EFFECT
+    assert not (NO_EFFECT.busy_for or NO_EFFECT.busy_until_done)
+    # other writes carry no status and leave the exchange's effect alone
+    (zero,) = ModbusAdapter().command(Series.VG, 1, "set_zero_type", {"type": "relative"})
+    answer = zero.match(rtu.WriteRegister(1, 0x0A, 1))
+    assert answer == Answer({"value": "relative"})
+    # a save's sensor is deaf: never read while busy
+    (save,) = ModbusAdapter().command(Series.VG, 1, "save", {})
+    assert save.effect.busy_for and not save.effect.read_while_busy
+    # the unsolicited "done" is still recognised
+    assert ModbusAdapter().unsolicited(rtu.WriteRegister(1, 0x10, 1), Series.VG, 1) == \
+        Answer({"done": True})
 
 
 def test_float_helpers_document_example() -> None:
@@ -500,15 +585,16 @@ def test_framer_never_raises(data: bytes, cuts: list[int], requests: bool) -> No
 
 
 units = st.integers(1, 247)
+any_unit = st.integers(0, 255)  # decode_frame reads a capture from any address
 registers16 = st.integers(0, 0xFFFF)
 functions = st.sampled_from([rtu.READ_HOLDING, rtu.READ_INPUT])
 rtu_messages = st.one_of(
-    st.builds(rtu.ReadRequest, st.integers(0, 247), registers16, st.integers(1, rtu.MAX_READ),
+    st.builds(rtu.ReadRequest, any_unit, registers16, st.integers(1, rtu.MAX_READ),
               functions),
-    st.builds(rtu.ReadResponse, units,
+    st.builds(rtu.ReadResponse, any_unit,
               st.lists(registers16, min_size=1, max_size=rtu.MAX_READ).map(tuple), functions),
-    st.builds(rtu.WriteRegister, st.integers(0, 247), registers16, registers16),
-    st.builds(rtu.ExceptionAnswer, units, st.sampled_from(sorted(rtu.FUNCTIONS)),
+    st.builds(rtu.WriteRegister, any_unit, registers16, registers16),
+    st.builds(rtu.ExceptionAnswer, any_unit, st.sampled_from(sorted(rtu.FUNCTIONS)),
               st.integers(1, 0x0B)),
 )
 

@@ -404,7 +404,7 @@ def test_exceptions_of_writes() -> None:
                     await expect_exception(raw, 1, write1(0, 0), ILLEGAL_ADDRESS)
                     await expect_exception(raw, 1, write_n(200, [0, 0]), ILLEGAL_ADDRESS)
                     await expect_exception(raw, 1, write1(1009, 1), ILLEGAL_ADDRESS)
-                    await expect_exception(raw, 1, write1(1005, 0), ILLEGAL_ADDRESS)
+                    await expect_exception(raw, 1, write1(101, 0), ILLEGAL_ADDRESS)
                     await expect_exception(raw, 3, write_n(1006, float_words(1.0)),
                                            ILLEGAL_ADDRESS)  # declination is AH only
                     # 03: bad values, quantities, half a float
@@ -413,6 +413,11 @@ def test_exceptions_of_writes() -> None:
                     await expect_exception(raw, 1, write1(1008, 4), ILLEGAL_VALUE)
                     await expect_exception(raw, 3, write1(1004, 0x42B4), ILLEGAL_VALUE)
                     await expect_exception(raw, 1, write1(1006, 0x4000), ILLEGAL_VALUE)
+                    # a write starting at a float's second half is half a float too
+                    for unit, address in ((3, 1005), (1, 1005), (1, 1007)):
+                        await expect_exception(raw, unit, write1(address, 0), ILLEGAL_VALUE)
+                        await expect_exception(raw, unit, write_n(address, [0x42B4, 0]),
+                                               ILLEGAL_VALUE)
                     await expect_exception(raw, 1, write_n(1006, float_words(math.nan)),
                                            ILLEGAL_VALUE)
                     await expect_exception(raw, 1, write_n(1000, [], count=0), ILLEGAL_VALUE)
@@ -448,6 +453,66 @@ def test_exceptions_of_writes() -> None:
                 finally:
                     await raw.close()
         run(body)
+
+
+def test_float_commands_take_the_decimal_a_client_meant() -> None:
+    """A REAL write of 99.9 is the float32 99.90000153: it is the declination 99.9, the
+    limit, and is accepted, as is -99.9; 0.25 is sent as 0.3 (half away from zero, as
+    the sensor would show it) and 0.35 (0.3499999940 as float32) as 0.4.  A relative
+    heading may be negative (SXXX.YY has a sign)."""
+    ah = sensor(Protocol.NATIVE, Series.AH, 0, source=hold(READING))
+    mins = sensor(Protocol.NATIVE, Series.MINS, 1, source=hold(READING))
+    with simulated([ah, mins]) as line:
+        cfg = config([bus("line", line.path, "native", [
+            {"name": "ah", "series": "AH", "address": 0, "unit_id": 1, "poll_hz": 5},
+            {"name": "mins", "series": "MINS", "address": 1, "unit_id": 2, "poll_hz": 5}])],
+            allow_writes=True)
+
+        async def body() -> None:
+            async with running(cfg) as gw:
+                await has_readings(gw, "ah", "mins")
+                raw = await Raw.connect(port_of(gw))
+                try:
+                    for written, sent in ((99.9, 99.9), (-99.9, -99.9), (0.25, 0.3),
+                                          (-0.25, -0.3), (0.35, 0.4), (12.34, 12.3)):
+                        request = write_n(1006, float_words(written))
+                        assert await raw.ask(1, request) == request[:5], written
+                        assert ah.settings.declination == sent, written
+                        readback = await raw.ask(1, read(3, 1006, 2))
+                        assert readback == bytes((3, 4)) + struct.pack(">f", sent), written
+                    await expect_exception(raw, 1, write_n(1006, float_words(99.96)),
+                                           ILLEGAL_VALUE)
+                    await expect_exception(raw, 1, write_n(1006, float_words(100.0)),
+                                           ILLEGAL_VALUE)
+                    assert ah.settings.declination == 12.3
+                    request = write_n(1004, float_words(-45.5))
+                    assert await raw.ask(2, request) == request[:5]
+                    assert await raw.ask(2, read(3, 1004, 2)) == bytes((3, 4)) + \
+                        struct.pack(">f", -45.5)
+                    angles = mins.measure(0.0).angles
+                    assert angles is not None and angles.yaw == pytest.approx(360 - 45.5)
+                finally:
+                    await raw.close()
+        run(body)
+
+
+def test_a_write_whose_task_fails_answers_with_the_requests_function_code() -> None:
+    """A fault of ours while a write is carried out: exception 04, and the answer's
+    function code is the request's with the high bit set (0x86, 0x90), never 0x80."""
+    async def body() -> None:
+        async with two_protocols(allow_writes=True) as (gw, _, _):
+            async def broken(*args: Any, **kwargs: Any) -> Any:
+                raise RuntimeError("a fault of ours, for the test")
+            gw.command = broken  # type: ignore[method-assign]
+            raw = await Raw.connect(port_of(gw))
+            try:
+                assert await raw.ask(1, write1(1000, 1)) == bytes((0x86, DEVICE_FAILURE))
+                assert await raw.ask(2, write_n(1000, [1])) == bytes((0x90, DEVICE_FAILURE))
+                # the connection goes on
+                assert (await raw.ask(2, read(3, 6, 1)))[:2] == bytes((3, 2))
+            finally:
+                await raw.close()
+    run(body)
 
 
 def test_sensor_failure_answer_is_exception_04_through_pymodbus() -> None:
@@ -746,7 +811,16 @@ def test_passthrough_unit_reaches_the_modbus_sensors_own_registers() -> None:
                 assert not rr.isError(), rr
                 assert (rr.address, rr.registers) == (0x0A, [1])
                 assert vg.settings.zero_type == "relative"
+                # what the gateway knows follows, whichever unit set it: its map reads
+                # the zero type back (1000: 1 relative)
+                assert await registers(client, 2, 1000, 1) == [1]
+                assert gw.cache.settings("vg")["zero_type"] == "relative"
                 assert await registers(client, 50, 0x05, 1) == own(0x05, 1)
+                # a change behind the gateway's back is learnt from a read of 0x05 too
+                vg.settings.zero_type = "absolute"
+                assert await registers(client, 50, 0x05, 1) == [0]
+                assert await registers(client, 2, 1000, 1) == [0]
+                vg.settings.zero_type = "relative"
                 assert await registers(client, 50, 0x22, 32) == own(0x22, 32)
                 # its map unit still works next to it
                 assert (await registers(client, 2, 0, 9))[6:9] == [2, 1, 1]

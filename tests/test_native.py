@@ -24,8 +24,16 @@ from hypothesis import strategies as st
 from vectors import ANSWER, NATIVE_VECTORS, REQUEST, Vector, ids
 
 from gateway.model import Series
-from gateway.protocol import native
-from gateway.protocol.errors import BadBcd, BadChecksum, BadLength, FrameError, UnknownFrame
+from gateway.protocol import bcd, native
+from gateway.protocol.errors import (
+    BadBcd,
+    BadChecksum,
+    BadLength,
+    FrameError,
+    UnknownFrame,
+    UsageError,
+)
+from gateway.protocol.exchanges import NativeAdapter
 
 VECTOR_IDS = ids(NATIVE_VECTORS)
 REQUESTS = [v for v in NATIVE_VECTORS if v.direction == REQUEST]
@@ -61,16 +69,21 @@ def test_vector_is_well_formed(v: Vector) -> None:
     assert native.checksum(raw[1:-1]) == raw[-1]
 
 
+def direction_of(v: Vector) -> native.Direction:
+    return native.Direction.REQUEST if v.direction == REQUEST else native.Direction.ANSWER
+
+
 @pytest.mark.parametrize("v", NATIVE_VECTORS, ids=VECTOR_IDS)
 def test_vector_decodes(v: Vector) -> None:
     for series in {v.series, None}:
-        msg = native.decode(v.raw, series)
+        msg = native.decode(v.raw, series, direction_of(v))
         assert msg.name == v.name
         assert msg.address == v.address
         assert dict(msg.values) == v.values
-        wanted = native.Direction.REQUEST if v.direction == REQUEST else native.Direction.ANSWER
-        assert wanted in msg.shape.direction
+        assert direction_of(v) in msg.shape.direction
         assert msg.shape.section.startswith(v.section.split(".")[0])
+        if (v.raw[3], v.raw[1]) not in native.TWO_WAY:  # the same read without a direction
+            assert native.decode(v.raw, series) == msg
 
 
 @pytest.mark.parametrize("v", REQUESTS, ids=ids(tuple(REQUESTS)))
@@ -142,8 +155,6 @@ def test_collision_resolves_by_length(
         ("2.15", ANSWER, Series.IMU, Series.AH),
         ("2.14", ANSWER, Series.AH, Series.MINS),
         ("2.13", ANSWER, Series.VG, Series.IMU),
-        ("2.3", ANSWER, Series.IMU, Series.MINS),
-        ("2.12", ANSWER, Series.IMU, Series.AH),
         ("2.19", REQUEST, Series.VG, Series.MINS),
         ("2.20", REQUEST, Series.AH, Series.MINS),
         ("2.23", ANSWER, Series.VG, Series.AH),
@@ -202,18 +213,101 @@ def test_zero_type_query_reads_ff_and_01_as_relative() -> None:
     assert native.decode(_frame("05 00 8D 01")).values["zero_type"] == "relative"
 
 
+def test_output_type_answer_is_a_status_not_an_echo() -> None:
+    """2.16 answers 77 05 .. 56 with one byte the document prints as 00 whatever type
+    was asked (as 2.17 does): read as a status.  FF is a failure; any other byte (a
+    sensor that echoes the type after all) is passed on as its number, not a failure."""
+    answer = native.Direction.ANSWER
+    assert {(0x56, 0x05)} == native.TWO_WAY
+    assert native.decode(_frame("05 00 56 00"), direction=answer).values == {"result": "success"}
+    assert native.decode(_frame("05 00 56 FF"), direction=answer).values == {"result": "failure"}
+    assert native.decode(_frame("05 00 56 05"), direction=answer).values == {"result": 5}
+    # the same bytes heard by a sensor are the request for that type
+    asked = native.decode(_frame("05 00 56 05"), direction=native.Direction.REQUEST)
+    assert (asked.name, dict(asked.values)) == ("set_output_type", {"output_type": 5})
+    assert native.decode(_frame("05 00 56 05")) == asked  # no direction: the request
+    for series in Series:
+        shape = native.COMMANDS_BY_NAME["set_output_type"].answer_for(series)
+        assert shape is not None and shape.direction is native.Direction.ANSWER
+        assert native.encode(shape, 0, result="success") == _frame("05 00 56 00")
+
+
+@pytest.mark.parametrize("series", list(Series), ids=lambda s: s.name)
+def test_stream_set_up_takes_an_output_type_answer_of_ff_as_failure(series: Series) -> None:
+    """The gateway's auto-output set-up (2.16 then 2.17): 00 goes on, FF is a refusal
+    (the set-up is retried later), an echo of the type asked is no refusal."""
+    set_type, set_rate = NativeAdapter().stream_start(series, 3, 10)
+    assert set_type.label == "set_output_type" and set_rate.label == "set_output_rate"
+    code = set_type.request[4]
+    assert code == (2 if series is Series.IMU else 5)  # the combined frame (2.13-2.15)
+    for byte, ok in ((0x00, True), (0xFF, False), (code, True)):
+        frame = native.parse_frame(native.NativeFrame(3, 0x56, bytes([byte])).encode())
+        answer = set_type.match(frame)
+        assert answer is not None and answer.ok is ok, (byte, answer)
+    assert set_type.match(native.parse_frame(native.NativeFrame(4, 0x56, b"\0").encode())) \
+        is None  # another sensor's
+
+
+def test_baud_code_the_table_lacks_is_read_as_its_number_but_never_sent() -> None:
+    """2.4: a sensor must be able to hear a code it does not know, to answer it with FF;
+    the gateway itself can only ask for a rate the table has."""
+    message = native.decode(_frame("05 00 0B 09"))
+    assert (message.name, dict(message.values)) == ("set_baudrate", {"baudrate": 9})
+    assert native.decode(_frame("05 00 8B FF")).values == {"result": "failure"}
+    for not_a_rate in (9, 5, 9601):  # neither a code nor a baud rate is sent as it is
+        with pytest.raises(UsageError):
+            native.encode_request("set_baudrate", baudrate=not_a_rate)
+
+
+@pytest.mark.parametrize(("section", "name"), [
+    ("2.1", "read_pitch"), ("2.2", "read_roll"), ("2.3", "read_angles"),
+    ("2.12", "read_quaternion")])
+def test_reads_that_name_no_series_are_any_series(section: str, name: str) -> None:
+    """2.1-2.3 and 2.12 mark no series (2.13-2.15 and 2.19-2.26 do): an IMU may ask and
+    answer them like any other series."""
+    command = native.COMMANDS_BY_NAME[name]
+    assert command.request.series == frozenset(Series)
+    v = by_section(section, ANSWER)
+    for series in Series:
+        assert command.answer_for(series) is command.answer_for(Series.VG)
+        assert dict(native.decode(v.raw, series).values) == v.values
+        assert native.encode_answer(name, series, 0, **v.values) == v.raw
+
+
+@pytest.mark.parametrize(("fmt", "value", "sent"), [
+    (bcd.DECLINATION, 0.25, 0.3), (bcd.DECLINATION, -0.25, -0.3),
+    (bcd.DECLINATION, 0.35, 0.4), (bcd.DECLINATION, 1.25, 1.3),
+    (bcd.DECLINATION, -1.25, -1.3), (bcd.DECLINATION, 0.24, 0.2),
+    (bcd.DECLINATION, 99.90000152587891, 99.9),  # the float32 of 99.9
+    (bcd.ANGLE, 1.005, 1.01), (bcd.ANGLE, -1.005, -1.01), (bcd.ANGLE, 2.675, 2.68),
+    (bcd.ANGLE, 0.125, 0.13), (bcd.ANGLE, -0.004, 0.0),
+])
+def test_bcd_rounds_half_away_from_zero(fmt: bcd.BcdFormat, value: float, sent: float) -> None:
+    """0.25 at one decimal is sent as 0.3, as the sensor would show it, not 0.2 (round
+    half to even); 1.005 (100.49999… once multiplied) as 1.01."""
+    assert fmt.decode(fmt.encode(value)) == sent
+    assert fmt.rounded(value) == sent
+
+
+def test_truncated_frame_says_how_much_is_there() -> None:
+    pitch = by_section("2.1", ANSWER).raw
+    with pytest.raises(BadLength, match="truncated: 6 of 8 bytes"):
+        native.parse_frame(pitch[:6])
+
+
 # --------------------------------------------------------------------------- tables
 
 
 @pytest.mark.parametrize("command", native.COMMANDS, ids=lambda c: c.name)
 def test_command_row_is_complete(command: native.NativeCommand) -> None:
+    assert native.REQUEST_SHAPES[command.request.key] == command.request
     assert native.SHAPES[command.request.key] == command.request
     assert native.Direction.REQUEST in command.request.direction
     echo = command.request.direction is native.Direction.ECHO
     for series in command.request.series:
         answer = command.answer_for(series)
         assert answer is not None, f"{command.name}: no answer for {series.name}"
-        assert native.SHAPES[answer.key] == answer
+        assert native.ANSWER_SHAPES[answer.key] == answer
         assert series in answer.series
         if echo:
             assert answer is command.request
@@ -387,9 +481,14 @@ def _codec_values(codec: native.Codec) -> st.SearchStrategy[Any]:
     return st.integers(0, 0xFF)
 
 
+#: every frame shape of both directions (a TWO_WAY pair has one of each)
+ALL_SHAPES = sorted({*native.REQUEST_SHAPES.values(), *native.ANSWER_SHAPES.values()},
+                    key=lambda s: (s.command, s.length_byte, s.direction.value))
+
+
 @st.composite
 def messages(draw: st.DrawFn) -> tuple[native.Shape, int, dict[str, Any]]:
-    shape = draw(st.sampled_from(list(native.SHAPES.values())))
+    shape = draw(st.sampled_from(ALL_SHAPES))
     values = {f.name: draw(_codec_values(f.codec)) for f in shape.fields}
     return shape, draw(st.integers(0, 0xFF)), values
 
@@ -417,7 +516,9 @@ streams = st.lists(
 def test_any_message_round_trips(message: tuple[native.Shape, int, dict[str, Any]]) -> None:
     shape, address, values = message
     raw = native.encode(shape, address, **values)
-    decoded = native.decode(raw, next(iter(shape.series)))
+    direction = native.Direction.ANSWER if shape.direction is native.Direction.ANSWER \
+        else native.Direction.REQUEST
+    decoded = native.decode(raw, next(iter(shape.series)), direction)
     assert (decoded.shape, decoded.address, dict(decoded.values)) == (shape, address, values)
 
 

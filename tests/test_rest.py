@@ -101,6 +101,11 @@ def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
 
             detail = (await http.get(f"{API}/sensors/arm")).json()
             assert detail["config"]["address"] == 1 and detail["reading"]["sensor"] == "arm"
+            # a VG measures no magnetic field: the group is absent, never null, in the
+            # detail's reading as in the reading itself
+            assert set(detail["reading"]) == {"sensor", "ts", "seq", "status", "angles",
+                                              "accel", "gyro", "quaternion"}
+            assert "age_ms" in detail and "settings" in detail  # the route's own fields
 
             for name, sim, protocol in (("boom", ah, Protocol.NATIVE),
                                         ("arm", vg, Protocol.MODBUS)):
@@ -247,9 +252,19 @@ def test_commands_status_codes(two_lines: Any) -> None:
             # unknown names
             assert_error(await post(http, "boom/commands/explode"), 404, "unknown_command")
             assert_error(await post(http, "nobody/commands/save"), 404, "unknown_sensor")
+            # a native gyro calibration is over with its answer: nothing is busy after it
+            assert (await post(http, "boom/commands/calibrate_gyro")).status_code == 200
+            assert "busy_with" not in (await http.get(f"{API}/sensors/boom")).json()[
+                "settings"]
+            # the declination is sent rounded half away from zero, as the sensor shows it
+            declination = await post(http, "boom/commands/set_declination", {"degrees": 0.25})
+            assert declination.json()["answer"] == {"degrees": 0.3}
+            assert ah.settings.declination == 0.3
             # busy: during the save's deaf period
             saving = asyncio.create_task(post(http, "boom/commands/save"))
             await until(lambda: gateway.cache.snapshot("boom").busy)
+            assert (await http.get(f"{API}/sensors/boom")).json()["settings"][
+                "busy_with"] == "save"
             assert_error(await post(http, "boom/commands/calibrate_gyro"), 409, "busy")
             assert (await saving).status_code == 200
             # the sensor does not answer
@@ -418,6 +433,33 @@ def test_a_taken_port_is_a_clear_startup_error(two_lines: Any) -> None:
                     pass
 
         run(body)
+
+
+def test_busy_with_is_shown_only_while_the_sensor_is_busy() -> None:
+    """settings.busy_with names the save or calibration under way, and goes once the
+    busy period ended, whichever came first: the end, or the command's answer noted."""
+    from gateway.cache import Cache
+
+    cache = Cache([("boom", 1000)])
+    cache.set_state("boom", online=True, busy=True)
+    cache.note_settings("boom", busy_with="save", zero_type="relative")
+    assert cache.settings("boom") == {"busy_with": "save", "zero_type": "relative"}
+    cache.set_state("boom", busy=False)
+    assert cache.settings("boom") == {"zero_type": "relative"}
+    # noted after its busy period ended (or a command that had none): never shown
+    cache.note_settings("boom", busy_with="calibrate_gyro")
+    assert cache.settings("boom") == {"zero_type": "relative"}
+    cache.set_state("boom", busy=True)  # a later busy period starts with nothing named
+    assert cache.settings("boom") == {"zero_type": "relative"}
+
+
+def test_reading_groups_are_optional_and_never_null_in_the_openapi_schema() -> None:
+    schema = json.loads(openapi_json())["components"]["schemas"]["ReadingOut"]
+    groups = ("angles", "accel", "gyro", "mag", "quaternion")
+    assert not set(groups) & set(schema["required"])
+    for name in groups:
+        assert "anyOf" not in schema["properties"][name], name
+        assert schema["properties"][name]["$ref"].startswith("#/components/schemas/")
 
 
 def test_a_value_that_is_not_a_number_is_null_not_broken_json() -> None:

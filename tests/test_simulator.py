@@ -110,6 +110,13 @@ NATIVE_SETTING_EXAMPLES = [
     ("2.9", Series.VG, "77 04 00 0D 11", "77 05 00 8D 00 92"),
     ("2.6", Series.VG, "77 04 00 1F 23", "77 05 00 1F 00 24"),
     ("2.16", Series.VG, "77 05 00 56 00 5B", "77 05 00 56 00 5B"),
+    # 2.16: a status, 00, whatever type was asked (here 05), as the document prints it
+    ("2.16", Series.VG, "77 05 00 56 05 60", "77 05 00 56 00 5B"),
+    ("2.16", Series.IMU, "77 05 00 56 02 5D", "77 05 00 56 00 5B"),
+    # a type the series' table lacks: FF (failure), our choice where the document is silent
+    ("2.16", Series.IMU, "77 05 00 56 05 60", "77 05 00 56 FF 5A"),
+    # 2.4: a baud-rate code the table lacks is answered FF (failure)
+    ("2.4", Series.VG, "77 05 00 0B 09 19", "77 05 00 8B FF 8F"),
     ("2.17", Series.VG, "77 05 00 0C 00 11", "77 05 00 8C 00 91"),
     ("2.18", Series.VG, "77 04 00 52 56", "77 05 00 A5 01 AB"),
     ("2.19", Series.MINS, "77 04 00 82 86", "77 04 00 82 86"),
@@ -123,7 +130,8 @@ NATIVE_SETTING_EXAMPLES = [
 
 
 @pytest.mark.parametrize(("section", "series", "request_hex", "answer_hex"),
-                         NATIVE_SETTING_EXAMPLES, ids=[e[0] for e in NATIVE_SETTING_EXAMPLES])
+                         NATIVE_SETTING_EXAMPLES,
+                         ids=[f"{e[0]}-{e[1].name}-{e[2]}" for e in NATIVE_SETTING_EXAMPLES])
 def test_native_setting_answers(section: str, series: Series, request_hex: str,
                                 answer_hex: str) -> None:
     expected = bytes.fromhex(answer_hex)
@@ -186,6 +194,29 @@ def test_modbus_gyro_calibration_answers_started_then_done() -> None:
         both = exchange(port, rtu.write_request(1, "calibrate_gyro", 0), 16)
         assert both == bytes.fromhex("01 06 00 10 00 00 88 0F") + rtu.encode(
             rtu.WriteRegister(1, 0x10, 1))
+
+
+def test_modbus_gyro_calibration_keeps_answering_reads_while_it_runs() -> None:
+    """Nothing in 2.11 says the sensor stops answering: between "started" and "done"
+    reads are answered as ever."""
+    with line(sensor(Protocol.MODBUS, Series.VG, {"pitch": 1.5}, gyro_cal_duration=0.6)) \
+            as port:
+        assert exchange(port, rtu.write_request(1, "calibrate_gyro", 0), 8) == \
+            bytes.fromhex("01 06 00 10 00 00 88 0F")
+        answer = rtu.decode_frame(exchange(port, rtu.read_request(1, 1, 1), 7))
+        assert answer == rtu.ReadResponse(1, (20150,))
+        port.timeout = 2
+        done = rtu.decode_frame(bytes(port.read(8)))
+        assert done == rtu.WriteRegister(1, 0x10, rtu.GYRO_CAL_COMPLETE)
+
+
+def test_modbus_gyro_calibration_done_at_once_answers_complete() -> None:
+    """A sensor that calibrates within its answer says 1 (complete) in the echo, and
+    sends nothing after it."""
+    with line(sensor(Protocol.MODBUS, Series.VG, gyro_cal_duration=0.0)) as port:
+        answer = exchange(port, rtu.write_request(1, "calibrate_gyro", 0), 8)
+        assert rtu.decode_frame(answer) == rtu.WriteRegister(1, 0x10, 1)
+        assert silent(port, b"", wait=0.3)
 
 
 def test_modbus_exceptions() -> None:
@@ -417,6 +448,46 @@ def test_cli_simulate_gives_every_sensor_the_delay_and_jitter(
 
 
 # ---------------------------------------------------------------- settings
+
+
+def test_native_unknown_baud_code_is_refused_and_changes_nothing() -> None:
+    """2.4: the answer to a code the table lacks is FF (failure); the rate stays."""
+    with line(sensor(Protocol.NATIVE, Series.AH)) as port:
+        for code in (0x08, 0x09, 0xFF):
+            request = native.NativeFrame(0, 0x0B, bytes([code])).encode()
+            answer = native.decode(exchange(port, request, 6))
+            assert (answer.name, answer.values) == ("set_baudrate", {"result": "failure"})
+        assert port.sim.bus.sensors[0].baud == 9600
+        assert native.decode(exchange(port, native.encode_request("read_angles"), 14)).name \
+            == "read_angles"
+
+
+def test_native_output_type_answer_is_a_status_and_the_type_is_taken() -> None:
+    with line(make_sensor(Protocol.NATIVE, Series.VG, baud=115200), baud=115200) as port:
+        answer = exchange(port, native.encode_request("set_output_type", output_type=2), 6)
+        assert native.decode(answer, direction=native.Direction.ANSWER).values == \
+            {"result": "success"}
+        exchange(port, native.encode_request("set_output_rate", rate_hz=100), 6)
+        time.sleep(0.3)
+        frames = native.NativeFramer(native.ANSWER_SHAPES).feed(port.read(port.in_waiting))
+        assert frames and {native.interpret(f, Series.VG).name for f in frames} == {"read_gyro"}
+        exchange(port, native.encode_request("set_output_rate", rate_hz=0), 0)
+
+
+@pytest.mark.parametrize(("command", "size", "groups"), [
+    ("read_pitch", 8, {"pitch"}), ("read_roll", 8, {"roll"}),
+    ("read_angles", 14, {"pitch", "roll", "yaw"}), ("read_quaternion", 21,
+                                                   {"q0", "q1", "q2", "q3"})])
+def test_native_imu_answers_the_reads_that_name_no_series(command: str, size: int,
+                                                          groups: set[str]) -> None:
+    """2.1-2.3 and 2.12 mark no series: a simulated IMU answers them, with the attitude
+    its source holds."""
+    held = {"pitch": 12.34, "roll": -5.67, "yaw": 89.01, "q0": 0.5, "q1": -0.5, "q2": 0.5,
+            "q3": -0.5}
+    with line(sensor(Protocol.NATIVE, Series.IMU, held)) as port:
+        answer = native.decode(exchange(port, native.encode_request(command), size), Series.IMU)
+        assert answer.name == command
+        assert dict(answer.values) == {k: held[k] for k in groups}
 
 
 def test_native_baud_change_answers_at_old_rate_then_switches() -> None:

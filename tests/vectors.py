@@ -134,6 +134,10 @@ NATIVE_VECTORS: tuple[Vector, ...] = (
        mag_x=0.15962, mag_y=0.16391, mag_z=-0.41458,
        q0=-0.228375, q1=-0.183349, q2=-0.165578, q3=0.939914),
     _n("2.16", Q, "77 05 00 56 00 5B", "set_output_type", output_type=0),
+    _n("2.16", A, "77 05 00 56 00 5B", "set_output_type", VG,
+       note="a status, printed as 00 whatever type was asked (as 2.17's); the same bytes "
+            "as the request for type 00",
+       result="success"),
     _n("2.17", Q, "77 05 00 0C 00 11", "set_output_rate", rate_hz=0),
     _n("2.18", Q, "77 04 00 52 56", "calibrate_gyro"),
     _n("2.19", Q, "77 04 00 82 86", "clear_heading", MINS),

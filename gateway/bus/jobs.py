@@ -111,7 +111,7 @@ class JobQueue:
             if s.stop_stream and now >= s.stream_retry_at:
                 return self._stop_unasked(s, now)
         for name, job in list(self.reads.items()):
-            if job.sensor.busy_until > now:
+            if job.sensor.busy_until > now and not job.sensor.read_while_busy:
                 self.finish(job, error=CommandError(ErrorKind.BUSY, f"{name} is busy (save "
                                                     "or calibration)"))
             elif not job.sensor.streaming and not job.started:

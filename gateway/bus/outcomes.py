@@ -158,7 +158,7 @@ class Outcomes:
         if not answer.ok:
             self._refused(job, answer, at)
             return
-        self._apply(s, a.exchange.effect, at)
+        self._apply(s, answer.effect if answer.effect is not None else a.exchange.effect, at)
         job.values.update(answer.values)
         job.step += 1
         if job.step == len(job.plan):
@@ -255,6 +255,7 @@ class Outcomes:
             s.address = effect.new_address
         if effect.busy_for or effect.busy_until_done:
             s.busy_until = at + (GYRO_CAL_SECONDS if effect.busy_until_done else effect.busy_for)
+            s.read_while_busy = effect.read_while_busy
             self.emit(StateChange(s.name, busy=True))
 
     # ------------------------------------------------------------ bookkeeping

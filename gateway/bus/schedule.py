@@ -222,7 +222,8 @@ class Schedule:
         for s in self.sensors.values():
             if s.busy_until > now:
                 times.append(s.busy_until)
-                continue
+                if not s.read_while_busy:
+                    continue
             if s.streaming:
                 times.append(s.last_stream + s.stream_timeout)
             else:

@@ -43,6 +43,7 @@ class SensorState:
     failures: int = 0
     online: bool | None = None  # None: not heard from yet
     busy_until: float = 0.0
+    read_while_busy: bool = False
     streaming: bool = False
     last_stream: float = 0.0  # when its last stream frame's last byte came in
     stream_frames: int = 0  # frames since the stream was set up (0: its phase is unknown)
@@ -78,7 +79,8 @@ class SensorState:
             and now >= self.stream_retry_at and now >= self.busy_until
 
     def due(self, now: float) -> bool:
-        return self.next_due <= now and self.busy_until <= now and not self.streaming
+        return self.next_due <= now and (self.busy_until <= now or self.read_while_busy) \
+            and not self.streaming
 
     # ------------------------------------------------------------ answers and failures
 

@@ -90,10 +90,11 @@ REGISTERS: tuple[Register, ...] = (
     Register(1003, Type.U16, "clear_heading", "write 1: clear heading (MINS); reads 0",
              command="clear_heading", series=MINS),
     Register(1004, Type.F32, "relative_heading", "relative heading start point, degrees "
-             "(MINS); reads the last written (NaN unknown)", command="set_relative_heading",
-             series=MINS),
-    Register(1006, Type.F32, "declination", "magnetic declination, degrees (AH); reads the "
-             "last known (NaN unknown)", command="set_declination", series=AH),
+             "(MINS), rounded to 0.01 half away from zero; reads the last written (NaN "
+             "unknown)", command="set_relative_heading", series=MINS),
+    Register(1006, Type.F32, "declination", "magnetic declination, degrees (AH), -99.9 to "
+             "99.9, rounded to 0.1 half away from zero; reads the last known (NaN unknown)",
+             command="set_declination", series=AH),
     Register(1008, Type.U16, "mag_calibration", "magnetic calibration: write 1 start, "
              "2 finish, 3 clear (AH); reads the last action (0 none)",
              command="mag_calibration", series=AH),
@@ -107,6 +108,15 @@ IMAGE_WORDS = BLOCKS[-1].stop
 ZERO_TYPES = {"absolute": 0, "relative": 1}
 MAG_ACTIONS = {1: "start", 2: "finish", 3: "clear"}
 MAG_CODES = {action: code for code, action in MAG_ACTIONS.items()}
+
+
+def inside_a_value(address: int) -> bool:
+    """Whether ``address`` is the second word of a 32-bit command register (1005 of
+    the float at 1004): a write starting there writes half a value, which is a bad
+    value (exception 03, as a one-word write to 1004 is), not a missing address.  The
+    measured values are read-only, whichever of their words a write names (02)."""
+    return any(r.address < address < r.address + r.type.words
+               for r in REGISTERS if r.command is not None)
 
 
 def block_of(start: int, count: int) -> range | None:
@@ -267,7 +277,7 @@ def markdown() -> str:
         "| 02 | an address outside the map, a read across blocks, a command this series "
         "or protocol lacks |",
         "| 03 | a quantity outside 1-125 (read) or 1-123 (write), a bad value, half a "
-        "float |",
+        "float (one register of 1004-1007, or a write starting at 1005 or 1007) |",
         "| 04 | the sensor answered \"failure\" |",
         "| 06 | the sensor is busy (save or calibration running) |",
         "| 0A | an unknown unit id |",

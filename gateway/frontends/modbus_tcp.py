@@ -43,6 +43,7 @@ from pymodbus.pdu.register_message import WriteMultipleRegistersResponse
 from ..cache import EventKind, SensorUnavailable, Snapshot
 from ..commands import ErrorKind
 from ..config import ModbusConfig, SensorConfig
+from ..model import shortest_float32
 from ..supervise import Frontend, PeerLog
 from . import modbus_map as mm
 from .common import GatewayLike
@@ -248,6 +249,8 @@ class ModbusTcpServer(Frontend):
             return exception(function, ILLEGAL_VALUE)
         address, words = request.address, list(request.registers)
         reg = mm.BY_ADDRESS.get(address)
+        if reg is None and mm.inside_a_value(address):
+            return exception(function, ILLEGAL_VALUE)  # starts at a float's second half
         if reg is None or reg.command is None:
             return exception(function, ILLEGAL_ADDRESS)
         if len(words) != reg.type.words:
@@ -304,7 +307,10 @@ def _command_args(reg: mm.Register, words: list[int]) -> dict[str, Any] | None:
         case "mag_calibration":
             return {"action": mm.MAG_ACTIONS[value]} if value in mm.MAG_ACTIONS else None
         case "set_relative_heading" | "set_declination":
-            degrees = struct.unpack(">f", struct.pack(">HH", *words))[0]
+            # The float32 a client wrote for 99.9 is 99.90000153: the decimal it stands
+            # for is what the command gets (the command rounds it to the sensor's
+            # resolution, so a half such as 0.35, 0.3499999940 as float32, stays one).
+            degrees = shortest_float32(struct.unpack(">f", struct.pack(">HH", *words))[0])
             return {"degrees": degrees} if math.isfinite(degrees) else None
     return None
 

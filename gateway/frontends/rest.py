@@ -127,9 +127,23 @@ class QuaternionOut(_Out):
     q3: float | None
 
 
+_GROUPS = ("angles", "accel", "gyro", "mag", "quaternion")
+
+
+def _groups_never_null(schema: dict[str, Any]) -> None:
+    """A value group is absent when not measured, never null: say so in the schema
+    (the Python type keeps ``None`` as the default for "absent", which is never sent)."""
+    for name in _GROUPS:
+        prop = schema["properties"][name]
+        prop.pop("default", None)
+        choices = prop.pop("anyOf")
+        prop.update(next(c for c in choices if c.get("type") != "null"))
+
+
 class ReadingOut(_Out):
     """The reading JSON (as on MQTT); groups the series does not measure are absent."""
 
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_groups_never_null)
     sensor: str
     ts: str | None = Field(description="when the sample arrived, UTC")
     seq: int
@@ -160,7 +174,9 @@ class SensorOut(_Out):
 
 class SensorDetailOut(SensorOut):
     config: dict[str, Any]
-    settings: dict[str, Any] = Field(description="what the gateway learnt from commands")
+    settings: dict[str, Any] = Field(description=(
+        "what the gateway learnt from commands (and Modbus pass-through); busy_with only "
+        "while a save or calibration runs"))
     stats: dict[str, Any]
     reading: ReadingOut | None
 
@@ -633,8 +649,10 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
         return [sensor_out(snap, gateway.sensor_stats(snap.name))
                 for snap in gateway.cache.snapshots()]
 
+    # exclude_unset: the reading's groups a series does not measure stay absent (as in
+    # the reading JSON itself), while the nulls the route sets (age_ms …) stay null.
     @app.get(f"{API}/sensors/{{name}}", response_model=SensorDetailOut,
-             response_model_exclude_none=False, dependencies=reads,
+             response_model_exclude_unset=True, dependencies=reads,
              responses={401: errors[401], 404: errors[404]},
              summary="a sensor's config, status and latest reading")
     async def sensor(name: str) -> dict[str, Any]:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from decimal import ROUND_HALF_UP, Decimal
 
 from .errors import BadBcd, BadLength, UsageError
 
@@ -29,6 +30,25 @@ _PAIRS: tuple[int, ...] = tuple(
     (b >> 4) * 10 + (b & 0x0F) if b >> 4 <= 9 and b & 0x0F <= 9 else _NOT_DECIMAL
     for b in range(256)
 )
+
+
+def round_half_away(value: float, digits: int) -> int:
+    """``value`` in units of 10**-``digits``, rounded half away from zero.
+
+    A sensor's display rounds 0.25 to one decimal as 0.3 and -0.25 as -0.3; Python's
+    ``round`` gives 0.2 (half to even), and ``1.005 * 100`` is 100.49999…, which no
+    rounding of the product can take to 101.  A half is therefore decided on the
+    decimal the float was written as (its shortest ``repr``).  Only values within a
+    hair of a half take that slower path: the simulator encodes thousands a second.
+    """
+    scaled = value * 10**digits
+    if not math.isfinite(scaled):
+        raise UsageError(f"{value} cannot be rounded to {digits} decimals")
+    counts = round(scaled)
+    if abs(abs(scaled - counts) - 0.5) < 1e-6:
+        exact = Decimal(repr(value)).scaleb(digits)
+        counts = int(exact.to_integral_value(rounding=ROUND_HALF_UP))  # halves away from 0
+    return int(counts)
 
 
 @dataclass(frozen=True, slots=True)
@@ -62,14 +82,18 @@ class BcdFormat:
         return 1 / self.scale
 
     def encode(self, value: float) -> bytes:
-        """Encode ``value`` rounded to this format's resolution.
+        """Encode ``value`` rounded to this format's resolution, halves away from zero
+        (``round_half_away``).
 
         Raises ``UsageError`` when the rounded magnitude does not fit (or is not finite).
         """
         if not math.isfinite(value):
             raise UsageError(f"{value} cannot be sent as BCD {self.name}")
-        counts = round(value * self.scale)
-        return self.encode_counts(counts)
+        return self.encode_counts(round_half_away(value, self.frac_digits))
+
+    def rounded(self, value: float) -> float:
+        """``value`` at this format's resolution, as ``encode`` would send it."""
+        return round_half_away(value, self.frac_digits) / self.scale
 
     def encode_counts(self, counts: int) -> bytes:
         if abs(counts) > self.max_counts:

@@ -10,7 +10,9 @@ decide those effects live here, next to the frames, not in the bus master:
 * Modbus baud change: never answered, effective at once (2.3): switch, then verify;
 * address change: answered from the *new* address, in both protocols;
 * save: 3-5 s during which the sensor does not answer; we keep away for 5 s;
-* Modbus gyro calibration: "started" now, an unsolicited "done" later.
+* Modbus gyro calibration: "started" (0) now and an unsolicited "done" later, or
+  "complete" (1) at once.  While it runs the sensor is busy for commands but still
+  read: nothing in the document says it stops answering (docs/protocol-notes.md).
 
 ``ProtocolAdapter`` gives the bus master one face for both protocols: its framer,
 the poll of a series, the exchanges of a command, the auto-output set-up, and the
@@ -53,6 +55,13 @@ class Effect:
     new_address: int | None = None  # the sensor now answers here
     busy_for: float = 0.0  # keep the sensor out of the schedule this long
     busy_until_done: bool = False  # busy until an unsolicited "done" (Modbus gyro cal)
+    #: while busy, keep polling: the busy period holds back commands only (a Modbus
+    #: gyro calibration; a save's sensor is deaf, so a save never sets it)
+    read_while_busy: bool = False
+
+
+#: No effect at all: what an answer that says "already complete" asks for.
+NO_EFFECT = Effect()
 
 
 @dataclass(frozen=True, slots=True)
@@ -62,6 +71,10 @@ class Answer:
     values: Mapping[str, Any]
     ok: bool = True
     detail: str = ""
+    #: what the answer itself calls for, in place of the exchange's own ``effect``
+    #: (``None``: the exchange's).  A Modbus gyro calibration answered with 1 is
+    #: complete already: ``NO_EFFECT``, no busy period.
+    effect: Effect | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -128,7 +141,7 @@ def _native_match(shape: native.Shape, address: int) -> Callable[[Any], Answer |
         if frame.command != command or len(frame.data) != data_size:
             return None
         try:
-            values = native.interpret(frame).values
+            values = native.interpret(frame, direction=native.Direction.ANSWER).values
         except FrameError as exc:
             return Answer({}, ok=False, detail=f"bad frame: {exc}")
         ok = values.get("result", "success") != "failure"
@@ -242,13 +255,23 @@ def _rtu_read_match(unit: int, start: int, count: int) -> Callable[[Any], Answer
     return match
 
 
+def _write_answer(reg: rtu.SensorRegister, raw: int) -> Answer:
+    """The echo of a write to ``reg``, its value decoded.  A gyro calibration's says
+    how far it got (Modbus 2.11): 1 is complete, so the busy period the exchange asks
+    for is void (``NO_EFFECT``); 0 is started, and so is any other value (the longer
+    wait is the safe reading).  The value itself is passed on as the sensor sent it."""
+    answer = Answer({"value": rtu.decode_value(reg, raw)})
+    if reg.answer is rtu.WriteAnswer.STARTED_THEN_DONE and raw == rtu.GYRO_CAL_COMPLETE:
+        return Answer(answer.values, effect=NO_EFFECT)
+    return answer
+
+
 def _rtu_write_match(unit: int, register: int) -> Callable[[Any], Answer | None]:
     def match(msg: Any) -> Answer | None:
         if getattr(msg, "unit", None) != unit:
             return None
         if isinstance(msg, rtu.WriteRegister) and msg.address == register:
-            reg = rtu.REGISTERS_BY_ADDRESS[register]
-            return Answer({"value": rtu.decode_value(reg, msg.value)})
+            return _write_answer(rtu.REGISTERS_BY_ADDRESS[register], msg.value)
         if isinstance(msg, rtu.ExceptionAnswer) and msg.function == rtu.WRITE_SINGLE:
             return _exception_answer(msg)
         return None
@@ -331,7 +354,8 @@ class ModbusAdapter:
             case "save":
                 return [w(series, address, name, 0, Effect(busy_for=SAVE_SECONDS))]
             case "calibrate_gyro":
-                return [w(series, address, name, 0, Effect(busy_until_done=True))]
+                return [w(series, address, name, 0,
+                          Effect(busy_until_done=True, read_while_busy=True))]
             case "clear_heading":
                 return [w(series, address, name, 0)]
             case "set_relative_heading":
@@ -366,7 +390,7 @@ class ModbusAdapter:
         if getattr(frame, "unit", None) != address:
             return None
         if isinstance(frame, rtu.WriteRegister) and frame.address == \
-                rtu.WRITABLE["calibrate_gyro"].address and frame.value == 1:
+                rtu.WRITABLE["calibrate_gyro"].address and frame.value == rtu.GYRO_CAL_COMPLETE:
             return Answer({"done": True})
         start, count = poll_span(series)
         return _rtu_read_match(address, start, count)(frame)

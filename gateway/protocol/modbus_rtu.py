@@ -50,7 +50,8 @@ from pymodbus.pdu.register_message import (
     WriteSingleRegisterResponse,
 )
 
-from ..model import Series
+from ..model import Series, shortest_float32
+from .bcd import round_half_away
 from .errors import BadChecksum, BadLength, FrameError, UnknownFrame, UsageError
 from .native import BAUD_CODES
 
@@ -60,6 +61,7 @@ MAX_READ = 125
 MAX_WRITE = 123
 ANGLE_OFFSET = 20000  # angle registers: raw = deg * 100 + 20000
 UNIT_IDS = range(1, 248)  # addressable Modbus devices (0 is broadcast, 248-255 reserved)
+GYRO_CAL_STARTED, GYRO_CAL_COMPLETE = 0, 1  # 2.11: what the calibration's echo carries
 
 
 # --------------------------------------------------------------------------- values
@@ -72,7 +74,7 @@ def angle_from_register(raw: int) -> float:
 def angle_to_register(degrees: float) -> int:
     if not math.isfinite(degrees):
         raise UsageError(f"{degrees} deg is not a finite angle")
-    raw = round(degrees * 100) + ANGLE_OFFSET
+    raw = round_half_away(degrees, 2) + ANGLE_OFFSET  # as the native BCD angles round
     if not 0 <= raw <= 0xFFFF:
         raise UsageError(f"{degrees} deg does not fit an angle register (-200 to 455.35)")
     return raw
@@ -85,15 +87,7 @@ def float_from_registers(first: int, second: int) -> float:
     document prints it, not 0.011223999783396721): a float32 has about seven digits and
     the rest is noise of the widening to a Python float.
     """
-    packed = struct.pack(">HH", first, second)
-    value = float(struct.unpack("<f", packed)[0])
-    if not math.isfinite(value):
-        return value
-    for digits in range(6, 10):
-        shortest = float(f"{value:.{digits}g}")
-        if struct.pack("<f", shortest) == packed:
-            return shortest
-    return value  # pragma: no cover - nine significant digits always round-trip
+    return shortest_float32(float(struct.unpack("<f", struct.pack(">HH", first, second))[0]))
 
 
 def float_to_registers(value: float) -> tuple[int, int]:
@@ -257,6 +251,40 @@ def register_image(values: Mapping[str, Any]) -> dict[int, int]:
         else:
             image[reg.address] = encode_value(reg, value)
     return image
+
+
+#: Sensor registers that show a setting the gateway keeps (``Cache.note_settings``'s
+#: names), read or written: what a pass-through exchange teaches about the sensor.
+SETTING_REGISTERS: Mapping[str, str] = MappingProxyType({
+    "zero_type": "zero_type", "set_zero_type": "zero_type",
+    "set_relative_heading": "relative_heading",
+})
+
+
+def settings_shown(request: bytes, answer: bytes) -> dict[str, Any]:
+    """The settings a pass-through exchange (request and answer PDUs) shows: a write
+    the sensor acknowledged, or a read of a register that holds one.  A refused or
+    malformed exchange shows nothing."""
+    if len(request) < 5 or not answer or answer[0] != request[0]:
+        return {}  # an exception answer, or not an answer to this request
+    function, start = request[0], int.from_bytes(request[1:3], "big")
+    words: list[int] = []
+    if function in (READ_HOLDING, READ_INPUT):
+        if len(answer) < 2 or len(answer) != 2 + answer[1] or answer[1] % 2:
+            return {}
+        words = [int.from_bytes(answer[i:i + 2], "big") for i in range(2, len(answer), 2)]
+        values = read_values(start, words)
+        return {SETTING_REGISTERS[k]: v for k, v in values.items() if k in SETTING_REGISTERS}
+    if function == WRITE_SINGLE and answer == request:
+        words = [int.from_bytes(request[3:5], "big")]
+    elif function == WRITE_MULTIPLE and answer[:5] == request[:5]:
+        words = [int.from_bytes(request[i:i + 2], "big") for i in range(6, len(request) - 1, 2)]
+    out: dict[str, Any] = {}
+    for address, raw in enumerate(words, start):
+        reg = REGISTERS_BY_ADDRESS.get(address)
+        if reg is not None and reg.writable and reg.name in SETTING_REGISTERS:
+            out[SETTING_REGISTERS[reg.name]] = decode_value(reg, raw)
+    return out
 
 
 def is_readable_span(start: int, count: int) -> bool:
@@ -431,8 +459,12 @@ class RtuFramer:
 
     MAX_FRAME = 256
 
-    def __init__(self, *, requests: bool) -> None:
+    def __init__(self, *, requests: bool, any_unit: bool = False) -> None:
+        """``any_unit``: take frames of units 0 and 248-255 too.  On a live line those
+        are noise far more often than frames (no sensor may sit there); in a capture
+        handed to ``decode_frame`` they are what the person wants read."""
         self.requests = requests
+        self.any_unit = any_unit
         self._decoder = DecodePDU(is_server=requests)
         self._buf = bytearray()
         self.stats = FramerStats()
@@ -477,7 +509,7 @@ class RtuFramer:
         0 not known yet."""
         buf = self._buf
         unit, function = buf[0], buf[1]
-        if unit > 247 or (unit == 0 and not self.requests):
+        if not self.any_unit and (unit > 247 or (unit == 0 and not self.requests)):
             return -1
         if function & 0x80:
             if self.requests or function & 0x7F not in FUNCTIONS:
@@ -520,22 +552,21 @@ def content_problem(frame: bytes) -> str | None:
 def decode_frame(raw: bytes) -> RtuMessage:
     """One whole captured frame, request or answer, to a message.
 
-    Tried as an answer first, then as a request; it must be exactly one frame.
+    Tried as an answer first, then as a request; it must be exactly one frame.  Any
+    unit 0-255 is read: a frame whose CRC holds is what was on the wire, broadcast or
+    reserved address alike.  A frame whose CRC fails is said to be cut short (or to
+    carry bytes after a whole frame) when its header says so, rather than blamed on
+    its CRC.
     """
-    if len(raw) < 4:
-        raise BadLength(f"an RTU frame is at least 4 bytes, got {len(raw)}")
-    crc = FramerRTU.compute_CRC(raw[:-2])
-    if crc != int.from_bytes(raw[-2:], "big"):
-        raise BadChecksum(f"CRC {raw[-2:].hex().upper()}, expected {crc:04X}")
+    if len(raw) < 4 or FramerRTU.compute_CRC(raw[:-2]) != int.from_bytes(raw[-2:], "big"):
+        raise _why_not_whole(raw)
     for requests in (False, True):
-        framer = RtuFramer(requests=requests)
+        framer = RtuFramer(requests=requests, any_unit=True)
         messages = framer.feed(raw)
         if len(messages) == 1 and framer.stats.garbage_bytes == 0 and framer.pending == 0:
             return messages[0]
     if raw[1] & 0x7F not in FUNCTIONS:
         raise UnknownFrame(f"function code {raw[1]:02X} is not one the sensors use")
-    if not (raw[0] in UNIT_IDS or raw[0] == 0):
-        raise UnknownFrame(f"unit {raw[0]} is not a Modbus device address (1-247, 0 broadcast)")
     byte_count = raw[2] if len(raw) > 2 else 0
     if raw[1] in (READ_HOLDING, READ_INPUT) and byte_count and byte_count % 2 == 0:
         raise BadLength(f"an FC{raw[1]:02d} answer of {byte_count} data bytes is "
@@ -543,6 +574,60 @@ def decode_frame(raw: bytes) -> RtuMessage:
     if (problem := content_problem(raw)) is not None:
         raise FrameError(problem)
     raise BadLength(f"{len(raw)} bytes are not one whole FC{raw[1] & 0x7F:02d} frame")
+
+
+def frame_sizes(raw: bytes) -> list[int]:
+    """The sizes an RTU frame starting with ``raw`` would have: as an answer, then as
+    a request (pymodbus's size of each function code), each only where the bytes so far
+    make sense for it (a byte count that is even, a register count of 1-125).  Empty
+    when the header is unknown or too short to tell."""
+    if len(raw) < 2:
+        return []
+    function = raw[1]
+    if function & 0x80:
+        return [5] if function & 0x7F in FUNCTIONS else []
+    if function not in FUNCTIONS:
+        return []
+    sizes: list[int] = []
+    for requests in (False, True):
+        pdu_class = DecodePDU(is_server=requests).lookupPduClass(bytes(raw[:2]))
+        size = int(pdu_class.calculateRtuFrameSize(raw)) if pdu_class is not None else 0
+        if size and _plausible_start(raw, requests) and size not in sizes:
+            sizes.append(size)
+    return sizes
+
+
+def _plausible_start(raw: bytes, request: bool) -> bool:
+    """Whether the first bytes of ``raw`` can begin a frame of its function code in
+    that direction: a read answer's byte count is even and not zero, a request's
+    register count is one a device accepts."""
+    function = raw[1]
+    if not request:
+        return function not in (READ_HOLDING, READ_INPUT) or (raw[2] > 0 and raw[2] % 2 == 0)
+    if function in (READ_HOLDING, READ_INPUT, WRITE_MULTIPLE) and len(raw) >= 6:
+        count = int.from_bytes(raw[4:6], "big")
+        limit = MAX_WRITE if function == WRITE_MULTIPLE else MAX_READ
+        return 1 <= count <= limit and (function != WRITE_MULTIPLE or len(raw) < 7
+                                        or raw[6] == 2 * count)
+    return True
+
+
+def _why_not_whole(raw: bytes) -> FrameError:
+    """The likeliest reason ``raw``, whose CRC fails (or which is too short to have
+    one), is not a frame: cut short, a whole frame with bytes after it, or a bad CRC."""
+    sizes = frame_sizes(raw)
+    if len(raw) not in sizes and (longer := [n for n in sizes if n > len(raw)]):
+        return BadLength(f"truncated: {len(raw)} of {longer[0]} bytes "
+                         f"(an FC{raw[1] & 0x7F:02d} frame)")
+    for size in (n for n in sizes if 4 <= n < len(raw)):
+        if FramerRTU.check_CRC(raw[:size - 2], int.from_bytes(raw[size - 2:size], "big")):
+            extra = len(raw) - size
+            return BadLength(f"a whole {size}-byte FC{raw[1] & 0x7F:02d} frame, then "
+                             f"{extra} more byte{'s' if extra > 1 else ''}")
+    if len(raw) < 4:
+        return BadLength(f"an RTU frame is at least 4 bytes, got {len(raw)}")
+    crc = FramerRTU.compute_CRC(raw[:-2])
+    return BadChecksum(f"CRC {raw[-2:].hex().upper()}, expected {crc:04X}")
 
 
 def describe(message: RtuMessage, start: int | None = None) -> dict[str, Any]:

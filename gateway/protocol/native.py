@@ -15,8 +15,12 @@ an IMU answers 0x59 with **0x84** and 18 bytes (2.13); gyro calibration 0x52 ans
 (relative heading) are echoed.  So 0x84 means "three angles" at LEN 0x0D, "IMU
 gyro+accel" at LEN 0x16 and "relative heading ack" at LEN 0x07; 0x82 means "roll" at
 LEN 0x07 and "clear heading ack" at LEN 0x04.  Every frame is therefore identified by
-its (command word, LEN) pair, looked up in ``SHAPES``, which is built from the command
-table ``COMMANDS`` below; an import-time check proves the pairs are unambiguous.
+its (command word, LEN) pair, looked up in ``REQUEST_SHAPES`` or ``ANSWER_SHAPES``,
+which are built from the command table ``COMMANDS`` below; an import-time check proves
+the pairs unambiguous in each direction.  One pair means one thing as a request and
+another as an answer: 2.16's ``77 05 .. 56 XX`` asks for output type XX, and the answer,
+with the same word and length, carries a status byte (``TWO_WAY``).  Whoever knows
+which side sent a frame says so (``interpret(..., direction=...)``).
 
 Nothing here does I/O or reads a clock.
 """
@@ -38,7 +42,6 @@ SYNC = 0x77
 OVERHEAD = 5
 
 ALL_SERIES = frozenset(Series)
-WITH_ANGLES = frozenset({Series.VG, Series.AH, Series.MINS})
 AH_ONLY = frozenset({Series.AH})
 MINS_ONLY = frozenset({Series.MINS})
 
@@ -99,12 +102,16 @@ class Choice:
     """A byte code with a documented meaning per value.
 
     ``aliases`` are extra codes accepted when decoding only.  With ``raw_others`` a code
-    the document does not name decodes to the plain integer instead of being an error.
+    the document does not name decodes to the plain integer instead of being an error,
+    and a plain integer encodes as itself.  ``unnamed_decodes`` does the decoding half
+    only: for codes whose meanings are numbers themselves (a baud rate), where encoding
+    a bare integer could not tell a code from a meaning.
     """
 
     meanings: Mapping[int, Any]
     aliases: Mapping[int, Any] = field(default_factory=dict)
     raw_others: bool = False
+    unnamed_decodes: bool = False
 
     size = 1
 
@@ -122,7 +129,7 @@ class Choice:
             return self.meanings[code]
         if code in self.aliases:
             return self.aliases[code]
-        if self.raw_others:
+        if self.raw_others or self.unnamed_decodes:
             return code
         raise FrameError(f"code 0x{code:02X} is not one of {sorted(self.meanings)}")
 
@@ -142,10 +149,12 @@ RATE = Bcd(bcd.RATE)
 MAG = Bcd(bcd.MAG)
 QUAT = Bcd(bcd.QUATERNION)
 DECL = Bcd(bcd.DECLINATION)
-BAUD = Choice(BAUD_CODES)
+# 2.4: a code the table does not name must still be read, so that a sensor can answer
+# it with 0xFF (failure); it decodes to its number, which no baud rate (>= 2400) is.
+BAUD = Choice(BAUD_CODES, unnamed_decodes=True)
 OUTPUT_RATE = Choice(OUTPUT_RATE_CODES)
 # 2.4, 2.5, 2.7: 0x00 success, 0xFF failure.  Answers whose byte the document shows
-# only as 0x00 (2.8, 2.17, 2.24-2.26) use the same codec.  A code no document names is
+# only as 0x00 (2.8, 2.16, 2.17, 2.24-2.26) use the same codec.  A code no document names is
 # passed on as its number rather than guessed to be a failure (2.18 answers 0x01 for
 # success, so a sensor might well echo other codes).
 RESULT = Choice({0x00: "success", 0xFF: "failure"}, raw_others=True)
@@ -280,12 +289,16 @@ ADDRESS = _fields(("address", Byte()))
 
 # Every command of sections 2.1-2.26, in document order.  The request word and data,
 # then the answer word and data; see the module docstring for the quirks this encodes.
+#
+# 2.1-2.3 and 2.12 name no series (2.13-2.15 and 2.19-2.26 do), so every series may
+# send them, an IMU included; which command a series is *polled* with is the bus's
+# choice (``exchanges``), not a limit of the protocol.
 COMMANDS: tuple[NativeCommand, ...] = (
-    _command("read_pitch", "2.1", WITH_ANGLES,
+    _command("read_pitch", "2.1", ALL_SERIES,
              (0x01, NO_DATA), (0x81, _fields(("pitch", ANGLE)))),
-    _command("read_roll", "2.2", WITH_ANGLES,
+    _command("read_roll", "2.2", ALL_SERIES,
              (0x02, NO_DATA), (0x82, _fields(("roll", ANGLE)))),
-    _command("read_angles", "2.3", WITH_ANGLES, (0x04, NO_DATA), (0x84, ANGLES3)),
+    _command("read_angles", "2.3", ALL_SERIES, (0x04, NO_DATA), (0x84, ANGLES3)),
     _command("set_baudrate", "2.4", ALL_SERIES,
              (0x0B, _fields(("baudrate", BAUD))), (0x8B, _fields(("result", RESULT)))),
     _command("set_address", "2.5", ALL_SERIES,
@@ -300,7 +313,7 @@ COMMANDS: tuple[NativeCommand, ...] = (
              (0x0D, NO_DATA), (0x8D, _fields(("zero_type", ZERO_TYPE_QUERY)))),
     _command("read_accel", "2.10", ALL_SERIES, (0x54, NO_DATA), (0x54, ACCEL3)),
     _command("read_gyro", "2.11", ALL_SERIES, (0x50, NO_DATA), (0x50, GYRO3)),
-    _command("read_quaternion", "2.12", WITH_ANGLES, (0x57, NO_DATA), (0x57, QUAT4)),
+    _command("read_quaternion", "2.12", ALL_SERIES, (0x57, NO_DATA), (0x57, QUAT4)),
     # 2.13-2.15: one request, three answers.
     _command("read_all", "2.13-2.15", ALL_SERIES, (0x59, NO_DATA), None,
              per_series={
@@ -309,8 +322,11 @@ COMMANDS: tuple[NativeCommand, ...] = (
                  Series.MINS: (0x59, ANGLES3 + ACCEL3 + GYRO3 + QUAT4),
                  Series.AH: (0x59, ANGLES3 + ACCEL3 + GYRO3 + MAG3 + QUAT4),
              }),
+    # 2.16 answers 0x56 with one byte the document prints as 00 whatever type was asked
+    # (as 2.17 does): a status, not an echo of the type.  RESULT reads FF as failure and
+    # any other code as not one, so a sensor that does echo the type is understood too.
     _command("set_output_type", "2.16", ALL_SERIES,
-             (0x56, _fields(("output_type", Byte()))), None, echo=True),
+             (0x56, _fields(("output_type", Byte()))), (0x56, _fields(("result", RESULT)))),
     _command("set_output_rate", "2.17", ALL_SERIES,
              (0x0C, _fields(("rate_hz", OUTPUT_RATE))), (0x8C, _fields(("result", RESULT)))),
     _command("calibrate_gyro", "2.18", ALL_SERIES,
@@ -336,11 +352,15 @@ COMMANDS: tuple[NativeCommand, ...] = (
 COMMANDS_BY_NAME: Mapping[str, NativeCommand] = MappingProxyType({c.name: c for c in COMMANDS})
 
 
-def _index_shapes(commands: Iterable[NativeCommand]) -> dict[tuple[int, int], Shape]:
-    """(command word, LEN) -> shape, refusing any pair that would mean two things."""
+def _index_shapes(commands: Iterable[NativeCommand],
+                  direction: Direction) -> dict[tuple[int, int], Shape]:
+    """(command word, LEN) -> the shape sent in ``direction``, refusing any pair that
+    would mean two things there."""
     index: dict[tuple[int, int], Shape] = {}
     for command in commands:
         for shape in (command.request, *command.answers.values()):
+            if not shape.direction & direction:
+                continue
             seen = index.get(shape.key)
             if seen is None:
                 index[shape.key] = shape
@@ -349,15 +369,21 @@ def _index_shapes(commands: Iterable[NativeCommand]) -> dict[tuple[int, int], Sh
     return index
 
 
-#: Every frame the documents describe, by (command word, LEN byte).
-SHAPES: Mapping[tuple[int, int], Shape] = MappingProxyType(_index_shapes(COMMANDS))
 #: What a sensor may hear, and what a master may hear (echo shapes are in both).
 REQUEST_SHAPES: Mapping[tuple[int, int], Shape] = MappingProxyType(
-    {k: s for k, s in SHAPES.items() if s.direction & Direction.REQUEST}
-)
+    _index_shapes(COMMANDS, Direction.REQUEST))
 ANSWER_SHAPES: Mapping[tuple[int, int], Shape] = MappingProxyType(
-    {k: s for k, s in SHAPES.items() if s.direction & Direction.ANSWER}
+    _index_shapes(COMMANDS, Direction.ANSWER))
+#: Pairs that are one frame as a request and another as an answer (2.16 only).
+TWO_WAY: frozenset[tuple[int, int]] = frozenset(
+    k for k in REQUEST_SHAPES.keys() & ANSWER_SHAPES.keys()
+    if REQUEST_SHAPES[k] != ANSWER_SHAPES[k]
 )
+#: Every frame the documents describe, by (command word, LEN byte).  A ``TWO_WAY`` pair
+#: reads as its request here: a frame of unknown origin is read as what a master sends,
+#: and ``interpret`` is told the direction when it is known.
+SHAPES: Mapping[tuple[int, int], Shape] = MappingProxyType(
+    {**ANSWER_SHAPES, **REQUEST_SHAPES})
 _LENGTHS = frozenset(length for _, length in SHAPES)
 MAX_FRAME = max(_LENGTHS) + 1
 
@@ -408,6 +434,8 @@ def parse_frame(raw: bytes) -> NativeFrame:
         raise BadLength(f"a native frame is at least {OVERHEAD} bytes, got {len(raw)}")
     if raw[0] != SYNC:
         raise FrameError(f"a native frame starts with 77, not {raw[0]:02X}")
+    if raw[1] + 1 > len(raw):
+        raise BadLength(f"truncated: {len(raw)} of {raw[1] + 1} bytes (LEN byte {raw[1]:02X})")
     if raw[1] + 1 != len(raw):
         raise BadLength(f"LEN byte {raw[1]:02X} says {raw[1] + 1} bytes, got {len(raw)}")
     if checksum(raw[1:-1]) != raw[-1]:
@@ -415,12 +443,20 @@ def parse_frame(raw: bytes) -> NativeFrame:
     return NativeFrame(raw[2], raw[3], bytes(raw[4:-1]))
 
 
-def interpret(frame: NativeFrame, series: Series | None = None) -> NativeMessage:
+_SHAPES_OF: Mapping[Direction | None, Mapping[tuple[int, int], Shape]] = MappingProxyType({
+    None: SHAPES, Direction.REQUEST: REQUEST_SHAPES, Direction.ANSWER: ANSWER_SHAPES,
+})
+
+
+def interpret(frame: NativeFrame, series: Series | None = None,
+              direction: Direction | None = None) -> NativeMessage:
     """Read a frame through the shape its (command, LEN) names.
 
     With ``series`` given, a shape that series never sends or accepts is refused.
+    ``direction`` (``REQUEST``: a master sent it, ``ANSWER``: a sensor did) matters for
+    the ``TWO_WAY`` pairs only; without it they read as requests.
     """
-    shape = SHAPES.get((frame.command, len(frame.data) + 4))
+    shape = _SHAPES_OF[direction].get((frame.command, len(frame.data) + 4))
     if shape is None:
         raise UnknownFrame(
             f"no documented frame has command {frame.command:02X} "
@@ -441,9 +477,10 @@ def interpret(frame: NativeFrame, series: Series | None = None) -> NativeMessage
     return NativeMessage(shape, frame.address, MappingProxyType(values))
 
 
-def decode(raw: bytes, series: Series | None = None) -> NativeMessage:
+def decode(raw: bytes, series: Series | None = None,
+           direction: Direction | None = None) -> NativeMessage:
     """``parse_frame`` then ``interpret``: one whole frame to a message."""
-    return interpret(parse_frame(raw), series)
+    return interpret(parse_frame(raw), series, direction)
 
 
 def encode(shape: Shape, address: int, /, **values: Any) -> bytes:

@@ -135,11 +135,12 @@ class SimSensor(ABC):
 
     # ------------------------------------------------------------ the measured values
 
-    def measure(self, now: float) -> Reading:
+    def measure(self, now: float, *, every_group: bool = False) -> Reading:
         """What the sensor reports at ``now``: its source through the zero type and the
-        heading settings, limited to what the series measures."""
+        heading settings, limited to what the series measures (``every_group``: not
+        limited, for the native reads any series answers, such as an IMU's 2.3)."""
         raw = self.source.sample(now)
-        reading = raw.only(CAPABILITIES[self.series].groups)
+        reading = raw if every_group else raw.only(CAPABILITIES[self.series].groups)
         if reading.angles is not None:
             a = reading.angles
             yaw = a.yaw - self.heading_offset + self.settings.declination
@@ -287,17 +288,19 @@ class NativeSensor(SimSensor):
         messages = []
         for frame in frames:
             try:
-                message = native.interpret(frame)
+                message = native.interpret(frame, direction=native.Direction.REQUEST)
             except FrameError:
                 continue
             messages.append(message)
         return messages
 
     def _data_values(self, command: str, now: float) -> dict[str, float]:
-        """The values of the answer to a data read, by the answer shape's field names."""
+        """The values of the answer to a data read, by the answer shape's field names.
+        The shape decides what is sent: 2.1-2.3 and 2.12 name no series, so an IMU
+        answers them too, with the attitude its source holds."""
         shape = native.COMMANDS_BY_NAME[command].answer_for(self.series)
         assert shape is not None
-        values = field_values(self.measure(now))
+        values = field_values(self.measure(now, every_group=True))
         return {f.name: _clamp(f.name, values.get(f.name, 0.0)) for f in shape.fields}
 
     def _write_name(self, message: native.NativeMessage) -> str | None:
@@ -321,8 +324,11 @@ class NativeSensor(SimSensor):
                     | "read_quaternion" | "read_mag" | "read_all":
                 answer = self._data_values(command.name, now)
             case "set_baudrate":
-                self.settings.baud = args["baudrate"]  # 2.4: answers at the old rate
-                answer = {"result": "success"}
+                # 2.4: answers at the old rate; a code the table lacks is refused (FF)
+                known = args["baudrate"] in native.BAUD_CODES.values()
+                if known:
+                    self.settings.baud = args["baudrate"]
+                answer = {"result": "success" if known else "failure"}
             case "set_address":
                 self.settings.address = args["new_address"]  # 2.5: answers from the new one
                 answer = {"result": "success"}
@@ -337,9 +343,12 @@ class NativeSensor(SimSensor):
             case "read_zero_type":
                 answer = {"zero_type": self.settings.zero_type}
             case "set_output_type":
-                if args["output_type"] in native.OUTPUT_TYPES[self.series]:
+                # 2.16 answers 00 whatever was asked; a type the series' table lacks is
+                # refused with FF (the document is silent there: our choice)
+                known = args["output_type"] in native.OUTPUT_TYPES[self.series]
+                if known:
                     self.output_type = args["output_type"]
-                answer = dict(args)
+                answer = {"result": "success" if known else "failure"}
             case "set_output_rate":
                 hz = args["rate_hz"]
                 self.stream_interval = 1 / hz if hz else 0.0
@@ -476,8 +485,12 @@ class ModbusSensor(SimSensor):
             case "save":
                 self.busy_until = at + self.save_duration
             case "calibrate_gyro":
+                # 2.11: 0 = started, "done" follows; a sensor that is done at once
+                # (``gyro_cal_duration`` 0) answers 1 = complete, and nothing follows
+                if self.gyro_cal_duration <= 0:
+                    return rtu.WriteRegister(self.address, address, rtu.GYRO_CAL_COMPLETE)
                 self.gyro_cal_done_at = now + self.gyro_cal_duration
-                return rtu.WriteRegister(self.address, address, 0)  # 2.11: 0 = started
+                return rtu.WriteRegister(self.address, address, rtu.GYRO_CAL_STARTED)
             case "output_interval_ms":
                 if 0 < value < 10:
                     return rtu.ExceptionAnswer(self.address, 6, _ILLEGAL_VALUE)
@@ -502,7 +515,7 @@ class ModbusSensor(SimSensor):
 
     def _gyro_cal_done(self, now: float) -> list[Outgoing]:
         reg = rtu.WRITABLE["calibrate_gyro"]
-        frame = rtu.encode(rtu.WriteRegister(self.address, reg.address, 1))  # 1 = done
+        frame = rtu.encode(rtu.WriteRegister(self.address, reg.address, rtu.GYRO_CAL_COMPLETE))
         return [self._send(frame, now, solicited=False)]
 
 
