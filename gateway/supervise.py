@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -96,6 +97,30 @@ class Supervisor:
 def _describe(exc: BaseException) -> str:
     text = str(exc)
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+class RepeatFilter(logging.Filter):
+    """For a library's logger that warns once per request (uvicorn, for each request
+    with an ``Upgrade`` header): each message lets one record through a period; the
+    rest are counted, and the count is said on the next one let through."""
+
+    def __init__(self, period: float = 60.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__()
+        self.period = period
+        self._clock = clock
+        self._since: dict[str, float] = {}
+        self._held: Counter[str] = Counter()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        key, now = str(record.msg), self._clock()
+        if now - self._since.get(key, -math.inf) < self.period:
+            self._held[key] += 1
+            return False
+        self._since[key] = now
+        if held := self._held.pop(key, 0):
+            record.msg = f"{record.msg} (and {held} more like it in the last {self.period:g} s)"
+        return True
 
 
 class PeerLog:

@@ -94,6 +94,9 @@ def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
             assert timing["latency_ms"] >= 0.9 * ah.answer_delay * 1000
             assert timing["timeout_ms"] >= timing["latency_ms"]
             assert set(buses_out["b"]["timing"]) == {"arm"}
+            # the configured rate beside the one achieved (poll_hz of the config below)
+            assert timing["requested_hz"] == gateway.sensors["boom"].poll_hz
+            assert timing["achieved_hz"] > 0
 
             listed = {s["name"]: s for s in (await http.get(f"{API}/sensors")).json()}
             assert listed["boom"]["series"] == "AH" and listed["arm"]["protocol"] == "modbus"

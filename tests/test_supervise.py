@@ -9,7 +9,7 @@ import pytest
 from harness import run, until
 
 from gateway import supervise
-from gateway.supervise import Frontend, PeerLog, Supervisor
+from gateway.supervise import Frontend, PeerLog, RepeatFilter, Supervisor
 
 
 class Flaky(Frontend):
@@ -79,3 +79,23 @@ def test_peer_warnings_are_one_line_then_a_count(caplog: pytest.LogCaptureFixtur
     assert [r.getMessage() for r in caplog.records] == [
         "refused client 0", "bad header", "... and 999 more refused in the last 60 s",
         "refused client 1000"]
+
+
+def test_a_library_warning_per_request_is_let_through_once_a_period(
+        caplog: pytest.LogCaptureFixture) -> None:
+    now = [0.0]
+    logger = logging.getLogger("test.library")
+    limiter = RepeatFilter(period=60, clock=lambda: now[0])
+    logger.addFilter(limiter)
+    try:
+        with caplog.at_level(logging.WARNING, "test.library"):
+            for _ in range(500):
+                logger.warning("Unsupported upgrade request.")
+            logger.warning("another message")
+            now[0] = 60.0
+            logger.warning("Unsupported upgrade request.")
+    finally:
+        logger.removeFilter(limiter)
+    assert [r.getMessage() for r in caplog.records] == [
+        "Unsupported upgrade request.", "another message",
+        "Unsupported upgrade request. (and 499 more like it in the last 60 s)"]

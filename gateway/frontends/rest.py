@@ -53,7 +53,7 @@ from ..cache import EventKind, SensorUnavailable, Snapshot, Status
 from ..commands import CATALOGUE, ErrorKind
 from ..config import HttpConfig
 from ..stats import SensorStats
-from ..supervise import Frontend
+from ..supervise import Frontend, RepeatFilter
 from .common import GatewayLike, json_bytes
 
 log = logging.getLogger("gateway.http")
@@ -187,6 +187,9 @@ class TimingOut(_Out):
     latency_dev_ms: float | None = Field(description="its mean deviation")
     timeout_ms: float = Field(description="what the next attempt waits beyond the wire time")
     late_answers: int
+    requested_hz: float = Field(description="the configured rate: stream_hz while it "
+                                "streams, else poll_hz (0: polled flat out)")
+    achieved_hz: float = Field(description="readings a second, lately")
 
 
 class BusOut(_Out):
@@ -637,7 +640,8 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
         def timing(name: str) -> dict[str, Any]:
             stats = gateway.sensor_stats(name)
             return {"latency_ms": stats.latency_ms, "latency_dev_ms": stats.latency_dev_ms,
-                    "timeout_ms": stats.timeout_ms, "late_answers": stats.late_answers}
+                    "timeout_ms": stats.timeout_ms, "late_answers": stats.late_answers,
+                    "requested_hz": stats.requested_hz, "achieved_hz": stats.achieved_hz}
 
         return [{**{k: v for k, v in b.as_dict().items() if k in BusOut.model_fields},
                  "sensors": names[b.name], "timing": {n: timing(n) for n in names[b.name]}}
@@ -969,6 +973,9 @@ class HttpServer(Frontend):
         sock.setblocking(False)
         self._socket = sock
         self.hub = StreamHub(self.gateway, on_error=self.fail)
+        uvicorn_log = logging.getLogger("uvicorn.error")
+        if not any(isinstance(f, RepeatFilter) for f in uvicorn_log.filters):
+            uvicorn_log.addFilter(RepeatFilter())  # it warns once per odd request
         app = create_app(self.gateway, self.config, self.hub, self.counters)
         self._server = _Server(uvicorn.Config(
             app, log_config=None, log_level="warning", access_log=False, lifespan="off",
