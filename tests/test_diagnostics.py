@@ -7,6 +7,7 @@ import re
 import subprocess
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -19,16 +20,13 @@ from gateway.simulator import SimSensor, make_sensor, simulated
 FAST = 115200
 
 
-def first_line_with(tmp_path: Path, port: str, sensor: dict[str, Any], needle: str,
-                    protocol: str = "native", baud: int = FAST) -> tuple[str, str]:
-    """Run the gateway on ``port`` with one configured sensor until a log line holds
-    ``needle``; that line, and the whole log up to it."""
-    config = tmp_path / "gateway.yaml"
-    config.write_text(yaml.safe_dump({"gateway_id": "diag", "buses": [{
-        "name": "line", "port": port, "baudrate": baud, "protocol": protocol,
-        "sensors": [sensor]}]}))
-    with subprocess.Popen([sys.executable, "-m", "gateway", "run", "-c", str(config)],
-                          stderr=subprocess.PIPE, text=True) as proc:
+def log_until(config: dict[str, Any], path: Path, done: Callable[[list[str]], bool],
+              *options: str) -> list[str]:
+    """Run the gateway on ``config`` (written to ``path``) until ``done(lines)`` holds
+    for its log so far; the log's lines."""
+    path.write_text(yaml.safe_dump(config))
+    with subprocess.Popen([sys.executable, "-m", "gateway", "run", "-c", str(path),
+                           *options], stderr=subprocess.PIPE, text=True) as proc:
         watchdog = threading.Timer(60, proc.kill)  # a gateway that never says it
         watchdog.start()
         assert proc.stderr is not None
@@ -36,12 +34,23 @@ def first_line_with(tmp_path: Path, port: str, sensor: dict[str, Any], needle: s
         try:
             for line in proc.stderr:
                 lines.append(line)
-                if needle in line:
+                if done(lines):
                     break
         finally:
             watchdog.cancel()
             proc.terminate()
             proc.communicate(timeout=20)
+    return lines
+
+
+def first_line_with(tmp_path: Path, port: str, sensor: dict[str, Any], needle: str,
+                    protocol: str = "native", baud: int = FAST) -> tuple[str, str]:
+    """Run the gateway on ``port`` with one configured sensor until a log line holds
+    ``needle``; that line, and the whole log up to it."""
+    config = {"gateway_id": "diag", "buses": [{
+        "name": "line", "port": port, "baudrate": baud, "protocol": protocol,
+        "sensors": [sensor]}]}
+    lines = log_until(config, tmp_path / "gateway.yaml", lambda seen: needle in seen[-1])
     found = [line for line in lines if needle in line]
     assert found, "".join(lines)
     return found[0], "".join(lines)
@@ -105,28 +114,14 @@ def test_the_frame_trace_shows_each_exchange_and_is_rate_limited(tmp_path: Path)
     a sensor polled flat out makes more than the 50 a second shown."""
     ah = make_sensor(Protocol.NATIVE, Series.AH, 0, baud=FAST)
     silent = make_sensor(Protocol.NATIVE, Series.VG, 4, baud=9600)  # never answers
-    config = tmp_path / "gateway.yaml"
-    config.write_text(yaml.safe_dump({"gateway_id": "diag", "buses": [{
-        "name": "line", "port": "PORT", "baudrate": FAST, "protocol": "native",
-        "sensors": [{"name": "boom", "series": "AH", "poll_hz": 0},
-                    {"name": "mast", "series": "VG", "address": 4}]}]}))
     with simulated([ah, silent]) as line:
-        config.write_text(config.read_text().replace("PORT", line.path))
-        with subprocess.Popen([sys.executable, "-m", "gateway", "run", "-c", str(config),
-                               "--trace", "line"], stderr=subprocess.PIPE, text=True) as proc:
-            watchdog = threading.Timer(60, proc.kill)
-            watchdog.start()
-            assert proc.stderr is not None
-            lines: list[str] = []
-            try:
-                for text in proc.stderr:
-                    lines.append(text)
-                    if "exchanges not shown" in text and any("timeout" in x for x in lines):
-                        break
-            finally:
-                watchdog.cancel()
-                proc.terminate()
-                proc.communicate(timeout=20)
+        config = {"gateway_id": "diag", "buses": [{
+            "name": "line", "port": line.path, "baudrate": FAST, "protocol": "native",
+            "sensors": [{"name": "boom", "series": "AH", "poll_hz": 0},
+                        {"name": "mast", "series": "VG", "address": 4}]}]}
+        lines = log_until(config, tmp_path / "gateway.yaml",
+                          lambda seen: "exchanges not shown" in seen[-1]
+                          and any("timeout" in x for x in seen), "--trace", "line")
     log = "".join(lines)
     ok = re.compile(r"gateway\.trace: bus line: boom tx 77 04 00 59 5D \| rx 77 38 00 59 "
                     r"(?:[0-9A-F]{2} ){6}… [0-9A-F]{2} [0-9A-F]{2} \(57 B, \d+\.\d ms\) ok$",
