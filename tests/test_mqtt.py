@@ -534,9 +534,10 @@ def test_a_failed_mqtt_client_is_restarted_and_the_rest_goes_on(
         run(body)
     failed = [r.getMessage() for r in caplog.records if "mqtt failed" in r.getMessage()]
     assert len(failed) == 1 and "RuntimeError: boom" in failed[0]
-    # the restart said so; then the stop at the end
-    assert [m.text for m in rec.on(f"{BASE}/status")] == ["online", "offline", "online",
-                                                          "offline"]
+    # the restart said so, then the stop at the end (the first "online" may never have
+    # left: a newer message for the same retained topic replaces one still waiting)
+    statuses = [m.text for m in rec.on(f"{BASE}/status")]
+    assert statuses[-3:] == ["offline", "online", "offline"], statuses
 
 
 # ------------------------------------------------------------------ TLS and passwords
