@@ -5,7 +5,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import inspect
+import signal
 import socket
+import subprocess
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
 
@@ -101,3 +103,16 @@ def run(coro: Callable[[], Awaitable[None]]) -> None:
         await coro()
 
     asyncio.run(main())
+
+
+def interrupt(process: subprocess.Popen[Any], timeout: float = 15.0) -> int:
+    """Stop a process a test started the way a user would (SIGINT), kill it if it does
+    not stop within ``timeout``, and reap it whatever happened: no process outlives its
+    test.  Its exit status (negative: the signal that ended it)."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGINT)
+        try:
+            process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            process.kill()
+    return process.wait()

@@ -15,7 +15,6 @@ import contextlib
 import functools
 import json
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -27,7 +26,7 @@ from typing import Any, TypeVar
 
 import pytest
 import yaml
-from harness import free_port
+from harness import free_port, interrupt
 
 from gateway.model import Protocol, Series
 from gateway.simulator import Faults, make_sensor, simulated
@@ -106,13 +105,7 @@ def gateway(tmp_path: Path, cfg: dict[str, Any], token: str | None = None) -> It
         wait(up, "the gateway's API answers", timeout=30)
         yield base
     finally:
-        if process.poll() is None:
-            process.send_signal(signal.SIGINT)
-            try:
-                process.wait(15)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+        interrupt(process)
 
 
 @contextlib.contextmanager

@@ -15,7 +15,6 @@ import asyncio
 import contextlib
 import itertools
 import selectors
-import signal
 import socket
 import subprocess
 import sys
@@ -28,7 +27,7 @@ from typing import Any
 import httpx
 import pytest
 import yaml
-from harness import free_port, run, running, until
+from harness import free_port, interrupt, run, running, until
 
 from gateway.app import Gateway
 from gateway.config import config_from_dict
@@ -99,13 +98,7 @@ def gateway_process(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Addres
             yield ("127.0.0.1", port)
             assert process.poll() is None, "the gateway exited"
         finally:
-            if process.poll() is None:
-                process.send_signal(signal.SIGINT)
-                try:
-                    process.wait(15)
-                except subprocess.TimeoutExpired:
-                    process.kill()
-            process.wait()  # reaped, whatever happened
+            interrupt(process)
     assert "Traceback" not in log_path.read_text()
 
 

@@ -8,7 +8,6 @@ client (pymodbus) is still served and that the process stays within its bounds.
 from __future__ import annotations
 
 import contextlib
-import signal
 import socket
 import struct
 import subprocess
@@ -21,7 +20,7 @@ from typing import Any
 
 import pytest
 import yaml
-from harness import free_port
+from harness import free_port, interrupt
 from pymodbus.client import ModbusTcpClient
 
 from gateway.frontends.modbus_map import BY_ADDRESS, ZERO_TYPES
@@ -68,13 +67,7 @@ class Process:
                         if line.startswith("VmRSS:")))
 
     def stop(self) -> str:
-        self.process.send_signal(signal.SIGINT)
-        try:
-            self.process.wait(20)
-        finally:
-            if self.process.poll() is None:
-                self.process.kill()
-            self.process.wait()
+        interrupt(self.process, 20)
         return self.log.read_text()
 
 

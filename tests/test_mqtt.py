@@ -23,7 +23,17 @@ import paho.mqtt.client as paho
 import pytest
 import yaml
 from broker import Mosquitto, Recorder, Tls, make_tls, recording
-from harness import FIELDS, GROUP_OF, expected, fields_of, run, running, tolerance, until
+from harness import (
+    FIELDS,
+    GROUP_OF,
+    expected,
+    fields_of,
+    interrupt,
+    run,
+    running,
+    tolerance,
+    until,
+)
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
@@ -467,13 +477,7 @@ def test_a_bad_response_topic_gets_an_error_and_the_gateway_goes_on(
             rec.wait(lambda: len(rec.on(f"{BASE}/boom/state")) > states + 10, timeout=30)
             assert gateway.poll() is None
         finally:
-            gateway.send_signal(signal.SIGINT)
-            try:
-                code = gateway.wait(20)
-            finally:
-                if gateway.poll() is None:
-                    gateway.kill()
-                gateway.wait()
+            code = interrupt(gateway, 20)
     assert code == 0
     log_text = (tmp_path / "gateway.log").read_text()
     assert "Traceback" not in log_text and "failed (" not in log_text, log_text[-2000:]
