@@ -49,7 +49,7 @@ class Diagnosis:
         self.recent = bytearray()  # the last KEPT_BYTES bytes in
         self.bytes_in = 0
         self.frames_in = 0
-        self.strangers: Counter[int] = Counter()  # frames from addresses not configured
+        self.senders: Counter[int] = Counter()  # frames by the address they came from
         self.misfits: dict[str, str] = {}  # sensor -> its answers' misfit, once told
 
     def received(self, data: bytes) -> None:
@@ -57,12 +57,13 @@ class Diagnosis:
         self.recent += data
         del self.recent[:-KEPT_BYTES]
 
-    def frame(self, frame: Any, addresses: set[int]) -> None:
-        """Any whole frame of this line's protocol."""
+    def frame(self, frame: Any) -> None:
+        """Any whole frame of this line's protocol (counted only: which senders are
+        strangers is asked when a sensor goes offline, the rare case, not here)."""
         self.frames_in += 1
         sender = getattr(frame, "unit", getattr(frame, "address", None))
-        if isinstance(sender, int) and sender not in addresses:
-            self.strangers[sender] += 1
+        if isinstance(sender, int):
+            self.senders[sender] += 1
 
     @staticmethod
     def misfit(frame: Any, series: Series) -> str | None:
@@ -86,16 +87,18 @@ class Diagnosis:
         self.misfits[name] = misfit
         return True
 
-    def cause(self, name: str, address: int, baud: int) -> str:
-        """The most likely reason sensor ``name`` at ``address`` never answered."""
+    def cause(self, name: str, address: int, baud: int, configured: set[int]) -> str:
+        """The most likely reason sensor ``name`` at ``address`` never answered;
+        ``configured``: the addresses of the line's sensors now."""
         if name in self.misfits:
             return f"it {self.misfits[name]}"
         scan = f"`imu-gateway scan --port {self.port}` finds what is on the line"
         other = self._other_protocol()
         if other:
             return f"{other}: wrong protocol? {scan}"
-        if self.strangers:
-            found = ", ".join(str(a) for a, _ in self.strangers.most_common(3))
+        strangers = [a for a, _ in self.senders.most_common() if a not in configured]
+        if strangers:
+            found = ", ".join(str(a) for a in strangers[:3])
             return (f"frames come from address {found}, not {address}: wrong address? "
                     f"{scan}")
         if self.bytes_in and not self.frames_in:

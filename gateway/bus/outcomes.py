@@ -49,7 +49,7 @@ class Outcomes:
     def frame(self, frame: Any, at: float) -> None:
         """A whole frame came in at ``at``: the answer in flight, a stream frame, a
         late answer, or evidence of a stream nobody asked for."""
-        self.diagnosis.frame(frame, {s.address for s in self.sensors.values()})
+        self.diagnosis.frame(frame)
         a = self.line.attempt
         if a is not None:
             answer = a.exchange.match(frame)
@@ -120,7 +120,8 @@ class Outcomes:
         """The attempt got no answer, not even late: retry it, or fail its job."""
         s, job = a.job.sensor, a.job
         kind = self.line.failure_kind(a)
-        self._trace(a, now, f"{kind} (try {job.tries} of {self.config.retries + 1})")
+        if self.tracing:
+            self._trace(a, now, f"{kind} (try {job.tries} of {self.config.retries + 1})")
         self._count_error(s, kind)
         self.line.close(a, now, answered=False)
         if kind == "timeout":  # silence: its answer may still come (a garbled one came)
@@ -229,9 +230,9 @@ class Outcomes:
         self.jobs.finish(job, error=CommandError(error_kind, message))
 
     def _trace(self, a: Attempt, at: float, outcome: str) -> None:
-        if self.tracing:
-            self.emit(Trace(a.job.sensor.name, a.exchange.request, bytes(self.line.heard),
-                            at - a.sent, outcome if a.exchange.answer_bytes else "sent"))
+        """(Called only while tracing: the outcome's words are not built otherwise.)"""
+        self.emit(Trace(a.job.sensor.name, a.exchange.request, bytes(self.line.heard),
+                        at - a.sent, outcome if a.exchange.answer_bytes else "sent"))
 
     def _offline(self, s: SensorState, kind: str, never: bool) -> str:
         """The log line for a sensor going offline: where it was asked, and for one
@@ -240,7 +241,8 @@ class Outcomes:
         where = (f"native address {s.address}" if self.config.protocol is Protocol.NATIVE
                  else f"Modbus unit {s.address}") + f" at {baud} baud"
         if never:
-            cause = self.diagnosis.cause(s.name, s.address, baud)
+            cause = self.diagnosis.cause(s.name, s.address, baud,
+                                         {t.address for t in self.sensors.values()})
             return f"sensor {s.name}: offline (never answered, {where}): {cause}"
         return f"sensor {s.name}: offline ({kind}, {where})"
 
