@@ -360,7 +360,7 @@ class _Connection(asyncio.Protocol):
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
         server.connections.add(self)
         server.counts["connections"] += 1
-        self._touch()
+        self._watch_idle()
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.server.connections.discard(self)
@@ -377,13 +377,18 @@ class _Connection(asyncio.Protocol):
         if self.transport is not None:
             self.transport.abort()
 
-    def _touch(self) -> None:
+    def _watch_idle(self) -> None:
+        """Close the connection once ``last_request`` is ``idle_timeout_s`` old.  One
+        timer, re-armed for the rest of the time when it fires: a busy client's
+        requests only set ``last_request``, they cost no timer each."""
         timeout = self.server.config.idle_timeout_s
-        if self.idle is not None:
-            self.idle.cancel()
-        if timeout:
-            self.idle = asyncio.get_running_loop().call_later(timeout, self._time_out,
-                                                              "idle_closed")
+        if not timeout:
+            return
+        left = self.last_request + timeout - time.monotonic()
+        if left > 0:
+            self.idle = asyncio.get_running_loop().call_later(left, self._watch_idle)
+        else:
+            self._time_out("idle_closed")
 
     def _time_out(self, why: str) -> None:
         self.server.counts[why] += 1
@@ -446,8 +451,7 @@ class _Connection(asyncio.Protocol):
 
     def _request(self, transaction: int, unit: int, pdu: bytes) -> None:
         self.requests += 1
-        self.last_request = time.monotonic()
-        self._touch()
+        self.last_request = time.monotonic()  # (the idle watch reads it)
         try:
             answer = self.server.handle(unit, pdu)
         except Exception:  # a fault of ours must not cost the client its connection
