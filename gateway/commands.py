@@ -13,7 +13,7 @@ import enum
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
@@ -45,30 +45,34 @@ def _at_resolution(value: Any, fmt: BcdFormat) -> Any:
     return value
 
 
-class HeadingArgs(_Args):
+class _DegreesArgs(_Args):
+    """An angle the sensor takes in BCD (``_format``): rounded to that resolution, half
+    away from zero, before its range is checked."""
+
+    _format: ClassVar[BcdFormat]
+
+    @field_validator("degrees", mode="before", check_fields=False)
+    @classmethod
+    def _round(cls, value: Any) -> Any:
+        return _at_resolution(value, cls._format)
+
+
+class HeadingArgs(_DegreesArgs):
     # 2.20 sends SXXX.YY, a signed angle: every value it can carry is accepted (Modbus
     # carries less, -200 to 455.35, and its encoding refuses the rest).
+    _format = ANGLE
     degrees: float = Field(ge=-ANGLE.max_value, le=ANGLE.max_value, allow_inf_nan=False,
                            description="heading start point, degrees (0.01 resolution, "
                                        "rounded half away from zero)")
 
-    @field_validator("degrees", mode="before")
-    @classmethod
-    def _round(cls, value: Any) -> Any:
-        return _at_resolution(value, ANGLE)
 
-
-class DeclinationArgs(_Args):
+class DeclinationArgs(_DegreesArgs):
     # 2.21 sends SXX.Y: two integer digits and one decimal.
+    _format = DECLINATION
     degrees: float = Field(ge=-DECLINATION.max_value, le=DECLINATION.max_value,
                            allow_inf_nan=False,
                            description="magnetic declination, degrees (0.1 resolution, "
                                        "rounded half away from zero)")
-
-    @field_validator("degrees", mode="before")
-    @classmethod
-    def _round(cls, value: Any) -> Any:
-        return _at_resolution(value, DECLINATION)
 
 
 class MagCalibrationArgs(_Args):
