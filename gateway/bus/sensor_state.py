@@ -5,13 +5,13 @@ method takes the time as an argument.
 
 from __future__ import annotations
 
-import math
 from collections import deque
 from dataclasses import dataclass, field
 
 from ..config import SensorConfig
 from ..protocol.exchanges import Exchange, ProtocolAdapter
 from ..stats import Counters
+from .phase import StreamPhase
 from .timing import AnswerTimer
 
 OFFLINE_AFTER = 3  # consecutive failed exchanges before a sensor is called offline
@@ -47,7 +47,7 @@ class SensorState:
     streaming: bool = False
     last_stream: float = 0.0  # when its last stream frame's last byte came in
     stream_frames: int = 0  # frames since the stream was set up (0: its phase is unknown)
-    stream_anchor: float = 0.0  # the earliest its frames have been seen to end, in phase
+    phase: StreamPhase | None = None  # when its stream's frames really end
     stream_retry_at: float = 0.0
     stop_stream: bool = False  # it streams though nobody asked: tell it to stop
     evidence: deque[float] = field(default_factory=deque)  # unexplained frames' times
@@ -130,31 +130,18 @@ class SensorState:
 
     def stream_frame(self, at: float) -> None:
         """A frame of its stream ended at ``at`` (as far as this machine can tell)."""
-        period = 1 / self.config.stream_hz if self.config.stream_hz else 0.0
-        if not self.stream_frames or not period:
-            self.stream_anchor = at
-        else:
-            # A frame is never seen early, only late (the adapter, the reader, a busy
-            # machine): the earliest arrivals, in phase, say when the frames really
-            # end.  A later one moves the estimate a sixteenth of the way, enough to
-            # follow the sensor's clock.
-            predicted = self._in_phase(at, period)
-            self.stream_anchor = at if at < predicted else predicted + (at - predicted) / 16
+        if not self.stream_frames and self.config.stream_hz:
+            self.phase = StreamPhase(1 / self.config.stream_hz)  # a new stream: a new phase
+        if self.phase is not None:
+            self.phase.seen(at)
         self.last_stream = at
         self.stream_frames += 1
 
     def frame_end_before(self, at: float) -> float:
         """The true end, in phase, of the frame last seen at ``at`` or before."""
-        if not self.stream_frames or not self.config.stream_hz:
+        if not self.stream_frames or self.phase is None:
             return self.last_stream
-        return self._in_phase(self.last_stream, 1 / self.config.stream_hz)
-
-    def _in_phase(self, at: float, period: float) -> float:
-        """The frame end in phase that a frame seen at ``at`` had: the one at or before
-        it (frames are seen late, never early), or a little after it (a quarter of a
-        period: the sensor's clock may run a little fast)."""
-        return self.stream_anchor + \
-            math.floor((at - self.stream_anchor) / period + 0.25) * period
+        return self.phase.end_of(self.last_stream)
 
     # ------------------------------------------------------------ stream evidence
 
