@@ -440,10 +440,11 @@ def test_the_schedule_has_no_clock() -> None:
     import gateway.bus.jobs as jobs
     import gateway.bus.line as line
     import gateway.bus.outcomes as outcomes
+    import gateway.bus.phase as phase
     import gateway.bus.schedule as schedule
     import gateway.bus.sensor_state as sensor_state
     import gateway.bus.timing as timing
-    for module in (events, jobs, line, outcomes, schedule, sensor_state, timing):
+    for module in (events, jobs, line, outcomes, phase, schedule, sensor_state, timing):
         tree = ast.parse(inspect.getsource(module))
         names = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import)
                  for a in n.names}
