@@ -200,7 +200,11 @@ async def _serve(bus: SoakBus, names: list[str], pipe: Connection) -> None:
 
 def _line_stats(bus: PtyBus, names: list[str]) -> dict[str, Any]:
     stats = bus.stats
-    return {"overlaps": stats.overlaps, "collisions": stats.collisions,
+    # A simulator held off its CPU by the machine stops playing hardware: what follows
+    # such a hold is counted apart (PtyBus's SHADOW), and not held against the gateway.
+    return {"overlaps": stats.masters_overlaps, "collisions": stats.masters_collisions,
+            "holds": stats.holds, "held_s": round(stats.held_s, 3),
+            "after_holds": stats.overlaps_after_hold + stats.collisions_after_hold,
             "noise_bytes": stats.noise_bytes, "answer_frames": stats.answer_frames,
             "incidents": stats.incidents[:3],
             "writes": {n: dict(s.writes_heard) for n, s in zip(names, bus.sensors, strict=True)}}
@@ -1077,7 +1081,10 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
            *resource_table([Trend(**t) for t in summary["trends"]]), ""]
     for name, stats in final["lines"].items():
         out.append(f"simulator {name}: overlaps {stats.get('overlaps')}, collisions "
-                   f"{stats.get('collisions')}, noise bytes {stats.get('noise_bytes')}")
+                   f"{stats.get('collisions')}, noise bytes {stats.get('noise_bytes')}; "
+                   f"held by the machine {stats.get('holds')} times ({stats.get('held_s')} s), "
+                   f"{stats.get('after_holds')} overlaps and collisions right after "
+                   "(not counted)")
         for incident in stats.get("incidents", [])[:1]:  # what led to the first one
             out += [f"    {event[:100]}" for event in incident[-5:]]
     unasked, stops = summary["unasked_writes"], summary["stream_stops_unasked"]

@@ -419,6 +419,9 @@ def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
         stats = bus.stats
         summary = {"requests_bytes": stats.requests_bytes, "answer_frames": stats.answer_frames,
                    "overlaps": stats.overlaps, "collisions": stats.collisions,
+                   "holds": stats.holds, "held_s": round(stats.held_s, 3),
+                   "overlaps_after_hold": stats.overlaps_after_hold,
+                   "collisions_after_hold": stats.collisions_after_hold,
                    "writes_heard": {s.name: dict(s.writes_heard) for s in sensors},
                    "incidents": stats.incidents}
         print(f"simulate: stopped: {json.dumps(summary)}", file=sys.stderr, flush=True)

@@ -50,7 +50,7 @@ def modbus(series: Series, address: int, **options: Any) -> SimSensor:
 
 def no_overlap(sim: SimulatorThread) -> None:
     # each incident with the timed events that led to it
-    assert sim.bus.stats.overlaps == 0, "\n".join(
+    assert sim.bus.stats.masters_overlaps == 0, "\n".join(
         "\n  ".join(incident) for incident in sim.bus.stats.incidents)
     assert sim.bus.stats.internal_errors == 0
 
@@ -527,12 +527,12 @@ def test_a_stream_that_comes_back_by_itself_is_no_longer_polled() -> None:
                 await until(lambda: not gw.cache.snapshot("ah").streaming, 5)
                 faults.stalled = False  # still in auto-output mode: its frames come back
                 await until(lambda: gw.cache.snapshot("ah").streaming, 5)
-                overlaps = sim.bus.stats.overlaps
+                overlaps = sim.bus.stats.masters_overlaps
                 polls = master(gw).stats.transactions
                 seq = gw.cache.snapshot("ah").seq
                 await until(lambda: gw.cache.snapshot("ah").seq >= seq + 25)
                 assert master(gw).stats.transactions == polls
-                assert sim.bus.stats.overlaps == overlaps
+                assert sim.bus.stats.masters_overlaps == overlaps
         run(body)
 
 

@@ -63,8 +63,9 @@ class VirtualLine:
     #: came (the kernel's own work deferred on a busy machine): nothing can see them
     hidden: Callable[[], float] = lambda: 0.0
     #: how long the driver is kept from writing a request it was handed (preempted
-    #: between the decision and the write): past the request's ``latest`` it is
-    #: withdrawn, as the bus master does; otherwise it goes out that much later
+    #: between the decision and the write, or in the write): past the request's
+    #: ``latest`` it is withdrawn, as the bus master does; otherwise it goes out that
+    #: much later, and the driver does nothing else until then
     stall: Callable[[], float] = lambda: 0.0
     withdrawn: int = 0
     now: float = 0.0
@@ -79,6 +80,7 @@ class VirtualLine:
     # hands them over)
     _port: list[tuple[bytes, float, float]] = field(default_factory=list)
     _driver_at: float = 0.0
+    _driver_free: float = 0.0  # a driver held in a write does nothing else until then
     _line_end: float = 0.0  # when the wire is free of the last frame
     _spins: int = 0
 
@@ -163,7 +165,7 @@ class VirtualLine:
             visible = self.now + self.hidden()
             handed = visible + self.late()
             self._port.append((data, visible, handed))
-            self._driver_at = min(self._driver_at, handed)
+            self._driver_at = max(self._driver_free, min(self._driver_at, handed))
 
     # ------------------------------------------------------------ the driver
 
@@ -181,8 +183,9 @@ class VirtualLine:
         # the bus thread: that is a bug, and it fails the test here.
         self._spins = self._spins + 1 if wake <= self.now else 0
         assert self._spins < 1000, f"the schedule spins at {self.now:.6f} s"
-        self._driver_at = min([max(wake, self.now + 1e-6) + self.late(),
-                               *(p[2] for p in self._port)])  # bytes still on their way
+        self._driver_at = max(self._driver_free, min(
+            [max(wake, self.now + 1e-6) + self.late(),
+             *(p[2] for p in self._port)]))  # bytes still on their way
 
     def _write(self, request: Any) -> None:
         if request is None:
@@ -199,6 +202,8 @@ class VirtualLine:
                 for o in self._queue):
             self.overlaps += 1
         self.writes.append((self.now, request.data))
+        self.schedule.written(at)  # the driver, back from the write, says when
+        self._driver_free = at
         heard_at = at + len(request.data) * char_time(self.schedule.baud)
         for sensor in self.sensors:
             data = request.data if sensor.baud == self.schedule.baud else \

@@ -56,6 +56,9 @@ class Attempt:
     garbage: int  # the framer's garbage count when it was sent (noise vs silence)
     overdue: bool = False
     tx_end_before: float = 0.0  # the line's last request end before this one
+    #: the write took long enough that when the request left is not known: its
+    #: answer measures nothing (``Line.written``)
+    untimed: bool = False
 
 
 @dataclass(frozen=True, slots=True)

@@ -34,10 +34,13 @@ MIN_QUIET = 0.001  # after noise, the line must have been quiet this long
 ARRIVING_GRACE = 0.05
 #: Bytes stuck in the port (a starved reader thread) are waited for at most this long.
 STUCK_MAX = 1.0
+HEARD_MAX = 512  # bytes of an exchange's answer kept for the trace
 #: An exchange that found no place next to a stream for this many periods takes the
 #: next pause it can, fitting or not.
-HEARD_MAX = 512  # bytes of an exchange's answer kept for the trace
 PATIENCE = 10
+#: A write that returns later than this after the request was handed out may have put
+#: it on the line any time until then (``Line.written``).
+SLOW_WRITE = 0.002
 
 
 class Due(enum.Enum):
@@ -161,6 +164,25 @@ class Line:
         self.heard.clear()
         job.tries += 1
         return Request(exchange.request, exchange.answer_bytes, latest)
+
+    def written(self, at: float) -> None:
+        """The request handed out was written by ``at`` (when the write returned).
+
+        A write normally returns at once.  One that took longer (the thread was held
+        off the CPU in it: a busy machine, a virtual machine's host) may have put the
+        bytes on the line at any time until ``at``, so the answer is waited for as if
+        they left then: its deadline and hold move on by the delay, and the line is
+        not used before the request's own end.  The send time stays the earliest it
+        could have been, since an answer is recognised by not coming before it, and
+        the answer times nothing: from which moment would it be measured?"""
+        a = self.attempt
+        delay = at - a.sent if a is not None else 0.0
+        if a is None or delay <= SLOW_WRITE:
+            return
+        a.deadline += delay
+        a.give_up += delay
+        a.untimed = True
+        self.last_tx_end += delay
 
     def withdraw(self) -> None:
         """The request handed out was not written (it was too late for its place):

@@ -267,6 +267,7 @@ class BusMaster:
                 self.schedule.withdraw()
                 return
             self.link.write(request.data, request.expect)
+            self.schedule.written(self._now())  # held in the write, it left by then
         except LinkError as exc:
             self._on_lost(exc)
 

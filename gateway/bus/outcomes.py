@@ -141,7 +141,7 @@ class Outcomes:
             # still to come.  Nothing goes out while that one may still come (and, as
             # Karn's rule says, the answer times nothing: whose is it?).
             self.line.hold_until = max(self.line.hold_until, a.give_up)
-        elif a.exchange.answer_bytes:
+        elif a.exchange.answer_bytes and not a.untimed:  # (untimed: a slow write)
             s.timer.sample(at - a.sent - a.wire)
         if a.exchange.answer_bytes and a.overdue:
             s.stats.late_answers += 1

@@ -206,6 +206,10 @@ class Schedule:
         timeout = s.timer.hold if s.online is False else s.timer.rto
         return self.line.send(job, exchange, now, timeout, s.timer.hold, latest)
 
+    def written(self, at: float) -> None:
+        """The request ``next_request`` handed out was written by ``at``."""
+        self.line.written(at)
+
     def withdraw(self) -> None:
         """The request ``next_request`` handed out was not written by its ``latest``."""
         self.line.withdraw()

@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import functools
+import math
 import os
 import random
 import select
@@ -55,6 +56,14 @@ SPIN = 0.00015
 #: a sensor that stops streaming for half a second.
 SIM_NICE = -15
 
+#: Held off the CPU this long, the simulator has stopped playing hardware (its loop
+#: otherwise wakes within a couple of milliseconds of when it asks, ``WATCH_TICK``).
+HELD, WATCH_TICK = 0.02, 0.01
+#: Overlaps and collisions this soon after such a hold are its doing: a
+#: request read late, or a frame sent late, affects the exchange it belongs to, which
+#: is over within a sensor's longest answer timeout (0.4 s).
+SHADOW = 0.5
+
 _SPEEDS = {
     getattr(termios, f"B{rate}"): rate
     for rate in (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
@@ -74,6 +83,22 @@ class BusStats:
     events: deque[str] = field(default_factory=lambda: deque(maxlen=200))
     #: the first overlaps and collisions, each with the events that led to it
     incidents: list[list[str]] = field(default_factory=list)
+    #: times this simulator was held off its CPU (by the machine: it plays hardware,
+    #: which never stops), for how long in all, and the overlaps and collisions that
+    #: followed one within ``SHADOW`` (counted in the totals above too)
+    holds: int = 0
+    held_s: float = 0.0
+    overlaps_after_hold: int = 0
+    collisions_after_hold: int = 0
+
+    @property
+    def masters_overlaps(self) -> int:
+        """The overlaps the master is answerable for: not right after a hold."""
+        return self.overlaps - self.overlaps_after_hold
+
+    @property
+    def masters_collisions(self) -> int:
+        return self.collisions - self.collisions_after_hold
 
 
 class PtyBus:
@@ -107,6 +132,8 @@ class PtyBus:
         self._tx_end = 0.0
         self._wakeup: asyncio.Event | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._last_hold_end = -math.inf
+        self._last_beat = math.inf  # when it last ran (none yet: no hold either)
 
     # ------------------------------------------------------------ the pty
 
@@ -162,10 +189,46 @@ class PtyBus:
     # ------------------------------------------------------------ the wire
 
     def _note(self, text: str) -> None:
+        if text.startswith(("OVERLAP", "COLLISION")) and self._in_hold_shadow():
+            if text.startswith("OVERLAP"):
+                self.stats.overlaps_after_hold += 1
+            else:
+                self.stats.collisions_after_hold += 1
+            text += " (right after the simulator was held)"
         self._timeline(text)
         if text.startswith(("OVERLAP", "COLLISION")) and len(self.stats.incidents) < 10:
             self.stats.incidents.append(list(self._recent))
         self.stats.events.append(text)
+
+    def _in_hold_shadow(self) -> bool:
+        """Within ``SHADOW`` of a hold, or in one not yet noticed."""
+        now = time.monotonic()
+        return now - self._last_hold_end < SHADOW or now - self._last_beat > WATCH_TICK + HELD
+
+    def _beat(self) -> None:
+        """The simulator is running now: was it held since it last was?
+
+        Real sensors never stop; a simulator does, when the machine does not run it
+        (another process of higher priority, a virtual machine's host taking its CPU
+        away).  A request it then reads late looks sent late, and a stream frame goes
+        out late: what follows is the rig's doing, and is counted apart.  The loop
+        beats at least every ``WATCH_TICK`` (``_watch_holds``) and wherever it waits
+        without the loop (its precise waits, byte by byte), so a longer silence is a
+        hold."""
+        now = time.monotonic()
+        held = now - self._last_beat - WATCH_TICK
+        self._last_beat = now
+        if held >= HELD:
+            self.stats.holds += 1
+            self.stats.held_s += held
+            self._last_hold_end = now
+            self._timeline(f"HELD: the simulator was held {held * 1000:.0f} ms")
+
+    async def _watch_holds(self) -> None:
+        self._last_beat = time.monotonic()
+        while True:
+            await asyncio.sleep(WATCH_TICK)
+            self._beat()
 
     def _timeline(self, text: str) -> None:
         """What happened lately, timed: the context of an incident."""
@@ -177,6 +240,7 @@ class PtyBus:
         return bytes(self.rng.randrange(256) for _ in range(count))
 
     def _on_readable(self) -> None:
+        self._beat()  # a hold that ends here is noted before what it did to the line
         try:
             data = os.read(self._master, 4096)
         except (BlockingIOError, OSError):
@@ -285,6 +349,7 @@ class PtyBus:
             on_ready()
         stop = stop or asyncio.Event()
         next_noise = self._loop.time() + self._noise_gap()
+        watch = asyncio.ensure_future(self._watch_holds())
         try:
             while not stop.is_set():
                 now = self._loop.time()
@@ -309,6 +374,7 @@ class PtyBus:
                     wakeups.append(next_noise)
                 await self._sleep(stop, min(wakeups) - now if wakeups else None)
         finally:
+            watch.cancel()
             self.close()
 
     def _noise_gap(self) -> float:
@@ -330,6 +396,7 @@ class PtyBus:
         deadline = time.monotonic() + seconds
         ready, _, _ = select.select([self._master], [], [],
                                     max(0.0, seconds - SPIN) if exact else seconds)
+        self._beat()
         if ready:
             self._on_readable()
             return  # the caller looks again: the line may have changed

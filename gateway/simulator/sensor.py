@@ -210,10 +210,15 @@ class SimSensor(ABC):
             self.gyro_cal_done_at = None
             out.extend(self._gyro_cal_done(now))
         if self.stream_interval and now >= self.next_stream and not self.busy(now):
-            # Catch up by skipping, not bursting: a sensor that fell behind sends the
-            # current sample, not a backlog.
-            self.next_stream = max(self.next_stream + self.stream_interval, now)
-            out.extend(self._stream_frame(now))
+            # A sensor's timer keeps its beat.  This simulator may fall behind it (held
+            # off its CPU): the frames it could not send near their time are lost, as
+            # if garbled on the wire, not sent late (which no sensor does), and the
+            # next one is due on the old phase.
+            behind = (now - self.next_stream) // self.stream_interval
+            slot = self.next_stream + behind * self.stream_interval
+            self.next_stream = slot + self.stream_interval
+            if now - slot <= self.stream_interval / 4:
+                out.extend(self._stream_frame(now))
         return out
 
     def next_wakeup(self) -> float | None:
