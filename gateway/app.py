@@ -18,10 +18,11 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from .bus.runner import BusRunner
-from .cache import Cache, SensorUnavailable
+from .cache import Cache
 from .capacity import line_loads
-from .commands import CommandError, CommandResult, ErrorKind, validate
+from .commands import CommandResult, validate
 from .config import GatewayConfig, HttpConfig, SensorConfig, config_from_dict
+from .errors import ErrorKind, RequestFailed, StartupError
 from .frontends.modbus_tcp import ModbusTcpServer
 from .frontends.mqtt import MqttClient
 from .frontends.rest import HttpServer, openapi_document
@@ -37,10 +38,6 @@ SHUTDOWN_GRACE = 10.0  # seconds the bus masters get to finish the exchange in f
 # exchange at 115200 baud.  A shorter interval keeps the line's timing (see
 # docs/benchmarks.md for the measurement).
 GIL_SWITCH_INTERVAL = 0.0005
-
-
-class StartupError(Exception):
-    """The gateway cannot start (a port to listen on is taken, …): one line for the user."""
 
 
 class Gateway:
@@ -66,17 +63,14 @@ class Gateway:
         """Validate and carry out a command; returns after the sensor's answer."""
         config = self.sensors.get(sensor)
         if config is None:
-            return CommandResult.failed(sensor, name, CommandError(
-                ErrorKind.UNKNOWN, f"unknown sensor {sensor!r}"))
+            return CommandResult.failed(sensor, name, RequestFailed(
+                ErrorKind.UNKNOWN_SENSOR, f"unknown sensor {sensor!r}"))
         runner = self._runner_of[sensor]
         try:
             command = validate(name, args, config.series, runner.master.config.protocol)
-        except CommandError as exc:
-            return CommandResult.failed(sensor, name, exc)
-        try:
             result = await runner.call(runner.master.submit(sensor, command))
-        except SensorUnavailable as exc:
-            return CommandResult.failed(sensor, name, CommandError(exc.kind, str(exc)))
+        except RequestFailed as exc:
+            return CommandResult.failed(sensor, name, exc)
         if result.ok:
             self._learn(sensor, command.name, command.args, result.answer)
         return result

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any
 
-from .commands import ErrorKind
+from .errors import ErrorKind, RequestFailed
 from .model import Reading
 
 log = logging.getLogger("gateway.cache")
@@ -84,18 +84,6 @@ ErrorHook = Callable[[BaseException], None]
 Requester = Callable[[str], Awaitable[None]]
 
 
-class UnknownSensor(KeyError):
-    pass
-
-
-class SensorUnavailable(Exception):
-    """The bus could not be asked (a read or pass-through failed); ``kind`` says why."""
-
-    def __init__(self, kind: ErrorKind, message: str) -> None:
-        super().__init__(message)
-        self.kind = kind
-
-
 @dataclass(slots=True)
 class _Entry:
     stale_after: float  # seconds
@@ -132,7 +120,7 @@ class Cache:
         try:
             return self._entries[name]
         except KeyError:
-            raise UnknownSensor(name) from None
+            raise RequestFailed(ErrorKind.UNKNOWN_SENSOR, f"unknown sensor {name!r}") from None
 
     # ------------------------------------------------------------ reading
 

@@ -261,7 +261,8 @@ def cmd_decode(args: argparse.Namespace) -> int:
 
 
 def _load_or_report(path: str) -> GatewayConfig | None:
-    from .config import ConfigError, load_config
+    from .config import load_config
+    from .errors import ConfigError
 
     try:
         return load_config(path)
@@ -272,7 +273,8 @@ def _load_or_report(path: str) -> GatewayConfig | None:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from .app import StartupError, run_until_signalled
+    from .app import run_until_signalled
+    from .errors import StartupError
 
     config = _load_or_report(args.config)
     if config is None:
@@ -297,9 +299,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from .app import StartupError
-    from .config import ConfigError
     from .demo import DemoOptions, run_demo
+    from .errors import ConfigError, StartupError
 
     logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
                         format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")

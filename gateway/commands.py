@@ -9,7 +9,6 @@ are.
 
 from __future__ import annotations
 
-import enum
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -17,6 +16,7 @@ from typing import Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from .errors import ErrorKind, RequestFailed
 from .model import CAPABILITIES, Protocol, Series, commands_for
 from .protocol.bcd import ANGLE, DECLINATION, BcdFormat
 from .protocol.native import BAUD_CODES
@@ -119,24 +119,6 @@ CATALOGUE: Mapping[str, CommandSpec] = {
 }
 
 
-class ErrorKind(enum.Enum):
-    """Why a command failed; each front end maps these to its own codes."""
-
-    UNKNOWN = "unknown_command"  # REST 404, Modbus 02
-    BAD_ARGUMENTS = "bad_arguments"  # REST 422, Modbus 03
-    UNSUPPORTED = "unsupported"  # the series or protocol lacks it: REST 422, Modbus 02
-    BUSY = "busy"  # save or calibration running: REST 409, Modbus 06
-    TIMEOUT = "timeout"  # the sensor did not answer: REST 504, Modbus 0B
-    FAILURE = "failure"  # the sensor answered "failure": Modbus 04
-    OFFLINE = "offline"  # the port is gone: REST 504, Modbus 0B
-
-
-class CommandError(Exception):
-    def __init__(self, kind: ErrorKind, message: str) -> None:
-        super().__init__(message)
-        self.kind = kind
-
-
 @dataclass(frozen=True, slots=True)
 class Command:
     """A validated command for one sensor."""
@@ -157,7 +139,7 @@ class CommandResult:
     kind: ErrorKind | None = None
 
     @classmethod
-    def failed(cls, sensor: str, command: str, error: CommandError) -> CommandResult:
+    def failed(cls, sensor: str, command: str, error: RequestFailed) -> CommandResult:
         return cls(sensor, command, False, {}, str(error), error.kind)
 
     def to_json(self) -> dict[str, Any]:
@@ -179,22 +161,22 @@ def _friendly(exc: ValidationError) -> str:
 
 def validate(name: str, args: Mapping[str, Any] | None, series: Series,
              protocol: Protocol) -> Command:
-    """Check a command for a sensor of ``series``; raises ``CommandError``."""
+    """Check a command for a sensor of ``series``; raises ``RequestFailed``."""
     spec = CATALOGUE.get(name)
     if spec is None:
-        raise CommandError(ErrorKind.UNKNOWN,
+        raise RequestFailed(ErrorKind.UNKNOWN_COMMAND,
                            f"unknown command {name!r} (known: {', '.join(CATALOGUE)})")
     if name not in commands_for(series, protocol):
         # the series has it, so the protocol cannot carry it
         over = " over Modbus" if name in CAPABILITIES[series].commands else ""
-        raise CommandError(ErrorKind.UNSUPPORTED, f"{series.name} sensors have no {name}{over}")
+        raise RequestFailed(ErrorKind.UNSUPPORTED, f"{series.name} sensors have no {name}{over}")
     if args is not None and not isinstance(args, Mapping):
-        raise CommandError(ErrorKind.BAD_ARGUMENTS, "arguments must be a JSON object")
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, "arguments must be a JSON object")
     try:
         parsed = spec.args.model_validate(dict(args or {}))
     except ValidationError as exc:
-        raise CommandError(ErrorKind.BAD_ARGUMENTS, f"{name}: {_friendly(exc)}") from None
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"{name}: {_friendly(exc)}") from None
     values = parsed.model_dump()
     if name == "set_address" and protocol is Protocol.MODBUS and not 1 <= values["address"] <= 247:
-        raise CommandError(ErrorKind.BAD_ARGUMENTS, "set_address: a Modbus address is 1-247")
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, "set_address: a Modbus address is 1-247")
     return Command(name, values)

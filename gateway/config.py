@@ -49,13 +49,13 @@ from pydantic import (
 )
 from pydantic_core import ErrorDetails, PydanticCustomError
 
+from .errors import ConfigError
 from .model import Group, Protocol, Series
 from .normalise import FIELD_NAMES, GROUP_FIELDS
 from .protocol.native import BAUD_CODES, OUTPUT_RATE_CODES
 
 __all__ = [
     "BusConfig",
-    "ConfigError",
     "GatewayConfig",
     "HttpConfig",
     "ListenAddress",
@@ -88,14 +88,6 @@ _ENV_REF = re.compile(r"\$\$\{|\$\{([^}]*)\}|\$\{")
 _ENV_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 # Values never echoed in a message.
 _SECRET_KEYS = frozenset({"password", "token"})
-
-
-class ConfigError(Exception):
-    """The config is unusable.  ``problems``: one line each, ``<yaml path>: <message>``."""
-
-    def __init__(self, problems: list[str]) -> None:
-        super().__init__("\n".join(problems))
-        self.problems = problems
 
 
 # --------------------------------------------------------------------------- messages

@@ -10,7 +10,9 @@ from __future__ import annotations
 import enum
 import math
 import struct
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
+from types import MappingProxyType
 from typing import Any
 
 
@@ -40,14 +42,32 @@ class Group(enum.Enum):
     QUATERNION = "quaternion"
 
 
-#: the unit of each group's values (the module docstring says why there is no conversion)
-GROUP_UNITS: dict[Group, str] = {
-    Group.ANGLES: "°",
-    Group.ACCEL: "g",
-    Group.GYRO: "°/s",
-    Group.MAG: "G",
-    Group.QUATERNION: "",
-}
+@dataclass(frozen=True, slots=True)
+class GroupUnit:
+    """How one group's values are told, the one place for it: ``symbol`` is what the
+    register map, Home Assistant and the dashboard show, ``name`` what the API
+    descriptions say, and ``digits`` the decimals the documents give its values (the
+    BCD formats' and the Modbus registers' resolution), which is also the integer
+    registers' scale (``10 ** digits``)."""
+
+    symbol: str
+    name: str
+    digits: int
+
+    @property
+    def scale(self) -> int:
+        return int(10**self.digits)
+
+
+#: The unit of each group's values (the module docstring says why there is no
+#: conversion): one row per group.
+GROUP_UNITS: Mapping[Group, GroupUnit] = MappingProxyType({
+    Group.ANGLES: GroupUnit("°", "degrees", 2),
+    Group.ACCEL: GroupUnit("g", "standard gravity (g)", 4),
+    Group.GYRO: GroupUnit("°/s", "degrees per second", 2),
+    Group.MAG: GroupUnit("G", "gauss", 5),
+    Group.QUATERNION: GroupUnit("", "unitless", 6),
+})
 
 
 @dataclass(frozen=True, slots=True)

@@ -15,10 +15,10 @@ import pytest
 from harness import run, running, until
 
 from gateway.app import Gateway
-from gateway.bus.master import OFFLINE_AFTER, BusMaster, SensorUnavailable
+from gateway.bus.master import OFFLINE_AFTER, BusMaster
 from gateway.cache import EventKind, Snapshot, Status
-from gateway.commands import ErrorKind
 from gateway.config import config_from_dict
+from gateway.errors import ErrorKind, RequestFailed
 from gateway.model import Protocol, Series
 from gateway.simulator import Faults, SimSensor, SimulatorThread, hold, make_sensor, simulated
 from gateway.simulator.motion import Motion
@@ -282,7 +282,7 @@ def test_port_removed_and_restored_readings_resume(tmp_path: Any) -> None:
                 assert not m.port_open
                 result = await gw.command("ah", "read_settings")
                 assert result.kind is ErrorKind.OFFLINE
-                with pytest.raises(SensorUnavailable):
+                with pytest.raises(RequestFailed):
                     await gw.cache.fresh("ah", 0)
                 await asyncio.sleep(1.0)  # several failed reopen attempts
                 sim.call(sim.bus.replug)
@@ -390,9 +390,9 @@ def test_commands_are_validated_and_carried_out() -> None:
                 lacking = await gw.command("m", "set_declination", {"degrees": 2})
                 assert lacking.kind is ErrorKind.UNSUPPORTED
                 unknown = await gw.command("m", "self_destruct")
-                assert unknown.kind is ErrorKind.UNKNOWN
+                assert unknown.kind is ErrorKind.UNKNOWN_COMMAND
                 nobody = await gw.command("nobody", "save")
-                assert nobody.kind is ErrorKind.UNKNOWN
+                assert nobody.kind is ErrorKind.UNKNOWN_SENSOR
         run(body)
         no_overlap(sim)
 
@@ -467,7 +467,7 @@ def test_on_demand_reads_of_an_offline_sensor_fail_at_once() -> None:
                 before = m.sensors["dead"].stats.transactions + sum(
                     m.sensors["dead"].stats.errors.values())
                 for _ in range(20):
-                    with pytest.raises(SensorUnavailable) as refused:
+                    with pytest.raises(RequestFailed) as refused:
                         await gw.cache.fresh("dead", 0)
                     assert refused.value.kind is ErrorKind.OFFLINE
                 result = await gw.command("dead", "read_settings")
@@ -538,7 +538,8 @@ def test_a_stream_that_comes_back_by_itself_is_no_longer_polled() -> None:
 
 @pytest.mark.parametrize("port", ["pty", "socket://127.0.0.1:9"])
 def test_kernel_rs485_mode_where_it_cannot_work_is_a_clear_error(port: str) -> None:
-    from gateway.bus.link import LinkError, SerialLink
+    from gateway.bus.link import SerialLink
+    from gateway.errors import LinkError
 
     async def body(path: str) -> None:
         link = SerialLink(path, 9600, rs485=True)

@@ -12,7 +12,8 @@ from typing import Any
 
 import pytest
 
-from gateway.commands import CommandError, ErrorKind, validate
+from gateway.commands import validate
+from gateway.errors import ErrorKind, RequestFailed
 from gateway.model import Protocol, Series
 
 
@@ -55,6 +56,6 @@ def test_declination_rounds_half_away_from_zero_then_checks_the_range(
 ])
 def test_values_beyond_the_format_or_not_numbers_are_refused(name: str, series: Series,
                                                              value: Any) -> None:
-    with pytest.raises(CommandError) as caught:
+    with pytest.raises(RequestFailed) as caught:
         degrees(name, value, series)
     assert caught.value.kind is ErrorKind.BAD_ARGUMENTS

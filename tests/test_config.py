@@ -20,7 +20,6 @@ import yaml
 
 from gateway.config import (
     BusConfig,
-    ConfigError,
     GatewayConfig,
     HttpConfig,
     ListenAddress,
@@ -31,6 +30,7 @@ from gateway.config import (
     load_config,
     load_config_text,
 )
+from gateway.errors import ConfigError
 from gateway.model import Protocol, Series
 
 CONFIGS = Path(__file__).parent / "configs"

@@ -18,7 +18,7 @@ from typing import Any
 
 from harness import run, running, until
 
-from gateway.commands import ErrorKind
+from gateway.errors import ErrorKind
 from gateway.model import Protocol, Series
 from gateway.simulator import hold, make_sensor, simulated
 from gateway.simulator.motion import Motion

@@ -1,8 +1,9 @@
 """The protocol layer stays sans-IO (the layering rule, docs/architecture.md).
 
 Every module of ``gateway/protocol`` may import only the standard library, pymodbus,
-``gateway.protocol`` and ``gateway.model``, and none of the standard library's I/O,
-clock or concurrency modules.  Checked on the source with ``ast``, so nothing is run.
+``gateway.protocol``, ``gateway.model`` and ``gateway.errors`` (the exception tree),
+and none of the standard library's I/O, clock or concurrency modules.  Checked on the
+source with ``ast``, so nothing is run.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import pytest
 
 PROTOCOL = Path(__file__).resolve().parents[1] / "gateway" / "protocol"
 PACKAGE = "gateway.protocol"
-ALLOWED_PROJECT = ("gateway.protocol", "gateway.model")
+ALLOWED_PROJECT = ("gateway.protocol", "gateway.model", "gateway.errors")
 ALLOWED_THIRD_PARTY = ("pymodbus",)
 FORBIDDEN = frozenset(
     {"asyncio", "serial", "time", "socket", "threading", "selectors", "subprocess",

@@ -234,6 +234,7 @@ def test_command_round_trip(tmp_path: Path, version: str,
                 assert bad["kind"] == "unsupported"
                 bad = await ask(f"{BASE}/nobody/cmd/save", "{}")
                 assert bad["ok"] is False and "nobody" in bad["error"]
+                assert bad["kind"] == "unknown_sensor"  # as REST says it
                 bad = await ask(f"{cmd}/set_zero_type", b"\xff\xfe")
                 assert bad["kind"] == "bad_arguments"
                 bad = await ask(f"{cmd}/set_zero_type", "[" * 100_000)  # too deep to parse

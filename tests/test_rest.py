@@ -19,7 +19,8 @@ import pytest
 from harness import expected, fields_of, run, running, tolerance, until
 from prometheus_client.parser import text_string_to_metric_families
 
-from gateway.app import Gateway, StartupError, openapi_json
+from gateway.app import Gateway, openapi_json
+from gateway.errors import StartupError
 from gateway.model import Protocol, Series
 from gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
 from gateway.simulator.motion import Motion

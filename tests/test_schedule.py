@@ -22,8 +22,8 @@ from gateway.bus.sensor_state import (
     SensorState,
 )
 from gateway.bus.timing import RTO_INITIAL, RTO_MAX, RTO_MIN, AnswerTimer
-from gateway.commands import ErrorKind
 from gateway.config import SensorConfig
+from gateway.errors import ErrorKind
 from gateway.model import Series
 from gateway.protocol.exchanges import NativeAdapter, adapter_for, char_time
 

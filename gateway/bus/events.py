@@ -11,7 +11,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..commands import Command, CommandError, CommandResult
+from ..commands import Command, CommandResult
+from ..errors import RequestFailed
 from ..protocol.exchanges import Answer, Exchange
 from .sensor_state import SensorState
 
@@ -102,7 +103,7 @@ class Finished:
 
     job: Job
     outcome: CommandResult | bytes | None
-    error: CommandError | None = None
+    error: RequestFailed | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -18,7 +18,8 @@ import logging
 from collections import deque
 from collections.abc import Callable, Iterable
 
-from ..commands import Command, CommandError, CommandResult, ErrorKind
+from ..commands import Command, CommandResult
+from ..errors import ErrorKind, RequestFailed
 from ..protocol.errors import UsageError
 from ..protocol.exchanges import Exchange, ProtocolAdapter, Unsupported
 from ..stats import Counters
@@ -51,9 +52,9 @@ class JobQueue:
         return bool(self.commands) or any(
             not j.sensor.streaming and not j.started for j in self.reads.values())
 
-    def full(self, s: SensorState) -> CommandError | None:
+    def full(self, s: SensorState) -> RequestFailed | None:
         if sum(j.sensor is s for j in self.commands) >= MAX_QUEUED_PER_SENSOR:
-            return CommandError(ErrorKind.BUSY, f"{MAX_QUEUED_PER_SENSOR} requests for "
+            return RequestFailed(ErrorKind.BUSY, f"{MAX_QUEUED_PER_SENSOR} requests for "
                                 f"{s.name} are already waiting")
         return None
 
@@ -77,12 +78,12 @@ class JobQueue:
 
     def fail_all(self, kind: ErrorKind, message: str) -> None:
         while self.commands:
-            self.finish(self.commands.popleft(), error=CommandError(kind, message))
+            self.finish(self.commands.popleft(), error=RequestFailed(kind, message))
         for job in list(self.reads.values()):
-            self.finish(job, error=CommandError(kind, message))
+            self.finish(job, error=RequestFailed(kind, message))
 
     def finish(self, job: Job, outcome: CommandResult | bytes | None = None,
-               error: CommandError | None = None) -> None:
+               error: RequestFailed | None = None) -> None:
         """The job is over: whoever waits for it is told (a command always gets a
         ``CommandResult``; a read or a pass-through gets its outcome or ``error``)."""
         if self.reads.get(job.sensor.name) is job:
@@ -101,7 +102,7 @@ class JobQueue:
             job = self.commands.popleft()
             if job.sensor.busy_until <= now:
                 return job
-            self.finish(job, error=CommandError(ErrorKind.BUSY, f"{job.sensor.name} is busy "
+            self.finish(job, error=RequestFailed(ErrorKind.BUSY, f"{job.sensor.name} is busy "
                         f"for another {job.sensor.busy_until - now:.1f} s (save or "
                         "calibration)"))
         sensors = list(sensors)
@@ -112,7 +113,7 @@ class JobQueue:
                 return self._stop_unasked(s, now)
         for name, job in list(self.reads.items()):
             if job.sensor.busy_until > now and not job.sensor.read_while_busy:
-                self.finish(job, error=CommandError(ErrorKind.BUSY, f"{name} is busy (save "
+                self.finish(job, error=RequestFailed(ErrorKind.BUSY, f"{name} is busy (save "
                                                     "or calibration)"))
             elif not job.sensor.streaming and not job.started:
                 return job  # stays listed until answered, for later askers
@@ -152,6 +153,6 @@ class JobQueue:
                 s.stream_retry_at = float("inf")
             kind = ErrorKind.UNSUPPORTED if isinstance(exc, Unsupported) else \
                 ErrorKind.BAD_ARGUMENTS
-            self.finish(job, error=CommandError(kind, str(exc)))
+            self.finish(job, error=RequestFailed(kind, str(exc)))
             return False
         return True

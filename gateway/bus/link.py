@@ -21,16 +21,13 @@ from dataclasses import dataclass
 import serial
 import serial.rs485
 
+from ..errors import LinkError
 from ..threads import tighten_timers
 
 #: The bus and reader threads' niceness, where the system allows it: a line's timing
 #: is the machine's to keep even when other work takes the CPU (the systemd unit can
 #: grant CAP_SYS_NICE).
 BUS_NICE = -10
-
-
-class LinkError(Exception):
-    """The port cannot be opened, or is gone."""
 
 
 @dataclass(slots=True)

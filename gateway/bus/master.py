@@ -20,15 +20,15 @@ import typing
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-from ..cache import SensorUnavailable
-from ..commands import Command, CommandError, CommandResult, ErrorKind
+from ..commands import Command, CommandResult
 from ..config import BusConfig
+from ..errors import ErrorKind, LinkError, RequestFailed
 from ..model import Reading
 from ..normalise import to_reading
 from ..protocol.exchanges import ModbusAdapter, adapter_for
 from ..stats import BusStats, Counters, SensorStats, ms, share
 from .events import ErrorCounted, Event, Finished, Job, Note, Publish, StateChange, Trace
-from .link import LinkError, SerialLink
+from .link import SerialLink
 from .schedule import Schedule
 from .sensor_state import OFFLINE_AFTER, SensorState
 from .trace import TraceLog
@@ -103,21 +103,21 @@ class BusMaster:
 
     async def passthrough(self, sensor: str, pdu: bytes) -> bytes:
         """A Modbus request PDU to the sensor unchanged, queued like a command; returns
-        the sensor's answer PDU (its exceptions included).  Raises ``SensorUnavailable``
+        the sensor's answer PDU (its exceptions included).  Raises ``RequestFailed``
         when it does not answer."""
         if (refusal := self.schedule.refusal(sensor)) is not None:
-            raise SensorUnavailable(refusal.kind, str(refusal))
+            raise RequestFailed(refusal.kind, str(refusal))
         if not isinstance(self.adapter, ModbusAdapter):
-            raise SensorUnavailable(ErrorKind.UNSUPPORTED, f"{sensor} does not speak Modbus")
+            raise RequestFailed(ErrorKind.UNSUPPORTED, f"{sensor} does not speak Modbus")
         exchange = self.adapter.raw(self.sensors[sensor].address, pdu)
         answer: bytes = await self._wait_for(self.schedule.passthrough(sensor, exchange))
         return answer
 
     async def read_now(self, sensor: str) -> None:
         """Read the sensor now (behind commands).  Concurrent calls share one exchange;
-        a streaming sensor's next frame serves them.  Raises ``SensorUnavailable``."""
+        a streaming sensor's next frame serves them.  Raises ``RequestFailed``."""
         if (refusal := self.schedule.refusal(sensor, queued=False)) is not None:
-            raise SensorUnavailable(refusal.kind, str(refusal))
+            raise RequestFailed(refusal.kind, str(refusal))
         job, new = self.schedule.read(sensor)
         if new:
             self._futures[job] = asyncio.get_running_loop().create_future()
@@ -298,14 +298,14 @@ class BusMaster:
             case Trace():
                 self.trace_log.write(event, self._now())
 
-    def _resolve(self, job: Job, outcome: Any, error: CommandError | None) -> None:
+    def _resolve(self, job: Job, outcome: Any, error: RequestFailed | None) -> None:
         future = self._futures.pop(job, None)
         if future is None or future.done():
             return
         if error is None:
             future.set_result(outcome)
             return
-        future.set_exception(SensorUnavailable(error.kind, str(error)))
+        future.set_exception(RequestFailed(error.kind, str(error)))
         future.exception()  # retrieved here: a read nobody awaits any more is not an error
 
     # ------------------------------------------------------------ views
@@ -342,4 +342,4 @@ def _wake(future: asyncio.Future[None]) -> None:
         future.set_result(None)
 
 
-__all__ = ["OFFLINE_AFTER", "BusMaster", "SensorUnavailable"]
+__all__ = ["OFFLINE_AFTER", "BusMaster"]

@@ -9,8 +9,9 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
-from ..commands import CommandError, CommandResult, ErrorKind
+from ..commands import CommandResult
 from ..config import BusConfig
+from ..errors import ErrorKind, RequestFailed
 from ..model import Protocol
 from ..protocol.exchanges import GYRO_CAL_SECONDS, Answer, Effect, ProtocolAdapter
 from ..stats import Counters
@@ -227,7 +228,7 @@ class Outcomes:
         if job.kind in (Kind.POLL, Kind.READ):
             s.last_served = now
             s.schedule_next_poll(now)
-        self.jobs.finish(job, error=CommandError(error_kind, message))
+        self.jobs.finish(job, error=RequestFailed(error_kind, message))
 
     def _trace(self, a: Attempt, at: float, outcome: str) -> None:
         """(Called only while tracing: the outcome's words are not built otherwise.)"""

@@ -22,9 +22,9 @@ import threading
 from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any, TypeVar
 
-from ..cache import Cache, SensorUnavailable
-from ..commands import ErrorKind
+from ..cache import Cache
 from ..config import BusConfig
+from ..errors import ErrorKind, RequestFailed
 from ..model import Reading
 from ..threads import tighten_timers
 from .link import BUS_NICE
@@ -104,7 +104,7 @@ class BusRunner:
 
     def call(self, coro: Coroutine[Any, Any, T]) -> Awaitable[T]:
         """Run ``coro`` on the bus's loop; await the result on the caller's.  Raises
-        ``SensorUnavailable`` when the bus is not running (not started, or stopped)."""
+        ``RequestFailed`` when the bus is not running (not started, or stopped)."""
         loop = self._loop
         try:
             if loop is None or loop.is_closed():
@@ -112,7 +112,7 @@ class BusRunner:
             return asyncio.wrap_future(asyncio.run_coroutine_threadsafe(coro, loop))
         except RuntimeError:  # the loop closed under us: the bus has stopped
             coro.close()
-            raise SensorUnavailable(ErrorKind.OFFLINE,
+            raise RequestFailed(ErrorKind.OFFLINE,
                                     f"bus {self.master.name} is not running") from None
 
     def stop(self) -> None:

@@ -21,8 +21,9 @@ import logging
 import math
 from typing import Any
 
-from ..commands import Command, CommandError, ErrorKind
+from ..commands import Command
 from ..config import BusConfig
+from ..errors import ErrorKind, RequestFailed
 from ..protocol.exchanges import (
     Answer,
     Exchange,
@@ -76,19 +77,19 @@ class Schedule:
 
     # ------------------------------------------------------------ requests from users
 
-    def refusal(self, name: str, queued: bool = True) -> CommandError | None:
+    def refusal(self, name: str, queued: bool = True) -> RequestFailed | None:
         """Why a request for ``name`` cannot be taken now (it is answered at once).
 
         An offline sensor is not asked on demand: that would undo its back-off and
         hand the line to a dead address (it is still retried in the background)."""
         s = self.sensors[name]
         if self.stopping:
-            return CommandError(ErrorKind.OFFLINE, "the gateway is stopping")
+            return RequestFailed(ErrorKind.OFFLINE, "the gateway is stopping")
         if not self.port_open:
-            return CommandError(ErrorKind.OFFLINE, f"the port of bus {self.config.name} "
+            return RequestFailed(ErrorKind.OFFLINE, f"the port of bus {self.config.name} "
                                 f"({self.config.port}) is not open")
         if s.online is False:
-            return CommandError(ErrorKind.OFFLINE, f"{s.name} is offline (it is retried in "
+            return RequestFailed(ErrorKind.OFFLINE, f"{s.name} is offline (it is retried in "
                                 f"the background; {s.failures} failed exchanges so far)")
         return self.jobs.full(s) if queued else None
 

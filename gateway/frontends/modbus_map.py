@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..cache import Snapshot
-from ..model import CAPABILITIES, Group, Protocol, Reading, Series
+from ..model import CAPABILITIES, GROUP_UNITS, Group, Protocol, Reading, Series
 from ..normalise import GROUP_FIELDS, field_values
 from ..stats import BusStats
 
@@ -52,16 +52,10 @@ class Register:
 
 STATUS_BITS = {"online": 0, "stale": 1, "busy": 2, "streaming": 3, "no_reading": 4}
 
-#: Per group: the i32 copy's scale (the i32 register holds round(value × scale)) and the
-#: unit.
-_SCALE_AND_UNIT: dict[Group, tuple[int, str]] = {
-    Group.ANGLES: (100, "deg"), Group.ACCEL: (10000, "g"), Group.GYRO: (100, "deg/s"),
-    Group.MAG: (100000, "gauss"), Group.QUATERNION: (1000000, ""),
-}
 #: The sixteen measured values in the map's order (the reading JSON's): name, group,
-#: scale, unit.
+#: the i32 copy's scale (it holds round(value × scale): the group's resolution), unit.
 _MEASURED: tuple[tuple[str, Group, int, str], ...] = tuple(
-    (name, group, *_SCALE_AND_UNIT[group])
+    (name, group, GROUP_UNITS[group].scale, GROUP_UNITS[group].symbol)
     for group, (_, names) in GROUP_FIELDS.items() for name in names
 )
 FLOAT_BASE, INT_BASE, COMMAND_BASE = 100, 200, 1000

@@ -34,15 +34,25 @@ import socket
 import struct
 import time
 from collections import Counter
-from collections.abc import Awaitable, Mapping
+from collections.abc import Awaitable
 from typing import Any
 
 from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 from pymodbus.pdu.register_message import WriteMultipleRegistersResponse
 
-from ..cache import EventKind, SensorUnavailable, Snapshot
-from ..commands import ErrorKind
+from ..cache import EventKind, Snapshot
 from ..config import ModbusConfig, SensorConfig
+from ..errors import (
+    DEVICE_FAILURE,
+    GATEWAY_PATH,
+    ILLEGAL_ADDRESS,
+    ILLEGAL_FUNCTION,
+    ILLEGAL_VALUE,
+    KINDS,
+    TARGET_FAILED,
+    ErrorKind,
+    RequestFailed,
+)
 from ..model import shortest_float32
 from ..supervise import Frontend, PeerLog
 from . import modbus_map as mm
@@ -60,19 +70,10 @@ SEND_BUFFER = 64 * 1024  # bytes of kernel send buffer per connection
 FRAME_DEADLINE_S = 5.0  # a started frame must be whole within this (a trickle is closed)
 HOUSEKEEPING_S = 1.0  # how often the rate-limited peer warnings are summed up
 
-ILLEGAL_FUNCTION, ILLEGAL_ADDRESS, ILLEGAL_VALUE, DEVICE_FAILURE = 0x01, 0x02, 0x03, 0x04
-BUSY, GATEWAY_PATH, TARGET_FAILED = 0x06, 0x0A, 0x0B
-
-#: How a failed command is told to a Modbus client (the exceptions of docs/modbus-tcp.md).
-EXCEPTION_FOR: Mapping[ErrorKind, int] = {
-    ErrorKind.UNKNOWN: ILLEGAL_ADDRESS,
-    ErrorKind.UNSUPPORTED: ILLEGAL_ADDRESS,
-    ErrorKind.BAD_ARGUMENTS: ILLEGAL_VALUE,
-    ErrorKind.FAILURE: DEVICE_FAILURE,
-    ErrorKind.BUSY: BUSY,
-    ErrorKind.TIMEOUT: TARGET_FAILED,
-    ErrorKind.OFFLINE: TARGET_FAILED,
-}
+def exception_for(kind: ErrorKind) -> int:
+    """How a failed request is told to a Modbus client (docs/modbus-tcp.md): the
+    kind's row of ``gateway.errors.KINDS``."""
+    return KINDS[kind].modbus or TARGET_FAILED
 
 
 def exception(function: int, code: int) -> bytes:
@@ -264,7 +265,7 @@ class ModbusTcpServer(Frontend):
         result = await self.gateway.command(unit.sensor.name, reg.command, args)
         if not result.ok:
             assert result.kind is not None
-            return exception(function, EXCEPTION_FOR[result.kind])
+            return exception(function, exception_for(result.kind))
         if function == WRITE_SINGLE:
             return pdu  # the answer to FC06 is the request
         return _pdu(WriteMultipleRegistersResponse(address=address, count=len(words)))
@@ -282,8 +283,8 @@ class ModbusTcpServer(Frontend):
         self.counts["passthrough"] += 1
         try:
             return await self.gateway.passthrough(sensor, pdu)
-        except SensorUnavailable as exc:
-            return exception(function, EXCEPTION_FOR.get(exc.kind, TARGET_FAILED))
+        except RequestFailed as exc:
+            return exception(function, exception_for(exc.kind))
 
 
 def _read_span(pdu: bytes) -> tuple[int, int] | None:

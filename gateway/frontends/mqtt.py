@@ -51,8 +51,9 @@ from paho.mqtt.subscribeoptions import SubscribeOptions
 
 from .. import __version__
 from ..cache import EventKind, Snapshot, Status
-from ..commands import CommandError, CommandResult, ErrorKind
+from ..commands import CommandResult
 from ..config import MqttConfig
+from ..errors import ErrorKind, RequestFailed
 from ..model import CAPABILITIES, GROUP_UNITS
 from ..normalise import GROUP_FIELDS, field_values, member_name
 from ..supervise import Frontend, PeerLog
@@ -552,11 +553,11 @@ class MqttClient(Frontend):
         try:
             args = _command_args(bytes(message.payload))
             _check_properties(message.properties)
-        except CommandError as exc:
+        except RequestFailed as exc:
             self._answer(message, CommandResult.failed(sensor, command, exc))
             return
         if len(self._commands) >= MAX_COMMANDS:
-            self._answer(message, CommandResult.failed(sensor, command, CommandError(
+            self._answer(message, CommandResult.failed(sensor, command, RequestFailed(
                 ErrorKind.BUSY, f"{MAX_COMMANDS} commands are already being carried out")))
             return
         task = asyncio.create_task(self._carry_out(message, sensor, command, args))
@@ -640,8 +641,8 @@ class MqttClient(Frontend):
                         "device": device,
                         "origin": {"name": "imu-gateway", "sw_version": __version__},
                     }
-                    if GROUP_UNITS[group]:
-                        payload["unit_of_measurement"] = GROUP_UNITS[group]
+                    if GROUP_UNITS[group].symbol:
+                        payload["unit_of_measurement"] = GROUP_UNITS[group].symbol
                     out[self.discovery_topic(name, field_name)] = payload
         return out
 
@@ -692,16 +693,16 @@ class MqttClient(Frontend):
 def _command_args(payload: bytes) -> dict[str, Any]:
     """A command's arguments: a JSON object (blank: none)."""
     if len(payload) > MAX_COMMAND_PAYLOAD:
-        raise CommandError(ErrorKind.BAD_ARGUMENTS, f"the payload is {len(payload)} bytes; "
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"the payload is {len(payload)} bytes; "
                            f"at most {MAX_COMMAND_PAYLOAD}")
     if not payload.strip():
         return {}
     try:
         args = json.loads(payload)
     except (ValueError, RecursionError) as exc:  # UnicodeDecodeError is a ValueError
-        raise CommandError(ErrorKind.BAD_ARGUMENTS, f"the payload is not JSON: {exc}") from None
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"the payload is not JSON: {exc}") from None
     if not isinstance(args, dict):
-        raise CommandError(ErrorKind.BAD_ARGUMENTS, "the payload must be a JSON object")
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, "the payload must be a JSON object")
     return args
 
 
@@ -733,10 +734,10 @@ def _properties_problem(properties: Properties | None) -> str | None:
 
 
 def _check_properties(properties: Properties | None) -> None:
-    """Raise ``CommandError`` when the MQTT 5 properties of a command are unusable."""
+    """Raise ``RequestFailed`` when the MQTT 5 properties of a command are unusable."""
     problem = _properties_problem(properties)
     if problem is not None:
-        raise CommandError(ErrorKind.BAD_ARGUMENTS, problem)
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, problem)
 
 
 def _close_sockets(client: paho.Client) -> None:

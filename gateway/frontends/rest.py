@@ -49,9 +49,11 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 from .. import __version__
-from ..cache import EventKind, SensorUnavailable, Snapshot, Status
-from ..commands import CATALOGUE, ErrorKind
+from ..cache import EventKind, Snapshot, Status
+from ..commands import CATALOGUE
 from ..config import HttpConfig
+from ..errors import KINDS, ErrorKind, RequestFailed
+from ..model import GROUP_UNITS, Group
 from ..stats import SensorStats
 from ..supervise import Frontend, RepeatFilter
 from .common import GatewayLike, json_bytes
@@ -69,26 +71,11 @@ HEADER_DEADLINE_S = 10.0  # a request's headers, from connecting or from the pre
 BODY_DEADLINE_S = 10.0  # a request's body, from the end of its headers
 IDLE_S = 5  # a connection with no request under way (uvicorn's timeout_keep_alive)
 
-STATUS_FOR: dict[ErrorKind, int] = {
-    ErrorKind.UNKNOWN: 404,
-    ErrorKind.BAD_ARGUMENTS: 422,
-    ErrorKind.UNSUPPORTED: 422,
-    ErrorKind.BUSY: 409,
-    ErrorKind.TIMEOUT: 504,
-    ErrorKind.OFFLINE: 504,
-    ErrorKind.FAILURE: 502,
-}
 
 
 # Module level: FastAPI resolves the (string) annotations of endpoints here.
 _bearer = HTTPBearer(auto_error=False, description="the gateway's http.token")
 Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
-
-
-class ApiError(Exception):
-    def __init__(self, status: int, kind: str, message: str) -> None:
-        super().__init__(message)
-        self.status, self.kind = status, kind
 
 
 # ------------------------------------------------------------------ response models
@@ -148,11 +135,12 @@ class ReadingOut(_Out):
     ts: str | None = Field(description="when the sample arrived, UTC")
     seq: int
     status: Literal["ok", "stale", "offline"]
-    angles: AnglesOut | None = Field(None, description="degrees")
-    accel: VectorOut | None = Field(None, description="g")
-    gyro: VectorOut | None = Field(None, description="degrees per second")
-    mag: VectorOut | None = Field(None, description="gauss")
-    quaternion: QuaternionOut | None = None
+    angles: AnglesOut | None = Field(None, description=GROUP_UNITS[Group.ANGLES].name)
+    accel: VectorOut | None = Field(None, description=GROUP_UNITS[Group.ACCEL].name)
+    gyro: VectorOut | None = Field(None, description=GROUP_UNITS[Group.GYRO].name)
+    mag: VectorOut | None = Field(None, description=GROUP_UNITS[Group.MAG].name)
+    quaternion: QuaternionOut | None = Field(
+        None, description=GROUP_UNITS[Group.QUATERNION].name)
 
 
 class SensorOut(_Out):
@@ -371,7 +359,7 @@ class _CommandGuard:
             body += message.get("body", b"")
             more = message.get("more_body", False)
             if len(body) > MAX_BODY:
-                too_large = ApiError(413, "too_large", f"the body is over {MAX_BODY} bytes")
+                too_large = RequestFailed(ErrorKind.TOO_LARGE, f"the body is over {MAX_BODY} bytes")
                 await error_response(too_large)(scope, receive, send)
                 return
         replayed = False
@@ -385,7 +373,7 @@ class _CommandGuard:
 
         await self.app(scope, replay, send)
 
-    def _refusal(self, scope: Any) -> ApiError | None:
+    def _refusal(self, scope: Any) -> RequestFailed | None:
         if not scope["path"].startswith(f"{API}/sensors/") or "/commands/" not in scope["path"]:
             return None
         headers = dict(scope["headers"])
@@ -398,20 +386,26 @@ def token_matches(given: str, token: str | None) -> bool:
     return token is not None and hmac.compare_digest(given.encode(), token.encode())
 
 
-def command_refusal(config: HttpConfig, token: str | None) -> ApiError | None:
+def command_refusal(config: HttpConfig, token: str | None) -> RequestFailed | None:
     """Why a command with this bearer token is refused, if it is (the one rule, for
     the guard in front of the body and the routes' dependency alike)."""
     if not config.allow_commands:
-        return ApiError(403, "forbidden", "commands are turned off (http.allow_commands)")
+        return RequestFailed(ErrorKind.FORBIDDEN, "commands are turned off (http.allow_commands)")
     if token is None or not token_matches(token, config.token):
-        return ApiError(401, "unauthorised", "a valid bearer token is required")
+        return RequestFailed(ErrorKind.UNAUTHORISED, "a valid bearer token is required")
     return None
 
 
-def error_response(exc: ApiError) -> JSONResponse:
-    """Every error's answer: ``{"error", "kind"}``, and the challenge with a 401."""
-    headers = {"WWW-Authenticate": "Bearer"} if exc.status == 401 else None
-    return JSONResponse({"error": str(exc), "kind": exc.kind}, exc.status, headers)
+def error_response(exc: RequestFailed) -> JSONResponse:
+    """Every failed request's answer: ``{"error", "kind"}`` with the kind's status
+    (``gateway.errors.KINDS``), and the challenge with a 401."""
+    return json_error(exc.status, exc.kind.value, str(exc))
+
+
+def json_error(status: int, kind: str, message: str) -> JSONResponse:
+    """An error answer of any status, the HTTP layer's own (404 of a path, 405) too."""
+    headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
+    return JSONResponse({"error": message, "kind": kind}, status, headers)
 
 
 class _CountRequests:
@@ -551,8 +545,8 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     errors: dict[int | str, dict[str, Any]] = {
         code: {"model": ErrorOut} for code in (401, 403, 404, 409, 413, 422, 502, 503, 504)}
 
-    @app.exception_handler(ApiError)
-    async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
+    @app.exception_handler(RequestFailed)
+    async def _failed(request: Request, exc: RequestFailed) -> JSONResponse:
         return error_response(exc)
 
     @app.exception_handler(RequestValidationError)
@@ -561,21 +555,21 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
         for err in exc.errors():
             where = ".".join(str(p) for p in err["loc"] if p != "body") or "body"
             parts.append(f"{where}: {err['msg'].removeprefix('Value error, ')}")
-        return error_response(ApiError(422, "bad_arguments", "; ".join(parts)))
+        return error_response(RequestFailed(ErrorKind.BAD_ARGUMENTS, "; ".join(parts)))
 
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         if exc.status_code == 400:  # a body that is not even text: bad arguments too
-            return error_response(ApiError(422, "bad_arguments", str(exc.detail)))
-        kind = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http")
-        response = error_response(ApiError(exc.status_code, kind, str(exc.detail)))
+            return error_response(RequestFailed(ErrorKind.BAD_ARGUMENTS, str(exc.detail)))
+        kind = {404: ErrorKind.NOT_FOUND, 405: ErrorKind.METHOD_NOT_ALLOWED}.get(exc.status_code)
+        response = json_error(exc.status_code, kind.value if kind else "http", str(exc.detail))
         response.headers.update(exc.headers or {})  # 405's Allow
         return response
 
 
     def authorised(credentials: HTTPAuthorizationCredentials | None) -> None:
         if credentials is None or not token_matches(credentials.credentials, config.token):
-            raise ApiError(401, "unauthorised", "a valid bearer token is required")
+            raise RequestFailed(ErrorKind.UNAUTHORISED, "a valid bearer token is required")
 
     # async, like every dependency here: FastAPI runs a plain def in a worker thread,
     # a thread hop per request (measured: it halved the readings/s).
@@ -602,7 +596,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
 
     def sensor_or_404(name: str) -> Snapshot:
         if name not in gateway.sensors:
-            raise ApiError(404, "unknown_sensor", f"unknown sensor {name!r}")
+            raise RequestFailed(ErrorKind.UNKNOWN_SENSOR, f"unknown sensor {name!r}")
         return gateway.cache.snapshot(name)
 
     bus_of = {s.name: b for b, s in gateway.config.iter_sensors()}
@@ -676,14 +670,10 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
             ge=0, le=3_600_000, description="the oldest reading acceptable, ms")] = None,
                       ) -> Response:
         snap = sensor_or_404(name)
-        if max_age_ms is not None:
-            try:
-                snap = await gateway.cache.fresh(name, max_age_ms)
-            except SensorUnavailable as exc:
-                raise ApiError(STATUS_FOR.get(exc.kind, 504), exc.kind.value, str(exc)) \
-                    from None
+        if max_age_ms is not None:  # (a RequestFailed answers with its kind's status)
+            snap = await gateway.cache.fresh(name, max_age_ms)
         if not snap.has_reading:
-            raise ApiError(503, "no_reading", f"{name} has not been read yet")
+            raise RequestFailed(ErrorKind.NO_READING, f"{name} has not been read yet")
         # The hot path: serialised once per sample and status however many clients
         # ask, and not validated against ReadingOut again (which only documents it).
         key = (snap.seq, snap.status)
@@ -696,7 +686,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
 
     def stream_response(sensor: str | None, request: Request) -> StreamingResponse:
         if streams_hub.open >= MAX_STREAMS:
-            raise ApiError(503, "too_many_streams", f"{MAX_STREAMS} streams are open")
+            raise RequestFailed(ErrorKind.TOO_MANY_STREAMS, f"{MAX_STREAMS} streams are open")
         return StreamingResponse(streams_hub.stream(sensor, stream_peer(request)),
                                  media_type="text/event-stream",
                                  headers={"Cache-Control": "no-cache",
@@ -727,7 +717,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     @app.post(f"{API}/sensors/{{name}}/commands/{{command}}", include_in_schema=False)
     async def unknown_command(name: str, command: str) -> None:
         sensor_or_404(name)
-        raise ApiError(404, "unknown_command",
+        raise RequestFailed(ErrorKind.UNKNOWN_COMMAND,
                        f"unknown command {command!r} (known: {', '.join(CATALOGUE)})")
 
     @app.get("/metrics", response_class=Response, dependencies=reads,
@@ -777,7 +767,7 @@ def _command_route(app: FastAPI, gateway: GatewayLike, command: str, args: type[
         sensor_or_404(name)
         values = body.model_dump() if body is not None else {}
         result = await gateway.command(name, command, values)
-        status = 200 if result.ok else STATUS_FOR.get(result.kind or ErrorKind.FAILURE, 502)
+        status = 200 if result.ok else KINDS[result.kind or ErrorKind.FAILURE].status
         return JSONResponse(result.to_json(), status)
 
     # The body's type is the command's model, known only here: FastAPI reads it from
@@ -884,7 +874,7 @@ class _GuardedProtocol(HttpToolsProtocol):
                   part, seconds)
         if self.cycle is None or self.cycle.response_complete or not self.cycle.response_started:
             body = json_bytes({"error": f"the request's {part} did not come within "
-                                        f"{seconds:g} s", "kind": "request_timeout"})
+                                        f"{seconds:g} s", "kind": ErrorKind.REQUEST_TIMEOUT.value})
             head = [b"HTTP/1.1 408 Request Timeout\r\n",
                     *(b"%s: %s\r\n" % h for h in self.server_state.default_headers),
                     b"content-type: application/json\r\n",

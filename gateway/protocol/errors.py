@@ -14,9 +14,12 @@ Library errors (pymodbus) are converted to these in one place, ``modbus_rtu``.
 
 from __future__ import annotations
 
+from ..errors import GatewayError
 
-class ProtocolError(Exception):
-    """Base of everything the protocol layer raises."""
+
+class ProtocolError(GatewayError):
+    """Base of everything the protocol layer raises (a branch of ``gateway.errors``'s
+    tree)."""
 
 
 class FrameError(ProtocolError):
