@@ -18,7 +18,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from .bus.runner import BusRunner
-from .cache import Cache
+from .cache import Cache, Snapshot
 from .capacity import line_loads
 from .commands import CommandResult, validate
 from .config import GatewayConfig, HttpConfig, SensorConfig, config_from_dict
@@ -148,6 +148,17 @@ class Gateway:
             self.cache.check_staleness()
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), STALENESS_TICK)
+
+    async def read(self, sensor: str, max_age_ms: float) -> Snapshot:
+        """The sensor's snapshot with a reading at most ``max_age_ms`` old: the bus is
+        read first when the cached one is older (a streaming sensor's next frame
+        serves).  Raises ``RequestFailed`` (``unknown_sensor``, ``offline``, …)."""
+        snap = self.cache.snapshot(sensor)
+        if snap.age_ms is not None and snap.age_ms <= max_age_ms:
+            return snap
+        runner = self._runner_of[sensor]
+        await runner.call(runner.master.read_now(sensor))
+        return self.cache.snapshot(sensor)
 
     async def passthrough(self, sensor: str, pdu: bytes) -> bytes:
         """A Modbus PDU to a Modbus sensor's own registers (``raw_unit_id``).  A setting

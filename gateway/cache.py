@@ -20,7 +20,7 @@ from __future__ import annotations
 import enum
 import logging
 import time
-from collections.abc import Awaitable, Callable, Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any
@@ -80,8 +80,6 @@ class EventKind(enum.Enum):
 
 Listener = Callable[[EventKind, Snapshot], None]
 ErrorHook = Callable[[BaseException], None]
-#: asks a bus master for a new reading of the named sensor; resolves when it is in
-Requester = Callable[[str], Awaitable[None]]
 
 
 @dataclass(slots=True)
@@ -110,7 +108,6 @@ class Cache:
         self._entries = {name: _Entry(stale_ms / 1000) for name, stale_ms in sensors}
         self._clock = clock
         self._listeners: list[tuple[Listener, ErrorHook | None]] = []
-        self._requesters: dict[str, Requester] = {}
 
     @property
     def names(self) -> list[str]:
@@ -149,22 +146,6 @@ class Cache:
         entry = (listener, on_error)
         self._listeners.append(entry)
         return lambda: self._listeners.remove(entry) if entry in self._listeners else None
-
-    def set_requester(self, name: str, requester: Requester) -> None:
-        self._entry(name)
-        self._requesters[name] = requester
-
-    async def fresh(self, name: str, max_age_ms: float) -> Snapshot:
-        """A snapshot whose reading is at most ``max_age_ms`` old, reading the bus if
-        the cached one is older.  Raises what the bus master raises when it cannot."""
-        snap = self.snapshot(name)
-        if snap.age_ms is not None and snap.age_ms <= max_age_ms:
-            return snap
-        requester = self._requesters.get(name)
-        if requester is None:
-            return snap
-        await requester(name)
-        return self.snapshot(name)
 
     # ------------------------------------------------------------ writing (bus masters)
 

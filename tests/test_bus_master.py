@@ -151,10 +151,10 @@ def test_identical_on_demand_reads_share_one_exchange() -> None:
                 m = master(gw)
                 before = m.stats.transactions
                 snaps = await asyncio.wait_for(
-                    asyncio.gather(*(gw.cache.fresh("ah", 0) for _ in range(50))), 10)
+                    asyncio.gather(*(gw.read("ah", 0) for _ in range(50))), 10)
                 assert m.stats.transactions - before == 1
                 assert len({s.seq for s in snaps}) == 1
-                cached = await gw.cache.fresh("ah", 60_000)  # young enough: no bus traffic
+                cached = await gw.read("ah", 60_000)  # young enough: no bus traffic
                 assert m.stats.transactions - before == 1 and cached.seq == snaps[0].seq
         run(body)
         no_overlap(sim)
@@ -283,7 +283,7 @@ def test_port_removed_and_restored_readings_resume(tmp_path: Any) -> None:
                 result = await gw.command("ah", "read_settings")
                 assert result.kind is ErrorKind.OFFLINE
                 with pytest.raises(RequestFailed):
-                    await gw.cache.fresh("ah", 0)
+                    await gw.read("ah", 0)
                 await asyncio.sleep(1.0)  # several failed reopen attempts
                 sim.call(sim.bus.replug)
                 seq = gw.cache.snapshot("ah").seq
@@ -382,7 +382,7 @@ def test_commands_are_validated_and_carried_out() -> None:
                 await until(lambda: gw.cache.snapshot("m").seq >= 1)
                 heading = await gw.command("m", "set_relative_heading", {"degrees": 90})
                 assert heading.ok, heading
-                snap = await gw.cache.fresh("m", 0)
+                snap = await gw.read("m", 0)
                 assert snap.reading is not None and snap.reading.angles is not None
                 assert snap.reading.angles.yaw == pytest.approx(90.0, abs=0.01)
                 bad = await gw.command("m", "set_relative_heading", {"degrees": "north"})
@@ -468,7 +468,7 @@ def test_on_demand_reads_of_an_offline_sensor_fail_at_once() -> None:
                     m.sensors["dead"].stats.errors.values())
                 for _ in range(20):
                     with pytest.raises(RequestFailed) as refused:
-                        await gw.cache.fresh("dead", 0)
+                        await gw.read("dead", 0)
                     assert refused.value.kind is ErrorKind.OFFLINE
                 result = await gw.command("dead", "read_settings")
                 assert result.kind is ErrorKind.OFFLINE

@@ -106,3 +106,42 @@ def test_front_ends_use_neither_protocol_nor_bus_nor_each_other(path: Path) -> N
 def test_frontend_resolver() -> None:
     names = frontend_imports(FRONTENDS / "mqtt.py")
     assert "gateway.cache" in names and "gateway.frontends.common" in names
+
+
+def package_imports(path: Path, package: str) -> list[str]:
+    """Like ``imported_names``, for a module of ``package`` (relative ones resolved)."""
+    parts = package.split(".")
+    names: list[str] = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names += [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = parts[: len(parts) - (node.level - 1)] if node.level else []
+            if node.module:
+                names.append(".".join([*base, node.module]))
+            else:
+                names += [".".join([*base, alias.name]) for alias in node.names]
+    return names
+
+
+def test_the_cache_is_a_passive_store() -> None:
+    """The cache knows readings and states, not commands nor buses: nothing calls
+    from it into a bus (on-demand reads go through the gateway object)."""
+    for name in package_imports(PROTOCOL.parent / "cache.py", "gateway"):
+        assert not _within(name, "gateway.commands"), name
+        assert not _within(name, "gateway.bus"), name
+        assert not _within(name, "gateway.frontends"), name
+
+
+@pytest.mark.parametrize("path", sorted((PROTOCOL.parent / "bus").glob("*.py")),
+                         ids=lambda p: p.name)
+def test_a_bus_imports_no_front_end(path: Path) -> None:
+    for name in package_imports(path, "gateway.bus"):
+        assert not _within(name, "gateway.frontends"), f"{path.name} imports {name}"
+        assert not _within(name, "gateway.app"), f"{path.name} imports {name}"
+
+
+def test_package_resolver() -> None:
+    assert "gateway.errors" in package_imports(PROTOCOL.parent / "cache.py", "gateway")
+    assert "gateway.errors" in package_imports(PROTOCOL.parent / "bus" / "master.py",
+                                               "gateway.bus")

@@ -43,7 +43,6 @@ BUG_PAUSE = 0.1
 T = TypeVar("T")
 
 #: the master's on-demand read of one sensor
-ReadNow = typing.Callable[[str], typing.Coroutine[typing.Any, typing.Any, None]]
 
 
 class CacheWrites(typing.Protocol):
@@ -57,8 +56,6 @@ class CacheWrites(typing.Protocol):
 
     def count_error(self, name: str) -> None: ...
 
-    def set_requester(self, name: str, requester: ReadNow) -> None: ...
-
 
 class BusMaster:
     def __init__(self, config: BusConfig, cache: CacheWrites,
@@ -69,8 +66,6 @@ class BusMaster:
         self.schedule = Schedule(config, self.adapter)
         self.link = link or SerialLink(config.port, config.baudrate, rs485=config.rs485)
         self.cache = cache
-        for name in self.schedule.sensors:
-            cache.set_requester(name, self.read_now)
         self._futures: dict[Job, asyncio.Future[Any]] = {}
         self._waiter: asyncio.Future[None] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None

@@ -28,7 +28,7 @@ from ..errors import ErrorKind, RequestFailed
 from ..model import Reading
 from ..threads import tighten_timers
 from .link import BUS_NICE
-from .master import BusMaster, ReadNow
+from .master import BusMaster
 
 log = logging.getLogger("gateway.bus")
 T = TypeVar("T")
@@ -60,10 +60,6 @@ class CacheWriter:
 
     def count_error(self, name: str) -> None:
         self._hand_over(self.cache.count_error, name)
-
-    def set_requester(self, name: str, requester: ReadNow) -> None:
-        """The master's on-demand read, reached from the cache's loop across threads."""
-        self.cache.set_requester(name, lambda sensor: self.runner.call(requester(sensor)))
 
 
 class BusRunner:

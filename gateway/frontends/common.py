@@ -6,7 +6,7 @@ import json
 from collections.abc import Mapping
 from typing import Any, Protocol
 
-from ..cache import Cache
+from ..cache import Cache, Snapshot
 from ..commands import CommandResult
 from ..config import GatewayConfig, SensorConfig
 from ..stats import BusStats, SensorStats
@@ -22,6 +22,8 @@ class GatewayLike(Protocol):
 
     async def command(self, sensor: str, name: str,
                       args: Mapping[str, Any] | None = None) -> CommandResult: ...
+
+    async def read(self, sensor: str, max_age_ms: float) -> Snapshot: ...
 
     async def passthrough(self, sensor: str, pdu: bytes) -> bytes: ...
 

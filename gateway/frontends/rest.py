@@ -671,7 +671,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
                       ) -> Response:
         snap = sensor_or_404(name)
         if max_age_ms is not None:  # (a RequestFailed answers with its kind's status)
-            snap = await gateway.cache.fresh(name, max_age_ms)
+            snap = await gateway.read(name, max_age_ms)
         if not snap.has_reading:
             raise RequestFailed(ErrorKind.NO_READING, f"{name} has not been read yet")
         # The hot path: serialised once per sample and status however many clients
