@@ -49,15 +49,14 @@ from paho.mqtt.properties import Properties
 from paho.mqtt.reasoncodes import ReasonCode
 from paho.mqtt.subscribeoptions import SubscribeOptions
 
-from .. import __version__
 from ..cache import EventKind, Snapshot, Status
 from ..commands import CommandResult
 from ..config import MqttConfig
 from ..errors import ErrorKind, RequestFailed
-from ..model import CAPABILITIES, GROUP_UNITS
-from ..normalise import GROUP_FIELDS, field_values, member_name
+from ..normalise import field_values
 from ..supervise import Frontend, PeerLog
 from .common import GatewayLike, json_bytes
+from .mqtt_topics import Topics, discovery_configs, send_delay, within_deadband
 
 log = logging.getLogger("gateway.mqtt")
 
@@ -146,9 +145,9 @@ class MqttClient(Frontend):
         super().__init__()
         self.gateway = gateway
         self.config = config
-        gid = gateway.config.gateway_id
-        self.prefix = f"{config.base_topic}/{gid}"
-        self.status_topic = f"{self.prefix}/status"
+        self.topics = Topics.of(config, gateway.config.gateway_id)
+        self.prefix = self.topics.prefix
+        self.status_topic = self.topics.status
         self.outbox = Outbox(config.queue_size)
         # Retained control messages (status, availability, discovery) and command
         # results go before the outbox and are never dropped: one entry per key, so
@@ -158,7 +157,8 @@ class MqttClient(Frontend):
         self.connected = False
         self._deadbands = config.field_deadbands()
         # The sensors are fixed for the process's life, so their discovery configs are.
-        self.discovery = self._discovery_configs() if config.homeassistant_discovery else {}
+        self.discovery = discovery_configs(self.topics, gateway.sensors) \
+            if config.homeassistant_discovery else {}
         self._sensors = {name: _SensorOut() for name in gateway.sensors}
         self._loop: asyncio.AbstractEventLoop | None = None
         self._client: paho.Client | None = None
@@ -183,14 +183,7 @@ class MqttClient(Frontend):
     # ------------------------------------------------------------ topics
 
     def sensor_topic(self, sensor: str, leaf: str) -> str:
-        return f"{self.prefix}/{sensor}/{leaf}"
-
-    def discovery_topic(self, sensor: str, field_name: str) -> str:
-        return f"{self.config.discovery_prefix}/sensor/{self._object_id(sensor, field_name)}/config"
-
-    def _object_id(self, sensor: str, field_name: str) -> str:
-        # Home Assistant's object ids allow [a-zA-Z0-9_-]; a gateway id may hold dots.
-        return f"{self.gateway.config.gateway_id}_{sensor}_{field_name}".replace(".", "_")
+        return self.topics.sensor(sensor, leaf)
 
     # ------------------------------------------------------------ lifecycle
 
@@ -502,7 +495,7 @@ class MqttClient(Frontend):
         if self._within_deadband(snap, out):
             return
         assert self._loop is not None
-        wait = out.sent_at + self.config.min_interval_ms / 1000 - self._loop.time()
+        wait = send_delay(out.sent_at, self.config.min_interval_ms / 1000, self._loop.time())
         if wait > 0:
             out.trailing = self._loop.call_later(wait, self._send_trailing, snap.name)
             return
@@ -515,12 +508,8 @@ class MqttClient(Frontend):
             self._publish_state(snap)
 
     def _within_deadband(self, snap: Snapshot, out: _SensorOut) -> bool:
-        if not self._deadbands or out.values is None or snap.reading is None:
-            return False
-        values = field_values(snap.reading)
-        moved = [abs(values[f] - out.values[f]) > band
-                 for f, band in self._deadbands.items() if f in values and f in out.values]
-        return bool(moved) and not any(moved)
+        return snap.reading is not None and within_deadband(
+            field_values(snap.reading), out.values, self._deadbands)
 
     def _publish_state(self, snap: Snapshot) -> None:
         assert self._loop is not None and snap.reading is not None
@@ -613,38 +602,6 @@ class MqttClient(Frontend):
                            key=f"result {self._results}")
 
     # ------------------------------------------------------------ Home Assistant
-
-    def _discovery_configs(self) -> dict[str, dict[str, Any]]:
-        """Topic -> discovery payload: one entity per measured field of every sensor."""
-        gid = self.gateway.config.gateway_id
-        availability = [{"topic": self.status_topic}]
-        out: dict[str, dict[str, Any]] = {}
-        for name, sensor in self.gateway.sensors.items():
-            device = {"identifiers": [f"{gid}_{name}".replace(".", "_")],
-                      "name": f"{name} ({sensor.series.name})",
-                      "model": f"{sensor.series.name} series",
-                      "manufacturer": "imu-gateway", "sw_version": __version__}
-            for group, (_, fields) in GROUP_FIELDS.items():
-                if group not in CAPABILITIES[sensor.series].groups:
-                    continue
-                for field_name in fields:
-                    payload: dict[str, Any] = {
-                        "name": field_name.replace("_", " "),
-                        "unique_id": self._object_id(name, field_name),
-                        "state_topic": self.sensor_topic(name, "state"),
-                        "value_template": "{{ value_json." + group.value + "."
-                                          + member_name(group, field_name) + " }}",
-                        "state_class": "measurement",
-                        "availability": [*availability,
-                                         {"topic": self.sensor_topic(name, "availability")}],
-                        "availability_mode": "all",
-                        "device": device,
-                        "origin": {"name": "imu-gateway", "sw_version": __version__},
-                    }
-                    if GROUP_UNITS[group].symbol:
-                        payload["unit_of_measurement"] = GROUP_UNITS[group].symbol
-                    out[self.discovery_topic(name, field_name)] = payload
-        return out
 
     def _sweep(self, message: paho.MQTTMessage) -> None:
         """A retained discovery config of this gateway that it no longer publishes (a

@@ -1,0 +1,98 @@
+"""The MQTT front end's pure parts: its topics, the Home Assistant discovery configs,
+and the rules of when a state is sent (``min_interval_ms`` and the deadbands).
+
+No client, no loop, no clock: the MQTT client (``mqtt.py``) calls these with what it
+knows, and the tests check them on values alone.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from .. import __version__
+from ..config import MqttConfig, SensorConfig
+from ..model import CAPABILITIES, GROUP_UNITS
+from ..normalise import GROUP_FIELDS, member_name
+
+
+@dataclass(frozen=True, slots=True)
+class Topics:
+    """Every topic of one gateway: ``{base}/{gateway_id}/…`` and the discovery ones."""
+
+    base: str
+    gateway_id: str
+    discovery_prefix: str
+
+    @classmethod
+    def of(cls, config: MqttConfig, gateway_id: str) -> Topics:
+        return cls(config.base_topic, gateway_id, config.discovery_prefix)
+
+    @property
+    def prefix(self) -> str:
+        return f"{self.base}/{self.gateway_id}"
+
+    @property
+    def status(self) -> str:
+        return f"{self.prefix}/status"
+
+    def sensor(self, sensor: str, leaf: str) -> str:
+        return f"{self.prefix}/{sensor}/{leaf}"
+
+    def object_id(self, sensor: str, field_name: str) -> str:
+        # Home Assistant's object ids allow [a-zA-Z0-9_-]; a gateway id may hold dots.
+        return f"{self.gateway_id}_{sensor}_{field_name}".replace(".", "_")
+
+    def discovery(self, sensor: str, field_name: str) -> str:
+        return f"{self.discovery_prefix}/sensor/{self.object_id(sensor, field_name)}/config"
+
+
+def discovery_configs(topics: Topics,
+                      sensors: Mapping[str, SensorConfig]) -> dict[str, dict[str, Any]]:
+    """Topic -> discovery payload: one entity per measured field of every sensor."""
+    availability = [{"topic": topics.status}]
+    out: dict[str, dict[str, Any]] = {}
+    for name, sensor in sensors.items():
+        device = {"identifiers": [f"{topics.gateway_id}_{name}".replace(".", "_")],
+                  "name": f"{name} ({sensor.series.name})",
+                  "model": f"{sensor.series.name} series",
+                  "manufacturer": "imu-gateway", "sw_version": __version__}
+        for group, (_, fields) in GROUP_FIELDS.items():
+            if group not in CAPABILITIES[sensor.series].groups:
+                continue
+            for field_name in fields:
+                payload: dict[str, Any] = {
+                    "name": field_name.replace("_", " "),
+                    "unique_id": topics.object_id(name, field_name),
+                    "state_topic": topics.sensor(name, "state"),
+                    "value_template": "{{ value_json." + group.value + "."
+                                      + member_name(group, field_name) + " }}",
+                    "state_class": "measurement",
+                    "availability": [*availability,
+                                     {"topic": topics.sensor(name, "availability")}],
+                    "availability_mode": "all",
+                    "device": device,
+                    "origin": {"name": "imu-gateway", "sw_version": __version__},
+                }
+                if GROUP_UNITS[group].symbol:
+                    payload["unit_of_measurement"] = GROUP_UNITS[group].symbol
+                out[topics.discovery(name, field_name)] = payload
+    return out
+
+
+def within_deadband(values: Mapping[str, float], sent: Mapping[str, float] | None,
+                    deadbands: Mapping[str, float]) -> bool:
+    """Is a reading with field ``values`` too close to the one last ``sent`` to send?
+    Only when every field that has a deadband moved by no more than it (a reading
+    with none of those fields, or nothing sent yet, always goes)."""
+    if not deadbands or sent is None:
+        return False
+    moved = [abs(values[f] - sent[f]) > band
+             for f, band in deadbands.items() if f in values and f in sent]
+    return bool(moved) and not any(moved)
+
+
+def send_delay(sent_at: float, min_interval_s: float, now: float) -> float:
+    """How long a new state must wait for ``min_interval_ms`` (0: it goes now)."""
+    return max(0.0, sent_at + min_interval_s - now)
