@@ -85,6 +85,14 @@ def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
             assert health["sensors"] == {"ok": 2, "stale": 0, "offline": 0}
             assert health["interfaces"] == ["http"]
 
+            # the value groups and their units, from the gateway's one table (the
+            # dashboard labels its values with these)
+            groups = {g["group"]: g for g in (await http.get(f"{API}/groups")).json()}
+            assert list(groups) == ["angles", "accel", "gyro", "mag", "quaternion"]
+            assert groups["gyro"] == {"group": "gyro", "fields": ["gyro_x", "gyro_y", "gyro_z"],
+                                      "unit": "°/s", "unit_name": "degrees per second",
+                                      "digits": 2}
+
             buses_out = {b["name"]: b for b in (await http.get(f"{API}/buses")).json()}
             assert buses_out["a"]["protocol"] == "native" and buses_out["b"]["protocol"] == "modbus"
             assert buses_out["a"]["baudrate"] == FAST and buses_out["a"]["sensors"] == ["boom"]

@@ -54,6 +54,7 @@ from ..commands import CATALOGUE
 from ..config import HttpConfig
 from ..errors import KINDS, ErrorKind, RequestFailed
 from ..model import GROUP_UNITS, Group
+from ..normalise import GROUP_FIELDS
 from ..stats import SensorStats
 from ..supervise import Frontend, RepeatFilter
 from .common import GatewayLike, json_bytes
@@ -141,6 +142,16 @@ class ReadingOut(_Out):
     mag: VectorOut | None = Field(None, description=GROUP_UNITS[Group.MAG].name)
     quaternion: QuaternionOut | None = Field(
         None, description=GROUP_UNITS[Group.QUATERNION].name)
+
+
+class GroupOut(_Out):
+    """A value group of the reading JSON: its fields and how its values are told."""
+
+    group: str = Field(description="the group's key in the reading JSON")
+    fields: list[str] = Field(description="its fields, as in per-field topics and registers")
+    unit: str = Field(description="the unit's symbol (empty: none)")
+    unit_name: str = Field(description="the unit in words")
+    digits: int = Field(description="decimals of the sensors' resolution")
 
 
 class SensorOut(_Out):
@@ -611,6 +622,14 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
                 "busy": snap.busy, "streaming": snap.streaming, "seq": snap.seq,
                 "age_ms": None if snap.age_ms is None else round(snap.age_ms, 1),
                 "achieved_hz": stats.achieved_hz, "errors": snap.errors}
+
+    @app.get(f"{API}/groups", response_model=list[GroupOut], dependencies=reads,
+             responses={401: errors[401]}, summary="the value groups and their units")
+    async def groups() -> list[dict[str, Any]]:
+        return [{"group": group.value, "fields": list(fields), "unit": unit.symbol,
+                 "unit_name": unit.name, "digits": unit.digits}
+                for group, (_, fields) in GROUP_FIELDS.items()
+                for unit in (GROUP_UNITS[group],)]
 
     @app.get(f"{API}/health", response_model=HealthOut, dependencies=reads,
              responses={401: errors[401]}, summary="gateway and bus status")

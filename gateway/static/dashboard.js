@@ -22,19 +22,21 @@
   const POLL_MS = 2000; // sensors and buses
   const D2R = Math.PI / 180;
 
-  // The reading JSON's groups (docs/mqtt.md), with the digits of the sensors' resolution.
-  const GROUPS = [
-    { key: "angles", label: "angles", unit: "°", digits: 2,
-      members: [["pitch", "pitch"], ["roll", "roll"], ["yaw", "yaw"]] },
-    { key: "accel", label: "accel", unit: "g", digits: 4,
-      members: [["x", "accel_x"], ["y", "accel_y"], ["z", "accel_z"]] },
-    { key: "gyro", label: "gyro", unit: "°/s", digits: 2,
-      members: [["x", "gyro_x"], ["y", "gyro_y"], ["z", "gyro_z"]] },
-    { key: "mag", label: "mag", unit: "G", digits: 5,
-      members: [["x", "mag_x"], ["y", "mag_y"], ["z", "mag_z"]] },
-    { key: "quaternion", label: "quat", unit: "", digits: 6,
-      members: [["q0", "q0"], ["q1", "q1"], ["q2", "q2"], ["q3", "q3"]] },
-  ];
+  // The reading JSON's groups, with their units and the digits of the sensors'
+  // resolution: filled from GET /api/v1/groups at the start (the gateway's one table).
+  const GROUPS = [];
+  const LABELS = { quaternion: "quat" }; // shorter than the key where space is short
+
+  function learnGroups(groups) {
+    GROUPS.length = 0;
+    for (const g of groups) {
+      GROUPS.push({
+        key: g.group, label: LABELS[g.group] || g.group, unit: g.unit, digits: g.digits,
+        // a field's member in the group: accel_x -> x, pitch -> pitch, q0 -> q0
+        members: g.fields.map((f) => [f.includes("_") ? f.split("_").pop() : f, f]),
+      });
+    }
+  }
 
   const token = new URLSearchParams(location.search).get("token");
   const headers = token ? { Authorization: "Bearer " + token } : {};
@@ -109,9 +111,8 @@
 
   function buildValues(s, present) {
     s.values.replaceChildren();
-    for (const field of ["pitch", "roll", "yaw", "accel_x", "accel_y", "accel_z", "gyro_x",
-      "gyro_y", "gyro_z", "mag_x", "mag_y", "mag_z", "q0", "q1", "q2", "q3"]) {
-      delete s.cells[field];
+    for (const group of GROUPS) {
+      for (const [, field] of group.members) delete s.cells[field];
     }
     for (const group of GROUPS) {
       if (!present.includes(group.key)) continue;
@@ -514,7 +515,9 @@
     let list;
     for (;;) {
       try {
-        list = await api("/sensors");
+        const [sensorList, groups] = await Promise.all([api("/sensors"), api("/groups")]);
+        list = sensorList;
+        learnGroups(groups);
         setDown("api", false);
         break;
       } catch (error) {
