@@ -46,7 +46,7 @@ from harness import fields_of
 
 from gateway.app import GIL_SWITCH_INTERVAL, Gateway
 from gateway.config import config_from_dict
-from gateway.model import Protocol, Series
+from gateway.model import Series, WireProtocol
 from gateway.normalise import field_values, to_reading
 from gateway.protocol import native
 from gateway.simulator import make_sensor
@@ -73,7 +73,7 @@ def simulator(baud: int, pipe: Connection) -> None:
         if not solicited:
             sent.append((end, frame))
 
-    bus = PtyBus([make_sensor(Protocol.NATIVE, Series.AH, 0, baud=baud,
+    bus = PtyBus([make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=baud,
                               source=Motion.from_seed(11))], on_sent=note)
 
     async def main() -> None:

@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from harness import running
 
 from gateway.bus.link import SerialLink
-from gateway.model import Protocol, Series
+from gateway.model import Series, WireProtocol
 from gateway.simulator import make_sensor, simulated
 from gateway.simulator.bus import PtyBus
 
@@ -65,7 +65,7 @@ class Timings:
 
 
 async def measure(seconds: float) -> int:
-    ah = make_sensor(Protocol.NATIVE, Series.AH, 0, baud=115200)
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200)
     with simulated([ah]) as line:
         config: dict[str, Any] = {"gateway_id": "lag", "buses": [{
             "name": "a", "port": line.path, "baudrate": 115200, "protocol": "native",

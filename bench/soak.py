@@ -54,7 +54,7 @@ import hostile as h
 from broker import Mosquitto
 from harness import free_port
 
-from gateway.model import Protocol, Series
+from gateway.model import Series, WireProtocol
 from gateway.simulator import PtyBus, make_sensor
 from gateway.simulator.motion import Motion
 
@@ -150,7 +150,7 @@ def serve_line(line: Line, link: str, seed: int, pipe: Connection) -> None:
     """The simulator process of one line: serves it and carries out the parent's
     requests (faults, noise, unplug, replug, stats) until told to stop."""
     _realtime(SIM_PRIORITY)
-    sensors = [make_sensor(Protocol[line.protocol.upper()], Series[s.series], s.address,
+    sensors = [make_sensor(WireProtocol[line.protocol.upper()], Series[s.series], s.address,
                            baud=line.baud, source=Motion.from_seed(seed + i),
                            answer_delay=s.delay_ms / 1000, jitter=s.jitter_ms / 1000,
                            seed=seed + i)

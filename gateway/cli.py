@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 from . import __version__
 from .bus.timing import RTO_INITIAL
 from .decode import decode_all, to_json_line
-from .model import Protocol, Series
+from .model import Series, WireProtocol
 from .protocol.modbus_rtu import UNIT_IDS
 from .protocol.native import BAUD_CODES
 
@@ -38,9 +38,9 @@ def _series(text: str) -> Series:
         ) from None
 
 
-def _protocol(text: str) -> Protocol:
+def _protocol(text: str) -> WireProtocol:
     try:
-        return Protocol[text.upper()]
+        return WireProtocol[text.upper()]
     except KeyError:
         raise argparse.ArgumentTypeError(f"protocol must be native or modbus, not {text!r}") \
             from None
@@ -99,7 +99,7 @@ def _port(text: str) -> int:
     return value
 
 
-def _sensor_spec(text: str) -> tuple[Protocol, Series, int | None, int]:
+def _sensor_spec(text: str) -> tuple[WireProtocol, Series, int | None, int]:
     """``PROTOCOL:SERIES[:ADDRESS[:BAUD]]``, e.g. ``modbus:VG:2:19200``."""
     parts = text.split(":")
     if not 2 <= len(parts) <= 4:
@@ -330,8 +330,8 @@ def cmd_scan(args: argparse.Namespace) -> int:
         scan,
     )
 
-    protocols = args.protocol or list(Protocol)
-    if args.address and Protocol.MODBUS in protocols:
+    protocols = args.protocol or list(WireProtocol)
+    if args.address and WireProtocol.MODBUS in protocols:
         # Said rather than silently skipped: the engineer asked for these addresses.
         skipped = sorted(set(args.address) - set(modbus_units(args.address, args.all_addresses)))
         if skipped:
@@ -394,7 +394,7 @@ def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
         for i, (protocol, series, address, baud) in enumerate(specs)
     ]
     for sensor in sensors:
-        if sensor.protocol is Protocol.MODBUS and sensor.address not in UNIT_IDS:
+        if sensor.protocol is WireProtocol.MODBUS and sensor.address not in UNIT_IDS:
             parser.error(f"simulate: a Modbus address is 1-247, not {sensor.address}")
     if len({(s.protocol, s.address) for s in sensors}) < len(sensors):
         parser.error("simulate: two sensors of one protocol share an address")

@@ -17,7 +17,7 @@ from typing import Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from .errors import ErrorKind, RequestFailed
-from .model import CAPABILITIES, Protocol, Series, commands_for
+from .model import CAPABILITIES, Series, WireProtocol, commands_for
 from .protocol.bcd import ANGLE, DECLINATION, BcdFormat
 from .protocol.native import BAUD_CODES
 
@@ -160,7 +160,7 @@ def _friendly(exc: ValidationError) -> str:
 
 
 def validate(name: str, args: Mapping[str, Any] | None, series: Series,
-             protocol: Protocol) -> Command:
+             protocol: WireProtocol) -> Command:
     """Check a command for a sensor of ``series``; raises ``RequestFailed``."""
     spec = CATALOGUE.get(name)
     if spec is None:
@@ -177,6 +177,7 @@ def validate(name: str, args: Mapping[str, Any] | None, series: Series,
     except ValidationError as exc:
         raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"{name}: {_friendly(exc)}") from None
     values = parsed.model_dump()
-    if name == "set_address" and protocol is Protocol.MODBUS and not 1 <= values["address"] <= 247:
+    modbus = protocol is WireProtocol.MODBUS
+    if name == "set_address" and modbus and not 1 <= values["address"] <= 247:
         raise RequestFailed(ErrorKind.BAD_ARGUMENTS, "set_address: a Modbus address is 1-247")
     return Command(name, values)

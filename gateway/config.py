@@ -50,7 +50,7 @@ from pydantic import (
 from pydantic_core import ErrorDetails, PydanticCustomError
 
 from .errors import ConfigError
-from .model import Group, Protocol, Series
+from .model import Group, Series, WireProtocol
 from .normalise import FIELD_NAMES, GROUP_FIELDS
 from .protocol.native import BAUD_CODES, OUTPUT_RATE_CODES
 
@@ -72,11 +72,11 @@ BAUD_RATES: tuple[int, ...] = tuple(sorted(BAUD_CODES.values()))
 NATIVE_STREAM_HZ: tuple[int, ...] = tuple(sorted(r for r in OUTPUT_RATE_CODES.values() if r))
 #: A Modbus sensor's auto-output interval register (0x1B), in ms.
 MODBUS_STREAM_INTERVAL_MS = (10, 65535)
-ADDRESS_RANGE: Mapping[Protocol, tuple[int, int]] = {
-    Protocol.NATIVE: (0, 255),
-    Protocol.MODBUS: (1, 247),
+ADDRESS_RANGE: Mapping[WireProtocol, tuple[int, int]] = {
+    WireProtocol.NATIVE: (0, 255),
+    WireProtocol.MODBUS: (1, 247),
 }
-DEFAULT_ADDRESS: Mapping[Protocol, int] = {Protocol.NATIVE: 0, Protocol.MODBUS: 1}
+DEFAULT_ADDRESS: Mapping[WireProtocol, int] = {WireProtocol.NATIVE: 0, WireProtocol.MODBUS: 1}
 UNIT_ID_RANGE = (1, 247)
 
 
@@ -184,11 +184,11 @@ def _series(value: object) -> Series:
     raise _fail(f"must be one of {', '.join(s.name for s in Series)}, not {_show(value)}")
 
 
-def _protocol(value: object) -> Protocol:
-    if isinstance(value, Protocol):
+def _protocol(value: object) -> WireProtocol:
+    if isinstance(value, WireProtocol):
         return value
-    if isinstance(value, str) and value.strip().upper() in Protocol.__members__:
-        return Protocol[value.strip().upper()]
+    if isinstance(value, str) and value.strip().upper() in WireProtocol.__members__:
+        return WireProtocol[value.strip().upper()]
     raise _fail(f"must be one of native, modbus, not {_show(value)}")
 
 
@@ -224,7 +224,7 @@ def _enum_name(value: Series) -> str:
     return value.name
 
 
-def _protocol_name(value: Protocol) -> str:
+def _protocol_name(value: WireProtocol) -> str:
     return value.name.lower()
 
 
@@ -330,7 +330,7 @@ SeriesField = Annotated[
     Series, PlainValidator(_series), PlainSerializer(_enum_name, when_used="json")
 ]
 ProtocolField = Annotated[
-    Protocol, PlainValidator(_protocol), PlainSerializer(_protocol_name, when_used="json")
+    WireProtocol, PlainValidator(_protocol), PlainSerializer(_protocol_name, when_used="json")
 ]
 Listen = Annotated[ListenAddress, PlainValidator(_listen), PlainSerializer(str, when_used="json")]
 Network = Annotated[
@@ -374,8 +374,8 @@ class SensorConfig(_Model):
     series: SeriesField = Field(description=(
         f"{_or_list(f'`{s.name}`' for s in Series)} (any case)"))
     address: int = Field(default=0, description=(
-        f"the sensor's bus address: native {_span(ADDRESS_RANGE[Protocol.NATIVE])}, "
-        f"modbus {_span(ADDRESS_RANGE[Protocol.MODBUS])}; unique on its bus"),
+        f"the sensor's bus address: native {_span(ADDRESS_RANGE[WireProtocol.NATIVE])}, "
+        f"modbus {_span(ADDRESS_RANGE[WireProtocol.MODBUS])}; unique on its bus"),
         json_schema_extra={_SHOWN_DEFAULT: "0 on a native bus, 1 on a modbus bus"})
     unit_id: UnitId = Field(default=0, description=(
         f"{_span(UNIT_ID_RANGE)}, unique; the Modbus TCP unit id of the sensor's register "
@@ -652,7 +652,7 @@ def _plain(item: Any) -> Any:
     return item
 
 
-def _protocol_or_none(value: object) -> Protocol | None:
+def _protocol_or_none(value: object) -> WireProtocol | None:
     try:
         return _protocol(value)
     except PydanticCustomError:
@@ -729,7 +729,7 @@ class _BusView:
     path: str
     name: str | None
     port: str | None
-    protocol: Protocol | None
+    protocol: WireProtocol | None
     sensors: list[_SensorView]
 
 
@@ -798,10 +798,10 @@ def _salvage(data: Any) -> list[_BusView]:
     return views
 
 
-def _stream_problem(protocol: Protocol, hz: float) -> str | None:
+def _stream_problem(protocol: WireProtocol, hz: float) -> str | None:
     if hz == 0:
         return None
-    if protocol is Protocol.NATIVE:
+    if protocol is WireProtocol.NATIVE:
         if hz not in NATIVE_STREAM_HZ:
             rates = ", ".join(map(str, NATIVE_STREAM_HZ))
             return f"must be 0 or one of {rates} on a native bus, not {_number(hz)}"
@@ -860,7 +860,7 @@ def _cross_problems(buses: list[_BusView]) -> list[str]:
                     _stream_problem(bus.protocol, sensor.stream_hz)
                 if stream:
                     problems.append(f"{path}.stream_hz: {stream}")
-                if sensor.raw_unit_id is not None and bus.protocol is not Protocol.MODBUS:
+                if sensor.raw_unit_id is not None and bus.protocol is not WireProtocol.MODBUS:
                     problems.append(f"{path}.raw_unit_id: only for sensors on a modbus bus; "
                                     f"{bus.path} is {kind}")
             if sensor.stream_hz:

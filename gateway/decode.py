@@ -20,7 +20,7 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
-from .model import CAPABILITIES, Protocol, Series
+from .model import CAPABILITIES, Series, WireProtocol
 from .normalise import FIELD_NAMES, group_values
 from .protocol import modbus_rtu as rtu
 from .protocol import native
@@ -112,18 +112,18 @@ def _modbus(
     return _groups_or_fields(described.get("values", {}), series, header, described), None
 
 
-def _guess_protocol(raw: bytes) -> Protocol:
+def _guess_protocol(raw: bytes) -> WireProtocol:
     if raw[0] == native.SYNC:
         try:
             native.parse_frame(raw)
-            return Protocol.NATIVE
+            return WireProtocol.NATIVE
         except FrameError:
             try:
                 rtu.decode_frame(raw)
-                return Protocol.MODBUS
+                return WireProtocol.MODBUS
             except FrameError:
-                return Protocol.NATIVE  # report the native reason: 77 is its sync byte
-    return Protocol.MODBUS
+                return WireProtocol.NATIVE  # report the native reason: 77 is its sync byte
+    return WireProtocol.MODBUS
 
 
 def _native_inside(raw: bytes) -> str | None:
@@ -166,20 +166,20 @@ def _bytes(count: int, kind: str = "") -> str:
     return f"{count} {kind}byte{'s' if count != 1 else ''}"
 
 
-def _decode_one(raw: bytes, protocol: Protocol | None, series: Series | None,
+def _decode_one(raw: bytes, protocol: WireProtocol | None, series: Series | None,
                 start: int | None) -> tuple[dict[str, Any], int | None]:
     """One frame's JSON and the start register a following answer is read with; a
     frame that is not one whole frame raises with its likeliest reason."""
     proto = protocol or _guess_protocol(raw)
     try:
-        if proto is Protocol.NATIVE:
+        if proto is WireProtocol.NATIVE:
             return _native(raw, series), None
         return _modbus(raw, series, start)
     except FrameError:
         inside = None
-        if protocol is not Protocol.MODBUS:
+        if protocol is not WireProtocol.MODBUS:
             inside = _native_inside(raw)
-        if inside is None and protocol is not Protocol.NATIVE:
+        if inside is None and protocol is not WireProtocol.NATIVE:
             inside = _modbus_inside(raw)
         if inside is not None:
             raise FrameInside(inside) from None
@@ -188,7 +188,7 @@ def _decode_one(raw: bytes, protocol: Protocol | None, series: Series | None,
 
 def decode_all(
     frames: Iterable[str],
-    protocol: Protocol | None = None,
+    protocol: WireProtocol | None = None,
     series: Series | None = None,
     start: int | None = None,
 ) -> Iterator[Decoded]:

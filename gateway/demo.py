@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 from .app import Gateway, run_until_signalled
 from .config import GatewayConfig, config_from_dict
-from .model import Protocol, Series
+from .model import Series, WireProtocol
 from .simulator import SimulatorThread, make_sensor
 from .simulator.motion import Motion
 
@@ -38,16 +38,16 @@ class DemoSensor:
 @dataclass(frozen=True)
 class DemoLine:
     name: str
-    protocol: Protocol
+    protocol: WireProtocol
     sensors: tuple[DemoSensor, ...]
 
 
 LINES = (
-    DemoLine("line-a", Protocol.NATIVE, (
+    DemoLine("line-a", WireProtocol.NATIVE, (
         DemoSensor("boom", Series.AH, poll_hz=20, seed=1),
         DemoSensor("mast", Series.MINS, stream_hz=25, seed=2),
     )),
-    DemoLine("line-b", Protocol.MODBUS, (
+    DemoLine("line-b", WireProtocol.MODBUS, (
         DemoSensor("arm", Series.VG, poll_hz=10, seed=3),
     )),
 )
@@ -62,7 +62,7 @@ class DemoOptions:
 
 
 def _addresses(line: DemoLine) -> Iterator[tuple[DemoSensor, int]]:
-    first = 0 if line.protocol is Protocol.NATIVE else 1
+    first = 0 if line.protocol is WireProtocol.NATIVE else 1
     for index, sensor in enumerate(line.sensors):
         yield sensor, first + index
 

@@ -25,7 +25,7 @@ class Series(enum.Enum):
     MINS = 4
 
 
-class Protocol(enum.Enum):
+class WireProtocol(enum.Enum):
     """What the sensor speaks on the serial line.  The value is register 7's code."""
 
     NATIVE = 0
@@ -177,12 +177,12 @@ CAPABILITIES: dict[Series, Capabilities] = {
 
 #: Commands a protocol cannot carry at all: the Modbus register list has nothing for the
 #: magnetic declination or the magnetometer calibration (native 2.21-2.26 only).
-PROTOCOL_LACKS: dict[Protocol, frozenset[str]] = {
-    Protocol.NATIVE: frozenset(),
-    Protocol.MODBUS: frozenset({"set_declination", "mag_calibration"}),
+PROTOCOL_LACKS: dict[WireProtocol, frozenset[str]] = {
+    WireProtocol.NATIVE: frozenset(),
+    WireProtocol.MODBUS: frozenset({"set_declination", "mag_calibration"}),
 }
 
 
-def commands_for(series: Series, protocol: Protocol) -> frozenset[str]:
+def commands_for(series: Series, protocol: WireProtocol) -> frozenset[str]:
     """The commands a sensor of this series, speaking this protocol, can carry out."""
     return CAPABILITIES[series].commands - PROTOCOL_LACKS[protocol]

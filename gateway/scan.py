@@ -33,7 +33,7 @@ from typing import Any
 import serial
 
 from .bus.timing import RTO_INITIAL
-from .model import CAPABILITIES, Protocol, Series
+from .model import CAPABILITIES, Series, WireProtocol
 from .normalise import GROUP_FIELDS
 from .protocol import modbus_rtu as rtu
 from .protocol import native
@@ -78,7 +78,7 @@ def listen_time(baud: int, request_bytes: int, answer_bytes: int, margin: float,
 
 @dataclass(frozen=True, slots=True)
 class Found:
-    protocol: Protocol
+    protocol: WireProtocol
     baudrate: int
     address: int
     series: str  # "AH", "VG or MINS", … or "unknown"
@@ -92,13 +92,13 @@ class Found:
 class Step:
     """One protocol at one baud rate, and the addresses it may ask one by one."""
 
-    protocol: Protocol
+    protocol: WireProtocol
     baudrate: int
     addresses: tuple[int, ...]
 
     def address_time(self, margin: float) -> float:
         """The longest one address's request takes (when nothing answers)."""
-        if self.protocol is Protocol.NATIVE:
+        if self.protocol is WireProtocol.NATIVE:
             return listen_time(self.baudrate, _ZERO_TYPE_REQUEST_BYTES,
                                _zero_type_answer_bytes(), margin)
         gap = rtu_silence(self.baudrate)
@@ -109,7 +109,7 @@ class Step:
         """The step's time when nothing answers: native, the address query alone (the
         addresses are asked one by one only when several sensors answer it); Modbus,
         every unit."""
-        if self.protocol is Protocol.NATIVE:
+        if self.protocol is WireProtocol.NATIVE:
             return listen_time(self.baudrate, len(_QUERY), _QUERY_ANSWER_BYTES, margin)
         return len(self.addresses) * self.address_time(margin)
 
@@ -132,12 +132,12 @@ def modbus_units(addresses: Iterable[int] | None = None,
     return sorted({a for a in (addresses or allowed) if a in allowed})
 
 
-def plan(protocols: Iterable[Protocol], bauds: Iterable[int],
+def plan(protocols: Iterable[WireProtocol], bauds: Iterable[int],
          addresses: Iterable[int] | None = None, all_addresses: bool = False) -> list[Step]:
     """The steps of a scan, in the order they are taken."""
     native_addresses = tuple(sorted(set(addresses or NATIVE_ADDRESSES)))
     units = tuple(modbus_units(addresses, all_addresses))
-    return [Step(protocol, baud, native_addresses if protocol is Protocol.NATIVE else units)
+    return [Step(protocol, baud, native_addresses if protocol is WireProtocol.NATIVE else units)
             for baud in dict.fromkeys(bauds) for protocol in dict.fromkeys(protocols)]
 
 
@@ -156,7 +156,7 @@ class Progress:
         left = f"about {_duration(self.seconds_left)} left"
         if self.address is not None:
             where = f"address {self.address} ({self.asked + 1} of {len(step.addresses)}; {left})"
-        elif step.protocol is Protocol.NATIVE:
+        elif step.protocol is WireProtocol.NATIVE:
             where = f"address query ({left})"
         else:
             count = len(step.addresses)
@@ -345,7 +345,7 @@ def _open(port: str) -> serial.Serial:
         raise serial.SerialException(str(exc)) from None
 
 
-def scan(port: str, protocols: Iterable[Protocol], bauds: Iterable[int],
+def scan(port: str, protocols: Iterable[WireProtocol], bauds: Iterable[int],
          addresses: Iterable[int] | None = None, margin: float = RTO_INITIAL,
          progress: Callable[[Progress], None] | None = None,
          all_addresses: bool = False) -> Generator[Found, None, None]:
@@ -361,7 +361,7 @@ def scan(port: str, protocols: Iterable[Protocol], bauds: Iterable[int],
             if progress:
                 progress(Progress(step, None, 0, time_left(steps, index, None, margin)))
                 tick = _ticker(progress, steps, index, margin)
-            scanner = scan_native if step.protocol is Protocol.NATIVE else scan_modbus
+            scanner = scan_native if step.protocol is WireProtocol.NATIVE else scan_modbus
             for address, series in scanner(prober, step.addresses, tick):
                 yield Found(step.protocol, step.baudrate, address, series)
 
@@ -383,12 +383,12 @@ def next_time(port: str, found: Sequence[Found], margin_ms: float | None = None)
     """The command line that would have been enough to find ``found``: its protocols
     and baud rates only (and the reserved units, or the margin, if they were needed)."""
     flags = ["--port", port]
-    protocols = [p for p in Protocol if any(f.protocol is p for f in found)]
+    protocols = [p for p in WireProtocol if any(f.protocol is p for f in found)]
     if len(protocols) == 1:
         flags += ["--protocol", protocols[0].name.lower()]
     for baud in sorted({f.baudrate for f in found}):
         flags += ["--baud", str(baud)]
-    if any(f.protocol is Protocol.MODBUS and f.address in RESERVED_UNITS for f in found):
+    if any(f.protocol is WireProtocol.MODBUS and f.address in RESERVED_UNITS for f in found):
         flags.append("--all-addresses")
     if margin_ms is not None:
         flags += ["--margin-ms", f"{margin_ms:g}"]

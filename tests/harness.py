@@ -13,7 +13,7 @@ from typing import Any
 
 from gateway.app import Gateway
 from gateway.config import config_from_dict
-from gateway.model import Protocol
+from gateway.model import WireProtocol
 from gateway.normalise import field_values
 from gateway.simulator import SimSensor
 
@@ -51,9 +51,9 @@ def expected(sim: SimSensor) -> dict[str, float]:
     return field_values(sim.measure(0.0))
 
 
-def tolerance(protocol: Protocol, name: str, value: float) -> float:
+def tolerance(protocol: WireProtocol, name: str, value: float) -> float:
     """The sensor's resolution: BCD steps (native) or float32 (Modbus RTU)."""
-    if protocol is Protocol.NATIVE:
+    if protocol is WireProtocol.NATIVE:
         return NATIVE_STEP[GROUP_OF[name]] + 1e-6 * abs(value)
     return 1e-6 * max(1.0, abs(value))
 

@@ -19,7 +19,7 @@ from gateway.bus.master import OFFLINE_AFTER, BusMaster
 from gateway.cache import EventKind, Snapshot, Status
 from gateway.config import config_from_dict
 from gateway.errors import ErrorKind, RequestFailed
-from gateway.model import Protocol, Series
+from gateway.model import Series, WireProtocol
 from gateway.simulator import Faults, SimSensor, SimulatorThread, hold, make_sensor, simulated
 from gateway.simulator.motion import Motion
 
@@ -41,11 +41,11 @@ def master(gateway: Gateway) -> BusMaster:
 
 
 def native(series: Series, address: int, **options: Any) -> SimSensor:
-    return make_sensor(Protocol.NATIVE, series, address, baud=FAST, **options)
+    return make_sensor(WireProtocol.NATIVE, series, address, baud=FAST, **options)
 
 
 def modbus(series: Series, address: int, **options: Any) -> SimSensor:
-    return make_sensor(Protocol.MODBUS, series, address, baud=FAST, **options)
+    return make_sensor(WireProtocol.MODBUS, series, address, baud=FAST, **options)
 
 
 def no_overlap(sim: SimulatorThread) -> None:
@@ -176,7 +176,7 @@ def test_fast_polling_is_shared_fairly() -> None:
 def test_asking_more_than_the_wire_slows_every_sensor_evenly_and_counts_the_shortfall() -> None:
     # Three AH sensors at 9600 baud: a 0x59 exchange is 62 bytes, 64.6 ms on the wire,
     # so 15 polls/s is the ceiling; 3 x 20 Hz cannot be met.
-    with simulated([make_sensor(Protocol.NATIVE, Series.AH, a) for a in range(3)]) as sim:
+    with simulated([make_sensor(WireProtocol.NATIVE, Series.AH, a) for a in range(3)]) as sim:
         async def body() -> None:
             async with running(bus_config(sim.path, "native", [
                 {"name": f"s{a}", "series": "AH", "address": a, "poll_hz": 20}
@@ -334,7 +334,7 @@ def test_save_keeps_the_sensor_busy_then_it_answers(protocol: str) -> None:
 
 @pytest.mark.parametrize("protocol", ["native", "modbus"])
 def test_baud_change_the_gateway_follows(protocol: str) -> None:
-    make = make_sensor(Protocol[protocol.upper()], Series.AH, 0 if protocol == "native" else 1)
+    make = make_sensor(WireProtocol[protocol.upper()], Series.AH, 0 if protocol == "native" else 1)
     with simulated([make]) as sim:
         async def body() -> None:
             address = make.address
@@ -354,8 +354,8 @@ def test_baud_change_the_gateway_follows(protocol: str) -> None:
 
 @pytest.mark.parametrize("protocol", ["native", "modbus"])
 def test_address_change_answers_at_the_new_address(protocol: str) -> None:
-    sensor = make_sensor(Protocol[protocol.upper()], Series.VG, 0 if protocol == "native" else 1,
-                         baud=FAST)
+    sensor = make_sensor(WireProtocol[protocol.upper()], Series.VG,
+                         0 if protocol == "native" else 1, baud=FAST)
     with simulated([sensor]) as sim:
         async def body() -> None:
             async with running(bus_config(sim.path, protocol, [
@@ -418,8 +418,8 @@ def test_modbus_gyro_calibration_is_busy_until_done() -> None:
 @pytest.mark.parametrize("protocol", ["native", "modbus"])
 def test_stream_feeds_the_cache_commands_still_work_and_polling_takes_over(protocol: str) -> None:
     faults = Faults()
-    sensor = make_sensor(Protocol[protocol.upper()], Series.AH, 0 if protocol == "native" else 1,
-                         baud=FAST, faults=faults)
+    sensor = make_sensor(WireProtocol[protocol.upper()], Series.AH,
+                         0 if protocol == "native" else 1, baud=FAST, faults=faults)
     with simulated([sensor]) as sim:
         async def body() -> None:
             async with running(bus_config(sim.path, protocol, [

@@ -14,11 +14,11 @@ import pytest
 
 from gateway.commands import validate
 from gateway.errors import ErrorKind, RequestFailed
-from gateway.model import Protocol, Series
+from gateway.model import Series, WireProtocol
 
 
 def degrees(name: str, value: Any, series: Series,
-            protocol: Protocol = Protocol.NATIVE) -> Any:
+            protocol: WireProtocol = WireProtocol.NATIVE) -> Any:
     return validate(name, {"degrees": value}, series, protocol).args["degrees"]
 
 
@@ -29,7 +29,7 @@ def degrees(name: str, value: Any, series: Series,
 def test_relative_heading_takes_the_whole_signed_range(given: float, sent: float) -> None:
     """SXXX.YY has a sign: a negative start point is a value the sensor can hold."""
     assert degrees("set_relative_heading", given, Series.MINS) == sent
-    assert degrees("set_relative_heading", given, Series.MINS, Protocol.MODBUS) == sent
+    assert degrees("set_relative_heading", given, Series.MINS, WireProtocol.MODBUS) == sent
 
 
 @pytest.mark.parametrize(("given", "sent"), [

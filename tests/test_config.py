@@ -31,7 +31,7 @@ from gateway.config import (
     load_config_text,
 )
 from gateway.errors import ConfigError
-from gateway.model import Protocol, Series
+from gateway.model import Series, WireProtocol
 
 CONFIGS = Path(__file__).parent / "configs"
 SPEC_EXAMPLE = CONFIGS / "spec_example.yaml"
@@ -97,7 +97,7 @@ def test_spec_example_verbatim_loads() -> None:
     assert config.gateway_id == "lab-1"
     (bus,) = config.buses
     assert (bus.name, bus.port, bus.baudrate, bus.protocol) == (
-        "line-a", "/dev/ttyUSB0", 9600, Protocol.NATIVE)
+        "line-a", "/dev/ttyUSB0", 9600, WireProtocol.NATIVE)
     assert (bus.timeout_ms, bus.retries, bus.rs485) == (100, 1, False)
     (sensor,) = bus.sensors
     assert sensor == SensorConfig(name="boom", series=Series.AH, address=0, unit_id=1,
@@ -190,7 +190,7 @@ def test_series_and_protocol_are_case_insensitive() -> None:
     data["buses"][1]["protocol"] = "MODBUS"
     config = config_from_dict(data, env={})
     assert config.buses[0].sensors[0].series is Series.MINS
-    assert config.buses[1].protocol is Protocol.MODBUS
+    assert config.buses[1].protocol is WireProtocol.MODBUS
 
 
 def test_pyserial_urls_and_listen_forms() -> None:
@@ -251,9 +251,9 @@ def test_models_are_frozen_and_dump_to_json_names() -> None:
 
 def test_built_in_python_gets_the_same_defaults() -> None:
     config = GatewayConfig(gateway_id="demo", buses=[
-        BusConfig(name="a", port="loop://", baudrate=9600, protocol=Protocol.NATIVE,
+        BusConfig(name="a", port="loop://", baudrate=9600, protocol=WireProtocol.NATIVE,
                   sensors=[SensorConfig(name="boom", series=Series.AH)]),
-        BusConfig(name="b", port="loop://x", baudrate=9600, protocol=Protocol.MODBUS,
+        BusConfig(name="b", port="loop://x", baudrate=9600, protocol=WireProtocol.MODBUS,
                   sensors=[SensorConfig(name="arm", series=Series.VG)]),
     ])
     assert [(s.address, s.unit_id) for _, s in config.iter_sensors()] == [(0, 1), (1, 2)]

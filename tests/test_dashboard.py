@@ -28,7 +28,7 @@ import pytest
 import yaml
 from harness import free_port, interrupt
 
-from gateway.model import Protocol, Series
+from gateway.model import Series, WireProtocol
 from gateway.simulator import Faults, make_sensor, simulated
 from gateway.simulator.motion import Motion
 
@@ -195,10 +195,10 @@ def moves(driver: Any, sensor: str) -> dict[str, Any]:
 
 def test_the_dashboard_follows_the_sensors_the_buses_and_the_stream(tmp_path: Path) -> None:
     faults = Faults()
-    boom = make_sensor(Protocol.NATIVE, Series.AH, 0, baud=FAST, source=Motion.from_seed(7),
+    boom = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST, source=Motion.from_seed(7),
                        faults=faults)
-    arm = make_sensor(Protocol.MODBUS, Series.VG, 1, baud=FAST, source=Motion.from_seed(11))
-    wrist = make_sensor(Protocol.MODBUS, Series.IMU, 2, baud=FAST, source=Motion.from_seed(5))
+    arm = make_sensor(WireProtocol.MODBUS, Series.VG, 1, baud=FAST, source=Motion.from_seed(11))
+    wrist = make_sensor(WireProtocol.MODBUS, Series.IMU, 2, baud=FAST, source=Motion.from_seed(5))
     with simulated([boom]) as line_a, simulated([arm, wrist]) as line_b:
         cfg = {"gateway_id": "dash", "buses": [
             bus("a", line_a.path, "native", [{"name": "boom", "series": "AH", "poll_hz": 20}]),
@@ -268,7 +268,7 @@ def test_the_dashboard_follows_the_sensors_the_buses_and_the_stream(tmp_path: Pa
 
 
 def test_the_stream_going_down_shows_a_banner(tmp_path: Path) -> None:
-    boom = make_sensor(Protocol.NATIVE, Series.AH, 0, baud=FAST, source=Motion.from_seed(7))
+    boom = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST, source=Motion.from_seed(7))
     with simulated([boom]) as line, chromium(tmp_path) as driver:
         cfg = {"gateway_id": "dash", "buses": [
             bus("a", line.path, "native", [{"name": "boom", "series": "AH", "poll_hz": 20}])]}
@@ -282,7 +282,7 @@ def test_the_stream_going_down_shows_a_banner(tmp_path: Path) -> None:
 
 
 def test_with_a_read_token_the_dashboard_streams_with_it(tmp_path: Path) -> None:
-    boom = make_sensor(Protocol.NATIVE, Series.AH, 0, baud=FAST, source=Motion.from_seed(7))
+    boom = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST, source=Motion.from_seed(7))
     with simulated([boom]) as line:
         cfg = {"gateway_id": "dash", "http": {"token": "s3cret", "read_token_required": True},
                "buses": [bus("a", line.path, "native",

@@ -12,13 +12,13 @@ from typing import Any
 import pytest
 
 from gateway.decode import decode_all
-from gateway.model import Protocol, Series
+from gateway.model import Series, WireProtocol
 from gateway.protocol import modbus_rtu as rtu
 
 PITCH = "77 07 00 81 10 34 63 2F"  # native 2.1's answer: -34.63
 
 
-def one(frame: str, protocol: Protocol | None = None, series: Series | None = None,
+def one(frame: str, protocol: WireProtocol | None = None, series: Series | None = None,
         start: int | None = None) -> tuple[dict[str, Any] | None, str | None]:
     (decoded,) = decode_all([frame], protocol, series, start)
     return decoded.result, decoded.error
@@ -42,9 +42,9 @@ def test_native_frame_among_other_bytes_is_named_as_such(frame: str, reason: str
 
 def test_garbage_before_a_native_frame_is_named_when_the_protocol_is_given_too() -> None:
     assert "native frame after 3 garbage bytes" in str(one("12 34 56 " + PITCH,
-                                                           Protocol.NATIVE)[1])
+                                                           WireProtocol.NATIVE)[1])
     # told it is Modbus, the Modbus reason stands
-    assert "FrameInside" not in str(one("12 34 56 " + PITCH, Protocol.MODBUS)[1])
+    assert "FrameInside" not in str(one("12 34 56 " + PITCH, WireProtocol.MODBUS)[1])
 
 
 @pytest.mark.parametrize(("frame", "reason"), [

@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 import yaml
 
-from gateway.model import Protocol, Series
+from gateway.model import Series, WireProtocol
 from gateway.simulator import SimSensor, make_sensor, simulated
 
 FAST = 115200
@@ -56,13 +56,13 @@ def first_line_with(tmp_path: Path, port: str, sensor: dict[str, Any], needle: s
     return found[0], "".join(lines)
 
 
-def streaming(protocol: Protocol, series: Series, address: int, baud: int) -> SimSensor:
+def streaming(protocol: WireProtocol, series: Series, address: int, baud: int) -> SimSensor:
     """A sensor left streaming (its saved auto-output), as many are found on site."""
     return make_sensor(protocol, series, address, baud=baud, stream_interval=0.05)
 
 
 def test_a_silent_line_says_nothing_came_back(tmp_path: Path) -> None:
-    with simulated([make_sensor(Protocol.NATIVE, Series.AH, 0, baud=9600)]) as line:
+    with simulated([make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=9600)]) as line:
         text, _ = first_line_with(tmp_path, line.path, {"name": "mast", "series": "AH"},
                                   "sensor mast: offline")
     assert "never answered, native address 0 at 115200 baud" in text
@@ -71,14 +71,14 @@ def test_a_silent_line_says_nothing_came_back(tmp_path: Path) -> None:
 
 
 def test_the_wrong_baud_rate_is_named_when_bytes_arrive(tmp_path: Path) -> None:
-    with simulated([streaming(Protocol.NATIVE, Series.AH, 0, 9600)]) as line:
+    with simulated([streaming(WireProtocol.NATIVE, Series.AH, 0, 9600)]) as line:
         text, _ = first_line_with(tmp_path, line.path, {"name": "mast", "series": "AH"},
                                   "sensor mast: offline")
     assert "never formed a frame at 115200 baud: wrong baud rate?" in text
 
 
 def test_the_wrong_address_is_named_when_frames_come_from_another(tmp_path: Path) -> None:
-    with simulated([streaming(Protocol.NATIVE, Series.AH, 5, FAST)]) as line:
+    with simulated([streaming(WireProtocol.NATIVE, Series.AH, 5, FAST)]) as line:
         text, _ = first_line_with(tmp_path, line.path,
                                   {"name": "mast", "series": "AH", "address": 3},
                                   "sensor mast: offline")
@@ -87,7 +87,7 @@ def test_the_wrong_address_is_named_when_frames_come_from_another(tmp_path: Path
 
 
 def test_the_wrong_protocol_is_named(tmp_path: Path) -> None:
-    with simulated([streaming(Protocol.MODBUS, Series.AH, 1, FAST)]) as line:
+    with simulated([streaming(WireProtocol.MODBUS, Series.AH, 1, FAST)]) as line:
         text, _ = first_line_with(tmp_path, line.path, {"name": "mast", "series": "AH"},
                                   "sensor mast: offline")
     assert "Modbus RTU frames arrive (unit 1): wrong protocol?" in text
@@ -98,7 +98,7 @@ def test_the_wrong_protocol_is_named(tmp_path: Path) -> None:
                           (Series.VG, "AH", "0x59, LEN 0x2F")])
 def test_the_wrong_series_is_named_at_once_and_nothing_is_written(
         tmp_path: Path, real: Series, configured: str, shape: str) -> None:
-    sim = make_sensor(Protocol.NATIVE, real, 0, baud=FAST)
+    sim = make_sensor(WireProtocol.NATIVE, real, 0, baud=FAST)
     with simulated([sim]) as line:
         text, log = first_line_with(tmp_path, line.path,
                                     {"name": "mast", "series": configured},
@@ -112,8 +112,8 @@ def test_the_wrong_series_is_named_at_once_and_nothing_is_written(
 def test_the_frame_trace_shows_each_exchange_and_is_rate_limited(tmp_path: Path) -> None:
     """``--trace BUS``: one line per exchange (bytes out, bytes in, time, outcome);
     a sensor polled flat out makes more than the 50 a second shown."""
-    ah = make_sensor(Protocol.NATIVE, Series.AH, 0, baud=FAST)
-    silent = make_sensor(Protocol.NATIVE, Series.VG, 4, baud=9600)  # never answers
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST)
+    silent = make_sensor(WireProtocol.NATIVE, Series.VG, 4, baud=9600)  # never answers
     with simulated([ah, silent]) as line:
         config = {"gateway_id": "diag", "buses": [{
             "name": "line", "port": line.path, "baudrate": FAST, "protocol": "native",

@@ -19,7 +19,7 @@ from typing import Any
 from harness import run, running, until
 
 from gateway.errors import ErrorKind
-from gateway.model import Protocol, Series
+from gateway.model import Series, WireProtocol
 from gateway.simulator import hold, make_sensor, simulated
 from gateway.simulator.motion import Motion
 
@@ -35,7 +35,7 @@ def config(path: str) -> dict[str, Any]:
 
 
 def test_calibration_answered_complete_is_over_at_once() -> None:
-    vg = make_sensor(Protocol.MODBUS, Series.VG, 1, baud=FAST, source=hold(READING),
+    vg = make_sensor(WireProtocol.MODBUS, Series.VG, 1, baud=FAST, source=hold(READING),
                      gyro_cal_duration=0.0)
     with simulated([vg]) as line:
         async def body() -> None:
@@ -51,7 +51,7 @@ def test_calibration_answered_complete_is_over_at_once() -> None:
 
 
 def test_calibration_under_way_is_busy_for_commands_but_still_read() -> None:
-    vg = make_sensor(Protocol.MODBUS, Series.VG, 1, baud=FAST, source=hold(READING),
+    vg = make_sensor(WireProtocol.MODBUS, Series.VG, 1, baud=FAST, source=hold(READING),
                      gyro_cal_duration=1.5)
     with simulated([vg]) as line:
         async def body() -> None:

@@ -39,7 +39,7 @@ from gateway.frontends.rest import (
     HttpServer,
     StreamHub,
 )
-from gateway.model import Protocol, Series
+from gateway.model import Series, WireProtocol
 from gateway.simulator import SimulatorThread, make_sensor, simulated
 from gateway.simulator.motion import Motion
 
@@ -69,7 +69,7 @@ def gateway_process(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Addres
     """``python -m gateway run`` with HTTP (commands on) and one polled AH; its address
     once ``/api/v1/health`` answers."""
     tmp = tmp_path_factory.mktemp("hostile")
-    sim = make_sensor(Protocol.NATIVE, Series.AH, 0, baud=FAST, source=Motion.from_seed(3))
+    sim = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST, source=Motion.from_seed(3))
     with simulated([sim]) as line:
         port = free_port()
         cfg = {"gateway_id": "hostile",
@@ -257,7 +257,7 @@ def _fast_stream() -> Iterator[tuple[SimulatorThread, dict[str, Any]]]:
     """A native AH polled as fast as a 460800 baud line goes (over 200 readings a
     second), and a config serving it.  Polled rather than streaming: a gateway
     stopping a 200 Hz stream now and then takes 10-20 s to stop its bus."""
-    sim = make_sensor(Protocol.NATIVE, Series.AH, 0, baud=LINE_FAST,
+    sim = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=LINE_FAST,
                       source=Motion.from_seed(5))
     with simulated([sim]) as line:
         yield line, {"gateway_id": "hostile",

@@ -24,7 +24,7 @@ from harness import free_port, interrupt
 from pymodbus.client import ModbusTcpClient
 
 from gateway.frontends.modbus_map import BY_ADDRESS, ZERO_TYPES
-from gateway.model import Protocol, Series
+from gateway.model import Series, WireProtocol
 from gateway.simulator import make_sensor, simulated
 
 FAST = 115200
@@ -73,7 +73,7 @@ class Process:
 
 @contextlib.contextmanager
 def gateway(tmp_path: Path, **modbus: Any) -> Iterator[Process]:
-    ah = make_sensor(Protocol.NATIVE, Series.AH, 0, baud=FAST)
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST)
     with simulated([ah]) as line:
         process = Process(tmp_path, line.path, **modbus)
         try:

@@ -27,7 +27,7 @@ from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
 from gateway.app import Gateway
-from gateway.model import Protocol, Series
+from gateway.model import Series, WireProtocol
 from gateway.simulator import Faults, ModbusSensor, SimSensor, hold, make_sensor, simulated
 from gateway.simulator.motion import Motion
 
@@ -40,7 +40,7 @@ MBAP = struct.Struct(">HHHB")
 # test does not trust the server's own table.
 SCALE = {"angles": 100, "accel": 10000, "gyro": 100, "mag": 100000, "quaternion": 1000000}
 SERIES_CODE = {Series.IMU: 1, Series.VG: 2, Series.AH: 3, Series.MINS: 4}
-PROTOCOL_CODE = {Protocol.NATIVE: 0, Protocol.MODBUS: 1}
+PROTOCOL_CODE = {WireProtocol.NATIVE: 0, WireProtocol.MODBUS: 1}
 INT32_MIN = -(2**31)
 ONLINE, STALE, BUSY, NO_READING = 1 << 0, 1 << 1, 1 << 2, 1 << 4
 
@@ -51,7 +51,7 @@ BUSY_EXC, GATEWAY_PATH, TARGET_FAILED = 0x06, 0x0A, 0x0B
 # ------------------------------------------------------------------ set-up
 
 
-def sensor(protocol: Protocol, series: Series, address: int, **options: Any) -> SimSensor:
+def sensor(protocol: WireProtocol, series: Series, address: int, **options: Any) -> SimSensor:
     return make_sensor(protocol, series, address, baud=FAST, **options)
 
 
@@ -239,8 +239,8 @@ async def mbpoll(port: int, unit: int, ref: int, count: int, kind: str) -> dict[
 async def two_protocols(**modbus: Any) -> AsyncIterator[tuple[Gateway, SimSensor, SimSensor]]:
     """A native AH (unit 1, address 0) and a Modbus VG (unit 2, address 1) on two buses,
     both holding ``READING``."""
-    ah = sensor(Protocol.NATIVE, Series.AH, 0, source=hold(READING))
-    vg = sensor(Protocol.MODBUS, Series.VG, 1, source=hold(READING))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, 0, source=hold(READING))
+    vg = sensor(WireProtocol.MODBUS, Series.VG, 1, source=hold(READING))
     with simulated([ah]) as line_a, simulated([vg]) as line_b:
         cfg = config([
             bus("line-a", line_a.path, "native", [
@@ -253,7 +253,7 @@ async def two_protocols(**modbus: Any) -> AsyncIterator[tuple[Gateway, SimSensor
             yield gw, ah, vg
 
 
-UNITS = ((1, Protocol.NATIVE, Series.AH, 0), (2, Protocol.MODBUS, Series.VG, 1))
+UNITS = ((1, WireProtocol.NATIVE, Series.AH, 0), (2, WireProtocol.MODBUS, Series.VG, 1))
 
 
 def test_every_register_equals_the_simulator_on_both_protocols() -> None:
@@ -378,11 +378,11 @@ def test_exceptions_of_reads_functions_and_units_with_writes_off() -> None:
 
 
 def test_exceptions_of_writes() -> None:
-    ah = sensor(Protocol.NATIVE, Series.AH, 0, source=hold(READING), save_duration=0.5)
-    dead = sensor(Protocol.NATIVE, Series.VG, 1, faults=Faults(stalled=True))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, 0, source=hold(READING), save_duration=0.5)
+    dead = sensor(WireProtocol.NATIVE, Series.VG, 1, faults=Faults(stalled=True))
     # A Modbus VG the config calls a MINS: the gateway sends MINS commands, and the
     # sensor refuses them with its own exception (the "failure" answer of 04).
-    wrong = sensor(Protocol.MODBUS, Series.VG, 1, source=hold(READING))
+    wrong = sensor(WireProtocol.MODBUS, Series.VG, 1, source=hold(READING))
     with simulated([ah, dead]) as line_a, simulated([wrong]) as line_b:
         cfg = config([
             bus("line-a", line_a.path, "native", [
@@ -460,8 +460,8 @@ def test_float_commands_take_the_decimal_a_client_meant() -> None:
     limit, and is accepted, as is -99.9; 0.25 is sent as 0.3 (half away from zero, as
     the sensor would show it) and 0.35 (0.3499999940 as float32) as 0.4.  A relative
     heading may be negative (SXXX.YY has a sign)."""
-    ah = sensor(Protocol.NATIVE, Series.AH, 0, source=hold(READING))
-    mins = sensor(Protocol.NATIVE, Series.MINS, 1, source=hold(READING))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, 0, source=hold(READING))
+    mins = sensor(WireProtocol.NATIVE, Series.MINS, 1, source=hold(READING))
     with simulated([ah, mins]) as line:
         cfg = config([bus("line", line.path, "native", [
             {"name": "ah", "series": "AH", "address": 0, "unit_id": 1, "poll_hz": 5},
@@ -516,7 +516,7 @@ def test_a_write_whose_task_fails_answers_with_the_requests_function_code() -> N
 
 
 def test_sensor_failure_answer_is_exception_04_through_pymodbus() -> None:
-    wrong = sensor(Protocol.MODBUS, Series.VG, 1, source=hold(READING))
+    wrong = sensor(WireProtocol.MODBUS, Series.VG, 1, source=hold(READING))
     with simulated([wrong]) as line:
         cfg = config([bus("line", line.path, "modbus", [
             {"name": "mins", "series": "MINS", "address": 1, "poll_hz": 10}])],
@@ -733,7 +733,7 @@ def test_writes_reach_the_sensor_and_read_back() -> None:
 
 def test_silent_sensor_sets_the_status_bits_then_writes_answer_0b() -> None:
     faults = Faults()
-    ah = sensor(Protocol.NATIVE, Series.AH, 0, source=hold(READING), faults=faults)
+    ah = sensor(WireProtocol.NATIVE, Series.AH, 0, source=hold(READING), faults=faults)
     with simulated([ah]) as line:
         cfg = config([bus("line", line.path, "native", [
             {"name": "ah", "series": "AH", "address": 0, "poll_hz": 20,
@@ -785,7 +785,7 @@ def test_silent_sensor_sets_the_status_bits_then_writes_answer_0b() -> None:
 
 def test_passthrough_unit_reaches_the_modbus_sensors_own_registers() -> None:
     faults = Faults()
-    vg = sensor(Protocol.MODBUS, Series.VG, 1, source=hold(READING), faults=faults)
+    vg = sensor(WireProtocol.MODBUS, Series.VG, 1, source=hold(READING), faults=faults)
     assert isinstance(vg, ModbusSensor)
     with simulated([vg]) as line:
         cfg = config([bus("line", line.path, "modbus", [
@@ -835,7 +835,7 @@ def test_passthrough_unit_reaches_the_modbus_sensors_own_registers() -> None:
 
 
 def test_passthrough_writes_follow_allow_writes() -> None:
-    vg = sensor(Protocol.MODBUS, Series.VG, 1, source=hold(READING))
+    vg = sensor(WireProtocol.MODBUS, Series.VG, 1, source=hold(READING))
     with simulated([vg]) as line:
         cfg = config([bus("line", line.path, "modbus", [
             {"name": "vg", "series": "VG", "address": 1, "raw_unit_id": 50}])])
@@ -860,7 +860,7 @@ def test_passthrough_never_answers_with_another_requests_answer() -> None:
     # The sensor answers after the gateway gave up (answer delay > timeout): each late
     # answer arrives while the next request is on the bus.  A pass-through read of N
     # registers must never come back with the answer to a read of M != N registers.
-    vg = sensor(Protocol.MODBUS, Series.VG, 1, source=hold(READING), answer_delay=0.15)
+    vg = sensor(WireProtocol.MODBUS, Series.VG, 1, source=hold(READING), answer_delay=0.15)
     assert isinstance(vg, ModbusSensor)
     with simulated([vg]) as line:
         cfg = config([bus("line", line.path, "modbus", [

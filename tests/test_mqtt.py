@@ -39,7 +39,7 @@ from paho.mqtt.properties import Properties
 
 from gateway.app import Gateway
 from gateway.frontends.mqtt import Message, MqttClient
-from gateway.model import Angles, Protocol, Series
+from gateway.model import Angles, Series, WireProtocol
 from gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
 from gateway.simulator.motion import Motion
 
@@ -52,7 +52,7 @@ GROUPS = {Series.AH: {"angles", "accel", "gyro", "mag", "quaternion"},
           Series.VG: {"angles", "accel", "gyro", "quaternion"}}
 
 
-def sensor(protocol: Protocol, series: Series, **options: Any) -> SimSensor:
+def sensor(protocol: WireProtocol, series: Series, **options: Any) -> SimSensor:
     return make_sensor(protocol, series, baud=FAST, **options)
 
 
@@ -103,8 +103,8 @@ async def nothing_retained(broker: Mosquitto, topic: str) -> bool:
 
 
 def test_state_json_carries_the_simulators_values(tmp_path: Path) -> None:
-    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
-    vg = sensor(Protocol.MODBUS, Series.VG, address=1, source=hold(READING))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
+    vg = sensor(WireProtocol.MODBUS, Series.VG, address=1, source=hold(READING))
     with Mosquitto(tmp_path) as broker, simulated([ah]) as line_a, \
             simulated([vg]) as line_b, recording(broker, "imu/#") as rec:
         cfg = config([bus("a", line_a.path, "native", [{"name": "boom", "series": "AH"}]),
@@ -117,8 +117,8 @@ def test_state_json_carries_the_simulators_values(tmp_path: Path) -> None:
                                          and rec.on(f"{BASE}/arm/state")))
 
         run(body)
-        for name, sim, protocol in (("boom", ah, Protocol.NATIVE),
-                                    ("arm", vg, Protocol.MODBUS)):
+        for name, sim, protocol in (("boom", ah, WireProtocol.NATIVE),
+                                    ("arm", vg, WireProtocol.MODBUS)):
             message = rec.on(f"{BASE}/{name}/state")[-1]
             got = state(message)
             assert set(got) == {"sensor", "ts", "seq", "status"} | GROUPS[sim.series]
@@ -135,7 +135,7 @@ def test_state_json_carries_the_simulators_values(tmp_path: Path) -> None:
 
 
 def test_status_availability_and_state_are_retained(tmp_path: Path) -> None:
-    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     with Mosquitto(tmp_path) as broker, simulated([ah]) as line:
         cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])], broker)
 
@@ -156,7 +156,7 @@ def test_status_availability_and_state_are_retained(tmp_path: Path) -> None:
 
 def test_availability_follows_a_sensor_that_stops_and_comes_back(tmp_path: Path) -> None:
     faults = Faults()
-    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING), faults=faults)
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING), faults=faults)
     with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
             recording(broker, f"{BASE}/boom/#") as rec:
         cfg = config([bus("a", line.path, "native",
@@ -190,8 +190,8 @@ def test_availability_follows_a_sensor_that_stops_and_comes_back(tmp_path: Path)
 @pytest.mark.parametrize("version", ["3.1.1", "5"])
 def test_command_round_trip(tmp_path: Path, version: str,
                             caplog: pytest.LogCaptureFixture) -> None:
-    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
-    vg = sensor(Protocol.NATIVE, Series.VG, address=1, source=hold(READING))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
+    vg = sensor(WireProtocol.NATIVE, Series.VG, address=1, source=hold(READING))
     paho_version = paho.MQTTv5 if version == "5" else paho.MQTTv311
     with Mosquitto(tmp_path) as broker, simulated([ah, vg]) as line, \
             recording(broker, f"{BASE}/+/cmd/+/result", "replies/#",
@@ -296,8 +296,8 @@ async def _retained_commands(broker: Mosquitto, rec: Recorder, cmd: str, version
 
 def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
         tmp_path: Path) -> None:
-    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
-    vg = sensor(Protocol.NATIVE, Series.VG, address=1, source=hold(READING))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
+    vg = sensor(WireProtocol.NATIVE, Series.VG, address=1, source=hold(READING))
     with Mosquitto(tmp_path) as broker, simulated([ah, vg]) as line:
         both: list[dict[str, Any]] = [{"name": "boom", "series": "AH"},
                                       {"name": "arm", "series": "VG", "address": 1}]
@@ -356,7 +356,7 @@ def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
 
 def test_broker_restart_reconnects_and_republishes_and_queue_stays_bounded(
         tmp_path: Path) -> None:
-    ah = sensor(Protocol.NATIVE, Series.AH, source=Motion.from_seed(5))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=Motion.from_seed(5))
     with Mosquitto(tmp_path) as broker, simulated([ah]) as line:
         cfg = config([bus("a", line.path, "native",
                           [{"name": "boom", "series": "AH", "poll_hz": 0}])], broker,
@@ -389,7 +389,7 @@ def test_broker_restart_reconnects_and_republishes_and_queue_stays_bounded(
 def test_no_broker_the_gateway_runs_and_connects_when_one_appears(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.INFO, "gateway.mqtt")
-    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     broker = Mosquitto(tmp_path)  # not started yet
     with simulated([ah]) as line:
         cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])],
@@ -424,7 +424,7 @@ def _run_gateway(tmp_path: Path, cfg: dict[str, Any]) -> subprocess.Popen[bytes]
 
 @pytest.mark.parametrize("how", ["killed", "interrupted"])
 def test_the_broker_says_offline_when_the_gateway_goes(tmp_path: Path, how: str) -> None:
-    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
             recording(broker, f"{BASE}/status", f"{BASE}/boom/availability") as rec:
         cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])],
@@ -456,7 +456,7 @@ def test_a_bad_response_topic_gets_an_error_and_the_gateway_goes_on(
     to: an error result on the default result topic, and states keep flowing.  (An
     MQTT property is at most 65,535 bytes: 65,000 is about the longest a client can
     send.)"""
-    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     cmd = f"{BASE}/boom/cmd/read_settings"
     with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
             recording(broker, f"{cmd}/result", f"{BASE}/boom/state",
@@ -486,7 +486,7 @@ def test_a_bad_response_topic_gets_an_error_and_the_gateway_goes_on(
 
 def test_a_message_paho_cannot_send_is_dropped_and_the_queue_goes_on(
         tmp_path: Path) -> None:
-    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
             recording(broker, f"{BASE}/boom/state") as rec:
         cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])],
@@ -512,7 +512,7 @@ def test_a_failed_mqtt_client_is_restarted_and_the_rest_goes_on(
         caplog: pytest.LogCaptureFixture) -> None:
     """A fault inside the MQTT front end (here: its cache listener raises once) is
     logged, counted, and that front end alone restarts; the bus goes on."""
-    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     failures = iter([True])
     original = MqttClient._publish_state
 
@@ -560,7 +560,7 @@ def test_tls_with_a_test_ca_client_certificate_and_password(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.WARNING, "gateway.mqtt")
     tls = make_tls(tmp_path / "pki")
-    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     with Mosquitto(tmp_path, tls=tls, users=USERS) as broker, simulated([ah]) as line, \
             recording(broker, "imu/#", username="dashboard", password="look") as rec:
         buses = [bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])]
@@ -589,7 +589,7 @@ def test_tls_with_a_ca_that_did_not_sign_the_broker_says_why(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.WARNING, "gateway.mqtt")
     tls, other = make_tls(tmp_path / "pki"), make_tls(tmp_path / "other-pki")
-    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     with Mosquitto(tmp_path, tls=tls, users=USERS) as broker, simulated([ah]) as line:
         buses = [bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])]
         cfg = config(buses, broker, **{**_secure(tls), "ca_file": str(other.ca)})
@@ -609,7 +609,7 @@ def test_tls_with_a_ca_that_did_not_sign_the_broker_says_why(
 
 
 def test_min_interval_deadband_and_per_field_topics(tmp_path: Path) -> None:
-    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
             recording(broker, f"{BASE}/#") as rec:
         buses = [bus("a", line.path, "native",
@@ -674,7 +674,7 @@ def test_plain_mqtt_to_a_tls_port_says_so(tmp_path: Path,
     and says nothing): the gateway says so once, and why it might be."""
     caplog.set_level(logging.WARNING, "gateway.mqtt")
     tls = make_tls(tmp_path / "pki")
-    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     with Mosquitto(tmp_path, tls=tls) as broker, simulated([ah]) as line:
         plain = broker.url.replace("mqtts://", "mqtt://")
         cfg = {"gateway_id": GID, "buses": [bus("a", line.path, "native",
@@ -698,7 +698,7 @@ def test_a_server_that_never_answers_connect_is_given_up_on(
     """Not a broker at all (or a TLS port that waits for a hello): a TCP server that
     accepts and says nothing.  Each attempt ends after CONNACK_TIMEOUT, said once."""
     caplog.set_level(logging.WARNING, "gateway.mqtt")
-    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     with simulated([ah]) as line:
         async def body() -> None:
             accepted: list[asyncio.StreamWriter] = []
@@ -725,7 +725,7 @@ def test_twenty_sensors_all_discovery_configs_and_availabilities_arrive(
         tmp_path: Path) -> None:
     """320 discovery configs and 20 availabilities at one connect: more than paho's
     own queue would take at once; none may be lost."""
-    sims = [sensor(Protocol.NATIVE, Series.AH, address=a, source=hold(READING))
+    sims = [sensor(WireProtocol.NATIVE, Series.AH, address=a, source=hold(READING))
             for a in range(20)]
     with Mosquitto(tmp_path) as broker, simulated(sims) as line:
         cfg = config([bus("a", line.path, "native",
@@ -746,7 +746,7 @@ def test_twenty_sensors_all_discovery_configs_and_availabilities_arrive(
 
 
 def test_a_connection_that_worked_resets_the_reconnect_back_off(tmp_path: Path) -> None:
-    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     with Mosquitto(tmp_path) as broker, simulated([ah]) as line:
         cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])],
                      broker)

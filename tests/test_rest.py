@@ -21,7 +21,7 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from gateway.app import Gateway, openapi_json
 from gateway.errors import StartupError
-from gateway.model import Protocol, Series
+from gateway.model import Series, WireProtocol
 from gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
 from gateway.simulator.motion import Motion
 
@@ -33,7 +33,7 @@ API = "/api/v1"
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def sensor(protocol: Protocol, series: Series, **options: Any) -> SimSensor:
+def sensor(protocol: WireProtocol, series: Series, **options: Any) -> SimSensor:
     return make_sensor(protocol, series, baud=FAST, **options)
 
 
@@ -63,8 +63,8 @@ def assert_error(response: httpx.Response, status: int, kind: str) -> None:
 @pytest.fixture
 def two_lines() -> Any:
     """A native AH and a Modbus VG, each on its own line."""
-    ah = sensor(Protocol.NATIVE, Series.AH, source=hold(READING), save_duration=1.0)
-    vg = sensor(Protocol.MODBUS, Series.VG, address=1, source=hold(READING))
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING), save_duration=1.0)
+    vg = sensor(WireProtocol.MODBUS, Series.VG, address=1, source=hold(READING))
     with simulated([ah]) as line_a, simulated([vg]) as line_b:
         yield ah, vg, [bus("a", line_a.path, "native", [{"name": "boom", "series": "AH"}]),
                        bus("b", line_b.path, "modbus", [{"name": "arm", "series": "VG"}])]
@@ -119,8 +119,8 @@ def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
                                               "accel", "gyro", "quaternion"}
             assert "age_ms" in detail and "settings" in detail  # the route's own fields
 
-            for name, sim, protocol in (("boom", ah, Protocol.NATIVE),
-                                        ("arm", vg, Protocol.MODBUS)):
+            for name, sim, protocol in (("boom", ah, WireProtocol.NATIVE),
+                                        ("arm", vg, WireProtocol.MODBUS)):
                 response = await http.get(f"{API}/sensors/{name}/reading")
                 assert response.status_code == 200
                 got = response.json()
@@ -171,7 +171,7 @@ def test_max_age_reads_the_bus_and_a_silent_sensor_is_504(two_lines: Any) -> Non
 
 
 def test_no_reading_yet_is_503(tmp_path: Path) -> None:
-    dead = sensor(Protocol.NATIVE, Series.AH, faults=Faults(stalled=True))
+    dead = sensor(WireProtocol.NATIVE, Series.AH, faults=Faults(stalled=True))
     with simulated([dead]) as line:
         buses = [bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])]
 
@@ -482,7 +482,7 @@ def test_a_value_that_is_not_a_number_is_null_not_broken_json() -> None:
 
     assert READING.accel is not None
     odd = replace(READING, accel=Vector3(float("nan"), READING.accel.y, float("inf")))
-    vg = sensor(Protocol.MODBUS, Series.VG, address=1, source=hold(odd))
+    vg = sensor(WireProtocol.MODBUS, Series.VG, address=1, source=hold(odd))
     with simulated([vg]) as line:
         buses = [bus("b", line.path, "modbus", [{"name": "arm", "series": "VG"}])]
 

@@ -14,7 +14,7 @@ import pytest
 import serial
 from harness import run, running, until
 
-from gateway.model import Protocol, Series
+from gateway.model import Series, WireProtocol
 from gateway.protocol import modbus_rtu as rtu
 from gateway.simulator import Faults, make_sensor, simulated
 
@@ -26,8 +26,8 @@ def gateway_cli(*args: str) -> list[str]:
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_run_logs_state_changes_once_and_stops_cleanly(tmp_path: Path, sig: int) -> None:
     faults = Faults(stalled=True)
-    with simulated([make_sensor(Protocol.NATIVE, Series.AH, 0, baud=115200),
-                    make_sensor(Protocol.NATIVE, Series.VG, 4, baud=115200, faults=faults)]) \
+    with simulated([make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200),
+                    make_sensor(WireProtocol.NATIVE, Series.VG, 4, baud=115200, faults=faults)]) \
             as sim:
         config = tmp_path / "gateway.yaml"
         config.write_text(f"""
@@ -78,8 +78,8 @@ def test_run_with_a_bad_config_exits_2_with_the_problems(tmp_path: Path) -> None
 
 
 def test_scan_finds_sensors_of_both_protocols() -> None:
-    sensors = [make_sensor(Protocol.NATIVE, Series.AH, 7, baud=19200),
-               make_sensor(Protocol.MODBUS, Series.IMU, 3, baud=19200)]
+    sensors = [make_sensor(WireProtocol.NATIVE, Series.AH, 7, baud=19200),
+               make_sensor(WireProtocol.MODBUS, Series.IMU, 3, baud=19200)]
     with simulated(sensors) as sim:
         done = subprocess.run(
             gateway_cli("scan", "--port", sim.path, "--baud", "9600", "--baud", "19200",
@@ -97,8 +97,8 @@ def test_scan_finds_sensors_of_both_protocols() -> None:
 
 def test_scan_tells_several_native_sensors_apart() -> None:
     """The address query collides when several answer; scan then asks each address."""
-    sensors = [make_sensor(Protocol.NATIVE, Series.IMU, 1, baud=115200),
-               make_sensor(Protocol.NATIVE, Series.VG, 2, baud=115200)]
+    sensors = [make_sensor(WireProtocol.NATIVE, Series.IMU, 1, baud=115200),
+               make_sensor(WireProtocol.NATIVE, Series.VG, 2, baud=115200)]
     with simulated(sensors) as sim:
         done = subprocess.run(
             # 256 addresses are asked in turn: fast sensors, a short margin (the default
@@ -128,8 +128,8 @@ def test_scan_of_an_empty_line_finds_nothing(tmp_path: Path) -> None:
 
 
 def test_scan_finds_native_sensors_whose_address_answers_do_not_collide() -> None:
-    sensors = [make_sensor(Protocol.NATIVE, Series.AH, 4, baud=115200, answer_delay=0.002),
-               make_sensor(Protocol.NATIVE, Series.IMU, 9, baud=115200, answer_delay=0.02)]
+    sensors = [make_sensor(WireProtocol.NATIVE, Series.AH, 4, baud=115200, answer_delay=0.002),
+               make_sensor(WireProtocol.NATIVE, Series.IMU, 9, baud=115200, answer_delay=0.02)]
     with simulated(sensors) as sim:
         done = subprocess.run(
             gateway_cli("scan", "--port", sim.path, "--baud", "115200", "--protocol", "native"),
@@ -142,9 +142,9 @@ def test_scan_finds_native_sensors_whose_address_answers_do_not_collide() -> Non
 def test_scan_finds_slow_sensors_with_its_defaults(protocol: str) -> None:
     """Sensors that answer 35 ms late, and 5-40 ms late (jittered), behind defaults."""
     first = 0 if protocol == "native" else 1
-    sensors = [make_sensor(Protocol[protocol.upper()], Series.AH, first + 4, baud=115200,
+    sensors = [make_sensor(WireProtocol[protocol.upper()], Series.AH, first + 4, baud=115200,
                            answer_delay=0.035),
-               make_sensor(Protocol[protocol.upper()], Series.AH, first + 9, baud=115200,
+               make_sensor(WireProtocol[protocol.upper()], Series.AH, first + 9, baud=115200,
                            answer_delay=0.005, jitter=0.035, seed=3)]
     with simulated(sensors) as sim:
         done = subprocess.run(
@@ -160,7 +160,7 @@ def test_a_second_program_on_the_gateways_port_gets_a_clear_error() -> None:
     """One owner per line: the gateway opens its device exclusively, so a scan (or a
     second gateway) started on the same port is refused at once, and the gateway
     carries on."""
-    with simulated([make_sensor(Protocol.NATIVE, Series.AH, 0, baud=115200)]) as sim:
+    with simulated([make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200)]) as sim:
         async def body() -> None:
             async with running({"buses": [{
                     "name": "a", "port": sim.path, "baudrate": 115200, "protocol": "native",
@@ -183,7 +183,7 @@ def test_scan_reports_progress_with_an_estimate_of_the_time_left() -> None:
     """A line at each step's start, and within a step one about every second: 16 units
     at the default margin (100 ms each when silent) last over a second whatever the
     machine's speed, so at least one line names an address."""
-    with simulated([make_sensor(Protocol.MODBUS, Series.AH, 16, baud=115200)]) as sim:
+    with simulated([make_sensor(WireProtocol.MODBUS, Series.AH, 16, baud=115200)]) as sim:
         done = subprocess.run(
             gateway_cli("scan", "--port", sim.path, "--protocol", "modbus", "--baud", "9600",
                         "--baud", "115200", *[f"--address={a}" for a in range(1, 17)]),
@@ -202,8 +202,8 @@ def test_scan_reports_progress_with_an_estimate_of_the_time_left() -> None:
 
 
 def test_scan_stop_after_ends_the_scan_at_the_first_sensor_found() -> None:
-    sensors = [make_sensor(Protocol.NATIVE, Series.AH, 7, baud=9600),
-               make_sensor(Protocol.NATIVE, Series.VG, 8, baud=115200)]
+    sensors = [make_sensor(WireProtocol.NATIVE, Series.AH, 7, baud=9600),
+               make_sensor(WireProtocol.NATIVE, Series.VG, 8, baud=115200)]
     with simulated(sensors) as sim:
         done = subprocess.run(
             gateway_cli("scan", "--port", sim.path, "--protocol", "native", "--baud", "9600",

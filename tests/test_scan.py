@@ -10,7 +10,7 @@ from typing import cast
 import pytest
 import serial
 
-from gateway.model import Protocol
+from gateway.model import WireProtocol
 from gateway.protocol import modbus_rtu as rtu
 from gateway.scan import (
     Found,
@@ -31,7 +31,7 @@ MARGIN = 0.1
 
 
 def test_time_left_is_wire_time_plus_margin_of_every_request_still_to_make() -> None:
-    steps = plan([Protocol.NATIVE, Protocol.MODBUS], [9600, 115200])
+    steps = plan([WireProtocol.NATIVE, WireProtocol.MODBUS], [9600, 115200])
     c9600, c115200 = 10 / 9600, 10 / 115200
     # Native: the address query, 5 bytes out and 6 back.  Modbus: 8 out, 7 back, each
     # after 3.5 characters of silence and answered after as much again (1.75 ms fast).
@@ -52,7 +52,7 @@ def test_time_left_is_wire_time_plus_margin_of_every_request_still_to_make() -> 
 
 
 def test_a_whole_default_scan_is_estimated_at_about_four_minutes() -> None:
-    steps = plan(list(Protocol), (9600, 115200, 460800, 19200, 38400, 57600, 4800, 2400))
+    steps = plan(list(WireProtocol), (9600, 115200, 460800, 19200, 38400, 57600, 4800, 2400))
     assert len(steps) == 16
     assert 200 < time_left(steps, 0, None, MARGIN) < 300
     estimates = [time_left(steps, i, None, MARGIN) for i in range(len(steps))]
@@ -60,15 +60,15 @@ def test_a_whole_default_scan_is_estimated_at_about_four_minutes() -> None:
 
 
 def test_progress_lines_say_where_the_scan_is_and_the_time_left() -> None:
-    native = Step(Protocol.NATIVE, 2400, tuple(range(256)))
-    modbus = Step(Protocol.MODBUS, 9600, (1, 2, 3))
+    native = Step(WireProtocol.NATIVE, 2400, tuple(range(256)))
+    modbus = Step(WireProtocol.MODBUS, 9600, (1, 2, 3))
     assert Progress(native, None, 0, 0.2).line() == \
         "scanning native 2400 baud, address query (about 1 s left)"
     assert Progress(native, 36, 36, 40.2).line() == \
         "scanning native 2400 baud, address 36 (37 of 256; about 41 s left)"
     assert Progress(modbus, None, 0, 245).line() == \
         "scanning modbus 9600 baud, 3 addresses (about 4 min left)"
-    assert Progress(Step(Protocol.MODBUS, 9600, (5,)), None, 0, 1).line() == \
+    assert Progress(Step(WireProtocol.MODBUS, 9600, (5,)), None, 0, 1).line() == \
         "scanning modbus 9600 baud, 1 address (about 1 s left)"
     assert Progress(modbus, 2, 1, 97).line() == \
         "scanning modbus 9600 baud, address 2 (2 of 3; about 1 min 40 s left)"
@@ -78,13 +78,13 @@ def test_throttle_passes_every_step_start_and_at_most_one_other_report_a_second(
     now = [0.0]
     shown: list[Progress] = []
     throttle = Throttle(shown.append, interval=1.0, clock=lambda: now[0])
-    step = Step(Protocol.MODBUS, 9600, tuple(range(1, 248)))
+    step = Step(WireProtocol.MODBUS, 9600, tuple(range(1, 248)))
     throttle(Progress(step, None, 0, 30))
     for asked in range(30):  # eight addresses a second (exact in binary): one report a second
         now[0] += 0.125
         throttle(Progress(step, asked + 1, asked, 30 - asked))
     now[0] += 0.01
-    throttle(Progress(Step(Protocol.NATIVE, 115200, (0,)), None, 0, 1))  # a new step
+    throttle(Progress(Step(WireProtocol.NATIVE, 115200, (0,)), None, 0, 1))  # a new step
     starts = [p for p in shown if p.address is None]
     assert len(starts) == 2
     assert [p.asked for p in shown if p.address is not None] == [7, 15, 23]
@@ -95,7 +95,7 @@ def test_modbus_units_are_1_to_247_or_with_all_addresses_up_to_255_never_0() -> 
     assert modbus_units(all_addresses=True) == list(range(1, 256))
     assert modbus_units([0, 250, 3, 3], all_addresses=False) == [3]
     assert modbus_units([0, 250, 3], all_addresses=True) == [3, 250]
-    steps = plan([Protocol.MODBUS, Protocol.NATIVE], [9600], all_addresses=True)
+    steps = plan([WireProtocol.MODBUS, WireProtocol.NATIVE], [9600], all_addresses=True)
     assert steps[0].addresses == tuple(range(1, 256))
     assert steps[1].addresses == tuple(range(256))
 
@@ -177,13 +177,13 @@ def test_other_port_errors_keep_their_cause_said_once() -> None:
 
 
 def test_next_time_names_only_the_protocols_and_rates_that_found_something() -> None:
-    native = Found(Protocol.NATIVE, 115200, 0, "AH")
-    modbus = Found(Protocol.MODBUS, 9600, 3, "IMU")
+    native = Found(WireProtocol.NATIVE, 115200, 0, "AH")
+    modbus = Found(WireProtocol.MODBUS, 9600, 3, "IMU")
     assert next_time("/dev/ttyUSB0", [native]) == \
         "next time: imu-gateway scan --port /dev/ttyUSB0 --protocol native --baud 115200"
     assert next_time("/dev/ttyUSB0", [native, modbus]) == \
         "next time: imu-gateway scan --port /dev/ttyUSB0 --baud 9600 --baud 115200"
-    reserved = Found(Protocol.MODBUS, 9600, 250, "unknown")
+    reserved = Found(WireProtocol.MODBUS, 9600, 250, "unknown")
     assert next_time("/dev/my port", [reserved], margin_ms=300) == (
         "next time: imu-gateway scan --port '/dev/my port' --protocol modbus --baud 9600 "
         "--all-addresses --margin-ms 300")

@@ -20,7 +20,7 @@ import httpx
 import yaml
 from harness import free_port
 
-from gateway.model import Protocol, Series
+from gateway.model import Series, WireProtocol
 from gateway.simulator import make_sensor, simulated
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -28,8 +28,8 @@ FAST = 115200
 
 
 def test_schemathesis_finds_no_server_errors_or_schema_violations(tmp_path: Path) -> None:
-    ah = make_sensor(Protocol.NATIVE, Series.AH, 0, baud=FAST)
-    vg = make_sensor(Protocol.MODBUS, Series.VG, 1, baud=FAST)
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST)
+    vg = make_sensor(WireProtocol.MODBUS, Series.VG, 1, baud=FAST)
     port = free_port()
     with simulated([ah]) as line_a, simulated([vg]) as line_b:
         config = {

@@ -21,7 +21,7 @@ import pytest
 import serial
 
 from gateway.cli import build_parser, main
-from gateway.model import Angles, Protocol, Quaternion, Reading, Series, Vector3
+from gateway.model import Angles, Quaternion, Reading, Series, Vector3, WireProtocol
 from gateway.protocol import modbus_rtu as rtu
 from gateway.protocol import native
 from gateway.protocol.exchanges import char_time, rtu_silence
@@ -68,7 +68,7 @@ def silent(port: serial.Serial, request: bytes, wait: float = 0.25) -> bool:
     return port.in_waiting == 0
 
 
-def sensor(protocol: Protocol, series: Series, values: dict[str, float] | None = None,
+def sensor(protocol: WireProtocol, series: Series, values: dict[str, float] | None = None,
            **options: Any) -> SimSensor:
     source = hold(reading_with(values or {}))
     return make_sensor(protocol, series, source=source, **options)
@@ -104,7 +104,7 @@ def test_native_data_answer_equals_document(section: str, series: Series, comman
                                             answer: str) -> None:
     expected = bytes.fromhex(answer)
     values = dict(native.decode(expected).values)
-    with line(sensor(Protocol.NATIVE, series, values)) as port:
+    with line(sensor(WireProtocol.NATIVE, series, values)) as port:
         assert exchange(port, native.encode_request(command), len(expected)) == expected
 
 
@@ -139,13 +139,13 @@ NATIVE_SETTING_EXAMPLES = [
 def test_native_setting_answers(section: str, series: Series, request_hex: str,
                                 answer_hex: str) -> None:
     expected = bytes.fromhex(answer_hex)
-    with line(sensor(Protocol.NATIVE, series)) as port:
+    with line(sensor(WireProtocol.NATIVE, series)) as port:
         assert exchange(port, bytes.fromhex(request_hex), len(expected)) == expected
 
 
 def test_native_zero_type_query_answers_ff_for_relative() -> None:
     """2.8 sets relative with 0x01, but 2.9 reports it as 0xFF."""
-    with line(sensor(Protocol.NATIVE, Series.VG, {"pitch": 3.0, "roll": -4.0})) as port:
+    with line(sensor(WireProtocol.NATIVE, Series.VG, {"pitch": 3.0, "roll": -4.0})) as port:
         exchange(port, bytes.fromhex("77 05 00 05 01 0B"), 6)
         assert exchange(port, bytes.fromhex("77 04 00 0D 11"), 6) == bytes.fromhex(
             "77 05 00 8D FF 91")
@@ -180,20 +180,20 @@ MODBUS_EXAMPLES = [
 def test_modbus_answer_equals_document(section: str, values: dict[str, float],
                                        request_hex: str, answer_hex: str) -> None:
     expected = bytes.fromhex(answer_hex)
-    with line(sensor(Protocol.MODBUS, Series.AH, values, save_duration=0.05)) as port:
+    with line(sensor(WireProtocol.MODBUS, Series.AH, values, save_duration=0.05)) as port:
         assert exchange(port, bytes.fromhex(request_hex), len(expected)) == expected
 
 
 def test_modbus_zero_type_query() -> None:
     """2.6: after setting relative zero (2.5 with 1), register 5 reads 1."""
-    with line(sensor(Protocol.MODBUS, Series.VG)) as port:
+    with line(sensor(WireProtocol.MODBUS, Series.VG)) as port:
         exchange(port, rtu.write_request(1, "set_zero_type", "relative"), 8)
         assert exchange(port, bytes.fromhex("01 03 00 05 00 01 94 0B"), 7) == bytes.fromhex(
             "01 03 02 00 01 79 84")
 
 
 def test_modbus_gyro_calibration_answers_started_then_done() -> None:
-    with line(sensor(Protocol.MODBUS, Series.VG, gyro_cal_duration=0.2)) as port:
+    with line(sensor(WireProtocol.MODBUS, Series.VG, gyro_cal_duration=0.2)) as port:
         port.timeout = 2
         both = exchange(port, rtu.write_request(1, "calibrate_gyro", 0), 16)
         assert both == bytes.fromhex("01 06 00 10 00 00 88 0F") + rtu.encode(
@@ -203,7 +203,7 @@ def test_modbus_gyro_calibration_answers_started_then_done() -> None:
 def test_modbus_gyro_calibration_keeps_answering_reads_while_it_runs() -> None:
     """Nothing in 2.11 says the sensor stops answering: between "started" and "done"
     reads are answered as ever."""
-    with line(sensor(Protocol.MODBUS, Series.VG, {"pitch": 1.5}, gyro_cal_duration=0.6)) \
+    with line(sensor(WireProtocol.MODBUS, Series.VG, {"pitch": 1.5}, gyro_cal_duration=0.6)) \
             as port:
         assert exchange(port, rtu.write_request(1, "calibrate_gyro", 0), 8) == \
             bytes.fromhex("01 06 00 10 00 00 88 0F")
@@ -217,14 +217,14 @@ def test_modbus_gyro_calibration_keeps_answering_reads_while_it_runs() -> None:
 def test_modbus_gyro_calibration_done_at_once_answers_complete() -> None:
     """A sensor that calibrates within its answer says 1 (complete) in the echo, and
     sends nothing after it."""
-    with line(sensor(Protocol.MODBUS, Series.VG, gyro_cal_duration=0.0)) as port:
+    with line(sensor(WireProtocol.MODBUS, Series.VG, gyro_cal_duration=0.0)) as port:
         answer = exchange(port, rtu.write_request(1, "calibrate_gyro", 0), 8)
         assert rtu.decode_frame(answer) == rtu.WriteRegister(1, 0x10, 1)
         assert silent(port, b"", wait=0.3)
 
 
 def test_modbus_exceptions() -> None:
-    with line(sensor(Protocol.MODBUS, Series.VG)) as port:
+    with line(sensor(WireProtocol.MODBUS, Series.VG)) as port:
         # a read across the hole between 0x05 and 0x22: illegal data address
         answer = rtu.decode_frame(exchange(port, rtu.read_request(1, 0x05, 2), 5))
         assert answer == rtu.ExceptionAnswer(1, 3, 2)
@@ -266,7 +266,7 @@ def test_native_exchange_takes_the_wire_time(baud: int) -> None:
     request = native.encode_request("read_all")
     answer_len = 57
     model = (len(request) + answer_len) * 10 / baud + delay
-    with line(make_sensor(Protocol.NATIVE, Series.AH, baud=baud, answer_delay=delay),
+    with line(make_sensor(WireProtocol.NATIVE, Series.AH, baud=baud, answer_delay=delay),
               baud=baud) as port:
         took = _best_of(port, request, answer_len)
     assert model * 0.999 <= took <= model * 1.05, (took, model)
@@ -277,14 +277,14 @@ def test_modbus_exchange_takes_the_wire_time_and_silent_interval() -> None:
     request = rtu.read_request(1, rtu.FLOAT_BLOCK_START, rtu.FLOAT_BLOCK_COUNT)
     answer_len = 5 + 2 * rtu.FLOAT_BLOCK_COUNT
     model = (len(request) + answer_len + 3.5) * 10 / baud + delay
-    with line(make_sensor(Protocol.MODBUS, Series.AH, answer_delay=delay)) as port:
+    with line(make_sensor(WireProtocol.MODBUS, Series.AH, answer_delay=delay)) as port:
         took = _best_of(port, request, answer_len)
     assert model * 0.999 <= took <= model * 1.05, (took, model)
 
 
 def test_answer_arrives_in_pieces_not_at_once() -> None:
     """Bytes are released as each would leave the wire, so a reader sees them trickle."""
-    with line(make_sensor(Protocol.NATIVE, Series.AH, answer_delay=0)) as port:
+    with line(make_sensor(WireProtocol.NATIVE, Series.AH, answer_delay=0)) as port:
         port.write(native.encode_request("read_all"))
         time.sleep(0.035)  # the request is 5.2 ms, the answer 59 ms on the wire
         partial = port.in_waiting
@@ -298,8 +298,8 @@ DELAY, JITTER = 0.005, 0.035  # the slow sensor behind a USB adapter of docs/sim
 EPS = 1e-9  # float rounding of now + delay - now
 
 
-def read_request(protocol: Protocol) -> bytes:
-    if protocol is Protocol.NATIVE:
+def read_request(protocol: WireProtocol) -> bytes:
+    if protocol is WireProtocol.NATIVE:
         return native.encode_request("read_angles")
     return rtu.read_request(1, 1, 3)
 
@@ -307,7 +307,7 @@ def read_request(protocol: Protocol) -> bytes:
 def answer_delays(s: SimSensor, count: int) -> list[float]:
     """How long after each request's last byte its answer starts, beyond the protocol's
     silent interval.  The requests are a second apart, so no answer waits for another."""
-    silence = rtu_silence(s.baud) if s.protocol is Protocol.MODBUS else 0.0
+    silence = rtu_silence(s.baud) if s.protocol is WireProtocol.MODBUS else 0.0
     delays = []
     for i in range(count):
         now = 100.0 + i
@@ -317,17 +317,17 @@ def answer_delays(s: SimSensor, count: int) -> list[float]:
     return delays
 
 
-@pytest.mark.parametrize("protocol", list(Protocol))
-def test_answer_starts_between_delay_and_delay_plus_jitter(protocol: Protocol) -> None:
+@pytest.mark.parametrize("protocol", list(WireProtocol))
+def test_answer_starts_between_delay_and_delay_plus_jitter(protocol: WireProtocol) -> None:
     s = sensor(protocol, Series.AH, answer_delay=DELAY, jitter=JITTER, seed=11)
-    silence = rtu_silence(9600) if protocol is Protocol.MODBUS else 0.0
+    silence = rtu_silence(9600) if protocol is WireProtocol.MODBUS else 0.0
     for now in (0.5, 7.25, 30.0):
         [out] = s.hear(read_request(protocol), now, after_silence=True)
         assert now + silence + DELAY - EPS <= out.not_before <= now + silence + DELAY + JITTER + EPS
 
 
-@pytest.mark.parametrize("protocol", list(Protocol))
-def test_jitter_varies_per_answer_over_its_whole_range(protocol: Protocol) -> None:
+@pytest.mark.parametrize("protocol", list(WireProtocol))
+def test_jitter_varies_per_answer_over_its_whole_range(protocol: WireProtocol) -> None:
     delays = answer_delays(sensor(protocol, Series.VG, answer_delay=DELAY, jitter=JITTER), 200)
     assert all(DELAY - EPS <= d <= DELAY + JITTER + EPS for d in delays)
     assert len({round(d, 9) for d in delays}) > 190  # drawn per answer, not once
@@ -337,16 +337,16 @@ def test_jitter_varies_per_answer_over_its_whole_range(protocol: Protocol) -> No
 
 def test_jitter_is_reproducible_by_seed() -> None:
     def delays(seed: int) -> list[float]:
-        return answer_delays(sensor(Protocol.NATIVE, Series.AH, answer_delay=DELAY,
+        return answer_delays(sensor(WireProtocol.NATIVE, Series.AH, answer_delay=DELAY,
                                     jitter=JITTER, seed=seed), 50)
 
     assert delays(3) == delays(3)
     assert delays(3) != delays(4)
 
 
-@pytest.mark.parametrize("protocol", list(Protocol))
+@pytest.mark.parametrize("protocol", list(WireProtocol))
 def test_without_jitter_every_answer_is_exactly_the_delay_and_draws_nothing(
-        protocol: Protocol) -> None:
+        protocol: WireProtocol) -> None:
     s = sensor(protocol, Series.AH, answer_delay=DELAY)
     state = s.rng.getstate()
     assert s.turnaround() == DELAY
@@ -354,12 +354,12 @@ def test_without_jitter_every_answer_is_exactly_the_delay_and_draws_nothing(
     assert {round(d, 12) for d in answer_delays(s, 20)} == {DELAY}
 
 
-@pytest.mark.parametrize("protocol", list(Protocol))
-def test_answers_of_one_sensor_never_reorder_or_overlap(protocol: Protocol) -> None:
+@pytest.mark.parametrize("protocol", list(WireProtocol))
+def test_answers_of_one_sensor_never_reorder_or_overlap(protocol: WireProtocol) -> None:
     """Requests heard faster than the sensor answers (two in one chunk, then one more
     1 ms later): each answer starts after the previous one has left the wire (and, on
     Modbus, after the silent interval), whatever the jitter drew."""
-    gap = rtu_silence(9600) if protocol is Protocol.MODBUS else 0.0
+    gap = rtu_silence(9600) if protocol is WireProtocol.MODBUS else 0.0
     request = read_request(protocol)
     for seed in range(40):
         s = sensor(protocol, Series.AH, answer_delay=0.001, jitter=0.05, seed=seed)
@@ -370,10 +370,10 @@ def test_answers_of_one_sensor_never_reorder_or_overlap(protocol: Protocol) -> N
             assert second.not_before >= end + gap - EPS, seed
 
 
-@pytest.mark.parametrize("protocol", list(Protocol))
-def test_save_and_stream_start_follow_the_jittered_answer(protocol: Protocol) -> None:
+@pytest.mark.parametrize("protocol", list(WireProtocol))
+def test_save_and_stream_start_follow_the_jittered_answer(protocol: WireProtocol) -> None:
     s = sensor(protocol, Series.VG, answer_delay=DELAY, jitter=JITTER, save_duration=1.0)
-    if protocol is Protocol.NATIVE:
+    if protocol is WireProtocol.NATIVE:
         rate, save = native.encode_request("set_output_rate", rate_hz=10), \
             native.encode_request("save")
     else:
@@ -387,7 +387,7 @@ def test_save_and_stream_start_follow_the_jittered_answer(protocol: Protocol) ->
 
 def test_negative_jitter_is_refused() -> None:
     with pytest.raises(ValueError, match="jitter"):
-        make_sensor(Protocol.NATIVE, Series.AH, jitter=-0.001)
+        make_sensor(WireProtocol.NATIVE, Series.AH, jitter=-0.001)
 
 
 def test_jittered_answers_on_the_wire_are_never_early() -> None:
@@ -398,9 +398,9 @@ def test_jittered_answers_on_the_wire_are_never_early() -> None:
     request = native.encode_request("read_angles")
     options: dict[str, Any] = {"baud": baud, "answer_delay": DELAY, "jitter": JITTER,
                                "seed": seed}
-    expected = answer_delays(make_sensor(Protocol.NATIVE, Series.AH, **options), 6)
+    expected = answer_delays(make_sensor(WireProtocol.NATIVE, Series.AH, **options), 6)
     wire = (len(request) + 14) * char_time(baud)
-    with line(make_sensor(Protocol.NATIVE, Series.AH, **options), baud=baud) as port:
+    with line(make_sensor(WireProtocol.NATIVE, Series.AH, **options), baud=baud) as port:
         for delay in expected:
             port.reset_input_buffer()
             start = time.monotonic()
@@ -456,7 +456,7 @@ def test_cli_simulate_gives_every_sensor_the_delay_and_jitter(
 
 def test_native_unknown_baud_code_is_refused_and_changes_nothing() -> None:
     """2.4: the answer to a code the table lacks is FF (failure); the rate stays."""
-    with line(sensor(Protocol.NATIVE, Series.AH)) as port:
+    with line(sensor(WireProtocol.NATIVE, Series.AH)) as port:
         for code in (0x08, 0x09, 0xFF):
             request = native.NativeFrame(0, 0x0B, bytes([code])).encode()
             answer = native.decode(exchange(port, request, 6))
@@ -467,7 +467,7 @@ def test_native_unknown_baud_code_is_refused_and_changes_nothing() -> None:
 
 
 def test_native_output_type_answer_is_a_status_and_the_type_is_taken() -> None:
-    with line(make_sensor(Protocol.NATIVE, Series.VG, baud=115200), baud=115200) as port:
+    with line(make_sensor(WireProtocol.NATIVE, Series.VG, baud=115200), baud=115200) as port:
         answer = exchange(port, native.encode_request("set_output_type", output_type=2), 6)
         assert native.decode(answer, direction=native.Direction.ANSWER).values == \
             {"result": "success"}
@@ -488,14 +488,14 @@ def test_native_imu_answers_the_reads_that_name_no_series(command: str, size: in
     its source holds."""
     held = {"pitch": 12.34, "roll": -5.67, "yaw": 89.01, "q0": 0.5, "q1": -0.5, "q2": 0.5,
             "q3": -0.5}
-    with line(sensor(Protocol.NATIVE, Series.IMU, held)) as port:
+    with line(sensor(WireProtocol.NATIVE, Series.IMU, held)) as port:
         answer = native.decode(exchange(port, native.encode_request(command), size), Series.IMU)
         assert answer.name == command
         assert dict(answer.values) == {k: held[k] for k in groups}
 
 
 def test_native_baud_change_answers_at_old_rate_then_switches() -> None:
-    with line(sensor(Protocol.NATIVE, Series.AH)) as port:
+    with line(sensor(WireProtocol.NATIVE, Series.AH)) as port:
         answer = exchange(port, native.encode_request("set_baudrate", baudrate=115200), 6)
         assert native.decode(answer).values == {"result": "success"}
         assert silent(port, native.encode_request("read_angles"))  # still 9600 here
@@ -505,7 +505,7 @@ def test_native_baud_change_answers_at_old_rate_then_switches() -> None:
 
 
 def test_modbus_baud_change_is_silent_and_immediate() -> None:
-    with line(sensor(Protocol.MODBUS, Series.VG)) as port:
+    with line(sensor(WireProtocol.MODBUS, Series.VG)) as port:
         assert silent(port, rtu.write_request(1, "set_baudrate", 19200))
         port.baudrate = 19200
         answer = rtu.decode_frame(exchange(port, rtu.read_request(1, 1, 3), 11))
@@ -513,7 +513,7 @@ def test_modbus_baud_change_is_silent_and_immediate() -> None:
 
 
 def test_native_address_change_answers_from_new_address() -> None:
-    with line(sensor(Protocol.NATIVE, Series.VG)) as port:
+    with line(sensor(WireProtocol.NATIVE, Series.VG)) as port:
         answer = native.decode(exchange(port, bytes.fromhex("77 05 00 0F 0A 1E"), 6))
         assert (answer.address, answer.values["result"]) == (0x0A, "success")
         assert silent(port, native.encode_request("read_angles", 0))
@@ -525,16 +525,16 @@ def test_native_address_change_answers_from_new_address() -> None:
 
 
 def test_modbus_address_change() -> None:
-    with line(sensor(Protocol.MODBUS, Series.VG)) as port:
+    with line(sensor(WireProtocol.MODBUS, Series.VG)) as port:
         exchange(port, rtu.write_request(1, "set_address", 9), 8)
         assert silent(port, rtu.read_request(1, 4, 1))
         answer = rtu.decode_frame(exchange(port, rtu.read_request(9, 4, 1), 7))
         assert answer == rtu.ReadResponse(9, (9,))
 
 
-@pytest.mark.parametrize("protocol", list(Protocol))
-def test_save_is_followed_by_a_deaf_period(protocol: Protocol) -> None:
-    if protocol is Protocol.NATIVE:
+@pytest.mark.parametrize("protocol", list(WireProtocol))
+def test_save_is_followed_by_a_deaf_period(protocol: WireProtocol) -> None:
+    if protocol is WireProtocol.NATIVE:
         save, save_len = native.encode_request("save"), 6
         probe, probe_len = native.encode_request("read_angles"), 14
     else:
@@ -548,7 +548,7 @@ def test_save_is_followed_by_a_deaf_period(protocol: Protocol) -> None:
 
 
 def test_native_heading_commands_mins() -> None:
-    with line(sensor(Protocol.NATIVE, Series.MINS, {"yaw": 123.45})) as port:
+    with line(sensor(WireProtocol.NATIVE, Series.MINS, {"yaw": 123.45})) as port:
         def yaw() -> float:
             return float(native.decode(exchange(port, native.encode_request("read_angles"), 14))
                          .values["yaw"])
@@ -560,7 +560,7 @@ def test_native_heading_commands_mins() -> None:
 
 
 def test_native_declination_ah() -> None:
-    with line(sensor(Protocol.NATIVE, Series.AH, {"yaw": 10.0})) as port:
+    with line(sensor(WireProtocol.NATIVE, Series.AH, {"yaw": 10.0})) as port:
         exchange(port, native.encode_request("set_declination", degrees=-5.5), 7)
         assert native.decode(exchange(port, native.encode_request("read_declination"), 7)) \
             .values == {"degrees": -5.5}
@@ -569,7 +569,7 @@ def test_native_declination_ah() -> None:
 
 
 def test_commands_a_series_lacks_go_unanswered() -> None:
-    with line(sensor(Protocol.NATIVE, Series.VG)) as port:
+    with line(sensor(WireProtocol.NATIVE, Series.VG)) as port:
         assert silent(port, native.encode_request("read_mag"))
         assert silent(port, native.encode_request("clear_heading"))
 
@@ -578,7 +578,7 @@ def test_commands_a_series_lacks_go_unanswered() -> None:
 
 
 def test_native_auto_output_streams_the_chosen_frame() -> None:
-    with line(make_sensor(Protocol.NATIVE, Series.AH, baud=115200), baud=115200) as port:
+    with line(make_sensor(WireProtocol.NATIVE, Series.AH, baud=115200), baud=115200) as port:
         exchange(port, native.encode_request("set_output_type", output_type=5), 6)
         exchange(port, native.encode_request("set_output_rate", rate_hz=100), 6)
         time.sleep(0.5)
@@ -597,7 +597,7 @@ def test_a_stream_keeps_its_beat_when_the_simulator_falls_behind() -> None:
     """A sensor's timer keeps its phase.  A simulator held off its CPU sends a frame
     that is only a little late, loses those it could not send near their time (no
     sensor sends a frame late), and goes on on the old beat."""
-    sensor = make_sensor(Protocol.NATIVE, Series.MINS)
+    sensor = make_sensor(WireProtocol.NATIVE, Series.MINS)
     sensor.stream_interval, sensor.next_stream = 0.01, 1.0
     sent = []
     for now in (1.0, 1.0101, 1.0212, 1.0735, 1.0801, 1.0900):  # held 1.0212-1.0735
@@ -631,7 +631,7 @@ def test_the_simulator_says_when_the_machine_held_it() -> None:
 
 
 def test_modbus_auto_output_streams_the_chosen_registers() -> None:
-    with line(make_sensor(Protocol.MODBUS, Series.VG, baud=115200), baud=115200) as port:
+    with line(make_sensor(WireProtocol.MODBUS, Series.VG, baud=115200), baud=115200) as port:
         exchange(port, rtu.write_request(1, "output_registers", (0x22, 32)), 8)
         exchange(port, rtu.write_request(1, "output_interval_ms", 20), 8)
         time.sleep(0.5)
@@ -645,9 +645,9 @@ def test_modbus_auto_output_streams_the_chosen_registers() -> None:
 
 
 def test_several_sensors_of_both_protocols_share_a_line() -> None:
-    ah = sensor(Protocol.NATIVE, Series.AH, {"pitch": 1.0})
-    imu = make_sensor(Protocol.NATIVE, Series.IMU, 5)
-    vg = sensor(Protocol.MODBUS, Series.VG, {"pitch": 2.0}, address=3)
+    ah = sensor(WireProtocol.NATIVE, Series.AH, {"pitch": 1.0})
+    imu = make_sensor(WireProtocol.NATIVE, Series.IMU, 5)
+    vg = sensor(WireProtocol.MODBUS, Series.VG, {"pitch": 2.0}, address=3)
     with line(ah, imu, vg) as port:
         assert native.decode(exchange(port, native.encode_request("read_pitch", 0), 8)) \
             .values == {"pitch": 1.0}
@@ -659,7 +659,7 @@ def test_several_sensors_of_both_protocols_share_a_line() -> None:
 
 
 def test_overlap_is_detected() -> None:
-    with line(make_sensor(Protocol.NATIVE, Series.AH)) as port:
+    with line(make_sensor(WireProtocol.NATIVE, Series.AH)) as port:
         port.write(native.encode_request("read_all"))
         time.sleep(0.02)  # the answer is on its way: talking now is a collision
         port.write(native.encode_request("read_all"))
@@ -668,15 +668,15 @@ def test_overlap_is_detected() -> None:
 
 
 def test_address_query_with_two_sensors_collides() -> None:
-    with line(make_sensor(Protocol.NATIVE, Series.AH, 1),
-              make_sensor(Protocol.NATIVE, Series.VG, 2)) as port:
+    with line(make_sensor(WireProtocol.NATIVE, Series.AH, 1),
+              make_sensor(WireProtocol.NATIVE, Series.VG, 2)) as port:
         port.write(native.encode_request("read_address"))
         time.sleep(0.2)
         assert port.sim.bus.stats.collisions == 1
 
 
 def test_client_at_the_wrong_baud_rate_hears_nothing_valid() -> None:
-    with line(make_sensor(Protocol.NATIVE, Series.AH), baud=19200) as port:
+    with line(make_sensor(WireProtocol.NATIVE, Series.AH), baud=19200) as port:
         port.write(native.encode_request("read_all"))
         time.sleep(0.2)
         assert native.NativeFramer().feed(port.read(port.in_waiting)) == []
@@ -684,7 +684,7 @@ def test_client_at_the_wrong_baud_rate_hears_nothing_valid() -> None:
 
 def test_faults_drop_corrupt_stall_and_noise() -> None:
     faults = Faults()
-    s = make_sensor(Protocol.NATIVE, Series.AH, faults=faults)
+    s = make_sensor(WireProtocol.NATIVE, Series.AH, faults=faults)
     with line(s, noise_rate=50, seed=3) as port:
         request = native.encode_request("read_angles")
         faults.drop_rate = 1.0
@@ -711,7 +711,7 @@ def test_faults_drop_corrupt_stall_and_noise() -> None:
 
 def test_unplug_and_replug_keep_the_link_path(tmp_path: Any) -> None:
     link = str(tmp_path / "ttyIMU0")
-    with simulated([make_sensor(Protocol.NATIVE, Series.AH)], link=link) as sim:
+    with simulated([make_sensor(WireProtocol.NATIVE, Series.AH)], link=link) as sim:
         with serial.Serial(link, 9600, timeout=1) as port:
             assert len(exchange(port, native.encode_request("read_angles"), 14)) == 14
         sim.call(sim.bus.unplug)
@@ -727,7 +727,7 @@ def test_unplug_and_replug_keep_the_link_path(tmp_path: Any) -> None:
 def test_noise_that_looks_like_a_request_start_does_not_deafen_a_sensor() -> None:
     """A partial frame from noise is dropped when the line goes quiet, as a sensor's
     inter-character timeout would, so the next real request is answered at once."""
-    with line(sensor(Protocol.NATIVE, Series.AH), sensor(Protocol.MODBUS, Series.VG,
+    with line(sensor(WireProtocol.NATIVE, Series.AH), sensor(WireProtocol.MODBUS, Series.VG,
                                                           address=5)) as port:
         port.write(bytes.fromhex("77 05 00 0B"))  # set_baudrate, 2 bytes short
         port.write(bytes.fromhex("05 10 00 00 00 78 F0"))  # an FC16 header, no data
@@ -738,7 +738,7 @@ def test_noise_that_looks_like_a_request_start_does_not_deafen_a_sensor() -> Non
 
 
 def test_modbus_address_outside_1_to_247_is_refused_and_the_line_lives() -> None:
-    with line(sensor(Protocol.MODBUS, Series.VG)) as port:
+    with line(sensor(WireProtocol.MODBUS, Series.VG)) as port:
         for bad in (0, 248, 0x0100):
             raw = rtu.encode(rtu.WriteRegister(1, 0x0D, bad))
             assert rtu.decode_frame(exchange(port, raw, 5)) == rtu.ExceptionAnswer(1, 6, 3)

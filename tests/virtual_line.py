@@ -25,7 +25,7 @@ from gateway.bus.events import Event, Finished, Job, Note, Publish, StateChange
 from gateway.bus.schedule import Schedule
 from gateway.commands import Command
 from gateway.config import BusConfig, config_from_dict
-from gateway.model import Protocol
+from gateway.model import WireProtocol
 from gateway.protocol.exchanges import adapter_for, char_time
 from gateway.simulator import SimSensor, make_sensor
 from gateway.simulator.sensor import Outgoing
@@ -41,7 +41,7 @@ def bus(protocol: str, sensors: list[dict[str, Any]], baudrate: int = 115200,
 def sim(protocol: str, series: str, address: int, *, delay: float = 0.002,
         jitter: float = 0.0, seed: int = 0, baud: int = 115200) -> SimSensor:
     from gateway.model import Series
-    return make_sensor(Protocol[protocol.upper()], Series[series], address, baud=baud,
+    return make_sensor(WireProtocol[protocol.upper()], Series[series], address, baud=baud,
                        answer_delay=delay, jitter=jitter, seed=seed)
 
 

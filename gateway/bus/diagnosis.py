@@ -18,7 +18,7 @@ from __future__ import annotations
 from collections import Counter
 from typing import Any
 
-from ..model import Protocol, Series
+from ..model import Series, WireProtocol
 from ..protocol import modbus_rtu as rtu
 from ..protocol import native
 
@@ -43,7 +43,7 @@ def _label(series: list[Series]) -> str:
 class Diagnosis:
     """The evidence one line gives; ``cause`` words it for one sensor."""
 
-    def __init__(self, protocol: Protocol, port: str) -> None:
+    def __init__(self, protocol: WireProtocol, port: str) -> None:
         self.protocol = protocol
         self.port = port
         self.recent = bytearray()  # the last KEPT_BYTES bytes in
@@ -112,7 +112,7 @@ class Diagnosis:
     def _other_protocol(self) -> str:
         """Frames of the protocol this line is not configured for, in the recent bytes."""
         data = bytes(self.recent)
-        if self.protocol is Protocol.NATIVE:
+        if self.protocol is WireProtocol.NATIVE:
             frames = rtu.RtuFramer(requests=False).feed(data)
             units = sorted({f.unit for f in frames})
             if len(frames) >= 2:

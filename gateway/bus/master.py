@@ -45,7 +45,7 @@ T = TypeVar("T")
 #: the master's on-demand read of one sensor
 
 
-class CacheWrites(typing.Protocol):
+class BusToCache(typing.Protocol):
     """What a bus master writes to the cache (``Cache`` itself, or a ``CacheWriter`` that
     hands the writes to another thread's loop)."""
 
@@ -58,7 +58,7 @@ class CacheWrites(typing.Protocol):
 
 
 class BusMaster:
-    def __init__(self, config: BusConfig, cache: CacheWrites,
+    def __init__(self, config: BusConfig, cache: BusToCache,
                  link: SerialLink | None = None) -> None:
         self.config = config
         self.name = config.name

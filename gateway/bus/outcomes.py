@@ -12,7 +12,7 @@ from typing import Any
 from ..commands import CommandResult
 from ..config import BusConfig
 from ..errors import ErrorKind, RequestFailed
-from ..model import Protocol
+from ..model import WireProtocol
 from ..protocol.exchanges import GYRO_CAL_SECONDS, Answer, Effect, ProtocolAdapter
 from ..stats import Counters
 from .diagnosis import Diagnosis
@@ -239,7 +239,7 @@ class Outcomes:
         """The log line for a sensor going offline: where it was asked, and for one
         that never answered, what the line suggests is wrong."""
         baud = self.line.baud
-        where = (f"native address {s.address}" if self.config.protocol is Protocol.NATIVE
+        where = (f"native address {s.address}" if self.config.protocol is WireProtocol.NATIVE
                  else f"Modbus unit {s.address}") + f" at {baud} baud"
         if never:
             cause = self.diagnosis.cause(s.name, s.address, baud,

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..cache import Snapshot
-from ..model import CAPABILITIES, GROUP_UNITS, Group, Protocol, Reading, Series
+from ..model import CAPABILITIES, GROUP_UNITS, Group, Reading, Series, WireProtocol
 from ..normalise import GROUP_FIELDS, field_values
 from ..stats import BusStats
 
@@ -142,7 +142,7 @@ def _measured_values(reading: Reading | None) -> dict[str, float]:
 class SensorImage:
     """One sensor's map as bytes."""
 
-    def __init__(self, series: Series, protocol: Protocol, address: int,
+    def __init__(self, series: Series, protocol: WireProtocol, address: int,
                  stale_after_ms: float) -> None:
         self.series = series
         self.protocol = protocol

@@ -127,7 +127,6 @@ class _SensorOut:
 class _Counters:
     published: int = 0  # handed to paho
     written: int = 0  # written (QoS 0) or acknowledged: paho's on_publish, on its thread
-    refused: int = 0  # paho would not take a message (the connection just went)
     undeliverable: int = 0  # paho can never send it (a bad topic): dropped
     ignored: int = 0  # commands not run: retained, empty, too large, bad properties
     lost_in_flight: int = 0  # handed to paho, unwritten or unacknowledged when it went
@@ -463,7 +462,6 @@ class MqttClient(Frontend):
             self._handed += 1
             self.counters.published += 1
             return True
-        self.counters.refused += 1
         return False
 
     # ------------------------------------------------------------ cache events

@@ -25,8 +25,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from ..model import Protocol as Wire
 from ..model import Series
+from ..model import WireProtocol as Wire
 from . import modbus_rtu as rtu
 from . import native
 from .errors import FrameError, UsageError

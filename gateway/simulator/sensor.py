@@ -19,7 +19,7 @@ from collections import Counter
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-from ..model import CAPABILITIES, Angles, Protocol, Reading, Series
+from ..model import CAPABILITIES, Angles, Reading, Series, WireProtocol
 from ..normalise import field_values
 from ..protocol import bcd, native
 from ..protocol import modbus_rtu as rtu
@@ -83,7 +83,7 @@ class SimSensor(ABC):
     last_answer_end: float = 0.0  # when this sensor's latest answer leaves the wire
     rng: random.Random = field(init=False)
 
-    protocol: Protocol = field(init=False)
+    protocol: WireProtocol = field(init=False)
 
     def __post_init__(self) -> None:
         # A negative draw would answer before the delay; NaN or inf would never answer.
@@ -283,7 +283,7 @@ class NativeSensor(SimSensor):
 
     def __post_init__(self) -> None:
         SimSensor.__post_init__(self)
-        self.protocol = Protocol.NATIVE
+        self.protocol = WireProtocol.NATIVE
 
     @property
     def framer(self) -> native.NativeFramer:
@@ -410,7 +410,7 @@ class ModbusSensor(SimSensor):
 
     def __post_init__(self) -> None:
         SimSensor.__post_init__(self)
-        self.protocol = Protocol.MODBUS
+        self.protocol = WireProtocol.MODBUS
 
     @property
     def framer(self) -> rtu.RtuFramer:
@@ -524,14 +524,14 @@ class ModbusSensor(SimSensor):
         return [self._send(frame, now, solicited=False)]
 
 
-def make_sensor(protocol: Protocol, series: Series, address: int | None = None,
+def make_sensor(protocol: WireProtocol, series: Series, address: int | None = None,
                 baud: int = 9600, **options: Any) -> SimSensor:
     """A simulated sensor with the protocol's default address (native 0, Modbus 1).
 
     ``options`` are ``SimSensor``'s fields, e.g. ``answer_delay=0.005, jitter=0.035``
     (seconds) for answers 5-40 ms late.
     """
-    cls: type[SimSensor] = NativeSensor if protocol is Protocol.NATIVE else ModbusSensor
+    cls: type[SimSensor] = NativeSensor if protocol is WireProtocol.NATIVE else ModbusSensor
     if address is None:
-        address = 0 if protocol is Protocol.NATIVE else 1
+        address = 0 if protocol is WireProtocol.NATIVE else 1
     return cls(series, Settings(address, baud), **options)
