@@ -14,7 +14,7 @@ import os
 import signal
 import sys
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeAlias
 
 from . import __version__
 from .bus.timing import RTO_INITIAL
@@ -112,6 +112,11 @@ def _sensor_spec(text: str) -> tuple[WireProtocol, Series, int | None, int]:
     return protocol, series, address, baud
 
 
+#: argparse's subcommand collection (what ``add_subparsers`` returns; its class is
+#: private)
+Subcommands: TypeAlias = "argparse._SubParsersAction[argparse.ArgumentParser]"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="imu-gateway",
@@ -119,7 +124,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"imu-gateway {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _decode_parser(commands)
+    _run_parser(commands)
+    _demo_parser(commands)
+    _scan_parser(commands)
+    _simulate_parser(commands)
+    _check_config_parser(commands)
+    return parser
 
+
+def _decode_parser(commands: Subcommands) -> None:
     decode = commands.add_parser(
         "decode",
         help="decode captured frames to JSON lines",
@@ -136,6 +150,8 @@ def build_parser() -> argparse.ArgumentParser:
         "is not given before it)",
     )
 
+
+def _run_parser(commands: Subcommands) -> None:
     run = commands.add_parser(
         "run",
         help="run the gateway",
@@ -151,6 +167,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--stats-interval", type=_non_negative, default=0.0, metavar="SECONDS",
                      help="log each bus's rate and utilisation this often (0: never)")
 
+
+def _demo_parser(commands: Subcommands) -> None:
     demo = commands.add_parser(
         "demo",
         help="the gateway on simulated sensors (no hardware)",
@@ -170,6 +188,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--log-level", default="warning",
                       choices=["debug", "info", "warning", "error"], help="default: warning")
 
+
+def _scan_parser(commands: Subcommands) -> None:
     scan = commands.add_parser(
         "scan",
         help="find the sensors on a port",
@@ -204,6 +224,8 @@ def build_parser() -> argparse.ArgumentParser:
                       f"{RTO_INITIAL * 1000:g}: a slow sensor behind a USB adapter, the "
                       "gateway's own first timeout)")
 
+
+def _simulate_parser(commands: Subcommands) -> None:
     sim = commands.add_parser(
         "simulate",
         help="simulated sensors on a pseudo-terminal",
@@ -237,6 +259,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--link", help="also make the pty reachable at this path (a symlink)")
     sim.add_argument("-v", "--verbose", action="store_true", help="log every frame to stderr")
 
+
+def _check_config_parser(commands: Subcommands) -> None:
     check = commands.add_parser(
         "check-config",
         help="validate a config file",
@@ -245,7 +269,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     check.add_argument("-c", "--config", required=True, metavar="FILE",
                        help="the YAML config file")
-    return parser
 
 
 def cmd_decode(args: argparse.Namespace) -> int:
