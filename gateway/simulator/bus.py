@@ -101,6 +101,45 @@ class BusStats:
         return self.collisions - self.collisions_after_hold
 
 
+class HoldWatch:
+    """Notices when the simulator is held off its CPU for ``HELD`` or more.
+
+    Real sensors never stop; a simulator does, when the machine does not run it
+    (another process of higher priority, a virtual machine's host taking its CPU
+    away).  A request it then reads late looks sent late, and a stream frame goes out
+    late: what follows is the rig's doing, and is counted apart.  The simulator beats
+    at least every ``WATCH_TICK`` (``run``) and wherever it waits outside its loop
+    (its precise waits, byte by byte), so a longer silence is a hold."""
+
+    def __init__(self, stats: BusStats, note: Callable[[str], None]) -> None:
+        self.stats = stats
+        self.note = note
+        self.last_beat = math.inf  # when it last ran (none yet: no hold either)
+        self.last_hold_end = -math.inf
+
+    def beat(self) -> None:
+        """The simulator is running now: was it held since it last was?"""
+        now = time.monotonic()
+        held = now - self.last_beat - WATCH_TICK
+        self.last_beat = now
+        if held >= HELD:
+            self.stats.holds += 1
+            self.stats.held_s += held
+            self.last_hold_end = now
+            self.note(f"HELD: the simulator was held {held * 1000:.0f} ms")
+
+    def in_shadow(self) -> bool:
+        """Within ``SHADOW`` of a hold, or in one not yet noticed."""
+        now = time.monotonic()
+        return now - self.last_hold_end < SHADOW or now - self.last_beat > WATCH_TICK + HELD
+
+    async def run(self) -> None:
+        self.last_beat = time.monotonic()
+        while True:
+            await asyncio.sleep(WATCH_TICK)
+            self.beat()
+
+
 class PtyBus:
     """Several simulated sensors on one pseudo-terminal."""
 
@@ -132,8 +171,7 @@ class PtyBus:
         self._tx_end = 0.0
         self._wakeup: asyncio.Event | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._last_hold_end = -math.inf
-        self._last_beat = math.inf  # when it last ran (none yet: no hold either)
+        self._holds = HoldWatch(self.stats, self._timeline)
 
     # ------------------------------------------------------------ the pty
 
@@ -189,7 +227,7 @@ class PtyBus:
     # ------------------------------------------------------------ the wire
 
     def _note(self, text: str) -> None:
-        if text.startswith(("OVERLAP", "COLLISION")) and self._in_hold_shadow():
+        if text.startswith(("OVERLAP", "COLLISION")) and self._holds.in_shadow():
             if text.startswith("OVERLAP"):
                 self.stats.overlaps_after_hold += 1
             else:
@@ -199,36 +237,6 @@ class PtyBus:
         if text.startswith(("OVERLAP", "COLLISION")) and len(self.stats.incidents) < 10:
             self.stats.incidents.append(list(self._recent))
         self.stats.events.append(text)
-
-    def _in_hold_shadow(self) -> bool:
-        """Within ``SHADOW`` of a hold, or in one not yet noticed."""
-        now = time.monotonic()
-        return now - self._last_hold_end < SHADOW or now - self._last_beat > WATCH_TICK + HELD
-
-    def _beat(self) -> None:
-        """The simulator is running now: was it held since it last was?
-
-        Real sensors never stop; a simulator does, when the machine does not run it
-        (another process of higher priority, a virtual machine's host taking its CPU
-        away).  A request it then reads late looks sent late, and a stream frame goes
-        out late: what follows is the rig's doing, and is counted apart.  The loop
-        beats at least every ``WATCH_TICK`` (``_watch_holds``) and wherever it waits
-        without the loop (its precise waits, byte by byte), so a longer silence is a
-        hold."""
-        now = time.monotonic()
-        held = now - self._last_beat - WATCH_TICK
-        self._last_beat = now
-        if held >= HELD:
-            self.stats.holds += 1
-            self.stats.held_s += held
-            self._last_hold_end = now
-            self._timeline(f"HELD: the simulator was held {held * 1000:.0f} ms")
-
-    async def _watch_holds(self) -> None:
-        self._last_beat = time.monotonic()
-        while True:
-            await asyncio.sleep(WATCH_TICK)
-            self._beat()
 
     def _timeline(self, text: str) -> None:
         """What happened lately, timed: the context of an incident."""
@@ -240,7 +248,7 @@ class PtyBus:
         return bytes(self.rng.randrange(256) for _ in range(count))
 
     def _on_readable(self) -> None:
-        self._beat()  # a hold that ends here is noted before what it did to the line
+        self._holds.beat()  # a hold that ends here is noted before what it did to the line
         try:
             data = os.read(self._master, 4096)
         except (BlockingIOError, OSError):
@@ -349,7 +357,7 @@ class PtyBus:
             on_ready()
         stop = stop or asyncio.Event()
         next_noise = self._loop.time() + self._noise_gap()
-        watch = asyncio.ensure_future(self._watch_holds())
+        watch = asyncio.ensure_future(self._holds.run())
         try:
             while not stop.is_set():
                 now = self._loop.time()
@@ -396,7 +404,7 @@ class PtyBus:
         deadline = time.monotonic() + seconds
         ready, _, _ = select.select([self._master], [], [],
                                     max(0.0, seconds - SPIN) if exact else seconds)
-        self._beat()
+        self._holds.beat()
         if ready:
             self._on_readable()
             return  # the caller looks again: the line may have changed
