@@ -375,8 +375,8 @@ def test_a_write_held_past_the_timeout_is_waited_for_from_when_it_returned(
     line = VirtualLine(
         bus(protocol, flat_out(protocol, 3)),
         [sim(protocol, "AH", first + i, delay=0.005, jitter=0.035, seed=i) for i in range(3)],
-        stall=lambda: rng.uniform(0.05, 0.6) if rng.random() < 0.02 else 0.0)
-    line.run(60.0)
+        stall=lambda: rng.uniform(0.05, 0.6) if rng.random() < 0.03 else 0.0)
+    line.run(30.0)
     assert line.overlaps == 0 and line.collisions == 0
     for i in range(3):
         s = line.schedule.sensors[f"s{i}"]
