@@ -68,28 +68,20 @@ def test_protocol_imports_only_allowed(path: Path) -> None:
         assert allowed, f"{path.name} imports {name}"
 
 
-FRONTENDS = PROTOCOL.parent / "frontends"
+GATEWAY = PROTOCOL.parent
+FRONTENDS = GATEWAY / "frontends"
 #: the front ends proper; the other modules of the folder are their shared parts
-FRONTEND_MODULES = ("modbus_tcp", "mqtt")
+FRONTEND_MODULES = ("modbus_tcp", "mqtt", "rest")
 
 
 def frontend_imports(path: Path) -> list[str]:
-    """Like ``imported_names``, for a module of ``gateway.frontends``."""
-    names: list[str] = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
-            names += [alias.name for alias in node.names]
-        elif isinstance(node, ast.ImportFrom):
-            base = ["gateway", "frontends"][: 2 - (node.level - 1)] if node.level else []
-            module = [node.module] if node.module else []
-            if node.module or not node.level:
-                names.append(".".join([*base, *module]))
-            else:
-                names += [".".join([*base, alias.name]) for alias in node.names]
-    return names
+    """Like ``imported_names``, for a module of ``gateway.frontends`` (or of a package
+    in it, such as ``rest``)."""
+    return package_imports(path, ".".join(path.parent.relative_to(GATEWAY.parent).parts))
 
 
-@pytest.mark.parametrize("path", sorted(FRONTENDS.glob("*.py")), ids=lambda p: p.name)
+@pytest.mark.parametrize("path", sorted(FRONTENDS.rglob("*.py")),
+                         ids=lambda p: str(p.relative_to(FRONTENDS)))
 def test_front_ends_use_neither_protocol_nor_bus_nor_each_other(path: Path) -> None:
     """The layering rule (docs/architecture.md): a front end reads the cache and asks the
     gateway; it never touches the wire's code, and a change to one front end cannot
@@ -98,7 +90,7 @@ def test_front_ends_use_neither_protocol_nor_bus_nor_each_other(path: Path) -> N
         assert not _within(name, "gateway.protocol"), f"{path.name} imports {name}"
         assert not _within(name, "gateway.bus"), f"{path.name} imports {name}"
         for other in FRONTEND_MODULES:
-            if other != path.stem:
+            if other not in (path.stem, path.parent.name):
                 assert not _within(name, f"gateway.frontends.{other}"), \
                     f"{path.name} imports {name}"
 
@@ -106,6 +98,9 @@ def test_front_ends_use_neither_protocol_nor_bus_nor_each_other(path: Path) -> N
 def test_frontend_resolver() -> None:
     names = frontend_imports(FRONTENDS / "mqtt.py")
     assert "gateway.cache" in names and "gateway.frontends.common" in names
+    names = frontend_imports(FRONTENDS / "rest" / "server.py")
+    assert "gateway.config" in names and "gateway.frontends.common" in names
+    assert "gateway.frontends.rest.routes" in names
 
 
 def package_imports(path: Path, package: str) -> list[str]:

@@ -1,0 +1,14 @@
+"""The REST server's limits and its API prefix, in one place."""
+
+from __future__ import annotations
+
+API = "/api/v1"
+STREAM_QUEUE = 64  # events queued per stream client; past it, the oldest are skipped
+STALL_S = 5.0  # a stream client whose socket has been full this long (queue full): dropped
+KEEPALIVE_S = 15.0  # a comment line on an idle stream, so proxies keep it open
+MAX_STREAMS = 1000
+SEND_BUFFER = 64 * 1024  # bytes of kernel send buffer per connection
+MAX_BODY = 16 * 1024  # a command's arguments are a few bytes
+HEADER_DEADLINE_S = 10.0  # a request's headers, from connecting or from the previous answer
+BODY_DEADLINE_S = 10.0  # a request's body, from the end of its headers
+IDLE_S = 5  # a connection with no request under way (uvicorn's timeout_keep_alive)

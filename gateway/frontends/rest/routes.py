@@ -1,0 +1,325 @@
+"""The FastAPI app: every route, made from the cache, the gateway object and the
+command catalogue."""
+
+from __future__ import annotations
+
+import inspect
+import time
+from collections.abc import Awaitable, Callable
+from importlib import resources
+from typing import Annotated, Any
+
+from fastapi import Depends, FastAPI, Query, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.utils import get_openapi
+from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
+from fastapi.security import HTTPAuthorizationCredentials
+from fastapi.staticfiles import StaticFiles
+from prometheus_client import CollectorRegistry, generate_latest
+from pydantic import BaseModel
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from ... import __version__
+from ...cache import Snapshot, Status
+from ...commands import CATALOGUE
+from ...config import HttpConfig
+from ...errors import KINDS, ErrorKind, RequestFailed
+from ...model import GROUP_UNITS
+from ...normalise import GROUP_FIELDS
+from ...stats import SensorStats
+from ..common import GatewayLike, json_bytes
+from .access import (
+    CommandGuard,
+    CountRequests,
+    Credentials,
+    command_refusal,
+    error_response,
+    json_error,
+    token_matches,
+)
+from .limits import API, MAX_STREAMS
+from .metrics import GatewayCollector
+from .models import (
+    BusOut,
+    CommandOut,
+    ErrorOut,
+    GroupOut,
+    HealthOut,
+    ReadingOut,
+    SensorDetailOut,
+    SensorOut,
+)
+from .streams import StreamHub, stream_peer
+
+# ------------------------------------------------------------------ the app
+
+
+def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None = None,
+               counters: dict[str, int] | None = None) -> FastAPI:
+    """The FastAPI app.  ``hub`` and ``counters`` belong to the running server; without
+    them (as for the OpenAPI document) the stream has a hub of its own."""
+    app = FastAPI(
+        title="imu-gateway",
+        version=__version__,
+        description="Readings, commands, live streams and metrics of IMU/VG/AH/MINS "
+                    "attitude sensors behind one gateway.",
+        docs_url=None,  # Swagger UI loads from a CDN: not on a plant network
+        redoc_url=None,
+    )
+    counts = counters if counters is not None else {"requests": 0}
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(GatewayCollector(gateway))
+    errors: dict[int | str, dict[str, Any]] = {
+        code: {"model": ErrorOut} for code in (401, 403, 404, 409, 413, 422, 502, 503, 504)}
+
+    @app.exception_handler(RequestFailed)
+    async def _failed(request: Request, exc: RequestFailed) -> JSONResponse:
+        return error_response(exc)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+        parts = []
+        for err in exc.errors():
+            where = ".".join(str(p) for p in err["loc"] if p != "body") or "body"
+            parts.append(f"{where}: {err['msg'].removeprefix('Value error, ')}")
+        return error_response(RequestFailed(ErrorKind.BAD_ARGUMENTS, "; ".join(parts)))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        if exc.status_code == 400:  # a body that is not even text: bad arguments too
+            return error_response(RequestFailed(ErrorKind.BAD_ARGUMENTS, str(exc.detail)))
+        kind = {404: ErrorKind.NOT_FOUND, 405: ErrorKind.METHOD_NOT_ALLOWED}.get(exc.status_code)
+        response = json_error(exc.status_code, kind.value if kind else "http", str(exc.detail))
+        response.headers.update(exc.headers or {})  # 405's Allow
+        return response
+
+
+    def authorised(credentials: HTTPAuthorizationCredentials | None) -> None:
+        if credentials is None or not token_matches(credentials.credentials, config.token):
+            raise RequestFailed(ErrorKind.UNAUTHORISED, "a valid bearer token is required")
+
+    # async, like every dependency here: FastAPI runs a plain def in a worker thread,
+    # a thread hop per request (measured: it halved the readings/s).
+    async def read_access(credentials: Credentials) -> None:
+        if config.read_token_required:
+            authorised(credentials)
+
+    async def command_access(credentials: Credentials) -> None:
+        refusal = command_refusal(config, credentials.credentials if credentials else None)
+        if refusal is not None:
+            raise refusal
+
+    reads = [Depends(read_access)]
+
+    async def stream_access(credentials: Credentials, access_token: Annotated[
+            str | None, Query(description="the token, for clients that cannot send "
+                              "headers (a browser's EventSource; RFC 6750 §2.3)")] = None,
+                            ) -> None:
+        if config.read_token_required and not (
+                access_token is not None and token_matches(access_token, config.token)):
+            authorised(credentials)
+
+    streams = [Depends(stream_access)]
+
+    def sensor_or_404(name: str) -> Snapshot:
+        if name not in gateway.sensors:
+            raise RequestFailed(ErrorKind.UNKNOWN_SENSOR, f"unknown sensor {name!r}")
+        return gateway.cache.snapshot(name)
+
+    bus_of = {s.name: b for b, s in gateway.config.iter_sensors()}
+    bodies: dict[str, tuple[tuple[int, Status], bytes]] = {}  # the latest reading's JSON
+
+    def sensor_out(snap: Snapshot, stats: SensorStats) -> dict[str, Any]:
+        sensor, bus = gateway.sensors[snap.name], bus_of[snap.name]
+        return {"name": snap.name, "bus": bus.name, "series": sensor.series.name,
+                "protocol": bus.protocol.name.lower(),
+                "address": stats.address,  # the live one, after a set_address too
+                "unit_id": sensor.unit_id, "status": snap.status.value, "online": snap.online,
+                "busy": snap.busy, "streaming": snap.streaming, "seq": snap.seq,
+                "age_ms": None if snap.age_ms is None else round(snap.age_ms, 1),
+                "achieved_hz": stats.achieved_hz, "errors": snap.errors}
+
+    @app.get(f"{API}/groups", response_model=list[GroupOut], dependencies=reads,
+             responses={401: errors[401]}, summary="the value groups and their units")
+    async def groups() -> list[dict[str, Any]]:
+        return [{"group": group.value, "fields": list(fields), "unit": unit.symbol,
+                 "unit_name": unit.name, "digits": unit.digits}
+                for group, (_, fields) in GROUP_FIELDS.items()
+                for unit in (GROUP_UNITS[group],)]
+
+    @app.get(f"{API}/health", response_model=HealthOut, dependencies=reads,
+             responses={401: errors[401]}, summary="gateway and bus status")
+    async def health() -> dict[str, Any]:
+        buses = {b.name: b.port_open for b in gateway.stats()}
+        counted = {s.value: 0 for s in Status}
+        for snap in gateway.cache.snapshots():
+            counted[snap.status.value] += 1
+        degraded = not all(buses.values()) or counted["offline"] > 0
+        return {"status": "degraded" if degraded else "ok",
+                "gateway_id": gateway.config.gateway_id, "version": __version__,
+                "uptime_s": round(time.monotonic() - gateway.started, 1),
+                "buses": buses, "sensors": counted, "interfaces": gateway.config.interfaces(),
+                "frontends": gateway.frontend_stats()}
+
+    @app.get(f"{API}/buses", response_model=list[BusOut], dependencies=reads,
+             responses={401: errors[401]}, summary="every bus and its stats")
+    async def buses() -> list[dict[str, Any]]:
+        names = {b.name: [s.name for s in b.sensors] for b in gateway.config.buses}
+
+        def timing(name: str) -> dict[str, Any]:
+            stats = gateway.sensor_stats(name)
+            return {"latency_ms": stats.latency_ms, "latency_dev_ms": stats.latency_dev_ms,
+                    "timeout_ms": stats.timeout_ms, "late_answers": stats.late_answers,
+                    "requested_hz": stats.requested_hz, "achieved_hz": stats.achieved_hz}
+
+        return [{**{k: v for k, v in b.as_dict().items() if k in BusOut.model_fields},
+                 "sensors": names[b.name], "timing": {n: timing(n) for n in names[b.name]}}
+                for b in gateway.stats()]
+
+    @app.get(f"{API}/sensors", response_model=list[SensorOut], dependencies=reads,
+             responses={401: errors[401]}, summary="every sensor with its status")
+    async def sensors() -> list[dict[str, Any]]:
+        return [sensor_out(snap, gateway.sensor_stats(snap.name))
+                for snap in gateway.cache.snapshots()]
+
+    # exclude_unset: the reading's groups a series does not measure stay absent (as in
+    # the reading JSON itself), while the nulls the route sets (age_ms …) stay null.
+    @app.get(f"{API}/sensors/{{name}}", response_model=SensorDetailOut,
+             response_model_exclude_unset=True, dependencies=reads,
+             responses={401: errors[401], 404: errors[404]},
+             summary="a sensor's config, status and latest reading")
+    async def sensor(name: str) -> dict[str, Any]:
+        snap = sensor_or_404(name)
+        stats = gateway.sensor_stats(name)
+        return {**sensor_out(snap, stats),
+                "config": gateway.sensors[name].model_dump(mode="json"),
+                "settings": gateway.cache.settings(name),
+                "stats": stats.as_dict(),
+                "reading": snap.to_json() if snap.has_reading else None}
+
+    @app.get(f"{API}/sensors/{{name}}/reading", response_model=ReadingOut,
+             response_model_exclude_none=True, dependencies=reads,
+             responses={code: errors[code] for code in (401, 404, 409, 503, 504)},
+             summary="the latest reading; older than max_age_ms: a fresh bus read first")
+    async def reading(name: str, max_age_ms: Annotated[float | None, Query(
+            ge=0, le=3_600_000, description="the oldest reading acceptable, ms")] = None,
+                      ) -> Response:
+        snap = sensor_or_404(name)
+        if max_age_ms is not None:  # (a RequestFailed answers with its kind's status)
+            snap = await gateway.read(name, max_age_ms)
+        if not snap.has_reading:
+            raise RequestFailed(ErrorKind.NO_READING, f"{name} has not been read yet")
+        # The hot path: serialised once per sample and status however many clients
+        # ask, and not validated against ReadingOut again (which only documents it).
+        key = (snap.seq, snap.status)
+        cached = bodies.get(name)
+        if cached is None or cached[0] != key:
+            cached = bodies[name] = (key, json_bytes(snap.to_json()))
+        return Response(cached[1], media_type="application/json")
+
+    streams_hub = hub if hub is not None else StreamHub(gateway)
+
+    def stream_response(sensor: str | None, request: Request) -> StreamingResponse:
+        if streams_hub.open >= MAX_STREAMS:
+            raise RequestFailed(ErrorKind.TOO_MANY_STREAMS, f"{MAX_STREAMS} streams are open")
+        return StreamingResponse(streams_hub.stream(sensor, stream_peer(request)),
+                                 media_type="text/event-stream",
+                                 headers={"Cache-Control": "no-cache",
+                                          "X-Accel-Buffering": "no"})
+
+    sse = {"content": {"text/event-stream": {}},
+           "description": "`event: reading` (or `status`), `id: seq`, `data:` the "
+                          "reading JSON; a `: keep-alive` comment when idle"}
+
+    @app.get(f"{API}/sensors/{{name}}/stream", dependencies=streams,
+             response_class=StreamingResponse,
+             responses={200: sse, 401: errors[401], 404: errors[404], 503: errors[503]},
+             summary="Server-Sent Events: one reading per event")
+    async def stream(name: str, request: Request) -> StreamingResponse:
+        sensor_or_404(name)
+        return stream_response(name, request)
+
+    @app.get(f"{API}/stream", dependencies=streams, response_class=StreamingResponse,
+             responses={200: sse, 401: errors[401], 503: errors[503]},
+             summary="Server-Sent Events of every sensor")
+    async def stream_all(request: Request) -> StreamingResponse:
+        return stream_response(None, request)
+
+    for spec in CATALOGUE.values():
+        _command_route(app, gateway, spec.name, spec.args, spec.summary, command_access,
+                       sensor_or_404, errors)
+
+    @app.post(f"{API}/sensors/{{name}}/commands/{{command}}", include_in_schema=False)
+    async def unknown_command(name: str, command: str) -> None:
+        sensor_or_404(name)
+        raise RequestFailed(ErrorKind.UNKNOWN_COMMAND,
+                       f"unknown command {command!r} (known: {', '.join(CATALOGUE)})")
+
+    @app.get("/metrics", response_class=Response, dependencies=reads,
+             responses={200: {"content": {"text/plain": {}}}, 401: errors[401]},
+             summary="Prometheus text format")
+    async def metrics() -> Response:
+        return Response(generate_latest(registry),
+                        media_type="text/plain; version=0.0.4; charset=utf-8")
+
+    app.add_middleware(CommandGuard, config=config)
+    app.add_middleware(CountRequests, counts=counts)  # outermost: counts every request
+
+    def openapi() -> dict[str, Any]:
+        """FastAPI's document, with one correction: a read's bearer token is optional
+        (required only with ``http.read_token_required``), which OpenAPI says with an
+        empty alternative."""
+        if app.openapi_schema is None:
+            document = get_openapi(title=app.title, version=app.version,
+                                   description=app.description, routes=app.routes)
+            for path in document["paths"].values():
+                operation = path.get("get")
+                if operation is not None and "security" in operation:
+                    operation["security"] = [{}, *operation["security"]]
+            app.openapi_schema = document
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+    static = resources.files("gateway") / "static"
+
+    @app.get("/", response_class=HTMLResponse, include_in_schema=False)
+    async def dashboard() -> HTMLResponse:
+        return HTMLResponse((static / "index.html").read_text(encoding="utf-8"))
+
+    app.mount("/static", StaticFiles(packages=[("gateway", "static")]), name="static")
+    return app
+
+
+def _command_route(app: FastAPI, gateway: GatewayLike, command: str, args: type[BaseModel],
+                   summary: str, access: Callable[..., Awaitable[None]],
+                   sensor_or_404: Callable[[str], Snapshot],
+                   errors: dict[int | str, dict[str, Any]]) -> None:
+    """``POST …/commands/{command}``, its body the command's own argument model (a
+    command without arguments takes no body, or an empty object)."""
+
+    async def endpoint(name: str, body: BaseModel | None = None) -> JSONResponse:
+        sensor_or_404(name)
+        values = body.model_dump() if body is not None else {}
+        result = await gateway.command(name, command, values)
+        status = 200 if result.ok else KINDS[result.kind or ErrorKind.FAILURE].status
+        return JSONResponse(result.to_json(), status)
+
+    # The body's type is the command's model, known only here: FastAPI reads it from
+    # the signature.
+    body = inspect.Parameter(
+        "body", inspect.Parameter.POSITIONAL_OR_KEYWORD,
+        annotation=args if args.model_fields else args | None,
+        **({} if args.model_fields else {"default": None}))
+    endpoint.__signature__ = inspect.Signature(  # type: ignore[attr-defined]
+        [inspect.Parameter("name", inspect.Parameter.POSITIONAL_OR_KEYWORD, annotation=str),
+         body], return_annotation=JSONResponse)
+    app.add_api_route(
+        f"{API}/sensors/{{name}}/commands/{command}", endpoint, methods=["POST"],
+        response_model=CommandOut, summary=summary, name=f"command_{command}",
+        dependencies=[Depends(access)], tags=["commands"],
+        responses={code: errors[code] for code in (401, 403, 404, 409, 413, 422, 502, 504)})
+
+
+def openapi_document(gateway: GatewayLike, config: HttpConfig) -> dict[str, Any]:
+    return create_app(gateway, config).openapi()
