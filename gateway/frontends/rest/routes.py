@@ -6,6 +6,7 @@ from __future__ import annotations
 import inspect
 import time
 from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
 from importlib import resources
 from typing import Annotated, Any
 
@@ -51,7 +52,29 @@ from .models import (
 )
 from .streams import StreamHub, stream_peer
 
-# ------------------------------------------------------------------ the app
+#: Each error status's body, for the OpenAPI document.
+ERRORS: dict[int | str, dict[str, Any]] = {
+    code: {"model": ErrorOut} for code in (401, 403, 404, 409, 413, 422, 502, 503, 504)}
+
+
+def _errors(*codes: int) -> dict[int | str, dict[str, Any]]:
+    return {code: ERRORS[code] for code in codes}
+
+
+@dataclass(frozen=True)
+class _Routes:
+    """What the route groups share: the gateway, who may read, stream and command,
+    and the one way an unknown sensor is refused."""
+
+    gateway: GatewayLike
+    reads: list[Any]  # the dependencies of a read
+    streams: list[Any]  # of a stream (the token may come in the query)
+    commands: Callable[..., Awaitable[None]]  # the dependency of a command
+
+    def sensor_or_404(self, name: str) -> Snapshot:
+        if name not in self.gateway.sensors:
+            raise RequestFailed(ErrorKind.UNKNOWN_SENSOR, f"unknown sensor {name!r}")
+        return self.gateway.cache.snapshot(name)
 
 
 def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None = None,
@@ -66,11 +89,30 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
         docs_url=None,  # Swagger UI loads from a CDN: not on a plant network
         redoc_url=None,
     )
+    _error_handlers(app)
+    routes = _access(gateway, config)
+    _status_routes(app, routes)
+    _sensor_routes(app, routes)
+    _stream_routes(app, routes, hub if hub is not None else StreamHub(gateway))
+    for spec in CATALOGUE.values():
+        _command_route(app, routes, spec.name, spec.args, spec.summary)
+    _metrics_route(app, routes)
+    app.add_middleware(CommandGuard, config=config)
     counts = counters if counters is not None else {"requests": 0}
-    registry = CollectorRegistry(auto_describe=False)
-    registry.register(GatewayCollector(gateway))
-    errors: dict[int | str, dict[str, Any]] = {
-        code: {"model": ErrorOut} for code in (401, 403, 404, 409, 413, 422, 502, 503, 504)}
+    app.add_middleware(CountRequests, counts=counts)  # outermost: counts every request
+    app.openapi = _openapi_of(app)  # type: ignore[method-assign]
+    static = resources.files("gateway") / "static"
+
+    @app.get("/", response_class=HTMLResponse, include_in_schema=False)
+    async def dashboard() -> HTMLResponse:
+        return HTMLResponse((static / "index.html").read_text(encoding="utf-8"))
+
+    app.mount("/static", StaticFiles(packages=[("gateway", "static")]), name="static")
+    return app
+
+
+def _error_handlers(app: FastAPI) -> None:
+    """Every error answers ``{"error", "kind"}`` (``access.error_response``)."""
 
     @app.exception_handler(RequestFailed)
     async def _failed(request: Request, exc: RequestFailed) -> JSONResponse:
@@ -94,6 +136,9 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
         return response
 
 
+def _access(gateway: GatewayLike, config: HttpConfig) -> _Routes:
+    """The dependencies that check a request's token, per kind of request."""
+
     def authorised(credentials: HTTPAuthorizationCredentials | None) -> None:
         if credentials is None or not token_matches(credentials.credentials, config.token):
             raise RequestFailed(ErrorKind.UNAUTHORISED, "a valid bearer token is required")
@@ -109,8 +154,6 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
         if refusal is not None:
             raise refusal
 
-    reads = [Depends(read_access)]
-
     async def stream_access(credentials: Credentials, access_token: Annotated[
             str | None, Query(description="the token, for clients that cannot send "
                               "headers (a browser's EventSource; RFC 6750 §2.3)")] = None,
@@ -119,36 +162,23 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
                 access_token is not None and token_matches(access_token, config.token)):
             authorised(credentials)
 
-    streams = [Depends(stream_access)]
+    return _Routes(gateway, [Depends(read_access)], [Depends(stream_access)], command_access)
 
-    def sensor_or_404(name: str) -> Snapshot:
-        if name not in gateway.sensors:
-            raise RequestFailed(ErrorKind.UNKNOWN_SENSOR, f"unknown sensor {name!r}")
-        return gateway.cache.snapshot(name)
 
-    bus_of = {s.name: b for b, s in gateway.config.iter_sensors()}
-    bodies: dict[str, tuple[tuple[int, Status], bytes]] = {}  # the latest reading's JSON
+def _status_routes(app: FastAPI, routes: _Routes) -> None:
+    """The gateway as a whole: health, buses, value groups."""
+    gateway = routes.gateway
 
-    def sensor_out(snap: Snapshot, stats: SensorStats) -> dict[str, Any]:
-        sensor, bus = gateway.sensors[snap.name], bus_of[snap.name]
-        return {"name": snap.name, "bus": bus.name, "series": sensor.series.name,
-                "protocol": bus.protocol.name.lower(),
-                "address": stats.address,  # the live one, after a set_address too
-                "unit_id": sensor.unit_id, "status": snap.status.value, "online": snap.online,
-                "busy": snap.busy, "streaming": snap.streaming, "seq": snap.seq,
-                "age_ms": None if snap.age_ms is None else round(snap.age_ms, 1),
-                "achieved_hz": stats.achieved_hz, "errors": snap.errors}
-
-    @app.get(f"{API}/groups", response_model=list[GroupOut], dependencies=reads,
-             responses={401: errors[401]}, summary="the value groups and their units")
+    @app.get(f"{API}/groups", response_model=list[GroupOut], dependencies=routes.reads,
+             responses=_errors(401), summary="the value groups and their units")
     async def groups() -> list[dict[str, Any]]:
         return [{"group": group.value, "fields": list(fields), "unit": unit.symbol,
                  "unit_name": unit.name, "digits": unit.digits}
                 for group, (_, fields) in GROUP_FIELDS.items()
                 for unit in (GROUP_UNITS[group],)]
 
-    @app.get(f"{API}/health", response_model=HealthOut, dependencies=reads,
-             responses={401: errors[401]}, summary="gateway and bus status")
+    @app.get(f"{API}/health", response_model=HealthOut, dependencies=routes.reads,
+             responses=_errors(401), summary="gateway and bus status")
     async def health() -> dict[str, Any]:
         buses = {b.name: b.port_open for b in gateway.stats()}
         counted = {s.value: 0 for s in Status}
@@ -161,8 +191,8 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
                 "buses": buses, "sensors": counted, "interfaces": gateway.config.interfaces(),
                 "frontends": gateway.frontend_stats()}
 
-    @app.get(f"{API}/buses", response_model=list[BusOut], dependencies=reads,
-             responses={401: errors[401]}, summary="every bus and its stats")
+    @app.get(f"{API}/buses", response_model=list[BusOut], dependencies=routes.reads,
+             responses=_errors(401), summary="every bus and its stats")
     async def buses() -> list[dict[str, Any]]:
         names = {b.name: [s.name for s in b.sensors] for b in gateway.config.buses}
 
@@ -176,8 +206,25 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
                  "sensors": names[b.name], "timing": {n: timing(n) for n in names[b.name]}}
                 for b in gateway.stats()]
 
-    @app.get(f"{API}/sensors", response_model=list[SensorOut], dependencies=reads,
-             responses={401: errors[401]}, summary="every sensor with its status")
+
+def _sensor_routes(app: FastAPI, routes: _Routes) -> None:
+    """The sensors: the list, one sensor, its latest reading."""
+    gateway = routes.gateway
+    bus_of = {s.name: b for b, s in gateway.config.iter_sensors()}
+    bodies: dict[str, tuple[tuple[int, Status], bytes]] = {}  # the latest reading's JSON
+
+    def sensor_out(snap: Snapshot, stats: SensorStats) -> dict[str, Any]:
+        sensor, bus = gateway.sensors[snap.name], bus_of[snap.name]
+        return {"name": snap.name, "bus": bus.name, "series": sensor.series.name,
+                "protocol": bus.protocol.name.lower(),
+                "address": stats.address,  # the live one, after a set_address too
+                "unit_id": sensor.unit_id, "status": snap.status.value, "online": snap.online,
+                "busy": snap.busy, "streaming": snap.streaming, "seq": snap.seq,
+                "age_ms": None if snap.age_ms is None else round(snap.age_ms, 1),
+                "achieved_hz": stats.achieved_hz, "errors": snap.errors}
+
+    @app.get(f"{API}/sensors", response_model=list[SensorOut], dependencies=routes.reads,
+             responses=_errors(401), summary="every sensor with its status")
     async def sensors() -> list[dict[str, Any]]:
         return [sensor_out(snap, gateway.sensor_stats(snap.name))
                 for snap in gateway.cache.snapshots()]
@@ -185,11 +232,10 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     # exclude_unset: the reading's groups a series does not measure stay absent (as in
     # the reading JSON itself), while the nulls the route sets (age_ms …) stay null.
     @app.get(f"{API}/sensors/{{name}}", response_model=SensorDetailOut,
-             response_model_exclude_unset=True, dependencies=reads,
-             responses={401: errors[401], 404: errors[404]},
-             summary="a sensor's config, status and latest reading")
+             response_model_exclude_unset=True, dependencies=routes.reads,
+             responses=_errors(401, 404), summary="a sensor's config, status and latest reading")
     async def sensor(name: str) -> dict[str, Any]:
-        snap = sensor_or_404(name)
+        snap = routes.sensor_or_404(name)
         stats = gateway.sensor_stats(name)
         return {**sensor_out(snap, stats),
                 "config": gateway.sensors[name].model_dump(mode="json"),
@@ -198,13 +244,13 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
                 "reading": snap.to_json() if snap.has_reading else None}
 
     @app.get(f"{API}/sensors/{{name}}/reading", response_model=ReadingOut,
-             response_model_exclude_none=True, dependencies=reads,
-             responses={code: errors[code] for code in (401, 404, 409, 503, 504)},
+             response_model_exclude_none=True, dependencies=routes.reads,
+             responses=_errors(401, 404, 409, 503, 504),
              summary="the latest reading; older than max_age_ms: a fresh bus read first")
     async def reading(name: str, max_age_ms: Annotated[float | None, Query(
             ge=0, le=3_600_000, description="the oldest reading acceptable, ms")] = None,
                       ) -> Response:
-        snap = sensor_or_404(name)
+        snap = routes.sensor_or_404(name)
         if max_age_ms is not None:  # (a RequestFailed answers with its kind's status)
             snap = await gateway.read(name, max_age_ms)
         if not snap.has_reading:
@@ -217,12 +263,14 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
             cached = bodies[name] = (key, json_bytes(snap.to_json()))
         return Response(cached[1], media_type="application/json")
 
-    streams_hub = hub if hub is not None else StreamHub(gateway)
+
+def _stream_routes(app: FastAPI, routes: _Routes, hub: StreamHub) -> None:
+    """Server-Sent Events, of one sensor or of all."""
 
     def stream_response(sensor: str | None, request: Request) -> StreamingResponse:
-        if streams_hub.open >= MAX_STREAMS:
+        if hub.open >= MAX_STREAMS:
             raise RequestFailed(ErrorKind.TOO_MANY_STREAMS, f"{MAX_STREAMS} streams are open")
-        return StreamingResponse(streams_hub.stream(sensor, stream_peer(request)),
+        return StreamingResponse(hub.stream(sensor, stream_peer(request)),
                                  media_type="text/event-stream",
                                  headers={"Cache-Control": "no-cache",
                                           "X-Accel-Buffering": "no"})
@@ -231,40 +279,40 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
            "description": "`event: reading` (or `status`), `id: seq`, `data:` the "
                           "reading JSON; a `: keep-alive` comment when idle"}
 
-    @app.get(f"{API}/sensors/{{name}}/stream", dependencies=streams,
-             response_class=StreamingResponse,
-             responses={200: sse, 401: errors[401], 404: errors[404], 503: errors[503]},
+    @app.get(f"{API}/sensors/{{name}}/stream", dependencies=routes.streams,
+             response_class=StreamingResponse, responses={200: sse, **_errors(401, 404, 503)},
              summary="Server-Sent Events: one reading per event")
     async def stream(name: str, request: Request) -> StreamingResponse:
-        sensor_or_404(name)
+        routes.sensor_or_404(name)
         return stream_response(name, request)
 
-    @app.get(f"{API}/stream", dependencies=streams, response_class=StreamingResponse,
-             responses={200: sse, 401: errors[401], 503: errors[503]},
+    @app.get(f"{API}/stream", dependencies=routes.streams, response_class=StreamingResponse,
+             responses={200: sse, **_errors(401, 503)},
              summary="Server-Sent Events of every sensor")
     async def stream_all(request: Request) -> StreamingResponse:
         return stream_response(None, request)
 
-    for spec in CATALOGUE.values():
-        _command_route(app, gateway, spec.name, spec.args, spec.summary, command_access,
-                       sensor_or_404, errors)
+
+def _metrics_route(app: FastAPI, routes: _Routes) -> None:
+    """Prometheus's scrape, and the catch-all for commands nobody knows."""
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(GatewayCollector(routes.gateway))
 
     @app.post(f"{API}/sensors/{{name}}/commands/{{command}}", include_in_schema=False)
     async def unknown_command(name: str, command: str) -> None:
-        sensor_or_404(name)
+        routes.sensor_or_404(name)
         raise RequestFailed(ErrorKind.UNKNOWN_COMMAND,
-                       f"unknown command {command!r} (known: {', '.join(CATALOGUE)})")
+                            f"unknown command {command!r} (known: {', '.join(CATALOGUE)})")
 
-    @app.get("/metrics", response_class=Response, dependencies=reads,
-             responses={200: {"content": {"text/plain": {}}}, 401: errors[401]},
+    @app.get("/metrics", response_class=Response, dependencies=routes.reads,
+             responses={200: {"content": {"text/plain": {}}}, **_errors(401)},
              summary="Prometheus text format")
     async def metrics() -> Response:
         return Response(generate_latest(registry),
                         media_type="text/plain; version=0.0.4; charset=utf-8")
 
-    app.add_middleware(CommandGuard, config=config)
-    app.add_middleware(CountRequests, counts=counts)  # outermost: counts every request
 
+def _openapi_of(app: FastAPI) -> Callable[[], dict[str, Any]]:
     def openapi() -> dict[str, Any]:
         """FastAPI's document, with one correction: a read's bearer token is optional
         (required only with ``http.read_token_required``), which OpenAPI says with an
@@ -279,29 +327,18 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
             app.openapi_schema = document
         return app.openapi_schema
 
-    app.openapi = openapi  # type: ignore[method-assign]
-
-    static = resources.files("gateway") / "static"
-
-    @app.get("/", response_class=HTMLResponse, include_in_schema=False)
-    async def dashboard() -> HTMLResponse:
-        return HTMLResponse((static / "index.html").read_text(encoding="utf-8"))
-
-    app.mount("/static", StaticFiles(packages=[("gateway", "static")]), name="static")
-    return app
+    return openapi
 
 
-def _command_route(app: FastAPI, gateway: GatewayLike, command: str, args: type[BaseModel],
-                   summary: str, access: Callable[..., Awaitable[None]],
-                   sensor_or_404: Callable[[str], Snapshot],
-                   errors: dict[int | str, dict[str, Any]]) -> None:
+def _command_route(app: FastAPI, routes: _Routes, command: str, args: type[BaseModel],
+                   summary: str) -> None:
     """``POST …/commands/{command}``, its body the command's own argument model (a
     command without arguments takes no body, or an empty object)."""
 
     async def endpoint(name: str, body: BaseModel | None = None) -> JSONResponse:
-        sensor_or_404(name)
+        routes.sensor_or_404(name)
         values = body.model_dump() if body is not None else {}
-        result = await gateway.command(name, command, values)
+        result = await routes.gateway.command(name, command, values)
         status = 200 if result.ok else KINDS[result.kind or ErrorKind.FAILURE].status
         return JSONResponse(result.to_json(), status)
 
@@ -317,8 +354,8 @@ def _command_route(app: FastAPI, gateway: GatewayLike, command: str, args: type[
     app.add_api_route(
         f"{API}/sensors/{{name}}/commands/{command}", endpoint, methods=["POST"],
         response_model=CommandOut, summary=summary, name=f"command_{command}",
-        dependencies=[Depends(access)], tags=["commands"],
-        responses={code: errors[code] for code in (401, 403, 404, 409, 413, 422, 502, 504)})
+        dependencies=[Depends(routes.commands)], tags=["commands"],
+        responses=_errors(401, 403, 404, 409, 413, 422, 502, 504))
 
 
 def openapi_document(gateway: GatewayLike, config: HttpConfig) -> dict[str, Any]:
