@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
@@ -22,6 +23,10 @@ HTTP_COUNTERS = (  # the HTTP server's own: metric, its key in HttpServer.stats(
 )
 
 
+#: makes a metric family and collects it: (its class, name, help, labels)
+Family = Callable[[type[GaugeMetricFamily] | type[CounterMetricFamily], str, str, list[str]], Any]
+
+
 class GatewayCollector:
     """Prometheus metrics, read from the gateway's stats at each scrape."""
 
@@ -29,16 +34,20 @@ class GatewayCollector:
         self.gateway = gateway
 
     def collect(self) -> list[Metric]:
-        g = self.gateway
-        p = "imu_gateway_"
         out: list[Metric] = []
 
         def family(kind: type[GaugeMetricFamily] | type[CounterMetricFamily], name: str,
                    doc: str, labels: list[str]) -> Any:
-            metric = kind(p + name, doc, labels=labels)
+            metric = kind("imu_gateway_" + name, doc, labels=labels)
             out.append(metric)
             return metric
 
+        self._buses(family)
+        self._sensors(family)
+        self._frontends(family)
+        return out
+
+    def _buses(self, family: Family) -> None:
         tx = family(CounterMetricFamily, "bus_transactions", "exchanges on the line", ["bus"])
         errors = family(CounterMetricFamily, "bus_errors", "failed exchanges by kind",
                         ["bus", "kind"])
@@ -47,7 +56,7 @@ class GatewayCollector:
         queue = family(GaugeMetricFamily, "bus_queue_depth", "jobs waiting for the line",
                        ["bus"])
         port = family(GaugeMetricFamily, "bus_port_open", "1 when the port is open", ["bus"])
-        for bus in g.stats():
+        for bus in self.gateway.stats():
             tx.add_metric([bus.name], bus.transactions)
             for kind, count in bus.errors.items():
                 errors.add_metric([bus.name, kind], count)
@@ -55,6 +64,8 @@ class GatewayCollector:
             queue.add_metric([bus.name], bus.queue_depth)
             port.add_metric([bus.name], 1.0 if bus.port_open else 0.0)
 
+    def _sensors(self, family: Family) -> None:
+        g = self.gateway
         rate = family(GaugeMetricFamily, "sensor_rate_hz", "readings per second", ["sensor"])
         age = family(GaugeMetricFamily, "sensor_age_seconds", "age of the latest reading",
                      ["sensor"])
@@ -87,13 +98,14 @@ class GatewayCollector:
             readings.add_metric([snap.name], snap.seq)
             sensor_errors.add_metric([snap.name], snap.errors)
 
+    def _frontends(self, family: Family) -> None:
         clients = family(GaugeMetricFamily, "frontend_clients", "connected clients",
                          ["frontend"])
         requests = family(CounterMetricFamily, "frontend_requests", "requests served",
                           ["frontend"])
         restarts = family(CounterMetricFamily, "frontend_restarts", "restarts after a "
                           "failure (docs/reliability.md)", ["frontend"])
-        frontends = g.frontend_stats()
+        frontends = self.gateway.frontend_stats()
         for name, served in frontends.items():
             restarts.add_metric([name], served["restarts"])
             if "clients" in served:  # the servers (the MQTT client has its own below)
@@ -109,4 +121,3 @@ class GatewayCollector:
                    []).add_metric([], mqtt["published"])
             family(CounterMetricFamily, "mqtt_dropped", "messages dropped while the broker "
                    "was away", []).add_metric([], mqtt["dropped"])
-        return out
