@@ -38,7 +38,8 @@ from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from gateway.app import Gateway
-from gateway.frontends.mqtt import Message, MqttClient
+from gateway.frontends.mqtt_states import StateDesk
+from gateway.frontends.mqtt_topics import Message
 from gateway.model import Angles, Series, WireProtocol
 from gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
 from gateway.simulator.motion import Motion
@@ -514,14 +515,14 @@ def test_a_failed_mqtt_client_is_restarted_and_the_rest_goes_on(
     logged, counted, and that front end alone restarts; the bus goes on."""
     ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     failures = iter([True])
-    original = MqttClient._publish_state
+    original = StateDesk._publish_state
 
-    def flaky(self: MqttClient, snap: Any) -> None:
+    def flaky(self: StateDesk, snap: Any) -> None:
         if next(failures, False):
             raise RuntimeError("boom")
         original(self, snap)
 
-    monkeypatch.setattr(MqttClient, "_publish_state", flaky)
+    monkeypatch.setattr(StateDesk, "_publish_state", flaky)
     with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
             recording(broker, f"{BASE}/boom/state", f"{BASE}/status") as rec:
         cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])],

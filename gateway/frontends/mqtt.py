@@ -36,27 +36,29 @@ import asyncio
 import contextlib
 import json
 import logging
-import math
 from collections import deque
-from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any
 
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion, MQTTErrorCode
-from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 from paho.mqtt.reasoncodes import ReasonCode
 from paho.mqtt.subscribeoptions import SubscribeOptions
 
-from ..cache import EventKind, Snapshot, Status
-from ..commands import CommandResult
 from ..config import MqttConfig
-from ..errors import ErrorKind, RequestFailed
-from ..normalise import field_values
 from ..supervise import Frontend, PeerLog
 from .common import GatewayLike, json_bytes
-from .mqtt_topics import Topics, discovery_configs, send_delay, within_deadband
+from .mqtt_commands import CommandDesk
+from .mqtt_states import StateDesk
+from .mqtt_topics import (
+    CONTROL_QOS,
+    OFFLINE,
+    ONLINE,
+    Counters,
+    Message,
+    Topics,
+    discovery_configs,
+)
 
 log = logging.getLogger("gateway.mqtt")
 
@@ -64,23 +66,9 @@ KEEPALIVE_S = 30
 CONNACK_TIMEOUT = 5.0  # a broker that says nothing after CONNECT (a TLS port, say)
 RECONNECT_MIN, RECONNECT_MAX = 0.5, 30.0  # seconds between connection attempts
 WINDOW = 100  # messages handed to paho and not yet written or acknowledged
-MAX_COMMANDS = 16  # commands carried out at once; more are answered "busy"
 DISCOVERY_SWEEP_S = 5.0  # how long after connecting old discovery configs are looked for
-CONTROL_QOS = 1  # status, availability, discovery: small and must arrive
-MAX_COMMAND_PAYLOAD = 64 * 1024  # bytes; the largest command's arguments are a few dozen
-MAX_TOPIC_BYTES = 1024  # a response topic longer than this is not a mistake worth keeping
-MAX_CORRELATION_BYTES = 1024
 #: messages handed to paho and none written for this long: publishing does not work
 STALLED_S = 2 * KEEPALIVE_S
-ONLINE, OFFLINE = b"online", b"offline"
-
-
-class Message(NamedTuple):
-    topic: str
-    payload: bytes
-    qos: int
-    retain: bool
-    properties: Properties | None = None
 
 
 class Outbox:
@@ -112,29 +100,6 @@ class Outbox:
         return len(self._messages)
 
 
-@dataclass(slots=True)
-class _SensorOut:
-    """What was last sent for one sensor, for the throttle and the deadband."""
-
-    sent_at: float = -math.inf  # loop time of the last state message
-    values: dict[str, float] | None = None  # the field values it carried
-    status: Status | None = None
-    availability: bytes | None = None
-    trailing: asyncio.TimerHandle | None = None  # min_interval's deferred send
-
-
-@dataclass(slots=True)
-class _Counters:
-    published: int = 0  # handed to paho
-    written: int = 0  # written (QoS 0) or acknowledged: paho's on_publish, on its thread
-    undeliverable: int = 0  # paho can never send it (a bad topic): dropped
-    ignored: int = 0  # commands not run: retained, empty, too large, bad properties
-    lost_in_flight: int = 0  # handed to paho, unwritten or unacknowledged when it went
-    commands: int = 0
-    command_errors: int = 0
-    connects: int = 0
-
-
 class MqttClient(Frontend):
     """The gateway's MQTT connection; ``start()`` and ``stop()`` on the gateway's loop."""
 
@@ -152,13 +117,13 @@ class MqttClient(Frontend):
         # results go before the outbox and are never dropped: one entry per key, so
         # this is bounded by the number of topics (and of commands in progress).
         self._control: dict[str, Message] = {}
-        self.counters = _Counters()
+        self.counters = Counters()
         self.connected = False
-        self._deadbands = config.field_deadbands()
         # The sensors are fixed for the process's life, so their discovery configs are.
         self.discovery = discovery_configs(self.topics, gateway.sensors) \
             if config.homeassistant_discovery else {}
-        self._sensors = {name: _SensorOut() for name in gateway.sensors}
+        self.states = StateDesk(gateway, config, self.topics, self._send, self._send_control,
+                                lambda: self.connected)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._client: paho.Client | None = None
         self._lost = asyncio.Event()
@@ -169,14 +134,13 @@ class MqttClient(Frontend):
         self._waiting_for_window = False
         self._runner: asyncio.Task[None] | None = None
         self._unsubscribe: Any = None
-        self._commands: set[asyncio.Task[None]] = set()
         self._sweep_until = 0.0
         self._sweep_timer: asyncio.TimerHandle | None = None
-        self._results = 0  # command results sent (their control-queue keys)
         self._stopping = False
         self._last_problem: str | None = None
         self._peers = PeerLog(log)
-        self._clearing: set[str] = set()  # retained commands being cleared by us
+        self.desk = CommandDesk(gateway, config, self._send_control, self.counters,
+                                self._peers)
         self._progress = (0, 0.0)  # (counters.written, loop time) when it last moved
 
     # ------------------------------------------------------------ topics
@@ -192,8 +156,8 @@ class MqttClient(Frontend):
         self._loop = asyncio.get_running_loop()
         self._stopping = False
         self.connected = False
-        self._commands.clear()
-        self._unsubscribe = self.gateway.cache.subscribe(self._on_cache_event, self.fail)
+        self.desk.cancel()
+        self._unsubscribe = self.gateway.cache.subscribe(self.states.on_cache_event, self.fail)
         self._runner = asyncio.create_task(self._keep_connected(), name="mqtt")
         self.guarded(self._runner)
 
@@ -226,15 +190,12 @@ class MqttClient(Frontend):
         self._stopping = True
         if self._unsubscribe is not None:
             self._unsubscribe()
-        for out in self._sensors.values():
-            if out.trailing is not None:
-                out.trailing.cancel()
-        for task in list(self._commands):
-            task.cancel()
+        self.states.cancel()
+        self.desk.cancel()
         said_offline = False
         if self.connected:
             self.outbox.clear()  # states of before: "offline" is the last word
-            for name in self._sensors:
+            for name in self.gateway.sensors:
                 self._send_control(Message(self.sensor_topic(name, "availability"), OFFLINE,
                                            CONTROL_QOS, True))
             self._send_control(Message(self.status_topic, OFFLINE, CONTROL_QOS, True))
@@ -398,12 +359,7 @@ class MqttClient(Frontend):
         self._send_control(Message(self.status_topic, ONLINE, CONTROL_QOS, True))
         for topic, payload in self.discovery.items():
             self._send_control(Message(topic, json_bytes(payload), CONTROL_QOS, True))
-        for snap in self.gateway.cache.snapshots():
-            self._sensors[snap.name].availability = None
-            self._publish_availability(snap)
-        for snap in self.gateway.cache.snapshots():
-            if snap.has_reading:
-                self._publish_state(snap)
+        self.states.announce()
 
     # ------------------------------------------------------------ sending
 
@@ -464,140 +420,15 @@ class MqttClient(Frontend):
             return True
         return False
 
-    # ------------------------------------------------------------ cache events
-
-    def _on_cache_event(self, kind: EventKind, snap: Snapshot) -> None:
-        if kind is EventKind.STATUS:
-            self._publish_availability(snap)
-            out = self._sensors[snap.name]
-            if snap.has_reading and out.status is not None and snap.status is not out.status:
-                self._publish_state(snap)
-        elif kind is EventKind.READING:
-            self._consider(snap)
-
-    def _publish_availability(self, snap: Snapshot) -> None:
-        if not self.connected:
-            return  # not queued: the next connect publishes the availability of then
-        out = self._sensors[snap.name]
-        payload = OFFLINE if snap.status is Status.OFFLINE else ONLINE
-        if payload != out.availability:
-            out.availability = payload
-            self._send_control(Message(self.sensor_topic(snap.name, "availability"),
-                                       payload, CONTROL_QOS, True))
-
-    def _consider(self, snap: Snapshot) -> None:
-        """A new reading: send it now, later (min_interval) or not (deadband)."""
-        out = self._sensors[snap.name]
-        if out.trailing is not None:
-            return  # the deferred send will take the latest reading
-        if self._within_deadband(snap, out):
-            return
-        assert self._loop is not None
-        wait = send_delay(out.sent_at, self.config.min_interval_ms / 1000, self._loop.time())
-        if wait > 0:
-            out.trailing = self._loop.call_later(wait, self._send_trailing, snap.name)
-            return
-        self._publish_state(snap)
-
-    def _send_trailing(self, name: str) -> None:
-        self._sensors[name].trailing = None
-        snap = self.gateway.cache.snapshot(name)
-        if snap.has_reading and not self._within_deadband(snap, self._sensors[name]):
-            self._publish_state(snap)
-
-    def _within_deadband(self, snap: Snapshot, out: _SensorOut) -> bool:
-        return snap.reading is not None and within_deadband(
-            field_values(snap.reading), out.values, self._deadbands)
-
-    def _publish_state(self, snap: Snapshot) -> None:
-        assert self._loop is not None and snap.reading is not None
-        out = self._sensors[snap.name]
-        out.sent_at = self._loop.time()
-        out.values = field_values(snap.reading)
-        out.status = snap.status
-        c = self.config
-        self._send(Message(self.sensor_topic(snap.name, "state"), json_bytes(snap.to_json()),
-                           c.qos, c.retain))
-        if c.per_field_topics:
-            for name, value in out.values.items():
-                if math.isfinite(value):  # a plain number or nothing
-                    self._send(Message(self.sensor_topic(snap.name, name),
-                                       json.dumps(value).encode(), c.qos, c.retain))
-
     # ------------------------------------------------------------ incoming
 
     def _on_message(self, message: paho.MQTTMessage) -> None:
         topic = message.topic
         parts = topic.removeprefix(f"{self.prefix}/").split("/")
-        if not (topic.startswith(self.prefix + "/") and len(parts) == 3 and parts[1] == "cmd"):
-            if topic.startswith(f"{self.config.discovery_prefix}/"):
-                self._sweep(message)
-            return
-        sensor, _, command = parts
-        if not self._runnable(message):
-            return
-        self.counters.commands += 1
-        try:
-            args = _command_args(bytes(message.payload))
-            _check_properties(message.properties)
-        except RequestFailed as exc:
-            self._answer(message, CommandResult.failed(sensor, command, exc))
-            return
-        if len(self._commands) >= MAX_COMMANDS:
-            self._answer(message, CommandResult.failed(sensor, command, RequestFailed(
-                ErrorKind.BUSY, f"{MAX_COMMANDS} commands are already being carried out")))
-            return
-        task = asyncio.create_task(self._carry_out(message, sensor, command, args))
-        self._commands.add(task)
-        task.add_done_callback(self._commands.discard)
-
-    def _runnable(self, message: paho.MQTTMessage) -> bool:
-        """Whether a message on a command topic asks for a command at all.
-
-        A retained command would run again at every reconnect: it is never run, and
-        is cleared once.  An empty payload is how anyone clears a retained message
-        (the broker passes the clearing on to subscribers): it never runs either."""
-        topic = message.topic
-        if not message.payload:
-            if topic in self._clearing:  # our own clearing, back from the broker
-                self._clearing.discard(topic)
-                return False
-            self.counters.ignored += 1
-            self._peers.warning("empty", "mqtt: an empty message on %s was not run: an "
-                                "empty payload clears a retained message; send {} to run "
-                                "a command", topic)
-            return False
-        if message.retain:
-            self.counters.ignored += 1
-            self._clearing.add(topic)
-            self._send_control(Message(topic, b"", CONTROL_QOS, True))
-            self._peers.warning("retained", "mqtt: a retained command on %s was not run, "
-                                "and is cleared; publish commands without the retain "
-                                "flag", topic)
-            return False
-        return True
-
-    async def _carry_out(self, message: paho.MQTTMessage, sensor: str, command: str,
-                         args: Mapping[str, Any]) -> None:
-        result = await self.gateway.command(sensor, command, args)
-        self._answer(message, result)
-
-    def _answer(self, request: paho.MQTTMessage, result: CommandResult) -> None:
-        if not result.ok:
-            self.counters.command_errors += 1
-        # MQTT 5: the asker's response topic and correlation data win, where usable
-        # (_check_properties refused the request otherwise, answered here).
-        topic, properties = f"{request.topic}/result", None
-        if _properties_problem(request.properties) is None:
-            topic = getattr(request.properties, "ResponseTopic", None) or topic
-            correlation = getattr(request.properties, "CorrelationData", None)
-            if correlation is not None:
-                properties = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
-                properties.CorrelationData = correlation
-        self._results += 1
-        self._send_control(Message(topic, json_bytes(result.to_json()),
-                                   max(self.config.qos, 1), False, properties),
-                           key=f"result {self._results}")
+        if topic.startswith(self.prefix + "/") and len(parts) == 3 and parts[1] == "cmd":
+            self.desk.take(message, parts[0], parts[2])
+        elif topic.startswith(f"{self.config.discovery_prefix}/"):
+            self._sweep(message)
 
     # ------------------------------------------------------------ Home Assistant
 
@@ -643,56 +474,6 @@ class MqttClient(Frontend):
                 "command_errors": self.counters.command_errors,
                 "undeliverable": self.counters.undeliverable,
                 "ignored_commands": self.counters.ignored}
-
-
-def _command_args(payload: bytes) -> dict[str, Any]:
-    """A command's arguments: a JSON object (blank: none)."""
-    if len(payload) > MAX_COMMAND_PAYLOAD:
-        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"the payload is {len(payload)} bytes; "
-                           f"at most {MAX_COMMAND_PAYLOAD}")
-    if not payload.strip():
-        return {}
-    try:
-        args = json.loads(payload)
-    except (ValueError, RecursionError) as exc:  # UnicodeDecodeError is a ValueError
-        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"the payload is not JSON: {exc}") from None
-    if not isinstance(args, dict):
-        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, "the payload must be a JSON object")
-    return args
-
-
-def topic_problem(topic: str) -> str | None:
-    """Why a topic from a peer (an MQTT 5 response topic) cannot be published to."""
-    if not topic:
-        return "is empty"
-    if "+" in topic or "#" in topic:
-        return "has a wildcard (+ or #); results go to one topic"
-    if "\0" in topic:
-        return "has a NUL character"
-    size = len(topic.encode("utf-8", "surrogatepass"))
-    if size > MAX_TOPIC_BYTES:
-        return f"is {size} bytes long; at most {MAX_TOPIC_BYTES}"
-    return None
-
-
-def _properties_problem(properties: Properties | None) -> str | None:
-    response = getattr(properties, "ResponseTopic", None)
-    if response is not None:
-        problem = topic_problem(str(response))
-        if problem is not None:
-            return f"the response topic {str(response)[:60]!r} {problem}"
-    correlation = getattr(properties, "CorrelationData", None)
-    if correlation is not None and len(correlation) > MAX_CORRELATION_BYTES:
-        return (f"the correlation data is {len(correlation)} bytes; "
-                f"at most {MAX_CORRELATION_BYTES}")
-    return None
-
-
-def _check_properties(properties: Properties | None) -> None:
-    """Raise ``RequestFailed`` when the MQTT 5 properties of a command are unusable."""
-    problem = _properties_problem(properties)
-    if problem is not None:
-        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, problem)
 
 
 def _close_sockets(client: paho.Client) -> None:

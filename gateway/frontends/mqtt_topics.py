@@ -1,5 +1,6 @@
-"""The MQTT front end's pure parts: its topics, the Home Assistant discovery configs,
-and the rules of when a state is sent (``min_interval_ms`` and the deadbands).
+"""The MQTT front end's pure parts: its messages and counters, its topics, the Home
+Assistant discovery configs, and the rules of when a state is sent
+(``min_interval_ms`` and the deadbands).
 
 No client, no loop, no clock: the MQTT client (``mqtt.py``) calls these with what it
 knows, and the tests check them on values alone.
@@ -9,12 +10,41 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
+
+from paho.mqtt.properties import Properties
 
 from .. import __version__
 from ..config import MqttConfig, SensorConfig
 from ..model import CAPABILITIES, GROUP_UNITS
 from ..normalise import GROUP_FIELDS, member_name
+
+CONTROL_QOS = 1  # status, availability, discovery, results: small and must arrive
+ONLINE, OFFLINE = b"online", b"offline"  # the status and availability payloads
+
+
+class Message(NamedTuple):
+    """One message to publish."""
+
+    topic: str
+    payload: bytes
+    qos: int
+    retain: bool
+    properties: Properties | None = None
+
+
+@dataclass(slots=True)
+class Counters:
+    """The MQTT client's running totals (its ``stats()``)."""
+
+    published: int = 0  # handed to paho
+    written: int = 0  # written (QoS 0) or acknowledged: paho's on_publish, on its thread
+    undeliverable: int = 0  # paho can never send it (a bad topic): dropped
+    ignored: int = 0  # commands not run: retained, empty, too large, bad properties
+    lost_in_flight: int = 0  # handed to paho, unwritten or unacknowledged when it went
+    commands: int = 0
+    command_errors: int = 0
+    connects: int = 0
 
 
 @dataclass(frozen=True, slots=True)

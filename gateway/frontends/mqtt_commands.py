@@ -1,0 +1,173 @@
+"""Commands that come in over MQTT, and their results.
+
+A message on ``{prefix}/{sensor}/cmd/{command}`` with a JSON object is a command: it
+goes to the gateway (which validates it and puts it in the bus master's queue) and its
+result is published, to the MQTT 5 response topic when one is given, else to the
+command's topic with ``/result`` appended.  Retained and empty messages are never run
+(docs/mqtt.md).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import paho.mqtt.client as paho
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.properties import Properties
+
+from ..commands import CommandResult
+from ..config import MqttConfig
+from ..errors import ErrorKind, RequestFailed
+from ..supervise import PeerLog
+from .common import GatewayLike, json_bytes
+from .mqtt_topics import CONTROL_QOS, Counters, Message
+
+MAX_COMMANDS = 16  # commands carried out at once; more are answered "busy"
+MAX_COMMAND_PAYLOAD = 64 * 1024  # bytes; the largest command's arguments are a few dozen
+MAX_TOPIC_BYTES = 1024  # a response topic longer than this is not a mistake worth keeping
+MAX_CORRELATION_BYTES = 1024
+
+
+class CommandDesk:
+    """Takes the command messages of one MQTT client, and answers each.
+
+    ``send_control(message, key)`` queues a message that must not be dropped (a
+    result, the clearing of a retained command) on the client's control queue."""
+
+    def __init__(self, gateway: GatewayLike, config: MqttConfig,
+                 send_control: Callable[[Message, str | None], None],
+                 counters: Counters, peers: PeerLog) -> None:
+        self.gateway = gateway
+        self.config = config
+        self.send_control = send_control
+        self.counters = counters
+        self._peers = peers
+        self.tasks: set[asyncio.Task[None]] = set()  # commands being carried out
+        self._clearing: set[str] = set()  # retained commands being cleared by us
+        self._results = 0  # command results sent (their control-queue keys)
+
+    def cancel(self) -> None:
+        """Stop waiting for the commands in progress (the client is stopping)."""
+        for task in list(self.tasks):
+            task.cancel()
+        self.tasks.clear()
+
+    def take(self, message: paho.MQTTMessage, sensor: str, command: str) -> None:
+        """A message on ``{prefix}/{sensor}/cmd/{command}``: carried out, answered."""
+        if not self._runnable(message):
+            return
+        self.counters.commands += 1
+        try:
+            args = _command_args(bytes(message.payload))
+            _check_properties(message.properties)
+        except RequestFailed as exc:
+            self._answer(message, CommandResult.failed(sensor, command, exc))
+            return
+        if len(self.tasks) >= MAX_COMMANDS:
+            self._answer(message, CommandResult.failed(sensor, command, RequestFailed(
+                ErrorKind.BUSY, f"{MAX_COMMANDS} commands are already being carried out")))
+            return
+        task = asyncio.create_task(self._carry_out(message, sensor, command, args))
+        self.tasks.add(task)
+        task.add_done_callback(self.tasks.discard)
+
+    def _runnable(self, message: paho.MQTTMessage) -> bool:
+        """Whether a message on a command topic asks for a command at all.
+
+        A retained command would run again at every reconnect: it is never run, and
+        is cleared once.  An empty payload is how anyone clears a retained message
+        (the broker passes the clearing on to subscribers): it never runs either."""
+        topic = message.topic
+        if not message.payload:
+            if topic in self._clearing:  # our own clearing, back from the broker
+                self._clearing.discard(topic)
+                return False
+            self.counters.ignored += 1
+            self._peers.warning("empty", "mqtt: an empty message on %s was not run: an "
+                                "empty payload clears a retained message; send {} to run "
+                                "a command", topic)
+            return False
+        if message.retain:
+            self.counters.ignored += 1
+            self._clearing.add(topic)
+            self.send_control(Message(topic, b"", CONTROL_QOS, True), None)
+            self._peers.warning("retained", "mqtt: a retained command on %s was not run, "
+                                "and is cleared; publish commands without the retain "
+                                "flag", topic)
+            return False
+        return True
+
+    async def _carry_out(self, message: paho.MQTTMessage, sensor: str, command: str,
+                         args: Mapping[str, Any]) -> None:
+        result = await self.gateway.command(sensor, command, args)
+        self._answer(message, result)
+
+    def _answer(self, request: paho.MQTTMessage, result: CommandResult) -> None:
+        if not result.ok:
+            self.counters.command_errors += 1
+        # MQTT 5: the asker's response topic and correlation data win, where usable
+        # (_check_properties refused the request otherwise, answered here).
+        topic, properties = f"{request.topic}/result", None
+        if _properties_problem(request.properties) is None:
+            topic = getattr(request.properties, "ResponseTopic", None) or topic
+            correlation = getattr(request.properties, "CorrelationData", None)
+            if correlation is not None:
+                properties = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
+                properties.CorrelationData = correlation
+        self._results += 1
+        self.send_control(Message(topic, json_bytes(result.to_json()),
+                                  max(self.config.qos, 1), False, properties),
+                          f"result {self._results}")
+
+
+def _command_args(payload: bytes) -> dict[str, Any]:
+    """A command's arguments: a JSON object (blank: none)."""
+    if len(payload) > MAX_COMMAND_PAYLOAD:
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"the payload is {len(payload)} bytes; "
+                           f"at most {MAX_COMMAND_PAYLOAD}")
+    if not payload.strip():
+        return {}
+    try:
+        args = json.loads(payload)
+    except (ValueError, RecursionError) as exc:  # UnicodeDecodeError is a ValueError
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"the payload is not JSON: {exc}") from None
+    if not isinstance(args, dict):
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, "the payload must be a JSON object")
+    return args
+
+
+def topic_problem(topic: str) -> str | None:
+    """Why a topic from a peer (an MQTT 5 response topic) cannot be published to."""
+    if not topic:
+        return "is empty"
+    if "+" in topic or "#" in topic:
+        return "has a wildcard (+ or #); results go to one topic"
+    if "\0" in topic:
+        return "has a NUL character"
+    size = len(topic.encode("utf-8", "surrogatepass"))
+    if size > MAX_TOPIC_BYTES:
+        return f"is {size} bytes long; at most {MAX_TOPIC_BYTES}"
+    return None
+
+
+def _properties_problem(properties: Properties | None) -> str | None:
+    response = getattr(properties, "ResponseTopic", None)
+    if response is not None:
+        problem = topic_problem(str(response))
+        if problem is not None:
+            return f"the response topic {str(response)[:60]!r} {problem}"
+    correlation = getattr(properties, "CorrelationData", None)
+    if correlation is not None and len(correlation) > MAX_CORRELATION_BYTES:
+        return (f"the correlation data is {len(correlation)} bytes; "
+                f"at most {MAX_CORRELATION_BYTES}")
+    return None
+
+
+def _check_properties(properties: Properties | None) -> None:
+    """Raise ``RequestFailed`` when the MQTT 5 properties of a command are unusable."""
+    problem = _properties_problem(properties)
+    if problem is not None:
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, problem)
