@@ -96,7 +96,7 @@ def test_front_ends_use_neither_protocol_nor_bus_nor_each_other(path: Path) -> N
 
 
 def test_frontend_resolver() -> None:
-    names = frontend_imports(FRONTENDS / "mqtt.py")
+    names = frontend_imports(FRONTENDS / "mqtt_states.py")
     assert "gateway.cache" in names and "gateway.frontends.common" in names
     names = frontend_imports(FRONTENDS / "rest" / "server.py")
     assert "gateway.config" in names and "gateway.frontends.common" in names
@@ -140,3 +140,13 @@ def test_package_resolver() -> None:
     assert "gateway.errors" in package_imports(PROTOCOL.parent / "cache.py", "gateway")
     assert "gateway.errors" in package_imports(PROTOCOL.parent / "bus" / "master.py",
                                                "gateway.bus")
+
+
+def test_the_gateway_imports_none_of_the_tools() -> None:
+    """The command-line tools sit on top: nothing below them imports them."""
+    for path in GATEWAY.rglob("*.py"):
+        if "tools" in path.relative_to(GATEWAY).parts or path.name == "__main__.py":
+            continue
+        package = ".".join(path.parent.relative_to(GATEWAY.parent).parts)
+        for name in package_imports(path, package):
+            assert not _within(name, "gateway.tools"), f"{path} imports {name}"

@@ -12,7 +12,7 @@ import serial
 
 from gateway.model import WireProtocol
 from gateway.protocol import modbus_rtu as rtu
-from gateway.scan import (
+from gateway.tools.scan import (
     Found,
     Prober,
     Progress,

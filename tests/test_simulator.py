@@ -20,13 +20,13 @@ from typing import Any
 import pytest
 import serial
 
-from gateway.cli import build_parser, main
 from gateway.model import Angles, Quaternion, Reading, Series, Vector3, WireProtocol
 from gateway.protocol import modbus_rtu as rtu
 from gateway.protocol import native
 from gateway.protocol.exchanges import char_time, rtu_silence
 from gateway.simulator import Faults, SimSensor, SimulatorThread, hold, make_sensor, simulated
 from gateway.simulator.bus import BusStats
+from gateway.tools.cli import build_parser, main
 
 ZERO = Reading(
     Angles(0, 0, 0), Vector3(0, 0, 1), Vector3(0, 0, 0), Vector3(0, 0, 0), Quaternion(1, 0, 0, 0)

@@ -20,11 +20,11 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
-from .model import CAPABILITIES, Series, WireProtocol
-from .normalise import FIELD_NAMES, group_values
-from .protocol import modbus_rtu as rtu
-from .protocol import native
-from .protocol.errors import FrameError, ProtocolError
+from ..model import CAPABILITIES, Series, WireProtocol
+from ..normalise import FIELD_NAMES, group_values
+from ..protocol import modbus_rtu as rtu
+from ..protocol import native
+from ..protocol.errors import FrameError, ProtocolError
 
 
 class BadInput(ProtocolError):

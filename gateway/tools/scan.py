@@ -32,12 +32,12 @@ from typing import Any
 
 import serial
 
-from .bus.timing import RTO_INITIAL
-from .model import CAPABILITIES, Series, WireProtocol
-from .normalise import GROUP_FIELDS
-from .protocol import modbus_rtu as rtu
-from .protocol import native
-from .protocol.exchanges import NativeAdapter, char_time, poll_span, rtu_silence
+from ..bus.timing import RTO_INITIAL
+from ..model import CAPABILITIES, Series, WireProtocol
+from ..normalise import GROUP_FIELDS
+from ..protocol import modbus_rtu as rtu
+from ..protocol import native
+from ..protocol.exchanges import NativeAdapter, char_time, poll_span, rtu_silence
 
 #: Baud rates in the order they are tried: the factory default first, then the rates
 #: the documents recommend for fast output, then the rest.

@@ -17,11 +17,11 @@ from collections.abc import Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
 
-from .app import Gateway, run_until_signalled
-from .config import GatewayConfig, config_from_dict
-from .model import Series, WireProtocol
-from .simulator import SimulatorThread, make_sensor
-from .simulator.motion import Motion
+from ..app import Gateway, run_until_signalled
+from ..config import GatewayConfig, config_from_dict
+from ..model import Series, WireProtocol
+from ..simulator import SimulatorThread, make_sensor
+from ..simulator.motion import Motion
 
 BAUD = 115200
 

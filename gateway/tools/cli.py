@@ -16,15 +16,15 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, TypeAlias
 
-from . import __version__
-from .bus.timing import RTO_INITIAL
+from .. import __version__
+from ..bus.timing import RTO_INITIAL
+from ..model import Series, WireProtocol
+from ..protocol.modbus_rtu import UNIT_IDS
+from ..protocol.native import BAUD_CODES
 from .decode import decode_all, to_json_line
-from .model import Series, WireProtocol
-from .protocol.modbus_rtu import UNIT_IDS
-from .protocol.native import BAUD_CODES
 
 if TYPE_CHECKING:
-    from .config import GatewayConfig
+    from ..config import GatewayConfig
 
 EXIT_BAD_INPUT = 2
 
@@ -284,8 +284,8 @@ def cmd_decode(args: argparse.Namespace) -> int:
 
 
 def _load_or_report(path: str) -> GatewayConfig | None:
-    from .config import load_config
-    from .errors import ConfigError
+    from ..config import load_config
+    from ..errors import ConfigError
 
     try:
         return load_config(path)
@@ -296,8 +296,8 @@ def _load_or_report(path: str) -> GatewayConfig | None:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from .app import run_until_signalled
-    from .errors import StartupError
+    from ..app import run_until_signalled
+    from ..errors import StartupError
 
     config = _load_or_report(args.config)
     if config is None:
@@ -322,8 +322,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    from ..errors import ConfigError, StartupError
     from .demo import DemoOptions, run_demo
-    from .errors import ConfigError, StartupError
 
     logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
                         format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
@@ -392,8 +392,8 @@ def cmd_scan(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
-    from .simulator import Faults, PtyBus, make_sensor
-    from .simulator.motion import Motion
+    from ..simulator import Faults, PtyBus, make_sensor
+    from ..simulator.motion import Motion
 
     specs = list(args.sensor)
     if args.protocol or args.series:
@@ -455,7 +455,7 @@ def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
 
 
 def cmd_check_config(args: argparse.Namespace) -> int:
-    from .capacity import line_loads
+    from ..capacity import line_loads
 
     config = _load_or_report(args.config)
     if config is None:

@@ -6,7 +6,7 @@ default (``shown_default``) or type (``shown_type``) to show where pydantic's wo
 mislead.  ``scripts/config-reference`` writes the file; ``tests/test_config_reference.py``
 fails while the committed file differs from :func:`markdown`.
 
-Run ``python -m gateway.config_reference`` to print it.
+Run ``python -m gateway.tools.config_reference`` to print it.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ from typing import Annotated, Any, Literal, Union, get_args, get_origin
 from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 
-from .bus.timing import RTO_INITIAL, RTO_MAX, RTO_MIN
-from .config import (
+from ..bus.timing import RTO_INITIAL, RTO_MAX, RTO_MIN
+from ..config import (
     BusConfig,
     GatewayConfig,
     HttpConfig,
