@@ -1,0 +1,293 @@
+"""The config's limits, the wording of its messages, and the validators of single
+fields."""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import os
+import re
+from collections.abc import Mapping
+from typing import Annotated, NamedTuple
+from urllib.parse import urlsplit
+
+from pydantic import (
+    AfterValidator,
+    PlainSerializer,
+    PlainValidator,
+)
+from pydantic_core import PydanticCustomError
+
+from ..model import Series, WireProtocol
+from ..protocol.native import BAUD_CODES, OUTPUT_RATE_CODES
+
+BAUD_RATES: tuple[int, ...] = tuple(sorted(BAUD_CODES.values()))
+#: Auto-output rates a native sensor has a code for (0 is polled mode).
+NATIVE_STREAM_HZ: tuple[int, ...] = tuple(sorted(r for r in OUTPUT_RATE_CODES.values() if r))
+#: A Modbus sensor's auto-output interval register (0x1B), in ms.
+MODBUS_STREAM_INTERVAL_MS = (10, 65535)
+ADDRESS_RANGE: Mapping[WireProtocol, tuple[int, int]] = {
+    WireProtocol.NATIVE: (0, 255),
+    WireProtocol.MODBUS: (1, 247),
+}
+DEFAULT_ADDRESS: Mapping[WireProtocol, int] = {WireProtocol.NATIVE: 0, WireProtocol.MODBUS: 1}
+UNIT_ID_RANGE = (1, 247)
+
+
+#: pyserial's URL handlers (serial.serial_for_url).
+PYSERIAL_SCHEMES = ("socket", "rfc2217", "loop", "spy", "alt", "hwgrep", "cp2110")
+_NAME = re.compile(r"[a-z0-9_-]+")
+_GATEWAY_ID = re.compile(r"[A-Za-z0-9_.-]+")
+_ENV_REF = re.compile(r"\$\$\{|\$\{([^}]*)\}|\$\{")
+_ENV_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+# Values never echoed in a message.
+_SECRET_KEYS = frozenset({"password", "token"})
+
+
+# --------------------------------------------------------------------------- messages
+
+
+def _fail(message: str) -> PydanticCustomError:
+    # The message travels in the context so that braces in it are never a template.
+    return PydanticCustomError("config", "{message}", {"message": message})
+
+
+def _show(value: object) -> str:
+    """A short rendering of a bad value for a message: JSON-like, lists and maps by kind."""
+    if isinstance(value, str | int | float | bool) or value is None:
+        try:
+            text = json.dumps(value, ensure_ascii=False)
+        except ValueError:  # pragma: no cover - NaN is allowed by json.dumps
+            text = repr(value)
+    elif isinstance(value, list | tuple):
+        text = "a list"
+    elif isinstance(value, Mapping):
+        text = "a mapping"
+    else:
+        text = type(value).__name__
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _number(value: float) -> str:
+    return str(int(value)) if float(value).is_integer() else repr(value)
+
+
+def _path(loc: tuple[int | str, ...]) -> str:
+    """``('buses', 0, 'sensors', 1, 'series')`` → ``buses[0].sensors[1].series``."""
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += f".{part}" if out else str(part)
+    return out
+
+
+# ------------------------------------------------------------------ field validators
+
+
+def _between(low: int, high: int) -> AfterValidator:
+    def check(value: int) -> int:
+        if not low <= value <= high:
+            raise _fail(f"must be {low}-{high}, not {value}")
+        return value
+
+    return AfterValidator(check)
+
+
+def _at_least(low: float) -> AfterValidator:
+    def check(value: float) -> float:
+        if value < low:
+            raise _fail(f"must be >= {_number(low)}, not {_number(value)}")
+        return value
+
+    return AfterValidator(check)
+
+
+def _positive(value: float) -> float:
+    if value <= 0:
+        raise _fail(f"must be > 0, not {_number(value)}")
+    return value
+
+
+def _name(value: str) -> str:
+    if not _NAME.fullmatch(value):
+        raise _fail(
+            f"must match [a-z0-9_-]+ (lower-case letters, digits, _ and -), not {_show(value)}"
+        )
+    return value
+
+
+def _gateway_id(value: str) -> str:
+    if not _GATEWAY_ID.fullmatch(value):
+        raise _fail(f"must match [A-Za-z0-9_.-]+ (it is part of MQTT topics), not {_show(value)}")
+    return value
+
+
+def _not_empty(value: str) -> str:
+    if not value:
+        raise _fail("must not be empty")
+    return value
+
+
+def _series(value: object) -> Series:
+    if isinstance(value, Series):
+        return value
+    if isinstance(value, str) and value.strip().upper() in Series.__members__:
+        return Series[value.strip().upper()]
+    raise _fail(f"must be one of {', '.join(s.name for s in Series)}, not {_show(value)}")
+
+
+def _protocol(value: object) -> WireProtocol:
+    if isinstance(value, WireProtocol):
+        return value
+    if isinstance(value, str) and value.strip().upper() in WireProtocol.__members__:
+        return WireProtocol[value.strip().upper()]
+    raise _fail(f"must be one of native, modbus, not {_show(value)}")
+
+
+def _baudrate(value: int) -> int:
+    if value not in BAUD_RATES:
+        raise _fail(f"must be one of {', '.join(map(str, BAUD_RATES))}, not {value}")
+    return value
+
+
+def _serial_port(value: str) -> str:
+    if not value.strip():
+        raise _fail("must not be empty")
+    if "://" not in value:
+        return value  # a device path: /dev/ttyUSB0, /dev/serial/by-id/…, COM3
+    scheme = value.split("://", 1)[0].lower()
+    if scheme not in PYSERIAL_SCHEMES:
+        raise _fail(
+            f"unknown URL scheme {_show(scheme)}: give a device path such as /dev/ttyUSB0 "
+            "or a pyserial URL (socket://host:port, rfc2217://host:port, loop://)"
+        )
+    if scheme in ("socket", "rfc2217"):
+        parts = urlsplit(value)
+        try:
+            port = parts.port
+        except ValueError:
+            port = None
+        if not parts.hostname or port is None:
+            raise _fail(f"must be {scheme}://host:port, not {_show(value)}")
+    return value
+
+
+def _enum_name(value: Series) -> str:
+    return value.name
+
+
+def _protocol_name(value: WireProtocol) -> str:
+    return value.name.lower()
+
+
+class ListenAddress(NamedTuple):
+    """A ``listen`` value: ``"host:port"``; an IPv6 host in brackets (``"[::]:502"``)."""
+
+    host: str
+    port: int
+
+    def __str__(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{host}:{self.port}"
+
+
+def _listen(value: object) -> ListenAddress:
+    if isinstance(value, ListenAddress):
+        return value
+    example = 'must be "host:port", e.g. "0.0.0.0:502" or "[::]:502"'
+    if not isinstance(value, str):
+        raise _fail(f"{example}, not {_show(value)}")
+    host, sep, port = value.strip().rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise _fail(f"{example}, not {_show(value)}")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+        try:
+            ipaddress.IPv6Address(host)
+        except ValueError:
+            raise _fail(f"{_show(host)} in brackets is not an IPv6 address") from None
+    elif ":" in host:
+        raise _fail(f'an IPv6 host goes in brackets, e.g. "[::]:502", not {_show(value)}')
+    if int(port) > 65535:
+        raise _fail(f"port must be 0-65535, not {port}")
+    return ListenAddress(host, int(port))
+
+
+IPNetwork = ipaddress.IPv4Network | ipaddress.IPv6Network
+
+
+def _network(value: object) -> IPNetwork:
+    if isinstance(value, ipaddress.IPv4Network | ipaddress.IPv6Network):
+        return value
+    if isinstance(value, str):
+        try:
+            return ipaddress.ip_network(value.strip(), strict=False)
+        except ValueError:
+            pass
+    raise _fail(f"must be an IPv4 or IPv6 network such as 10.0.0.0/8, not {_show(value)}")
+
+
+def _network_text(value: IPNetwork) -> str:
+    return str(value)
+
+
+def _mqtt_url(value: str) -> str:
+    parts = urlsplit(value)
+    if parts.scheme not in ("mqtt", "mqtts"):
+        raise _fail(f"must be mqtt://host[:port] or mqtts://host[:port], not {_show(value)}")
+    if "@" in parts.netloc:
+        raise _fail("must not hold credentials: use the username and password keys")
+    try:
+        port = parts.port
+    except ValueError:
+        raise _fail(f"port must be 0-65535, not {_show(value)}") from None
+    if not parts.hostname:
+        raise _fail(f"has no host: {_show(value)}")
+    if parts.path not in ("", "/") or parts.query or parts.fragment or port == 0:
+        raise _fail(f"must be {parts.scheme}://host[:port] and nothing more, not {_show(value)}")
+    return value
+
+
+def _mqtt_protocol(value: object) -> str:
+    if isinstance(value, int | float) and not isinstance(value, bool) and value == 5:
+        return "5"
+    if isinstance(value, str) and value.strip() in ("3.1.1", "5", "5.0"):
+        return "3.1.1" if value.strip() == "3.1.1" else "5"
+    raise _fail(f'must be "3.1.1" or 5, not {_show(value)}')
+
+
+def _base_topic(value: str) -> str:
+    if not value:
+        raise _fail("must not be empty")
+    if any(c in value for c in "+#\0"):
+        raise _fail(f"must not contain the MQTT wildcards + or #, not {_show(value)}")
+    if value.startswith("/") or value.endswith("/"):
+        raise _fail(f"must not start or end with /, not {_show(value)}")
+    return value
+
+
+def _existing_file(value: str) -> str:
+    if not os.path.isfile(value):
+        raise _fail(f"no such file: {value}")
+    return value
+
+
+Name = Annotated[str, AfterValidator(_name)]
+NonEmpty = Annotated[str, AfterValidator(_not_empty)]
+UnitId = Annotated[int, _between(*UNIT_ID_RANGE)]
+PositiveInt = Annotated[int, AfterValidator(_positive)]
+NonNegativeInt = Annotated[int, _at_least(0)]
+NonNegative = Annotated[float, _at_least(0)]
+SeriesField = Annotated[
+    Series, PlainValidator(_series), PlainSerializer(_enum_name, when_used="json")
+]
+ProtocolField = Annotated[
+    WireProtocol, PlainValidator(_protocol), PlainSerializer(_protocol_name, when_used="json")
+]
+Listen = Annotated[ListenAddress, PlainValidator(_listen), PlainSerializer(str, when_used="json")]
+Network = Annotated[
+    IPNetwork, PlainValidator(_network), PlainSerializer(_network_text, when_used="json")
+]
+ExistingFile = Annotated[str, AfterValidator(_existing_file)]
