@@ -1,4 +1,4 @@
-"""``docs/config-reference.md``, generated from the config schema (``gateway/config.py``).
+"""``docs/config-reference.md``, generated from the config schema (``gateway/config/schema.py``).
 
 Every key of every section, with its type, default and rule, is read from the pydantic
 models: a field's ``description`` is its rule, and ``json_schema_extra`` may say what
@@ -136,7 +136,7 @@ def markdown() -> str:
     lines = [
         "# Config reference",
         "",
-        "Generated from the schema in `gateway/config.py` by `scripts/config-reference`; "
+        "Generated from the schema in `gateway/config/schema.py` by `scripts/config-reference`; "
         "do not edit by hand. [configuration.md](configuration.md) explains the file: "
         "examples, `${VAR}` secrets, error messages and the checks across keys.",
         "",
