@@ -25,23 +25,26 @@ FORBIDDEN = frozenset(
 MODULES = sorted(PROTOCOL.glob("*.py"))
 
 
-def imported_names(path: Path) -> list[str]:
-    """Absolute dotted names of everything ``path`` imports (relative ones resolved)."""
-    package = PACKAGE.split(".")
+def package_imports(path: Path, package: str) -> list[str]:
+    """Absolute dotted names of everything ``path``, a module of ``package``, imports
+    (relative ones resolved)."""
+    parts = package.split(".")
     names: list[str] = []
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
             names += [alias.name for alias in node.names]
         elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = package[: len(package) - (node.level - 1)]
-                if node.module:
-                    names.append(".".join([*base, node.module]))
-                else:  # from . import bcd
-                    names += [".".join([*base, alias.name]) for alias in node.names]
+            base = parts[: len(parts) - (node.level - 1)] if node.level else []
+            if node.module:
+                names.append(".".join([*base, node.module]))
             else:
-                names.append(node.module or "")
+                names += [".".join([*base, alias.name]) for alias in node.names]
     return names
+
+
+def imported_names(path: Path) -> list[str]:
+    """What a module of ``gateway.protocol`` imports."""
+    return package_imports(path, PACKAGE)
 
 
 def _within(name: str, prefix: str) -> bool:
@@ -101,22 +104,6 @@ def test_frontend_resolver() -> None:
     names = frontend_imports(FRONTENDS / "rest" / "server.py")
     assert "gateway.config" in names and "gateway.frontends.common" in names
     assert "gateway.frontends.rest.routes" in names
-
-
-def package_imports(path: Path, package: str) -> list[str]:
-    """Like ``imported_names``, for a module of ``package`` (relative ones resolved)."""
-    parts = package.split(".")
-    names: list[str] = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
-            names += [alias.name for alias in node.names]
-        elif isinstance(node, ast.ImportFrom):
-            base = parts[: len(parts) - (node.level - 1)] if node.level else []
-            if node.module:
-                names.append(".".join([*base, node.module]))
-            else:
-                names += [".".join([*base, alias.name]) for alias in node.names]
-    return names
 
 
 def test_the_cache_is_a_passive_store() -> None:
