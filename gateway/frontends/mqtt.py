@@ -5,7 +5,7 @@ Threads.  paho-mqtt's network loop runs on its own thread (``loop_start``); ever
 else here runs on the gateway's event loop, where the cache calls its listeners.  paho's
 callbacks only hand their event over (``call_soon_threadsafe``), so no state of this
 module is written from two threads: paho's thread increments one counter (``written``)
-and reads one flag (``_waiting_for_window``).
+and reads one flag (``Pipe.waiting_for_window``).
 
 Connecting.  The connect itself (TCP, TLS, CONNECT) is ours, in an executor, with a
 back-off from ``RECONNECT_MIN`` to ``RECONNECT_MAX`` seconds: paho's own automatic
@@ -37,6 +37,7 @@ import contextlib
 import json
 import logging
 from collections import deque
+from collections.abc import Callable
 from typing import Any
 
 import paho.mqtt.client as paho
@@ -100,6 +101,121 @@ class Outbox:
         return len(self._messages)
 
 
+class Pipe:
+    """The way to paho: retained control messages and results first (one per key,
+    never dropped), then the bounded ``Outbox`` of states; at most ``WINDOW`` of them
+    in paho's hands and not yet written or acknowledged.
+
+    ``client()`` is the paho client of the connection, ``connected()`` whether there
+    is one now.  paho's thread calls ``written_one`` and nothing else."""
+
+    def __init__(self, queue_size: int, counters: Counters, peers: PeerLog,
+                 client: Callable[[], paho.Client | None],
+                 connected: Callable[[], bool]) -> None:
+        self.outbox = Outbox(queue_size)
+        # Retained control messages (status, availability, discovery) and command
+        # results go before the outbox and are never dropped: one entry per key, so
+        # this is bounded by the number of topics (and of commands in progress).
+        self.control: dict[str, Message] = {}
+        self.counters = counters
+        self._peers = peers
+        self._client = client
+        self._connected = connected
+        # Messages in paho's hands: ``_handed - counters.written``.  Each of the two
+        # counters has one writer (this loop, paho's thread), so no lock is needed.
+        self._handed = 0
+        self.waiting_for_window = False
+
+    def written_one(self) -> bool:
+        """paho wrote (or had acknowledged) a message; on paho's thread.  True when the
+        loop waits for room in the window and must be woken."""
+        self.counters.written += 1
+        return self.waiting_for_window  # set before the loop looks at the window again
+
+    def connected_anew(self) -> None:
+        """What paho held when the last connection went is lost with it (each
+        connection has a fresh client): counted, then the window starts empty."""
+        self.counters.lost_in_flight += self.in_window()
+        self._handed = self.counters.written
+
+    def empty(self) -> bool:
+        return not (self.control or self.outbox or self.in_window())
+
+    def queued(self) -> int:
+        return len(self.outbox) + len(self.control)
+
+    def in_window(self) -> int:
+        return max(0, self._handed - self.counters.written)
+
+    def send(self, message: Message) -> None:
+        """Queue a message and send what the window allows."""
+        self.outbox.put(message)
+        self.drain()
+
+    def send_control(self, message: Message, key: str | None = None) -> None:
+        """A message that must not be dropped; a newer one for the same ``key`` (its
+        topic by default) replaces one still waiting."""
+        self.control.pop(key or message.topic, None)
+        self.control[key or message.topic] = message
+        self.drain()
+
+    def drain(self) -> None:
+        """Hand paho what the window allows: control messages first, then the outbox."""
+        while (self.control or self.outbox) and self._connected():
+            # The flag goes up before the window is read: an on_publish in between
+            # then still wakes this loop (paho's thread reads the flag).
+            self.waiting_for_window = True
+            if self.in_window() >= WINDOW:
+                return
+            self.waiting_for_window = False
+            if self.control:
+                key = next(iter(self.control))
+                if not self._hand_to_paho(self.control[key]):
+                    return
+                del self.control[key]
+            else:
+                message = self.outbox.take()
+                if not self._hand_to_paho(message):
+                    self.outbox.put_back(message)
+                    return
+        self.waiting_for_window = False
+
+    def _hand_to_paho(self, message: Message) -> bool:
+        """True when the message is done with: handed to paho, or dropped because
+        paho can never send it (it must not block the queue behind it); False when
+        paho refused it for now (no connection), to be tried again."""
+        client = self._client()
+        assert client is not None
+        try:
+            info = client.publish(message.topic, message.payload, message.qos,
+                                        message.retain, message.properties)
+        except (ValueError, TypeError) as exc:
+            self.counters.undeliverable += 1
+            self._peers.warning("undeliverable", "mqtt: dropped a message to %.80r: %s",
+                                message.topic, exc)
+            return True
+        if info.rc == MQTTErrorCode.MQTT_ERR_SUCCESS:
+            if not self.in_window():  # the wait starts now
+                self._progress = (self.counters.written, asyncio.get_running_loop().time())
+            self._handed += 1
+            self.counters.published += 1
+            return True
+        return False
+
+    def publishing(self) -> bool:
+        """Connected, and what was handed to paho is being written: messages in its
+        hands with none written for ``STALLED_S`` mean a connection that only looks
+        up (a broker that stopped reading)."""
+        if not self._connected():
+            return False
+        now, written = asyncio.get_running_loop().time(), self.counters.written
+        if written != self._progress[0]:
+            self._progress = (written, now)
+        if not self.in_window():
+            return True
+        return now - self._progress[1] < STALLED_S
+
+
 class MqttClient(Frontend):
     """The gateway's MQTT connection; ``start()`` and ``stop()`` on the gateway's loop."""
 
@@ -112,36 +228,29 @@ class MqttClient(Frontend):
         self.topics = Topics.of(config, gateway.config.gateway_id)
         self.prefix = self.topics.prefix
         self.status_topic = self.topics.status
-        self.outbox = Outbox(config.queue_size)
-        # Retained control messages (status, availability, discovery) and command
-        # results go before the outbox and are never dropped: one entry per key, so
-        # this is bounded by the number of topics (and of commands in progress).
-        self._control: dict[str, Message] = {}
         self.counters = Counters()
+        self._peers = PeerLog(log)
+        self._client: paho.Client | None = None
         self.connected = False
+        self.pipe = Pipe(config.queue_size, self.counters, self._peers,
+                         lambda: self._client, lambda: self.connected)
+        self.outbox = self.pipe.outbox
         # The sensors are fixed for the process's life, so their discovery configs are.
         self.discovery = discovery_configs(self.topics, gateway.sensors) \
             if config.homeassistant_discovery else {}
-        self.states = StateDesk(gateway, config, self.topics, self._send, self._send_control,
-                                lambda: self.connected)
+        self.states = StateDesk(gateway, config, self.topics, self.pipe.send,
+                                self._send_control, lambda: self.connected)
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._client: paho.Client | None = None
         self._lost = asyncio.Event()
         self._answered = asyncio.Event()  # the broker answered CONNECT (either way)
-        # Messages in paho's hands: ``_handed - counters.written``.  Each of the two
-        # counters has one writer (this loop, paho's thread), so no lock is needed.
-        self._handed = 0
-        self._waiting_for_window = False
         self._runner: asyncio.Task[None] | None = None
         self._unsubscribe: Any = None
         self._sweep_until = 0.0
         self._sweep_timer: asyncio.TimerHandle | None = None
         self._stopping = False
         self._last_problem: str | None = None
-        self._peers = PeerLog(log)
         self.desk = CommandDesk(gateway, config, self._send_control, self.counters,
                                 self._peers)
-        self._progress = (0, 0.0)  # (counters.written, loop time) when it last moved
 
     # ------------------------------------------------------------ topics
 
@@ -216,8 +325,8 @@ class MqttClient(Frontend):
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
         while self.connected and loop.time() < deadline:
-            self._drain()
-            if not (self._control or self.outbox or self._in_window()):
+            self.pipe.drain()
+            if self.pipe.empty():
                 return True
             await asyncio.sleep(0.01)
         return False
@@ -287,9 +396,8 @@ class MqttClient(Frontend):
 
     def _paho_publish(self, client: paho.Client, userdata: Any, mid: int,
                       reason: ReasonCode, properties: Properties | None) -> None:
-        self.counters.written += 1
-        if self._waiting_for_window:  # set before the loop looks at the window again
-            self._hand_over(self._drain)
+        if self.pipe.written_one():
+            self._hand_over(self.pipe.drain)
 
     def _paho_message(self, client: paho.Client, userdata: Any,
                       message: paho.MQTTMessage) -> None:
@@ -307,10 +415,7 @@ class MqttClient(Frontend):
         self.connected = True
         self.counters.connects += 1
         self._last_problem = None
-        # What paho held when the last connection went is lost with it (each
-        # connection has a fresh client): counted, then the window starts empty.
-        self.counters.lost_in_flight += self._in_window()
-        self._handed = self.counters.written
+        self.pipe.connected_anew()
         log.info("mqtt: connected to %s:%s (MQTT %s)", self.config.host, self.config.port,
                  self.config.protocol)
         self._subscribe()
@@ -361,65 +466,6 @@ class MqttClient(Frontend):
             self._send_control(Message(topic, json_bytes(payload), CONTROL_QOS, True))
         self.states.announce()
 
-    # ------------------------------------------------------------ sending
-
-    def _in_window(self) -> int:
-        return max(0, self._handed - self.counters.written)
-
-    def _send(self, message: Message) -> None:
-        """Queue a message and send what the window allows."""
-        self.outbox.put(message)
-        self._drain()
-
-    def _send_control(self, message: Message, key: str | None = None) -> None:
-        """A message that must not be dropped; a newer one for the same ``key`` (its
-        topic by default) replaces one still waiting."""
-        self._control.pop(key or message.topic, None)
-        self._control[key or message.topic] = message
-        self._drain()
-
-    def _drain(self) -> None:
-        """Hand paho what the window allows: control messages first, then the outbox."""
-        while (self._control or self.outbox) and self.connected:
-            # The flag goes up before the window is read: an on_publish in between
-            # then still wakes this loop (paho's thread reads the flag).
-            self._waiting_for_window = True
-            if self._in_window() >= WINDOW:
-                return
-            self._waiting_for_window = False
-            if self._control:
-                key = next(iter(self._control))
-                if not self._hand_to_paho(self._control[key]):
-                    return
-                del self._control[key]
-            else:
-                message = self.outbox.take()
-                if not self._hand_to_paho(message):
-                    self.outbox.put_back(message)
-                    return
-        self._waiting_for_window = False
-
-    def _hand_to_paho(self, message: Message) -> bool:
-        """True when the message is done with: handed to paho, or dropped because
-        paho can never send it (it must not block the queue behind it); False when
-        paho refused it for now (no connection), to be tried again."""
-        assert self._client is not None
-        try:
-            info = self._client.publish(message.topic, message.payload, message.qos,
-                                        message.retain, message.properties)
-        except (ValueError, TypeError) as exc:
-            self.counters.undeliverable += 1
-            self._peers.warning("undeliverable", "mqtt: dropped a message to %.80r: %s",
-                                message.topic, exc)
-            return True
-        if info.rc == MQTTErrorCode.MQTT_ERR_SUCCESS:
-            if not self._in_window() and self._loop is not None:  # the wait starts now
-                self._progress = (self.counters.written, self._loop.time())
-            self._handed += 1
-            self.counters.published += 1
-            return True
-        return False
-
     # ------------------------------------------------------------ incoming
 
     def _on_message(self, message: paho.MQTTMessage) -> None:
@@ -453,23 +499,16 @@ class MqttClient(Frontend):
 
     @property
     def publishing(self) -> bool:
-        """Connected, and what was handed to paho is being written: messages in its
-        hands with none written for ``STALLED_S`` mean a connection that only looks
-        up (a broker that stopped reading)."""
-        if not self.connected or self._loop is None:
-            return False
-        now, written = self._loop.time(), self.counters.written
-        if written != self._progress[0]:
-            self._progress = (written, now)
-        if not self._in_window():
-            return True
-        return now - self._progress[1] < STALLED_S
+        return self.pipe.publishing()
+
+    def _send_control(self, message: Message, key: str | None = None) -> None:
+        self.pipe.send_control(message, key)
 
     def stats(self) -> dict[str, Any]:
         return {"connected": self.publishing, "published": self.counters.published,
-                "queued": len(self.outbox) + len(self._control),
+                "queued": self.pipe.queued(),
                 "dropped": self.outbox.dropped + self.counters.lost_in_flight,
-                "in_flight": self._in_window(), "connects": self.counters.connects,
+                "in_flight": self.pipe.in_window(), "connects": self.counters.connects,
                 "commands": self.counters.commands,
                 "command_errors": self.counters.command_errors,
                 "undeliverable": self.counters.undeliverable,
