@@ -18,7 +18,8 @@ Library errors are turned into these where the library is called: pyserial's in
 ``bus/link.py``, pydantic's in ``config.py`` and ``commands.py``, pymodbus's in
 ``protocol/modbus_rtu.py``.
 
-Nothing here imports anything of the gateway: every layer may raise these.
+Nothing here imports anything of the gateway but ``modbus_codes`` (a leaf): every
+layer may raise these.
 """
 
 from __future__ import annotations
@@ -27,6 +28,15 @@ import enum
 from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
+
+from .modbus_codes import (
+    DEVICE_BUSY,
+    DEVICE_FAILURE,
+    GATEWAY_PATH,
+    ILLEGAL_ADDRESS,
+    ILLEGAL_VALUE,
+    TARGET_FAILED,
+)
 
 
 class GatewayError(Exception):
@@ -70,9 +80,6 @@ class ErrorKind(enum.Enum):
     METHOD_NOT_ALLOWED = "method_not_allowed"
 
 
-# Modbus exception codes (Modbus Application Protocol v1.1b3, 7).
-ILLEGAL_FUNCTION, ILLEGAL_ADDRESS, ILLEGAL_VALUE, DEVICE_FAILURE = 0x01, 0x02, 0x03, 0x04
-DEVICE_BUSY, GATEWAY_PATH, TARGET_FAILED = 0x06, 0x0A, 0x0B
 
 
 @dataclass(frozen=True, slots=True)

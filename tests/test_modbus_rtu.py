@@ -29,6 +29,7 @@ from vectors import (
     ids,
 )
 
+from gateway.modbus_codes import READ_HOLDING, READ_INPUT
 from gateway.model import Series
 from gateway.protocol import modbus_rtu as rtu
 from gateway.protocol.errors import BadChecksum, BadLength, UnknownFrame, UsageError
@@ -587,7 +588,7 @@ def test_framer_never_raises(data: bytes, cuts: list[int], requests: bool) -> No
 units = st.integers(1, 247)
 any_unit = st.integers(0, 255)  # decode_frame reads a capture from any address
 registers16 = st.integers(0, 0xFFFF)
-functions = st.sampled_from([rtu.READ_HOLDING, rtu.READ_INPUT])
+functions = st.sampled_from([READ_HOLDING, READ_INPUT])
 rtu_messages = st.one_of(
     st.builds(rtu.ReadRequest, any_unit, registers16, st.integers(1, rtu.MAX_READ),
               functions),

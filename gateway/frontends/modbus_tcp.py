@@ -42,16 +42,18 @@ from pymodbus.pdu.register_message import WriteMultipleRegistersResponse
 
 from ..cache import EventKind, Snapshot
 from ..config import ModbusConfig, SensorConfig
-from ..errors import (
+from ..errors import KINDS, ErrorKind, RequestFailed
+from ..modbus_codes import (
     DEVICE_FAILURE,
     GATEWAY_PATH,
     ILLEGAL_ADDRESS,
     ILLEGAL_FUNCTION,
     ILLEGAL_VALUE,
-    KINDS,
+    READ_HOLDING,
+    READ_INPUT,
     TARGET_FAILED,
-    ErrorKind,
-    RequestFailed,
+    WRITE_MULTIPLE,
+    WRITE_SINGLE,
 )
 from ..model import shortest_float32
 from ..supervise import Frontend, PeerLog
@@ -60,7 +62,6 @@ from .common import GatewayLike
 
 log = logging.getLogger("gateway.modbus")
 
-READ_HOLDING, READ_INPUT, WRITE_SINGLE, WRITE_MULTIPLE = 3, 4, 6, 16
 MAX_READ, MAX_WRITE = 125, 123
 MBAP = struct.Struct(">HHHB")  # transaction id, protocol id, length, unit id
 MAX_LENGTH = 254  # unit id + the longest PDU (253 bytes)

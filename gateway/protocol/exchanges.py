@@ -25,6 +25,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from ..modbus_codes import READ_HOLDING, READ_INPUT, WRITE_MULTIPLE, WRITE_SINGLE
 from ..model import Series
 from ..model import WireProtocol as Wire
 from . import modbus_rtu as rtu
@@ -248,7 +249,7 @@ def _rtu_read_match(unit: int, start: int, count: int) -> Callable[[Any], Answer
             return None
         if isinstance(msg, rtu.ReadResponse) and len(msg.registers) == count:
             return Answer(rtu.read_values(start, msg.registers))
-        if isinstance(msg, rtu.ExceptionAnswer) and msg.function == rtu.READ_HOLDING:
+        if isinstance(msg, rtu.ExceptionAnswer) and msg.function == READ_HOLDING:
             return _exception_answer(msg)
         return None
 
@@ -272,7 +273,7 @@ def _rtu_write_match(unit: int, register: int) -> Callable[[Any], Answer | None]
             return None
         if isinstance(msg, rtu.WriteRegister) and msg.address == register:
             return _write_answer(rtu.REGISTERS_BY_ADDRESS[register], msg.value)
-        if isinstance(msg, rtu.ExceptionAnswer) and msg.function == rtu.WRITE_SINGLE:
+        if isinstance(msg, rtu.ExceptionAnswer) and msg.function == WRITE_SINGLE:
             return _exception_answer(msg)
         return None
 
@@ -321,7 +322,7 @@ class ModbusAdapter:
         FC03/04/06/16 request the caller has checked."""
         function = pdu[0]
         address, quantity = int.from_bytes(pdu[1:3], "big"), int.from_bytes(pdu[3:5], "big")
-        reads = function in (rtu.READ_HOLDING, rtu.READ_INPUT)
+        reads = function in (READ_HOLDING, READ_INPUT)
         answer_bytes = 5 + 2 * quantity if reads else 8
 
         def answers_this(msg: Any) -> bool:
@@ -333,9 +334,9 @@ class ModbusAdapter:
                 case rtu.ReadResponse(_, registers, fn):
                     return reads and fn == function and len(registers) == quantity
                 case rtu.WriteRegister(_, addr, value):
-                    return function == rtu.WRITE_SINGLE and addr == address and value == quantity
+                    return function == WRITE_SINGLE and addr == address and value == quantity
                 case rtu.WriteRegistersResponse(_, addr, count):
-                    return function == rtu.WRITE_MULTIPLE and (addr, count) == (address, quantity)
+                    return function == WRITE_MULTIPLE and (addr, count) == (address, quantity)
             return False
 
         def match(msg: Any) -> Answer | None:

@@ -50,12 +50,12 @@ from pymodbus.pdu.register_message import (
     WriteSingleRegisterResponse,
 )
 
+from ..modbus_codes import READ_HOLDING, READ_INPUT, WRITE_MULTIPLE, WRITE_SINGLE
 from ..model import Series, shortest_float32
 from .bcd import round_half_away
 from .errors import BadChecksum, BadLength, FrameError, UnknownFrame, UsageError
 from .native import BAUD_CODES
 
-READ_HOLDING, READ_INPUT, WRITE_SINGLE, WRITE_MULTIPLE = 3, 4, 6, 16
 FUNCTIONS = frozenset({READ_HOLDING, READ_INPUT, WRITE_SINGLE, WRITE_MULTIPLE})
 MAX_READ = 125
 MAX_WRITE = 123

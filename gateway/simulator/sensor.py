@@ -19,6 +19,7 @@ from collections import Counter
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+from .. import modbus_codes as mc
 from ..model import CAPABILITIES, Angles, Reading, Series, WireProtocol
 from ..normalise import field_values
 from ..protocol import bcd, native
@@ -447,7 +448,7 @@ class ModbusSensor(SimSensor):
         at = self._answer_start(now)  # also times save's deaf period and the first frame
         answer: rtu.RtuMessage | None
         match message:
-            case rtu.ReadRequest(_, start, count, rtu.READ_HOLDING):
+            case rtu.ReadRequest(_, start, count, mc.READ_HOLDING):
                 if not rtu.is_readable_span(start, count):
                     answer = rtu.ExceptionAnswer(self.address, 3, _ILLEGAL_ADDRESS)
                 else:
@@ -458,8 +459,8 @@ class ModbusSensor(SimSensor):
             case rtu.WriteRegister(_, address, value):
                 answer = self._write(address, value, now, at)
             case rtu.ReadRequest() | rtu.WriteRegisters():
-                function = rtu.READ_INPUT if isinstance(message, rtu.ReadRequest) \
-                    else rtu.WRITE_MULTIPLE
+                function = mc.READ_INPUT if isinstance(message, rtu.ReadRequest) \
+                    else mc.WRITE_MULTIPLE
                 answer = rtu.ExceptionAnswer(self.address, function, _ILLEGAL_FUNCTION)
             case _:
                 answer = None  # an answer from another device: not for us

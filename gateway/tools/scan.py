@@ -33,6 +33,7 @@ from typing import Any
 import serial
 
 from ..bus.timing import RTO_INITIAL
+from ..modbus_codes import READ_HOLDING
 from ..model import CAPABILITIES, Series, WireProtocol
 from ..normalise import GROUP_FIELDS
 from ..protocol import modbus_rtu as rtu
@@ -280,7 +281,7 @@ class ReservedUnitAnswers:
         for start in range(len(buf) - 4):
             count = buf[start + 2]
             end = start + 5 + count
-            if (buf[start] != self.unit or buf[start + 1] != rtu.READ_HOLDING or count % 2
+            if (buf[start] != self.unit or buf[start + 1] != READ_HOLDING or count % 2
                     or not count or end > len(buf)):
                 continue
             answer = rtu.ReadResponse(self.unit, tuple(
