@@ -58,25 +58,24 @@ def no_overlap(sim: SimulatorThread) -> None:
 # ------------------------------------------------------------------ readings
 
 
+@pytest.mark.anyio
 @pytest.mark.parametrize("protocol", ["native", "modbus"])
-def test_readings_reach_the_cache_with_the_series_groups(protocol: str) -> None:
+async def test_readings_reach_the_cache_with_the_series_groups(protocol: str) -> None:
     make = native if protocol == "native" else modbus
     first = 0 if protocol == "native" else 1
     with simulated([make(Series.AH, first), make(Series.IMU, first + 1)]) as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, protocol, [
-                {"name": "ah", "series": "AH", "address": first, "poll_hz": 20},
-                {"name": "imu", "series": "IMU", "address": first + 1, "poll_hz": 20},
-            ])) as gw:
-                await until(lambda: gw.cache.snapshot("ah").seq >= 3
-                            and gw.cache.snapshot("imu").seq >= 3)
-                ah, imu = gw.cache.snapshot("ah"), gw.cache.snapshot("imu")
-                assert ah.status is Status.OK and imu.status is Status.OK
-                assert ah.reading is not None and imu.reading is not None
-                assert {g.value for g in ah.reading.groups()} == {
-                    "angles", "accel", "gyro", "mag", "quaternion"}
-                assert {g.value for g in imu.reading.groups()} == {"accel", "gyro"}
-        run(body)
+        async with running(bus_config(sim.path, protocol, [
+            {"name": "ah", "series": "AH", "address": first, "poll_hz": 20},
+            {"name": "imu", "series": "IMU", "address": first + 1, "poll_hz": 20},
+        ])) as gw:
+            await until(lambda: gw.cache.snapshot("ah").seq >= 3
+                        and gw.cache.snapshot("imu").seq >= 3)
+            ah, imu = gw.cache.snapshot("ah"), gw.cache.snapshot("imu")
+            assert ah.status is Status.OK and imu.status is Status.OK
+            assert ah.reading is not None and imu.reading is not None
+            assert {g.value for g in ah.reading.groups()} == {
+                "angles", "accel", "gyro", "mag", "quaternion"}
+            assert {g.value for g in imu.reading.groups()} == {"accel", "gyro"}
         no_overlap(sim)
 
 
@@ -84,135 +83,130 @@ def test_readings_reach_the_cache_with_the_series_groups(protocol: str) -> None:
     ("native", 0.005, 0.000005),  # half the BCD resolution: SXXX.YY and S.YYYYY
     ("modbus", 1e-4, 1e-6),  # float32
 ])
-def test_values_equal_the_simulators_within_resolution(protocol: str, angle_step: float,
+@pytest.mark.anyio
+async def test_values_equal_the_simulators_within_resolution(protocol: str, angle_step: float,
                                                         mag_step: float) -> None:
     reading = Motion.from_seed(4).sample(12.0)
     make = native if protocol == "native" else modbus
     address = 0 if protocol == "native" else 1
     with simulated([make(Series.AH, address, source=hold(reading))]) as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, protocol, [
-                {"name": "ah", "series": "AH", "address": address, "poll_hz": 20}])) as gw:
-                await until(lambda: gw.cache.snapshot("ah").seq >= 1)
-                got = gw.cache.snapshot("ah").reading
-                assert got is not None
-                for group, step in (("angles", angle_step), ("accel", 0.00005),
-                                    ("gyro", 0.005), ("mag", mag_step),
-                                    ("quaternion", 0.0000005)):
-                    want = reading.to_json_groups()[group]
-                    have = got.to_json_groups()[group]
-                    assert have == pytest.approx(want, abs=step), group
-        run(body)
+        async with running(bus_config(sim.path, protocol, [
+            {"name": "ah", "series": "AH", "address": address, "poll_hz": 20}])) as gw:
+            await until(lambda: gw.cache.snapshot("ah").seq >= 1)
+            got = gw.cache.snapshot("ah").reading
+            assert got is not None
+            for group, step in (("angles", angle_step), ("accel", 0.00005),
+                                ("gyro", 0.005), ("mag", mag_step),
+                                ("quaternion", 0.0000005)):
+                want = reading.to_json_groups()[group]
+                have = got.to_json_groups()[group]
+                assert have == pytest.approx(want, abs=step), group
         no_overlap(sim)
 
 
 # ------------------------------------------------------------------ one at a time
 
 
-def test_concurrent_commands_and_polling_never_overlap_and_commands_go_first() -> None:
+@pytest.mark.anyio
+async def test_concurrent_commands_and_polling_never_overlap_and_commands_go_first() -> None:
     sensors = [native(Series.AH, 0), native(Series.VG, 1), native(Series.MINS, 2)]
     with simulated(sensors) as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, "native", [
-                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0},
-                {"name": "vg", "series": "VG", "address": 1, "poll_hz": 0},
-                {"name": "mins", "series": "MINS", "address": 2, "poll_hz": 0},
-            ], **PATIENT)) as gw:
-                m = master(gw)
-                await until(lambda: all(gw.cache.snapshot(n).seq > 2 for n in gw.sensors))
+        async with running(bus_config(sim.path, "native", [
+            {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0},
+            {"name": "vg", "series": "VG", "address": 1, "poll_hz": 0},
+            {"name": "mins", "series": "MINS", "address": 2, "poll_hz": 0},
+        ], **PATIENT)) as gw:
+            m = master(gw)
+            await until(lambda: all(gw.cache.snapshot(n).seq > 2 for n in gw.sensors))
 
-                def polls() -> int:
-                    return sum(gw.cache.snapshot(n).seq for n in gw.sensors)
+            def polls() -> int:
+                return sum(gw.cache.snapshot(n).seq for n in gw.sensors)
 
-                async def submitter(sensor: str, n: int) -> list[bool]:
-                    oks = []
-                    for _ in range(n):
-                        before = polls()
-                        result = await gw.command(sensor, "read_settings")
-                        # Commands go before polls: at most the poll in flight when it was
-                        # submitted finishes first (other commands may, in order).
-                        assert polls() - before <= 1
-                        oks.append(result.ok)
-                    return oks
+            async def submitter(sensor: str, n: int) -> list[bool]:
+                oks = []
+                for _ in range(n):
+                    before = polls()
+                    result = await gw.command(sensor, "read_settings")
+                    # Commands go before polls: at most the poll in flight when it was
+                    # submitted finishes first (other commands may, in order).
+                    assert polls() - before <= 1
+                    oks.append(result.ok)
+                return oks
 
-                results = await asyncio.gather(*(submitter(s, 8) for s in gw.sensors))
-                assert all(all(r) for r in results)
-                assert m.stats.transactions > 0
-        run(body)
+            results = await asyncio.gather(*(submitter(s, 8) for s in gw.sensors))
+            assert all(all(r) for r in results)
+            assert m.stats.transactions > 0
         no_overlap(sim)
 
 
-def test_identical_on_demand_reads_share_one_exchange() -> None:
+@pytest.mark.anyio
+async def test_identical_on_demand_reads_share_one_exchange() -> None:
     with simulated([native(Series.AH, 0)]) as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, "native", [
-                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0.2}])) as gw:
-                await until(lambda: gw.cache.snapshot("ah").seq >= 1)
-                m = master(gw)
-                before = m.stats.transactions
-                snaps = await asyncio.wait_for(
-                    asyncio.gather(*(gw.read("ah", 0) for _ in range(50))), 10)
-                assert m.stats.transactions - before == 1
-                assert len({s.seq for s in snaps}) == 1
-                cached = await gw.read("ah", 60_000)  # young enough: no bus traffic
-                assert m.stats.transactions - before == 1 and cached.seq == snaps[0].seq
-        run(body)
+        async with running(bus_config(sim.path, "native", [
+            {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0.2}])) as gw:
+            await until(lambda: gw.cache.snapshot("ah").seq >= 1)
+            m = master(gw)
+            before = m.stats.transactions
+            snaps = await asyncio.wait_for(
+                asyncio.gather(*(gw.read("ah", 0) for _ in range(50))), 10)
+            assert m.stats.transactions - before == 1
+            assert len({s.seq for s in snaps}) == 1
+            cached = await gw.read("ah", 60_000)  # young enough: no bus traffic
+            assert m.stats.transactions - before == 1 and cached.seq == snaps[0].seq
         no_overlap(sim)
 
 
-def test_fast_polling_is_shared_fairly() -> None:
+@pytest.mark.anyio
+async def test_fast_polling_is_shared_fairly() -> None:
     with simulated([native(Series.IMU, a) for a in range(3)]) as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, "native", [
-                {"name": f"s{a}", "series": "IMU", "address": a, "poll_hz": 0}
-                for a in range(3)], **PATIENT)) as gw:
-                await until(lambda: gw.cache.snapshot("s0").seq >= 60)
-                seqs = [gw.cache.snapshot(f"s{a}").seq for a in range(3)]
-                assert max(seqs) - min(seqs) <= 1  # strict round robin
-        run(body)
+        async with running(bus_config(sim.path, "native", [
+            {"name": f"s{a}", "series": "IMU", "address": a, "poll_hz": 0}
+            for a in range(3)], **PATIENT)) as gw:
+            await until(lambda: gw.cache.snapshot("s0").seq >= 60)
+            seqs = [gw.cache.snapshot(f"s{a}").seq for a in range(3)]
+            assert max(seqs) - min(seqs) <= 1  # strict round robin
         no_overlap(sim)
 
 
-def test_asking_more_than_the_wire_slows_every_sensor_evenly_and_counts_the_shortfall() -> None:
+@pytest.mark.anyio
+async def test_asking_more_than_the_wire_slows_every_sensor_evenly_and_counts_the_shortfall(
+) -> None:
     # Three AH sensors at 9600 baud: a 0x59 exchange is 62 bytes, 64.6 ms on the wire,
     # so 15 polls/s is the ceiling; 3 x 20 Hz cannot be met.
     with simulated([make_sensor(WireProtocol.NATIVE, Series.AH, a) for a in range(3)]) as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, "native", [
-                {"name": f"s{a}", "series": "AH", "address": a, "poll_hz": 20}
-                for a in range(3)], baudrate=9600, **PATIENT)) as gw:
-                await until(lambda: gw.cache.snapshot("s0").seq >= 15)
-                stats = [master(gw).sensor_stats(f"s{a}") for a in range(3)]
-                readings = [s.readings for s in stats]
-                assert max(readings) - min(readings) <= 1
-                assert all(s.missed_polls > 0 for s in stats)
-        run(body)
+        async with running(bus_config(sim.path, "native", [
+            {"name": f"s{a}", "series": "AH", "address": a, "poll_hz": 20}
+            for a in range(3)], baudrate=9600, **PATIENT)) as gw:
+            await until(lambda: gw.cache.snapshot("s0").seq >= 15)
+            stats = [master(gw).sensor_stats(f"s{a}") for a in range(3)]
+            readings = [s.readings for s in stats]
+            assert max(readings) - min(readings) <= 1
+            assert all(s.missed_polls > 0 for s in stats)
         no_overlap(sim)
 
 
 # ------------------------------------------------------------------ failures
 
 
-def test_dead_address_costs_the_live_sensors_little_and_comes_back() -> None:
+@pytest.mark.anyio
+async def test_dead_address_costs_the_live_sensors_little_and_comes_back() -> None:
     dead = Faults(stalled=True)
     sensors = [native(Series.AH, 0), native(Series.IMU, 1), native(Series.VG, 2, faults=dead)]
     with simulated(sensors) as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, "native", [
-                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0},
-                {"name": "imu", "series": "IMU", "address": 1, "poll_hz": 0},
-                {"name": "dead", "series": "VG", "address": 2, "poll_hz": 0},
-            ])) as gw:
-                m = master(gw)
-                await until(lambda: gw.cache.snapshot("dead").status is Status.OFFLINE
-                            and m.sensors["dead"].failures >= OFFLINE_AFTER + 2, 30)
-                # (its share of the bus once backed off: tests/test_schedule.py)
-                seq = gw.cache.snapshot("ah").seq
-                await until(lambda: gw.cache.snapshot("ah").seq > seq + 10)
-                assert gw.cache.snapshot("ah").status is Status.OK
-                dead.stalled = False
-                await until(lambda: gw.cache.snapshot("dead").status is Status.OK, 15)
-        run(body)
+        async with running(bus_config(sim.path, "native", [
+            {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0},
+            {"name": "imu", "series": "IMU", "address": 1, "poll_hz": 0},
+            {"name": "dead", "series": "VG", "address": 2, "poll_hz": 0},
+        ])) as gw:
+            m = master(gw)
+            await until(lambda: gw.cache.snapshot("dead").status is Status.OFFLINE
+                        and m.sensors["dead"].failures >= OFFLINE_AFTER + 2, 30)
+            # (its share of the bus once backed off: tests/test_schedule.py)
+            seq = gw.cache.snapshot("ah").seq
+            await until(lambda: gw.cache.snapshot("ah").seq > seq + 10)
+            assert gw.cache.snapshot("ah").status is Status.OK
+            dead.stalled = False
+            await until(lambda: gw.cache.snapshot("dead").status is Status.OK, 15)
         no_overlap(sim)
 
 
@@ -235,305 +229,291 @@ def test_offline_is_logged_once_and_recovery_once(caplog: pytest.LogCaptureFixtu
     assert sum("recovered" in line for line in lines) == 1
 
 
-def test_status_events_follow_the_sensor() -> None:
+@pytest.mark.anyio
+async def test_status_events_follow_the_sensor() -> None:
     faults = Faults()
     with simulated([native(Series.AH, 0, faults=faults)]) as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, "native", [
-                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 10,
-                 "stale_after_ms": 300}])) as gw:
-                seen: list[Status] = []
+        async with running(bus_config(sim.path, "native", [
+            {"name": "ah", "series": "AH", "address": 0, "poll_hz": 10,
+             "stale_after_ms": 300}])) as gw:
+            seen: list[Status] = []
 
-                def listen(kind: EventKind, snap: Snapshot) -> None:
-                    if kind is EventKind.STATUS:
-                        seen.append(snap.status)
-                gw.cache.subscribe(listen)
-                await until(lambda: Status.OK in seen)
-                faults.stalled = True
-                mark = len(seen)
-                await until(lambda: Status.OFFLINE in seen[mark:])
-                # stale (no reading for 300 ms) comes before offline (3 failures)
-                assert seen[mark:] == [Status.STALE, Status.OFFLINE], seen
-        run(body)
+            def listen(kind: EventKind, snap: Snapshot) -> None:
+                if kind is EventKind.STATUS:
+                    seen.append(snap.status)
+            gw.cache.subscribe(listen)
+            await until(lambda: Status.OK in seen)
+            faults.stalled = True
+            mark = len(seen)
+            await until(lambda: Status.OFFLINE in seen[mark:])
+            # stale (no reading for 300 ms) comes before offline (3 failures)
+            assert seen[mark:] == [Status.STALE, Status.OFFLINE], seen
 
 
-def test_noisy_line_counts_bad_frames_and_keeps_reading() -> None:
+@pytest.mark.anyio
+async def test_noisy_line_counts_bad_frames_and_keeps_reading() -> None:
     with simulated([native(Series.AH, 0, faults=Faults(corrupt_rate=0.3))], noise_rate=20) as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, "native", [
-                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0}], retries=2)) as gw:
-                await until(lambda: gw.cache.snapshot("ah").seq >= 40, 20)
-                errors = master(gw).bus_stats().errors
-                assert errors.get("bad_frame", 0) > 0
-                assert gw.cache.snapshot("ah").errors > 0
-        run(body)
+        async with running(bus_config(sim.path, "native", [
+            {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0}], retries=2)) as gw:
+            await until(lambda: gw.cache.snapshot("ah").seq >= 40, 20)
+            errors = master(gw).bus_stats().errors
+            assert errors.get("bad_frame", 0) > 0
+            assert gw.cache.snapshot("ah").errors > 0
 
 
-def test_port_removed_and_restored_readings_resume(tmp_path: Any) -> None:
+@pytest.mark.anyio
+async def test_port_removed_and_restored_readings_resume(tmp_path: Any) -> None:
     link = str(tmp_path / "ttyUSB-sim")
     with simulated([native(Series.AH, 0)], link=link) as sim:
-        async def body() -> None:
-            async with running(bus_config(link, "native", [
-                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 20}])) as gw:
-                m = master(gw)
-                await until(lambda: gw.cache.snapshot("ah").seq >= 3)
-                sim.call(sim.bus.unplug)
-                await until(lambda: gw.cache.snapshot("ah").status is Status.OFFLINE)
-                assert not m.port_open
-                result = await gw.command("ah", "read_settings")
-                assert result.kind is ErrorKind.OFFLINE
-                with pytest.raises(RequestFailed):
-                    await gw.read("ah", 0)
-                await asyncio.sleep(1.0)  # several failed reopen attempts
-                sim.call(sim.bus.replug)
-                seq = gw.cache.snapshot("ah").seq
-                await until(lambda: gw.cache.snapshot("ah").seq > seq + 3, 15)
-                assert m.bus_stats().errors["port_lost"] == 1
-        run(body)
+        async with running(bus_config(link, "native", [
+            {"name": "ah", "series": "AH", "address": 0, "poll_hz": 20}])) as gw:
+            m = master(gw)
+            await until(lambda: gw.cache.snapshot("ah").seq >= 3)
+            sim.call(sim.bus.unplug)
+            await until(lambda: gw.cache.snapshot("ah").status is Status.OFFLINE)
+            assert not m.port_open
+            result = await gw.command("ah", "read_settings")
+            assert result.kind is ErrorKind.OFFLINE
+            with pytest.raises(RequestFailed):
+                await gw.read("ah", 0)
+            await asyncio.sleep(1.0)  # several failed reopen attempts
+            sim.call(sim.bus.replug)
+            seq = gw.cache.snapshot("ah").seq
+            await until(lambda: gw.cache.snapshot("ah").seq > seq + 3, 15)
+            assert m.bus_stats().errors["port_lost"] == 1
         no_overlap(sim)
 
 
-def test_missing_port_at_start_is_retried_without_exiting(tmp_path: Any) -> None:
-    async def body() -> None:
-        async with running(bus_config(str(tmp_path / "nothing"), "native", [
-            {"name": "ah", "series": "AH", "address": 0}])) as gw:
-            await asyncio.sleep(1.5)
-            assert gw.cache.snapshot("ah").status is Status.OFFLINE
-            assert not master(gw).port_open
-    run(body)
+@pytest.mark.anyio
+async def test_missing_port_at_start_is_retried_without_exiting(tmp_path: Any) -> None:
+    async with running(bus_config(str(tmp_path / "nothing"), "native", [
+        {"name": "ah", "series": "AH", "address": 0}])) as gw:
+        await asyncio.sleep(1.5)
+        assert gw.cache.snapshot("ah").status is Status.OFFLINE
+        assert not master(gw).port_open
 
 
 # ------------------------------------------------------------------ settings
 
 
+@pytest.mark.anyio
 @pytest.mark.parametrize("protocol", ["native", "modbus"])
-def test_save_keeps_the_sensor_busy_then_it_answers(protocol: str) -> None:
+async def test_save_keeps_the_sensor_busy_then_it_answers(protocol: str) -> None:
     make = native if protocol == "native" else modbus
     address = 0 if protocol == "native" else 1
     with simulated([make(Series.VG, address, save_duration=0.05)]) as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, protocol, [
-                {"name": "vg", "series": "VG", "address": address, "poll_hz": 20}])) as gw:
-                m = master(gw)
-                await until(lambda: gw.cache.snapshot("vg").seq >= 2)
-                saved = await gw.command("vg", "save")
-                assert saved.ok, saved
-                assert gw.cache.snapshot("vg").busy
-                busy = await gw.command("vg", "read_settings")
-                assert busy.kind is ErrorKind.BUSY
-                failures = m.bus_stats().errors
-                await asyncio.sleep(0.2)  # the simulated save (0.05 s) is over
-                m.sensors["vg"].busy_until = 0.01  # the master would wait its 5 s
-                await until(lambda: not gw.cache.snapshot("vg").busy)
-                after = await gw.command("vg", "read_settings")
-                assert after.ok, after
-                assert m.bus_stats().errors == failures  # nothing was sent while saving
-        run(body)
+        async with running(bus_config(sim.path, protocol, [
+            {"name": "vg", "series": "VG", "address": address, "poll_hz": 20}])) as gw:
+            m = master(gw)
+            await until(lambda: gw.cache.snapshot("vg").seq >= 2)
+            saved = await gw.command("vg", "save")
+            assert saved.ok, saved
+            assert gw.cache.snapshot("vg").busy
+            busy = await gw.command("vg", "read_settings")
+            assert busy.kind is ErrorKind.BUSY
+            failures = m.bus_stats().errors
+            await asyncio.sleep(0.2)  # the simulated save (0.05 s) is over
+            m.sensors["vg"].busy_until = 0.01  # the master would wait its 5 s
+            await until(lambda: not gw.cache.snapshot("vg").busy)
+            after = await gw.command("vg", "read_settings")
+            assert after.ok, after
+            assert m.bus_stats().errors == failures  # nothing was sent while saving
         no_overlap(sim)
 
 
+@pytest.mark.anyio
 @pytest.mark.parametrize("protocol", ["native", "modbus"])
-def test_baud_change_the_gateway_follows(protocol: str) -> None:
+async def test_baud_change_the_gateway_follows(protocol: str) -> None:
     make = make_sensor(WireProtocol[protocol.upper()], Series.AH, 0 if protocol == "native" else 1)
     with simulated([make]) as sim:
-        async def body() -> None:
-            address = make.address
-            async with running(bus_config(sim.path, protocol, [
-                {"name": "ah", "series": "AH", "address": address, "poll_hz": 10}],
-                baudrate=9600)) as gw:
-                await until(lambda: gw.cache.snapshot("ah").seq >= 2)
-                result = await gw.command("ah", "set_baudrate", {"baudrate": 115200})
-                assert result.ok, result
-                assert make.baud == 115200 and master(gw).schedule.baud == 115200
-                seq = gw.cache.snapshot("ah").seq
-                await until(lambda: gw.cache.snapshot("ah").seq >= seq + 3)
-                assert sim.bus.line_baud() == 115200
-        run(body)
+        address = make.address
+        async with running(bus_config(sim.path, protocol, [
+            {"name": "ah", "series": "AH", "address": address, "poll_hz": 10}],
+            baudrate=9600)) as gw:
+            await until(lambda: gw.cache.snapshot("ah").seq >= 2)
+            result = await gw.command("ah", "set_baudrate", {"baudrate": 115200})
+            assert result.ok, result
+            assert make.baud == 115200 and master(gw).schedule.baud == 115200
+            seq = gw.cache.snapshot("ah").seq
+            await until(lambda: gw.cache.snapshot("ah").seq >= seq + 3)
+            assert sim.bus.line_baud() == 115200
         no_overlap(sim)
 
 
+@pytest.mark.anyio
 @pytest.mark.parametrize("protocol", ["native", "modbus"])
-def test_address_change_answers_at_the_new_address(protocol: str) -> None:
+async def test_address_change_answers_at_the_new_address(protocol: str) -> None:
     sensor = make_sensor(WireProtocol[protocol.upper()], Series.VG,
                          0 if protocol == "native" else 1, baud=FAST)
     with simulated([sensor]) as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, protocol, [
-                {"name": "vg", "series": "VG", "address": sensor.address, "poll_hz": 10}])) \
-                    as gw:
-                await until(lambda: gw.cache.snapshot("vg").seq >= 2)
-                result = await gw.command("vg", "set_address", {"address": 42})
-                assert result.ok, result
-                assert sensor.address == 42
-                seq = gw.cache.snapshot("vg").seq
-                await until(lambda: gw.cache.snapshot("vg").seq >= seq + 3)
-                settings = await gw.command("vg", "read_settings")
-                assert settings.answer["address"] == 42
-        run(body)
+        async with running(bus_config(sim.path, protocol, [
+            {"name": "vg", "series": "VG", "address": sensor.address, "poll_hz": 10}])) \
+                as gw:
+            await until(lambda: gw.cache.snapshot("vg").seq >= 2)
+            result = await gw.command("vg", "set_address", {"address": 42})
+            assert result.ok, result
+            assert sensor.address == 42
+            seq = gw.cache.snapshot("vg").seq
+            await until(lambda: gw.cache.snapshot("vg").seq >= seq + 3)
+            settings = await gw.command("vg", "read_settings")
+            assert settings.answer["address"] == 42
         no_overlap(sim)
 
 
-def test_commands_are_validated_and_carried_out() -> None:
+@pytest.mark.anyio
+async def test_commands_are_validated_and_carried_out() -> None:
     with simulated([native(Series.MINS, 0, source=hold(Motion().sample(0))),
                     modbus(Series.AH, 1)]) as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, "native", [
-                {"name": "m", "series": "MINS", "address": 0, "poll_hz": 5}])) as gw:
-                await until(lambda: gw.cache.snapshot("m").seq >= 1)
-                heading = await gw.command("m", "set_relative_heading", {"degrees": 90})
-                assert heading.ok, heading
-                snap = await gw.read("m", 0)
-                assert snap.reading is not None and snap.reading.angles is not None
-                assert snap.reading.angles.yaw == pytest.approx(90.0, abs=0.01)
-                bad = await gw.command("m", "set_relative_heading", {"degrees": "north"})
-                assert bad.kind is ErrorKind.BAD_ARGUMENTS
-                lacking = await gw.command("m", "set_declination", {"degrees": 2})
-                assert lacking.kind is ErrorKind.UNSUPPORTED
-                unknown = await gw.command("m", "self_destruct")
-                assert unknown.kind is ErrorKind.UNKNOWN_COMMAND
-                nobody = await gw.command("nobody", "save")
-                assert nobody.kind is ErrorKind.UNKNOWN_SENSOR
-        run(body)
+        async with running(bus_config(sim.path, "native", [
+            {"name": "m", "series": "MINS", "address": 0, "poll_hz": 5}])) as gw:
+            await until(lambda: gw.cache.snapshot("m").seq >= 1)
+            heading = await gw.command("m", "set_relative_heading", {"degrees": 90})
+            assert heading.ok, heading
+            snap = await gw.read("m", 0)
+            assert snap.reading is not None and snap.reading.angles is not None
+            assert snap.reading.angles.yaw == pytest.approx(90.0, abs=0.01)
+            bad = await gw.command("m", "set_relative_heading", {"degrees": "north"})
+            assert bad.kind is ErrorKind.BAD_ARGUMENTS
+            lacking = await gw.command("m", "set_declination", {"degrees": 2})
+            assert lacking.kind is ErrorKind.UNSUPPORTED
+            unknown = await gw.command("m", "self_destruct")
+            assert unknown.kind is ErrorKind.UNKNOWN_COMMAND
+            nobody = await gw.command("nobody", "save")
+            assert nobody.kind is ErrorKind.UNKNOWN_SENSOR
         no_overlap(sim)
 
 
-def test_modbus_gyro_calibration_is_busy_until_done() -> None:
+@pytest.mark.anyio
+async def test_modbus_gyro_calibration_is_busy_until_done() -> None:
     with simulated([modbus(Series.VG, 1, gyro_cal_duration=0.5)]) as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, "modbus", [
-                {"name": "vg", "series": "VG", "address": 1, "poll_hz": 10}])) as gw:
-                await until(lambda: gw.cache.snapshot("vg").seq >= 1)
-                result = await gw.command("vg", "calibrate_gyro")
-                assert result.ok and result.answer == {"value": 0}  # 0 = started
-                assert gw.cache.snapshot("vg").busy
-                # cleared by the sensor's "done" (0.5 s), not the master's 10 s fallback
-                await until(lambda: not gw.cache.snapshot("vg").busy, 5)
-        run(body)
+        async with running(bus_config(sim.path, "modbus", [
+            {"name": "vg", "series": "VG", "address": 1, "poll_hz": 10}])) as gw:
+            await until(lambda: gw.cache.snapshot("vg").seq >= 1)
+            result = await gw.command("vg", "calibrate_gyro")
+            assert result.ok and result.answer == {"value": 0}  # 0 = started
+            assert gw.cache.snapshot("vg").busy
+            # cleared by the sensor's "done" (0.5 s), not the master's 10 s fallback
+            await until(lambda: not gw.cache.snapshot("vg").busy, 5)
         no_overlap(sim)
 
 
 # ------------------------------------------------------------------ auto-output
 
 
+@pytest.mark.anyio
 @pytest.mark.parametrize("protocol", ["native", "modbus"])
-def test_stream_feeds_the_cache_commands_still_work_and_polling_takes_over(protocol: str) -> None:
+async def test_stream_feeds_the_cache_commands_still_work_and_polling_takes_over(
+        protocol: str) -> None:
     faults = Faults()
     sensor = make_sensor(WireProtocol[protocol.upper()], Series.AH,
                          0 if protocol == "native" else 1, baud=FAST, faults=faults)
     with simulated([sensor]) as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, protocol, [
-                {"name": "ah", "series": "AH", "address": sensor.address, "poll_hz": 5,
-                 "stream_hz": 50}])) as gw:
-                m = master(gw)
-                await until(lambda: gw.cache.snapshot("ah").streaming)
-                polls = m.stats.transactions
-                seq = gw.cache.snapshot("ah").seq
-                await until(lambda: gw.cache.snapshot("ah").seq >= seq + 20)
-                assert m.stats.transactions == polls  # readings came without asking
-                result = await gw.command("ah", "read_settings")
-                assert result.ok, result
-                # the stream stops (say the sensor was power-cycled): polling takes over
-                faults.stalled = True
-                await until(lambda: not gw.cache.snapshot("ah").streaming, 5)
-                faults.stalled = False
-                sensor.stream_interval = 0.0  # it came back in answer mode: set it up again
-                await until(lambda: gw.cache.snapshot("ah").streaming, 15)
-        run(body)
+        async with running(bus_config(sim.path, protocol, [
+            {"name": "ah", "series": "AH", "address": sensor.address, "poll_hz": 5,
+             "stream_hz": 50}])) as gw:
+            m = master(gw)
+            await until(lambda: gw.cache.snapshot("ah").streaming)
+            polls = m.stats.transactions
+            seq = gw.cache.snapshot("ah").seq
+            await until(lambda: gw.cache.snapshot("ah").seq >= seq + 20)
+            assert m.stats.transactions == polls  # readings came without asking
+            result = await gw.command("ah", "read_settings")
+            assert result.ok, result
+            # the stream stops (say the sensor was power-cycled): polling takes over
+            faults.stalled = True
+            await until(lambda: not gw.cache.snapshot("ah").streaming, 5)
+            faults.stalled = False
+            sensor.stream_interval = 0.0  # it came back in answer mode: set it up again
+            await until(lambda: gw.cache.snapshot("ah").streaming, 15)
         no_overlap(sim)
 
 
-def test_stream_is_stopped_on_shutdown() -> None:
+@pytest.mark.anyio
+async def test_stream_is_stopped_on_shutdown() -> None:
     sensor = native(Series.VG, 0)
     with simulated([sensor]) as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, "native", [
-                {"name": "vg", "series": "VG", "address": 0, "stream_hz": 20}])) as gw:
-                await until(lambda: gw.cache.snapshot("vg").streaming)
-        run(body)
+        async with running(bus_config(sim.path, "native", [
+            {"name": "vg", "series": "VG", "address": 0, "stream_hz": 20}])) as gw:
+            await until(lambda: gw.cache.snapshot("vg").streaming)
         assert sensor.stream_interval == 0.0
 
 
-def test_on_demand_reads_of_an_offline_sensor_fail_at_once() -> None:
+@pytest.mark.anyio
+async def test_on_demand_reads_of_an_offline_sensor_fail_at_once() -> None:
     """Asking a dead sensor on demand would undo its back-off: it is refused at once."""
     with simulated([native(Series.AH, 0), native(Series.VG, 1, faults=Faults(stalled=True))]) \
             as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, "native", [
-                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0},
-                {"name": "dead", "series": "VG", "address": 1, "poll_hz": 0}])) as gw:
-                m = master(gw)
-                await until(lambda: m.sensors["dead"].online is False, 20)
-                before = m.sensors["dead"].stats.transactions + sum(
-                    m.sensors["dead"].stats.errors.values())
-                for _ in range(20):
-                    with pytest.raises(RequestFailed) as refused:
-                        await gw.read("dead", 0)
-                    assert refused.value.kind is ErrorKind.OFFLINE
-                result = await gw.command("dead", "read_settings")
-                assert result.kind is ErrorKind.OFFLINE
-                after = m.sensors["dead"].stats.transactions + sum(
-                    m.sensors["dead"].stats.errors.values())
-                assert after - before <= 2  # only its background retries, if one fell due
-        run(body)
+        async with running(bus_config(sim.path, "native", [
+            {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0},
+            {"name": "dead", "series": "VG", "address": 1, "poll_hz": 0}])) as gw:
+            m = master(gw)
+            await until(lambda: m.sensors["dead"].online is False, 20)
+            before = m.sensors["dead"].stats.transactions + sum(
+                m.sensors["dead"].stats.errors.values())
+            for _ in range(20):
+                with pytest.raises(RequestFailed) as refused:
+                    await gw.read("dead", 0)
+                assert refused.value.kind is ErrorKind.OFFLINE
+            result = await gw.command("dead", "read_settings")
+            assert result.kind is ErrorKind.OFFLINE
+            after = m.sensors["dead"].stats.transactions + sum(
+                m.sensors["dead"].stats.errors.values())
+            assert after - before <= 2  # only its background retries, if one fell due
         no_overlap(sim)
 
 
-def test_a_command_during_shutdown_is_answered() -> None:
+@pytest.mark.anyio
+async def test_a_command_during_shutdown_is_answered() -> None:
     with simulated([native(Series.AH, 0)]) as sim:
-        async def body() -> None:
-            gateway = Gateway(config_from_dict(bus_config(sim.path, "native", [
-                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0}]), env={}))
-            stop = asyncio.Event()
-            task = asyncio.create_task(gateway.run(stop))
-            await until(lambda: gateway.cache.snapshot("ah").seq >= 1)
-            commands = [asyncio.create_task(gateway.command("ah", "read_settings"))
-                        for _ in range(5)]
-            stop.set()
-            results = await asyncio.wait_for(asyncio.gather(*commands), 15)
-            await asyncio.wait_for(task, 15)
-            assert all(r.ok or r.kind is ErrorKind.OFFLINE for r in results)
-            late = await asyncio.wait_for(gateway.command("ah", "read_settings"), 5)
-            assert late.kind is ErrorKind.OFFLINE
-        run(body)
+        gateway = Gateway(config_from_dict(bus_config(sim.path, "native", [
+            {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0}]), env={}))
+        stop = asyncio.Event()
+        task = asyncio.create_task(gateway.run(stop))
+        await until(lambda: gateway.cache.snapshot("ah").seq >= 1)
+        commands = [asyncio.create_task(gateway.command("ah", "read_settings"))
+                    for _ in range(5)]
+        stop.set()
+        results = await asyncio.wait_for(asyncio.gather(*commands), 15)
+        await asyncio.wait_for(task, 15)
+        assert all(r.ok or r.kind is ErrorKind.OFFLINE for r in results)
+        late = await asyncio.wait_for(gateway.command("ah", "read_settings"), 5)
+        assert late.kind is ErrorKind.OFFLINE
 
 
-def test_a_stream_nobody_asked_for_is_stopped() -> None:
+@pytest.mark.anyio
+async def test_a_stream_nobody_asked_for_is_stopped() -> None:
     sensor = native(Series.VG, 0)
     sensor.stream_interval = 0.02  # left streaming at 50 Hz by an earlier owner
     with simulated([sensor]) as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, "native", [
-                {"name": "vg", "series": "VG", "address": 0, "poll_hz": 10}])) as gw:
-                await until(lambda: sensor.stream_interval == 0.0, 10)
-                seq = gw.cache.snapshot("vg").seq
-                await until(lambda: gw.cache.snapshot("vg").seq >= seq + 3)  # polled again
-                assert master(gw).bus_stats().errors["unexpected_frame"] >= 1
-        run(body)
+        async with running(bus_config(sim.path, "native", [
+            {"name": "vg", "series": "VG", "address": 0, "poll_hz": 10}])) as gw:
+            await until(lambda: sensor.stream_interval == 0.0, 10)
+            seq = gw.cache.snapshot("vg").seq
+            await until(lambda: gw.cache.snapshot("vg").seq >= seq + 3)  # polled again
+            assert master(gw).bus_stats().errors["unexpected_frame"] >= 1
 
 
-def test_a_stream_that_comes_back_by_itself_is_no_longer_polled() -> None:
+@pytest.mark.anyio
+async def test_a_stream_that_comes_back_by_itself_is_no_longer_polled() -> None:
     """Its first frame back may meet a poll on the wire (nobody can know it is coming);
     from then on the gateway listens instead of polling."""
     faults = Faults()
     sensor = native(Series.AH, 0, faults=faults)
     with simulated([sensor]) as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, "native", [
-                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 20,
-                 "stream_hz": 50}])) as gw:
-                await until(lambda: gw.cache.snapshot("ah").streaming)
-                faults.stalled = True
-                await until(lambda: not gw.cache.snapshot("ah").streaming, 5)
-                faults.stalled = False  # still in auto-output mode: its frames come back
-                await until(lambda: gw.cache.snapshot("ah").streaming, 5)
-                overlaps = sim.bus.stats.masters_overlaps
-                polls = master(gw).stats.transactions
-                seq = gw.cache.snapshot("ah").seq
-                await until(lambda: gw.cache.snapshot("ah").seq >= seq + 25)
-                assert master(gw).stats.transactions == polls
-                assert sim.bus.stats.masters_overlaps == overlaps
-        run(body)
+        async with running(bus_config(sim.path, "native", [
+            {"name": "ah", "series": "AH", "address": 0, "poll_hz": 20,
+             "stream_hz": 50}])) as gw:
+            await until(lambda: gw.cache.snapshot("ah").streaming)
+            faults.stalled = True
+            await until(lambda: not gw.cache.snapshot("ah").streaming, 5)
+            faults.stalled = False  # still in auto-output mode: its frames come back
+            await until(lambda: gw.cache.snapshot("ah").streaming, 5)
+            overlaps = sim.bus.stats.masters_overlaps
+            polls = master(gw).stats.transactions
+            seq = gw.cache.snapshot("ah").seq
+            await until(lambda: gw.cache.snapshot("ah").seq >= seq + 25)
+            assert master(gw).stats.transactions == polls
+            assert sim.bus.stats.masters_overlaps == overlaps
 
 
 @pytest.mark.parametrize("port", ["pty", "socket://127.0.0.1:9"])

@@ -16,7 +16,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from harness import run, running, until
+import pytest
+from harness import running, until
 
 from gateway.errors import ErrorKind
 from gateway.model import Series, WireProtocol
@@ -34,39 +35,37 @@ def config(path: str) -> dict[str, Any]:
                                         "poll_hz": 20}]}]}
 
 
-def test_calibration_answered_complete_is_over_at_once() -> None:
+@pytest.mark.anyio
+async def test_calibration_answered_complete_is_over_at_once() -> None:
     vg = make_sensor(WireProtocol.MODBUS, Series.VG, 1, baud=FAST, source=hold(READING),
                      gyro_cal_duration=0.0)
     with simulated([vg]) as line:
-        async def body() -> None:
-            async with running(config(line.path)) as gw:
-                await until(lambda: gw.cache.snapshot("vg").seq >= 1)
-                result = await gw.command("vg", "calibrate_gyro")
-                assert result.ok and result.answer == {"value": 1}  # 1 = complete
-                assert not gw.cache.snapshot("vg").busy
-                assert "busy_with" not in gw.cache.settings("vg")
-                again = await gw.command("vg", "set_zero_type", {"type": "relative"})
-                assert again.ok, again  # not refused as busy
-        run(body)
+        async with running(config(line.path)) as gw:
+            await until(lambda: gw.cache.snapshot("vg").seq >= 1)
+            result = await gw.command("vg", "calibrate_gyro")
+            assert result.ok and result.answer == {"value": 1}  # 1 = complete
+            assert not gw.cache.snapshot("vg").busy
+            assert "busy_with" not in gw.cache.settings("vg")
+            again = await gw.command("vg", "set_zero_type", {"type": "relative"})
+            assert again.ok, again  # not refused as busy
 
 
-def test_calibration_under_way_is_busy_for_commands_but_still_read() -> None:
+@pytest.mark.anyio
+async def test_calibration_under_way_is_busy_for_commands_but_still_read() -> None:
     vg = make_sensor(WireProtocol.MODBUS, Series.VG, 1, baud=FAST, source=hold(READING),
                      gyro_cal_duration=1.5)
     with simulated([vg]) as line:
-        async def body() -> None:
-            async with running(config(line.path)) as gw:
-                await until(lambda: gw.cache.snapshot("vg").seq >= 1)
-                result = await gw.command("vg", "calibrate_gyro")
-                assert result.ok and result.answer == {"value": 0}  # 0 = started
-                assert gw.cache.snapshot("vg").busy
-                assert gw.cache.settings("vg")["busy_with"] == "calibrate_gyro"
-                refused = await gw.command("vg", "save")
-                assert refused.kind is ErrorKind.BUSY
-                seq = gw.cache.snapshot("vg").seq
-                await until(lambda: gw.cache.snapshot("vg").seq >= seq + 5, 1.0)
-                assert gw.cache.snapshot("vg").busy  # still calibrating, and read
-                await until(lambda: not gw.cache.snapshot("vg").busy, 5.0)  # "done"
-                assert "busy_with" not in gw.cache.settings("vg")
-                assert (await gw.command("vg", "set_zero_type", {"type": "absolute"})).ok
-        run(body)
+        async with running(config(line.path)) as gw:
+            await until(lambda: gw.cache.snapshot("vg").seq >= 1)
+            result = await gw.command("vg", "calibrate_gyro")
+            assert result.ok and result.answer == {"value": 0}  # 0 = started
+            assert gw.cache.snapshot("vg").busy
+            assert gw.cache.settings("vg")["busy_with"] == "calibrate_gyro"
+            refused = await gw.command("vg", "save")
+            assert refused.kind is ErrorKind.BUSY
+            seq = gw.cache.snapshot("vg").seq
+            await until(lambda: gw.cache.snapshot("vg").seq >= seq + 5, 1.0)
+            assert gw.cache.snapshot("vg").busy  # still calibrating, and read
+            await until(lambda: not gw.cache.snapshot("vg").busy, 5.0)  # "done"
+            assert "busy_with" not in gw.cache.settings("vg")
+            assert (await gw.command("vg", "set_zero_type", {"type": "absolute"})).ok

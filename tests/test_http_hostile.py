@@ -27,7 +27,7 @@ from typing import Any
 import httpx
 import pytest
 import yaml
-from harness import free_port, interrupt, run, running, until
+from harness import free_port, interrupt, running, until
 
 from gateway.app import Gateway
 from gateway.config import config_from_dict
@@ -294,73 +294,71 @@ def _hold_the_loop(done: Callable[[], bool], at_most: float) -> None:
         time.sleep(0.01)
 
 
-def test_a_reading_stream_client_is_kept_while_the_gateways_loop_is_behind() -> None:
+@pytest.mark.anyio
+async def test_a_reading_stream_client_is_kept_while_the_gateways_loop_is_behind() -> None:
     with _fast_stream() as (line, cfg):
 
-        async def body() -> None:
-            async with running(cfg) as gateway:
-                server, hub = _http_of(gateway)
-                await until(lambda: gateway.cache.snapshot("boom").seq >= 10, timeout=30)
-                async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{server.port}",
-                                             timeout=30) as http, \
-                        http.stream("GET", f"{API}/sensors/boom/stream") as response:
-                    assert response.status_code == 200
-                    seqs = _reading_seqs(response)
-                    seen = [await anext(seqs), await anext(seqs)]  # flowing
+        async with running(cfg) as gateway:
+            server, hub = _http_of(gateway)
+            await until(lambda: gateway.cache.snapshot("boom").seq >= 10, timeout=30)
+            async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{server.port}",
+                                         timeout=30) as http, \
+                    http.stream("GET", f"{API}/sensors/boom/stream") as response:
+                assert response.status_code == 200
+                seqs = _reading_seqs(response)
+                seen = [await anext(seqs), await anext(seqs)]  # flowing
 
-                    # The loop held up while far more than STREAM_QUEUE readings
-                    # arrive (at over 200 a second, under a second).
-                    frames = line.bus.stats.answer_frames
-                    asyncio.get_running_loop().call_soon(
-                        _hold_the_loop,
-                        lambda: line.bus.stats.answer_frames >= frames + 3 * STREAM_QUEUE,
-                        20.0)
-                    # Its queue overflowed: the client, reading, must not be dropped.
-                    await until(lambda: hub.skipped + hub.dropped > 0, timeout=30)
-                    assert hub.dropped == 0
-                    newest = gateway.cache.snapshot("boom").seq
-                    async with asyncio.timeout(30):
-                        async for seq in seqs:
-                            seen.append(seq)
-                            if seq >= newest + 20:
-                                break
-                    assert hub.dropped == 0 and len(hub.subscribers) == 1
-                    assert not response.is_closed
-                assert seen == sorted(set(seen))  # in order, none twice
-                gaps = [b - a for a, b in itertools.pairwise(seen) if b - a > 1]
-                assert gaps, "the readings behind were skipped, not all sent"
-                stats = server.stats()
-                assert stats["dropped_streams"] == 0 and stats["skipped_events"] == hub.skipped
-
-        run(body)
+                # The loop held up while far more than STREAM_QUEUE readings
+                # arrive (at over 200 a second, under a second).
+                frames = line.bus.stats.answer_frames
+                asyncio.get_running_loop().call_soon(
+                    _hold_the_loop,
+                    lambda: line.bus.stats.answer_frames >= frames + 3 * STREAM_QUEUE,
+                    20.0)
+                # Its queue overflowed: the client, reading, must not be dropped.
+                await until(lambda: hub.skipped + hub.dropped > 0, timeout=30)
+                assert hub.dropped == 0
+                newest = gateway.cache.snapshot("boom").seq
+                async with asyncio.timeout(30):
+                    async for seq in seqs:
+                        seen.append(seq)
+                        if seq >= newest + 20:
+                            break
+                assert hub.dropped == 0 and len(hub.subscribers) == 1
+                assert not response.is_closed
+            assert seen == sorted(set(seen))  # in order, none twice
+            gaps = [b - a for a, b in itertools.pairwise(seen) if b - a > 1]
+            assert gaps, "the readings behind were skipped, not all sent"
+            stats = server.stats()
+            assert stats["dropped_streams"] == 0 and stats["skipped_events"] == hub.skipped
 
 
-def test_a_stream_client_that_never_reads_is_dropped_and_disconnected() -> None:
+
+@pytest.mark.anyio
+async def test_a_stream_client_that_never_reads_is_dropped_and_disconnected() -> None:
     with _fast_stream() as (_, cfg):
 
-        async def body() -> None:
-            async with running(cfg) as gateway:
-                server, hub = _http_of(gateway)
-                await until(lambda: gateway.cache.snapshot("boom").seq >= 10, timeout=30)
-                with socket.socket() as sock:
-                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
-                    sock.setblocking(False)
-                    loop = asyncio.get_running_loop()
-                    await loop.sock_connect(sock, ("127.0.0.1", server.port))
-                    await loop.sock_sendall(sock, f"GET {API}/sensors/boom/stream HTTP/1.1"
-                                                  "\r\nHost: t\r\n\r\n".encode())
-                    await until(lambda: len(hub.subscribers) == 1, timeout=30)
-                    await until(lambda: hub.dropped >= 1, timeout=60)
-                    # The gateway ended the stream and closed the connection itself,
-                    # the client still not reading.
-                    await until(lambda: hub.open == 0, timeout=30)
-                    await until(lambda: server.stats()["clients"] == 0, timeout=30)
-                    assert server.stats()["dropped_streams"] == 1
-                    async with httpx.AsyncClient(
-                            base_url=f"http://127.0.0.1:{server.port}", timeout=30) as http:
-                        assert (await http.get(f"{API}/health")).status_code == 200
+        async with running(cfg) as gateway:
+            server, hub = _http_of(gateway)
+            await until(lambda: gateway.cache.snapshot("boom").seq >= 10, timeout=30)
+            with socket.socket() as sock:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
+                sock.setblocking(False)
+                loop = asyncio.get_running_loop()
+                await loop.sock_connect(sock, ("127.0.0.1", server.port))
+                await loop.sock_sendall(sock, f"GET {API}/sensors/boom/stream HTTP/1.1"
+                                              "\r\nHost: t\r\n\r\n".encode())
+                await until(lambda: len(hub.subscribers) == 1, timeout=30)
+                await until(lambda: hub.dropped >= 1, timeout=60)
+                # The gateway ended the stream and closed the connection itself,
+                # the client still not reading.
+                await until(lambda: hub.open == 0, timeout=30)
+                await until(lambda: server.stats()["clients"] == 0, timeout=30)
+                assert server.stats()["dropped_streams"] == 1
+                async with httpx.AsyncClient(
+                        base_url=f"http://127.0.0.1:{server.port}", timeout=30) as http:
+                    assert (await http.get(f"{API}/health")).status_code == 200
 
-        run(body)
 
 
 # ------------------------------------------------------------------ the hub's rule
@@ -377,37 +375,36 @@ class _Peer:
         self.aborted = True
 
 
-def test_the_hub_skips_the_oldest_for_a_client_behind_and_drops_only_a_stalled_one() -> None:
-    async def body() -> None:
-        config = config_from_dict({"buses": [{"name": "a", "port": "/dev/null",
-                                              "protocol": "native",
-                                              "sensors": [{"name": "s", "series": "AH"}]}]},
-                                  env={})
-        gateway = Gateway(config)
-        events: list[object] = []
-        gateway.cache.subscribe(lambda kind, snap: events.append(kind))
-        hub = StreamHub(gateway)
-        reading, stalled = _Peer(stalled=False), _Peer(stalled=True)
-        behind, stuck, bare = hub.stream("s", reading), hub.stream("s", stalled), hub.stream("s")
-        for stream in (behind, stuck, bare):
-            assert b"event: status" in await anext(stream)  # subscribed; reads no further
-        sample = Motion.from_seed(3).sample(1.0)
-        for _ in range(STREAM_QUEUE + 10):
-            gateway.cache.publish("s", sample)
+@pytest.mark.anyio
+async def test_the_hub_skips_the_oldest_for_a_client_behind_and_drops_only_a_stalled_one() -> None:
+    config = config_from_dict({"buses": [{"name": "a", "port": "/dev/null",
+                                          "protocol": "native",
+                                          "sensors": [{"name": "s", "series": "AH"}]}]},
+                              env={})
+    gateway = Gateway(config)
+    events: list[object] = []
+    gateway.cache.subscribe(lambda kind, snap: events.append(kind))
+    hub = StreamHub(gateway)
+    reading, stalled = _Peer(stalled=False), _Peer(stalled=True)
+    behind, stuck, bare = hub.stream("s", reading), hub.stream("s", stalled), hub.stream("s")
+    for stream in (behind, stuck, bare):
+        assert b"event: status" in await anext(stream)  # subscribed; reads no further
+    sample = Motion.from_seed(3).sample(1.0)
+    for _ in range(STREAM_QUEUE + 10):
+        gateway.cache.publish("s", sample)
 
-        # The stalled client is dropped once its queue is full, its connection closed;
-        # the others (a client behind, one without a socket to judge by) are kept, their
-        # oldest events skipped.
-        assert hub.dropped == 1 and stalled.aborted and not reading.aborted
-        assert [event async for event in stuck] == []
-        assert hub.skipped == 2 * (len(events) - STREAM_QUEUE)
-        assert all(len(sub.events) == STREAM_QUEUE for sub in hub.subscribers)
-        kept = [await anext(behind) for _ in range(STREAM_QUEUE)]
-        last = gateway.cache.snapshot("s").seq
-        assert kept[-1].startswith(b"event: reading\nid: %d\n" % last)  # the newest
-        hub.close()
-        for stream in (behind, bare):
-            await stream.aclose()
-        assert hub.open == 0
+    # The stalled client is dropped once its queue is full, its connection closed;
+    # the others (a client behind, one without a socket to judge by) are kept, their
+    # oldest events skipped.
+    assert hub.dropped == 1 and stalled.aborted and not reading.aborted
+    assert [event async for event in stuck] == []
+    assert hub.skipped == 2 * (len(events) - STREAM_QUEUE)
+    assert all(len(sub.events) == STREAM_QUEUE for sub in hub.subscribers)
+    kept = [await anext(behind) for _ in range(STREAM_QUEUE)]
+    last = gateway.cache.snapshot("s").seq
+    assert kept[-1].startswith(b"event: reading\nid: %d\n" % last)  # the newest
+    hub.close()
+    for stream in (behind, bare):
+        await stream.aclose()
+    assert hub.open == 0
 
-    run(body)

@@ -29,7 +29,6 @@ from harness import (
     expected,
     fields_of,
     interrupt,
-    run,
     running,
     tolerance,
     until,
@@ -103,7 +102,8 @@ async def nothing_retained(broker: Mosquitto, topic: str) -> bool:
 # ------------------------------------------------------------------ state and status
 
 
-def test_state_json_carries_the_simulators_values(tmp_path: Path) -> None:
+@pytest.mark.anyio
+async def test_state_json_carries_the_simulators_values(tmp_path: Path) -> None:
     ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     vg = sensor(WireProtocol.MODBUS, Series.VG, address=1, source=hold(READING))
     with Mosquitto(tmp_path) as broker, simulated([ah]) as line_a, \
@@ -112,12 +112,10 @@ def test_state_json_carries_the_simulators_values(tmp_path: Path) -> None:
                       bus("b", line_b.path, "modbus", [{"name": "arm", "series": "VG"}])],
                      broker)
 
-        async def body() -> None:
-            async with running(cfg):
-                await until(lambda: bool(rec.on(f"{BASE}/boom/state")
-                                         and rec.on(f"{BASE}/arm/state")))
+        async with running(cfg):
+            await until(lambda: bool(rec.on(f"{BASE}/boom/state")
+                                     and rec.on(f"{BASE}/arm/state")))
 
-        run(body)
         for name, sim, protocol in (("boom", ah, WireProtocol.NATIVE),
                                     ("arm", vg, WireProtocol.MODBUS)):
             message = rec.on(f"{BASE}/{name}/state")[-1]
@@ -135,27 +133,27 @@ def test_state_json_carries_the_simulators_values(tmp_path: Path) -> None:
         assert rec.on(f"{BASE}/boom/availability")[-1].text == "offline"
 
 
-def test_status_availability_and_state_are_retained(tmp_path: Path) -> None:
+@pytest.mark.anyio
+async def test_status_availability_and_state_are_retained(tmp_path: Path) -> None:
     ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     with Mosquitto(tmp_path) as broker, simulated([ah]) as line:
         cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])], broker)
 
-        async def body() -> None:
-            async with running(cfg) as gateway:
-                await until(lambda: gateway.cache.snapshot("boom").seq >= 2)
-                await until(lambda: written(gateway))
-                kept = {m.topic: m for m in await asyncio.to_thread(retained, broker, "imu/#")}
-                assert kept[f"{BASE}/status"].text == "online"
-                assert kept[f"{BASE}/boom/availability"].text == "online"
-                assert state(kept[f"{BASE}/boom/state"])["sensor"] == "boom"
+        async with running(cfg) as gateway:
+            await until(lambda: gateway.cache.snapshot("boom").seq >= 2)
+            await until(lambda: written(gateway))
             kept = {m.topic: m for m in await asyncio.to_thread(retained, broker, "imu/#")}
-            assert kept[f"{BASE}/status"].text == "offline"  # said on a clean stop
-            assert kept[f"{BASE}/boom/availability"].text == "offline"
+            assert kept[f"{BASE}/status"].text == "online"
+            assert kept[f"{BASE}/boom/availability"].text == "online"
+            assert state(kept[f"{BASE}/boom/state"])["sensor"] == "boom"
+        kept = {m.topic: m for m in await asyncio.to_thread(retained, broker, "imu/#")}
+        assert kept[f"{BASE}/status"].text == "offline"  # said on a clean stop
+        assert kept[f"{BASE}/boom/availability"].text == "offline"
 
-        run(body)
 
 
-def test_availability_follows_a_sensor_that_stops_and_comes_back(tmp_path: Path) -> None:
+@pytest.mark.anyio
+async def test_availability_follows_a_sensor_that_stops_and_comes_back(tmp_path: Path) -> None:
     faults = Faults()
     ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING), faults=faults)
     with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
@@ -167,19 +165,17 @@ def test_availability_follows_a_sensor_that_stops_and_comes_back(tmp_path: Path)
         def said() -> list[str]:
             return [m.text for m in rec.on(availability)]
 
-        async def body() -> None:
-            async with running(cfg):
-                await until(lambda: said()[-1:] == ["online"])
-                faults.stalled = True
-                await until(lambda: said()[-1:] == ["offline"])
-                # the state says it too (sent just after the availability)
-                await until(lambda: state(rec.on(f"{BASE}/boom/state")[-1])["status"]
-                            == "offline")
-                faults.stalled = False
-                await until(lambda: said()[-1:] == ["online"], timeout=20)
-                await until(lambda: state(rec.on(f"{BASE}/boom/state")[-1])["status"] == "ok")
+        async with running(cfg):
+            await until(lambda: said()[-1:] == ["online"])
+            faults.stalled = True
+            await until(lambda: said()[-1:] == ["offline"])
+            # the state says it too (sent just after the availability)
+            await until(lambda: state(rec.on(f"{BASE}/boom/state")[-1])["status"]
+                        == "offline")
+            faults.stalled = False
+            await until(lambda: said()[-1:] == ["online"], timeout=20)
+            await until(lambda: state(rec.on(f"{BASE}/boom/state")[-1])["status"] == "ok")
 
-        run(body)
         # (an "offline" may come first: the gateway's view before its first poll)
         changes = said()[said().index("online"):]
         assert changes == ["online", "offline", "online", "offline"]  # the last: stopping
@@ -188,8 +184,9 @@ def test_availability_follows_a_sensor_that_stops_and_comes_back(tmp_path: Path)
 # ------------------------------------------------------------------ commands
 
 
+@pytest.mark.anyio
 @pytest.mark.parametrize("version", ["3.1.1", "5"])
-def test_command_round_trip(tmp_path: Path, version: str,
+async def test_command_round_trip(tmp_path: Path, version: str,
                             caplog: pytest.LogCaptureFixture) -> None:
     ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     vg = sensor(WireProtocol.NATIVE, Series.VG, address=1, source=hold(READING))
@@ -210,64 +207,62 @@ def test_command_round_trip(tmp_path: Path, version: str,
             await until(lambda: len(rec.on(result_topic)) > before)
             return state(rec.on(result_topic)[-1])
 
-        async def body() -> None:
-            async with running(cfg) as gateway:
-                await until(lambda: gateway.mqtt is not None and gateway.mqtt.connected)
-                await until(lambda: gateway.cache.snapshot("boom").seq >= 1)
-                result = await ask(f"{cmd}/set_zero_type", '{"type": "relative"}')
-                assert result["ok"] is True and result["error"] is None
-                assert ah.settings.zero_type == "relative"
-                result = await ask(f"{cmd}/read_settings", "{}")
-                assert result["ok"] is True
-                assert result["answer"]["zero_type"] == "relative"
-
-                # Bad requests: each answered with an error, nothing stops.
-                bad = await ask(f"{cmd}/set_zero_type", "{not json")
-                assert bad["ok"] is False and bad["kind"] == "bad_arguments"
-                assert "not JSON" in bad["error"]
-                bad = await ask(f"{cmd}/set_zero_type", "[1, 2]")
-                assert bad["kind"] == "bad_arguments" and "JSON object" in bad["error"]
-                bad = await ask(f"{cmd}/set_zero_type", '{"type": "sideways"}')
-                assert bad["kind"] == "bad_arguments" and "type" in bad["error"]
-                bad = await ask(f"{cmd}/explode", "{}")
-                assert bad["kind"] == "unknown_command"
-                bad = await ask(f"{BASE}/arm/cmd/set_declination", '{"degrees": 3}')
-                assert bad["kind"] == "unsupported"
-                bad = await ask(f"{BASE}/nobody/cmd/save", "{}")
-                assert bad["ok"] is False and "nobody" in bad["error"]
-                assert bad["kind"] == "unknown_sensor"  # as REST says it
-                bad = await ask(f"{cmd}/set_zero_type", b"\xff\xfe")
-                assert bad["kind"] == "bad_arguments"
-                bad = await ask(f"{cmd}/set_zero_type", "[" * 100_000)  # too deep to parse
-                assert bad["kind"] == "bad_arguments"
-
-                await _retained_commands(broker, rec, cmd, version, ah, ask)
-
-                if version == "5":
-                    # paho's Properties.__init__ is unannotated
-                    props = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
-                    props.ResponseTopic = "replies/me"
-                    props.CorrelationData = b"req-42"
-                    result = await ask(f"{cmd}/read_settings", "{}", properties=props,
-                                       result_topic="replies/me")
-                    assert result["ok"] is True
-                    answer = rec.on("replies/me")[-1]
-                    assert answer.properties.CorrelationData == b"req-42"
-
-            # A retained command left on the broker (published while no gateway ran)
-            # is not run when the broker replays it, and the gateway clears it.
-            rec.client.publish(f"{cmd}/set_zero_type", '{"type": "absolute"}', qos=1,
-                               retain=True).wait_for_publish(10)
-            before = len(rec.on(f"{cmd}/set_zero_type/result"))
-            async with running(cfg) as gateway:  # subscribes anew: the broker replays
-                await until(lambda: gateway.mqtt is not None and gateway.mqtt.connected)
-                await until(lambda: any("retained command" in r.getMessage()
-                                        for r in caplog.records))
-                await until(lambda: nothing_retained(broker, f"{cmd}/+"))
+        async with running(cfg) as gateway:
+            await until(lambda: gateway.mqtt is not None and gateway.mqtt.connected)
+            await until(lambda: gateway.cache.snapshot("boom").seq >= 1)
+            result = await ask(f"{cmd}/set_zero_type", '{"type": "relative"}')
+            assert result["ok"] is True and result["error"] is None
             assert ah.settings.zero_type == "relative"
-            assert len(rec.on(f"{cmd}/set_zero_type/result")) == before
+            result = await ask(f"{cmd}/read_settings", "{}")
+            assert result["ok"] is True
+            assert result["answer"]["zero_type"] == "relative"
 
-        run(body)
+            # Bad requests: each answered with an error, nothing stops.
+            bad = await ask(f"{cmd}/set_zero_type", "{not json")
+            assert bad["ok"] is False and bad["kind"] == "bad_arguments"
+            assert "not JSON" in bad["error"]
+            bad = await ask(f"{cmd}/set_zero_type", "[1, 2]")
+            assert bad["kind"] == "bad_arguments" and "JSON object" in bad["error"]
+            bad = await ask(f"{cmd}/set_zero_type", '{"type": "sideways"}')
+            assert bad["kind"] == "bad_arguments" and "type" in bad["error"]
+            bad = await ask(f"{cmd}/explode", "{}")
+            assert bad["kind"] == "unknown_command"
+            bad = await ask(f"{BASE}/arm/cmd/set_declination", '{"degrees": 3}')
+            assert bad["kind"] == "unsupported"
+            bad = await ask(f"{BASE}/nobody/cmd/save", "{}")
+            assert bad["ok"] is False and "nobody" in bad["error"]
+            assert bad["kind"] == "unknown_sensor"  # as REST says it
+            bad = await ask(f"{cmd}/set_zero_type", b"\xff\xfe")
+            assert bad["kind"] == "bad_arguments"
+            bad = await ask(f"{cmd}/set_zero_type", "[" * 100_000)  # too deep to parse
+            assert bad["kind"] == "bad_arguments"
+
+            await _retained_commands(broker, rec, cmd, version, ah, ask)
+
+            if version == "5":
+                # paho's Properties.__init__ is unannotated
+                props = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
+                props.ResponseTopic = "replies/me"
+                props.CorrelationData = b"req-42"
+                result = await ask(f"{cmd}/read_settings", "{}", properties=props,
+                                   result_topic="replies/me")
+                assert result["ok"] is True
+                answer = rec.on("replies/me")[-1]
+                assert answer.properties.CorrelationData == b"req-42"
+
+        # A retained command left on the broker (published while no gateway ran)
+        # is not run when the broker replays it, and the gateway clears it.
+        rec.client.publish(f"{cmd}/set_zero_type", '{"type": "absolute"}', qos=1,
+                           retain=True).wait_for_publish(10)
+        before = len(rec.on(f"{cmd}/set_zero_type/result"))
+        async with running(cfg) as gateway:  # subscribes anew: the broker replays
+            await until(lambda: gateway.mqtt is not None and gateway.mqtt.connected)
+            await until(lambda: any("retained command" in r.getMessage()
+                                    for r in caplog.records))
+            await until(lambda: nothing_retained(broker, f"{cmd}/+"))
+        assert ah.settings.zero_type == "relative"
+        assert len(rec.on(f"{cmd}/set_zero_type/result")) == before
+
 
 
 Ask = Callable[..., Awaitable[dict[str, Any]]]
@@ -295,7 +290,8 @@ async def _retained_commands(broker: Mosquitto, rec: Recorder, cmd: str, version
 # ------------------------------------------------------------------ Home Assistant
 
 
-def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
+@pytest.mark.anyio
+async def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
         tmp_path: Path) -> None:
     ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     vg = sensor(WireProtocol.NATIVE, Series.VG, address=1, source=hold(READING))
@@ -305,57 +301,56 @@ def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
         cfg = config([bus("a", line.path, "native", both)], broker,
                      homeassistant_discovery=True)
 
-        async def body() -> None:
-            async with running(cfg) as gateway:
-                await until(lambda: all(gateway.cache.snapshot(n).seq >= 1
-                                        for n in ("boom", "arm")))
-                await until(lambda: written(gateway))
-                kept = await asyncio.to_thread(retained, broker, "#")
-            configs = {m.topic: json.loads(m.payload) for m in kept
-                       if m.topic.startswith("homeassistant/")}
-            others = {m.topic: m for m in kept}
-            # One entity per measured field: AH all 16, VG all but the magnetometer.
-            fields = {"boom": set(FIELDS),
-                      "arm": {f for f in FIELDS if GROUP_OF[f] != "mag"}}
-            want = {f"homeassistant/sensor/{GID}_{s}_{f}/config"
-                    for s, names in fields.items() for f in names}
-            assert set(configs) == want
-            assert len({c["unique_id"] for c in configs.values()}) == len(want)
-            for topic, c in configs.items():
-                for key in ("name", "unique_id", "state_topic", "value_template", "device",
-                            "availability"):
-                    assert key in c, (topic, key)
-                assert c["device"]["identifiers"] and c["device"]["name"]
-                assert c.get("state_class") == "measurement"
-                # The template points into the state JSON that is really published.
-                group, member = c["value_template"].strip("{} ").split(".")[1:]
-                published = state(others[c["state_topic"]])
-                assert isinstance(published[group][member], float)
-                for a in c["availability"]:
-                    assert others[a["topic"]].text in ("online", "offline")
-                unit = c.get("unit_of_measurement")
-                field_name = topic.split("/")[2].split("_", 2)[2]
-                assert unit == {"angles": "°", "accel": "g", "gyro": "°/s", "mag": "G",
-                                "quaternion": None}[GROUP_OF[field_name]]
+        async with running(cfg) as gateway:
+            await until(lambda: all(gateway.cache.snapshot(n).seq >= 1
+                                    for n in ("boom", "arm")))
+            await until(lambda: written(gateway))
+            kept = await asyncio.to_thread(retained, broker, "#")
+        configs = {m.topic: json.loads(m.payload) for m in kept
+                   if m.topic.startswith("homeassistant/")}
+        others = {m.topic: m for m in kept}
+        # One entity per measured field: AH all 16, VG all but the magnetometer.
+        fields = {"boom": set(FIELDS),
+                  "arm": {f for f in FIELDS if GROUP_OF[f] != "mag"}}
+        want = {f"homeassistant/sensor/{GID}_{s}_{f}/config"
+                for s, names in fields.items() for f in names}
+        assert set(configs) == want
+        assert len({c["unique_id"] for c in configs.values()}) == len(want)
+        for topic, c in configs.items():
+            for key in ("name", "unique_id", "state_topic", "value_template", "device",
+                        "availability"):
+                assert key in c, (topic, key)
+            assert c["device"]["identifiers"] and c["device"]["name"]
+            assert c.get("state_class") == "measurement"
+            # The template points into the state JSON that is really published.
+            group, member = c["value_template"].strip("{} ").split(".")[1:]
+            published = state(others[c["state_topic"]])
+            assert isinstance(published[group][member], float)
+            for a in c["availability"]:
+                assert others[a["topic"]].text in ("online", "offline")
+            unit = c.get("unit_of_measurement")
+            field_name = topic.split("/")[2].split("_", 2)[2]
+            assert unit == {"angles": "°", "accel": "g", "gyro": "°/s", "mag": "G",
+                            "quaternion": None}[GROUP_OF[field_name]]
 
-            # Restart with the AH sensor gone: its entities are removed, the VG's stay.
-            cfg["buses"][0]["sensors"] = [both[1]]
-            async with running(cfg) as gateway:
-                await until(lambda: gateway.cache.snapshot("arm").seq >= 1)
-                # the old configs come back within the sweep, and are answered
-                await asyncio.sleep(1.0)
-                await until(lambda: written(gateway))
-                kept = await asyncio.to_thread(retained, broker, "homeassistant/#")
-            left = {m.topic for m in kept if m.payload}
-            assert left == {t for t in want if "_arm_" in t}
+        # Restart with the AH sensor gone: its entities are removed, the VG's stay.
+        cfg["buses"][0]["sensors"] = [both[1]]
+        async with running(cfg) as gateway:
+            await until(lambda: gateway.cache.snapshot("arm").seq >= 1)
+            # the old configs come back within the sweep, and are answered
+            await asyncio.sleep(1.0)
+            await until(lambda: written(gateway))
+            kept = await asyncio.to_thread(retained, broker, "homeassistant/#")
+        left = {m.topic for m in kept if m.payload}
+        assert left == {t for t in want if "_arm_" in t}
 
-        run(body)
 
 
 # ------------------------------------------------------------------ the broker away
 
 
-def test_broker_restart_reconnects_and_republishes_and_queue_stays_bounded(
+@pytest.mark.anyio
+async def test_broker_restart_reconnects_and_republishes_and_queue_stays_bounded(
         tmp_path: Path) -> None:
     ah = sensor(WireProtocol.NATIVE, Series.AH, source=Motion.from_seed(5))
     with Mosquitto(tmp_path) as broker, simulated([ah]) as line:
@@ -363,31 +358,30 @@ def test_broker_restart_reconnects_and_republishes_and_queue_stays_bounded(
                           [{"name": "boom", "series": "AH", "poll_hz": 0}])], broker,
                      queue_size=20, homeassistant_discovery=True)
 
-        async def body() -> None:
-            async with running(cfg) as gateway:
-                mqtt = gateway.mqtt
-                assert mqtt is not None
-                await until(lambda: mqtt.connected)
-                broker.stop()
-                await until(lambda: not mqtt.connected)
-                seq = gateway.cache.snapshot("boom").seq
-                await until(lambda: gateway.cache.snapshot("boom").seq > seq + 60)
-                assert len(mqtt.outbox) <= 20
-                assert mqtt.stats()["dropped"] > 0
-                broker.start()  # the same port; it remembers nothing
-                await until(lambda: mqtt.connected and mqtt.stats()["connects"] == 2,
-                            timeout=20)
-                await until(lambda: written(gateway))
-                kept = {m.topic: m for m in await asyncio.to_thread(retained, broker, "#")}
-                assert kept[f"{BASE}/status"].text == "online"
-                assert kept[f"{BASE}/boom/availability"].text == "online"
-                assert state(kept[f"{BASE}/boom/state"])["seq"] > seq
-                assert f"homeassistant/sensor/{GID}_boom_pitch/config" in kept
-
-        run(body)
+        async with running(cfg) as gateway:
+            mqtt = gateway.mqtt
+            assert mqtt is not None
+            await until(lambda: mqtt.connected)
+            broker.stop()
+            await until(lambda: not mqtt.connected)
+            seq = gateway.cache.snapshot("boom").seq
+            await until(lambda: gateway.cache.snapshot("boom").seq > seq + 60)
+            assert len(mqtt.outbox) <= 20
+            assert mqtt.stats()["dropped"] > 0
+            broker.start()  # the same port; it remembers nothing
+            await until(lambda: mqtt.connected and mqtt.stats()["connects"] == 2,
+                        timeout=20)
+            await until(lambda: written(gateway))
+            kept = {m.topic: m for m in await asyncio.to_thread(retained, broker, "#")}
+            assert kept[f"{BASE}/status"].text == "online"
+            assert kept[f"{BASE}/boom/availability"].text == "online"
+            assert state(kept[f"{BASE}/boom/state"])["seq"] > seq
+            assert f"homeassistant/sensor/{GID}_boom_pitch/config" in kept
 
 
-def test_no_broker_the_gateway_runs_and_connects_when_one_appears(
+
+@pytest.mark.anyio
+async def test_no_broker_the_gateway_runs_and_connects_when_one_appears(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.INFO, "gateway.mqtt")
     ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
@@ -396,16 +390,14 @@ def test_no_broker_the_gateway_runs_and_connects_when_one_appears(
         cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])],
                      broker)
 
-        async def body() -> None:
-            async with running(cfg) as gateway:
-                await until(lambda: gateway.cache.snapshot("boom").seq >= 3)
-                await asyncio.sleep(2.0)  # several connection attempts
-                with broker:
-                    assert gateway.mqtt is not None
-                    await until(lambda: gateway.mqtt is not None and gateway.mqtt.connected,
-                                timeout=20)
+        async with running(cfg) as gateway:
+            await until(lambda: gateway.cache.snapshot("boom").seq >= 3)
+            await asyncio.sleep(2.0)  # several connection attempts
+            with broker:
+                assert gateway.mqtt is not None
+                await until(lambda: gateway.mqtt is not None and gateway.mqtt.connected,
+                            timeout=20)
 
-        run(body)
     refused = [r for r in caplog.records if "cannot connect" in r.getMessage()]
     assert len(refused) == 1, [r.getMessage() for r in refused]  # once, not every retry
     assert "refused" in refused[0].getMessage().lower()
@@ -485,7 +477,8 @@ def test_a_bad_response_topic_gets_an_error_and_the_gateway_goes_on(
     assert "Traceback" not in log_text and "failed (" not in log_text, log_text[-2000:]
 
 
-def test_a_message_paho_cannot_send_is_dropped_and_the_queue_goes_on(
+@pytest.mark.anyio
+async def test_a_message_paho_cannot_send_is_dropped_and_the_queue_goes_on(
         tmp_path: Path) -> None:
     ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
@@ -493,22 +486,21 @@ def test_a_message_paho_cannot_send_is_dropped_and_the_queue_goes_on(
         cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])],
                      broker, retain=False)
 
-        async def body() -> None:
-            async with running(cfg) as gateway:
-                mqtt = gateway.mqtt
-                assert mqtt is not None
-                await until(lambda: mqtt.connected and bool(rec.on(f"{BASE}/boom/state")))
-                # first in the queue that never drops: it must not hold the rest up
-                mqtt._send_control(Message("bad/#", b"x", 1, False))
-                before = len(rec.on(f"{BASE}/boom/state"))
-                await until(lambda: len(rec.on(f"{BASE}/boom/state")) > before + 5)
-                stats = mqtt.stats()
-                assert stats["undeliverable"] == 1 and stats["connected"] is True
-
-        run(body)
+        async with running(cfg) as gateway:
+            mqtt = gateway.mqtt
+            assert mqtt is not None
+            await until(lambda: mqtt.connected and bool(rec.on(f"{BASE}/boom/state")))
+            # first in the queue that never drops: it must not hold the rest up
+            mqtt._send_control(Message("bad/#", b"x", 1, False))
+            before = len(rec.on(f"{BASE}/boom/state"))
+            await until(lambda: len(rec.on(f"{BASE}/boom/state")) > before + 5)
+            stats = mqtt.stats()
+            assert stats["undeliverable"] == 1 and stats["connected"] is True
 
 
-def test_a_failed_mqtt_client_is_restarted_and_the_rest_goes_on(
+
+@pytest.mark.anyio
+async def test_a_failed_mqtt_client_is_restarted_and_the_rest_goes_on(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
         caplog: pytest.LogCaptureFixture) -> None:
     """A fault inside the MQTT front end (here: its cache listener raises once) is
@@ -528,16 +520,14 @@ def test_a_failed_mqtt_client_is_restarted_and_the_rest_goes_on(
         cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])],
                      broker, retain=False)
 
-        async def body() -> None:
-            async with running(cfg) as gateway:
-                await until(lambda: gateway.supervisor.restarts["mqtt"] == 1)
-                seq = gateway.cache.snapshot("boom").seq
-                before = len(rec.on(f"{BASE}/boom/state"))
-                await until(lambda: len(rec.on(f"{BASE}/boom/state")) > before + 5)
-                assert gateway.cache.snapshot("boom").seq > seq
-                assert gateway.frontend_stats()["mqtt"]["restarts"] == 1
+        async with running(cfg) as gateway:
+            await until(lambda: gateway.supervisor.restarts["mqtt"] == 1)
+            seq = gateway.cache.snapshot("boom").seq
+            before = len(rec.on(f"{BASE}/boom/state"))
+            await until(lambda: len(rec.on(f"{BASE}/boom/state")) > before + 5)
+            assert gateway.cache.snapshot("boom").seq > seq
+            assert gateway.frontend_stats()["mqtt"]["restarts"] == 1
 
-        run(body)
     failed = [r.getMessage() for r in caplog.records if "mqtt failed" in r.getMessage()]
     assert len(failed) == 1 and "RuntimeError: boom" in failed[0]
     # the restart said so, then the stop at the end (the first "online" may never have
@@ -557,7 +547,8 @@ def _secure(tls: Tls) -> dict[str, Any]:
 USERS = {"gateway": "s3cret", "dashboard": "look"}
 
 
-def test_tls_with_a_test_ca_client_certificate_and_password(
+@pytest.mark.anyio
+async def test_tls_with_a_test_ca_client_certificate_and_password(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.WARNING, "gateway.mqtt")
     tls = make_tls(tmp_path / "pki")
@@ -566,17 +557,15 @@ def test_tls_with_a_test_ca_client_certificate_and_password(
             recording(broker, "imu/#", username="dashboard", password="look") as rec:
         buses = [bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])]
 
-        async def body() -> None:
-            async with running(config(buses, broker, **_secure(tls)),
-                               env={"MQTT_PASSWORD": "s3cret"}):
-                await until(lambda: bool(rec.on(f"{BASE}/boom/state")))
-            # A wrong password: the broker's reason, once.
-            async with running(config(buses, broker, **_secure(tls)),
-                               env={"MQTT_PASSWORD": "wrong"}) as gateway:
-                await until(lambda: any("refused" in r.getMessage() for r in caplog.records))
-                assert gateway.mqtt is not None and not gateway.mqtt.connected
+        async with running(config(buses, broker, **_secure(tls)),
+                           env={"MQTT_PASSWORD": "s3cret"}):
+            await until(lambda: bool(rec.on(f"{BASE}/boom/state")))
+        # A wrong password: the broker's reason, once.
+        async with running(config(buses, broker, **_secure(tls)),
+                           env={"MQTT_PASSWORD": "wrong"}) as gateway:
+            await until(lambda: any("refused" in r.getMessage() for r in caplog.records))
+            assert gateway.mqtt is not None and not gateway.mqtt.connected
 
-        run(body)
         assert state(rec.on(f"{BASE}/boom/state")[-1])["status"] == "ok"
         refused = [r.getMessage() for r in caplog.records if "refused" in r.getMessage()]
         assert len(refused) == 1 and "not authori" in refused[0].lower(), refused
@@ -586,7 +575,8 @@ def test_tls_with_a_test_ca_client_certificate_and_password(
 # (``Client._ssl_wrap_socket``), which warns: that one warning is expected here.
 @pytest.mark.filterwarnings(
     "ignore:Exception ignored in. <ssl.SSLSocket:pytest.PytestUnraisableExceptionWarning")
-def test_tls_with_a_ca_that_did_not_sign_the_broker_says_why(
+@pytest.mark.anyio
+async def test_tls_with_a_ca_that_did_not_sign_the_broker_says_why(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.WARNING, "gateway.mqtt")
     tls, other = make_tls(tmp_path / "pki"), make_tls(tmp_path / "other-pki")
@@ -595,13 +585,11 @@ def test_tls_with_a_ca_that_did_not_sign_the_broker_says_why(
         buses = [bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])]
         cfg = config(buses, broker, **{**_secure(tls), "ca_file": str(other.ca)})
 
-        async def body() -> None:
-            async with running(cfg, env={"MQTT_PASSWORD": "s3cret"}) as gateway:
-                await until(lambda: any("certificate" in r.getMessage()
-                                        for r in caplog.records))
-                await until(lambda: gateway.cache.snapshot("boom").seq >= 1)  # runs on
+        async with running(cfg, env={"MQTT_PASSWORD": "s3cret"}) as gateway:
+            await until(lambda: any("certificate" in r.getMessage()
+                                    for r in caplog.records))
+            await until(lambda: gateway.cache.snapshot("boom").seq >= 1)  # runs on
 
-        run(body)
         problems = [r.getMessage() for r in caplog.records if "certificate" in r.getMessage()]
         assert "certificate verify failed" in problems[0]
 
@@ -609,52 +597,51 @@ def test_tls_with_a_ca_that_did_not_sign_the_broker_says_why(
 # ------------------------------------------------------------------ throttling
 
 
-def test_min_interval_deadband_and_per_field_topics(tmp_path: Path) -> None:
+@pytest.mark.anyio
+async def test_min_interval_deadband_and_per_field_topics(tmp_path: Path) -> None:
     ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
             recording(broker, f"{BASE}/#") as rec:
         buses = [bus("a", line.path, "native",
                      [{"name": "boom", "series": "AH", "poll_hz": 0}])]
 
-        async def body() -> None:
-            # min_interval: at most one message per 400 ms, however fast the polls.
-            async with running(config(buses, broker, min_interval_ms=400,
-                                      per_field_topics=True)) as gateway:
-                await until(lambda: bool(rec.on(f"{BASE}/boom/state")))
-                first_seq = gateway.cache.snapshot("boom").seq
-                start = asyncio.get_running_loop().time()
-                rec.clear()
-                await asyncio.sleep(2.0)
-                elapsed = asyncio.get_running_loop().time() - start
-                polled = gateway.cache.snapshot("boom").seq - first_seq
-                sent = len(rec.on(f"{BASE}/boom/state"))
-                assert polled > 3 * sent  # the polls outnumber the messages
-                assert 1 <= sent <= elapsed / 0.4 + 1
-                # per_field_topics: plain numbers equal to the state JSON's.
-                last = fields_of(state(rec.on(f"{BASE}/boom/state")[-1]))
-                await until(lambda: bool(rec.on(f"{BASE}/boom/q3")))
-                for name in FIELDS:
-                    assert float(rec.last(f"{BASE}/boom/{name}").text) == last[name]  # type: ignore[union-attr]
-
-            # deadband: a still sensor sends one message; a move past the band, another.
+        # min_interval: at most one message per 400 ms, however fast the polls.
+        async with running(config(buses, broker, min_interval_ms=400,
+                                  per_field_topics=True)) as gateway:
+            await until(lambda: bool(rec.on(f"{BASE}/boom/state")))
+            first_seq = gateway.cache.snapshot("boom").seq
+            start = asyncio.get_running_loop().time()
             rec.clear()
-            async with running(config(buses, broker, deadband={"angles": 1.0})) as gateway:
-                await until(lambda: bool(rec.on(f"{BASE}/boom/state")))
-                seq = gateway.cache.snapshot("boom").seq
-                await until(lambda: gateway.cache.snapshot("boom").seq > seq + 20)
-                assert value_messages(rec.on(f"{BASE}/boom/state")) == 1
-                a = READING.angles
-                assert a is not None
-                ah.source = hold(_replace_angles(READING, Angles(a.pitch + 0.5, a.roll, a.yaw)))
-                seq = gateway.cache.snapshot("boom").seq
-                await until(lambda: gateway.cache.snapshot("boom").seq > seq + 20)
-                assert value_messages(rec.on(f"{BASE}/boom/state")) == 1  # within the band
-                ah.source = hold(_replace_angles(READING, Angles(a.pitch + 5, a.roll, a.yaw)))
-                await until(lambda: value_messages(rec.on(f"{BASE}/boom/state")) == 2)
-                moved = state(rec.on(f"{BASE}/boom/state")[-1])["angles"]["pitch"]
-                assert abs(moved - (a.pitch + 5)) < 0.01
+            await asyncio.sleep(2.0)
+            elapsed = asyncio.get_running_loop().time() - start
+            polled = gateway.cache.snapshot("boom").seq - first_seq
+            sent = len(rec.on(f"{BASE}/boom/state"))
+            assert polled > 3 * sent  # the polls outnumber the messages
+            assert 1 <= sent <= elapsed / 0.4 + 1
+            # per_field_topics: plain numbers equal to the state JSON's.
+            last = fields_of(state(rec.on(f"{BASE}/boom/state")[-1]))
+            await until(lambda: bool(rec.on(f"{BASE}/boom/q3")))
+            for name in FIELDS:
+                assert float(rec.last(f"{BASE}/boom/{name}").text) == last[name]  # type: ignore[union-attr]
 
-        run(body)
+        # deadband: a still sensor sends one message; a move past the band, another.
+        rec.clear()
+        async with running(config(buses, broker, deadband={"angles": 1.0})) as gateway:
+            await until(lambda: bool(rec.on(f"{BASE}/boom/state")))
+            seq = gateway.cache.snapshot("boom").seq
+            await until(lambda: gateway.cache.snapshot("boom").seq > seq + 20)
+            assert value_messages(rec.on(f"{BASE}/boom/state")) == 1
+            a = READING.angles
+            assert a is not None
+            ah.source = hold(_replace_angles(READING, Angles(a.pitch + 0.5, a.roll, a.yaw)))
+            seq = gateway.cache.snapshot("boom").seq
+            await until(lambda: gateway.cache.snapshot("boom").seq > seq + 20)
+            assert value_messages(rec.on(f"{BASE}/boom/state")) == 1  # within the band
+            ah.source = hold(_replace_angles(READING, Angles(a.pitch + 5, a.roll, a.yaw)))
+            await until(lambda: value_messages(rec.on(f"{BASE}/boom/state")) == 2)
+            moved = state(rec.on(f"{BASE}/boom/state")[-1])["angles"]["pitch"]
+            assert abs(moved - (a.pitch + 5)) < 0.01
+
 
 
 def value_messages(messages: list[Any]) -> int:
@@ -669,7 +656,8 @@ def _replace_angles(reading: Any, angles: Angles) -> Any:
     return replace(reading, angles=angles)
 
 
-def test_plain_mqtt_to_a_tls_port_says_so(tmp_path: Path,
+@pytest.mark.anyio
+async def test_plain_mqtt_to_a_tls_port_says_so(tmp_path: Path,
                                           caplog: pytest.LogCaptureFixture) -> None:
     """A TLS listener closes a plain connection (or, elsewhere, waits for a TLS hello
     and says nothing): the gateway says so once, and why it might be."""
@@ -682,47 +670,45 @@ def test_plain_mqtt_to_a_tls_port_says_so(tmp_path: Path,
                                                 [{"name": "boom", "series": "AH"}])],
                "mqtt": {"url": plain}}
 
-        async def body() -> None:
-            async with running(cfg) as gateway:
-                await until(lambda: any("use mqtts://" in r.getMessage()
-                                        for r in caplog.records), timeout=30)
-                assert gateway.mqtt is not None and not gateway.mqtt.connected
-                await until(lambda: gateway.cache.snapshot("boom").seq >= 1)  # runs on
+        async with running(cfg) as gateway:
+            await until(lambda: any("use mqtts://" in r.getMessage()
+                                    for r in caplog.records), timeout=30)
+            assert gateway.mqtt is not None and not gateway.mqtt.connected
+            await until(lambda: gateway.cache.snapshot("boom").seq >= 1)  # runs on
 
-        run(body)
     said = [r.getMessage() for r in caplog.records if "mqtts://" in r.getMessage()]
     assert len(said) == 1, said  # once, not at every retry
 
 
-def test_a_server_that_never_answers_connect_is_given_up_on(
+@pytest.mark.anyio
+async def test_a_server_that_never_answers_connect_is_given_up_on(
         caplog: pytest.LogCaptureFixture) -> None:
     """Not a broker at all (or a TLS port that waits for a hello): a TCP server that
     accepts and says nothing.  Each attempt ends after CONNACK_TIMEOUT, said once."""
     caplog.set_level(logging.WARNING, "gateway.mqtt")
     ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     with simulated([ah]) as line:
-        async def body() -> None:
-            accepted: list[asyncio.StreamWriter] = []
-            silent = await asyncio.start_server(lambda r, w: accepted.append(w),
-                                                "127.0.0.1", 0)
-            port = silent.sockets[0].getsockname()[1]
-            cfg = {"gateway_id": GID, "buses": [bus("a", line.path, "native",
-                                                    [{"name": "boom", "series": "AH"}])],
-                   "mqtt": {"url": f"mqtt://127.0.0.1:{port}"}}
-            async with silent, running(cfg) as gateway:
-                await until(lambda: any("no answer" in r.getMessage()
-                                        for r in caplog.records), timeout=30)
-                assert gateway.mqtt is not None and not gateway.mqtt.connected
-            for writer in accepted:
-                writer.close()
-                await writer.wait_closed()
+        accepted: list[asyncio.StreamWriter] = []
+        silent = await asyncio.start_server(lambda r, w: accepted.append(w),
+                                            "127.0.0.1", 0)
+        port = silent.sockets[0].getsockname()[1]
+        cfg = {"gateway_id": GID, "buses": [bus("a", line.path, "native",
+                                                [{"name": "boom", "series": "AH"}])],
+               "mqtt": {"url": f"mqtt://127.0.0.1:{port}"}}
+        async with silent, running(cfg) as gateway:
+            await until(lambda: any("no answer" in r.getMessage()
+                                    for r in caplog.records), timeout=30)
+            assert gateway.mqtt is not None and not gateway.mqtt.connected
+        for writer in accepted:
+            writer.close()
+            await writer.wait_closed()
 
-        run(body)
     said = [r.getMessage() for r in caplog.records if "no answer" in r.getMessage()]
     assert len(said) == 1 and "within 5 s" in said[0] and "mqtts://" in said[0]
 
 
-def test_twenty_sensors_all_discovery_configs_and_availabilities_arrive(
+@pytest.mark.anyio
+async def test_twenty_sensors_all_discovery_configs_and_availabilities_arrive(
         tmp_path: Path) -> None:
     """320 discovery configs and 20 availabilities at one connect: more than paho's
     own queue would take at once; none may be lost."""
@@ -733,39 +719,36 @@ def test_twenty_sensors_all_discovery_configs_and_availabilities_arrive(
                           [{"name": f"s{a}", "series": "AH", "address": a, "poll_hz": 2}
                            for a in range(20)])], broker, homeassistant_discovery=True)
 
-        async def body() -> None:
-            async with running(cfg) as gateway:
-                await until(lambda: all(s.seq >= 1 for s in gateway.cache.snapshots()),
-                            timeout=30)
-                await until(lambda: written(gateway))
-                kept = await asyncio.to_thread(retained, broker, "#")
-            topics = {m.topic for m in kept}
-            assert len([t for t in topics if t.startswith("homeassistant/")]) == 20 * 16
-            assert {f"{BASE}/s{a}/availability" for a in range(20)} <= topics
-
-        run(body)
+        async with running(cfg) as gateway:
+            await until(lambda: all(s.seq >= 1 for s in gateway.cache.snapshots()),
+                        timeout=30)
+            await until(lambda: written(gateway))
+            kept = await asyncio.to_thread(retained, broker, "#")
+        topics = {m.topic for m in kept}
+        assert len([t for t in topics if t.startswith("homeassistant/")]) == 20 * 16
+        assert {f"{BASE}/s{a}/availability" for a in range(20)} <= topics
 
 
-def test_a_connection_that_worked_resets_the_reconnect_back_off(tmp_path: Path) -> None:
+
+@pytest.mark.anyio
+async def test_a_connection_that_worked_resets_the_reconnect_back_off(tmp_path: Path) -> None:
     ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     with Mosquitto(tmp_path) as broker, simulated([ah]) as line:
         cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])],
                      broker)
 
-        async def body() -> None:
-            async with running(cfg) as gateway:
-                mqtt = gateway.mqtt
-                assert mqtt is not None
-                for restart in range(1, 6):
-                    await until(lambda: mqtt.connected)
-                    broker.stop()
-                    await until(lambda: not mqtt.connected)
-                    broker.start()
+        async with running(cfg) as gateway:
+            mqtt = gateway.mqtt
+            assert mqtt is not None
+            for restart in range(1, 6):
+                await until(lambda: mqtt.connected)
+                broker.stop()
+                await until(lambda: not mqtt.connected)
+                broker.start()
 
-                    def reconnected(r: int = restart) -> bool:
-                        return mqtt.counters.connects == r + 1
+                def reconnected(r: int = restart) -> bool:
+                    return mqtt.counters.connects == r + 1
 
-                    # 0.5 s each time; without the reset the fifth would wait 8 s
-                    await until(reconnected, timeout=4)
+                # 0.5 s each time; without the reset the fifth would wait 8 s
+                await until(reconnected, timeout=4)
 
-        run(body)

@@ -73,142 +73,138 @@ def two_lines() -> Any:
 # ------------------------------------------------------------------ reads
 
 
-def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
+@pytest.mark.anyio
+async def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
     ah, vg, buses = two_lines
 
-    async def body() -> None:
-        async with running(config(buses)) as gateway, client(gateway) as http:
-            await until(lambda: all(s.seq >= 2 for s in gateway.cache.snapshots()))
-            health = (await http.get(f"{API}/health")).json()
-            assert health["status"] == "ok" and health["gateway_id"] == "test"
-            assert health["buses"] == {"a": True, "b": True}
-            assert health["sensors"] == {"ok": 2, "stale": 0, "offline": 0}
-            assert health["interfaces"] == ["http"]
+    async with running(config(buses)) as gateway, client(gateway) as http:
+        await until(lambda: all(s.seq >= 2 for s in gateway.cache.snapshots()))
+        health = (await http.get(f"{API}/health")).json()
+        assert health["status"] == "ok" and health["gateway_id"] == "test"
+        assert health["buses"] == {"a": True, "b": True}
+        assert health["sensors"] == {"ok": 2, "stale": 0, "offline": 0}
+        assert health["interfaces"] == ["http"]
 
-            # the value groups and their units, from the gateway's one table (the
-            # dashboard labels its values with these)
-            groups = {g["group"]: g for g in (await http.get(f"{API}/groups")).json()}
-            assert list(groups) == ["angles", "accel", "gyro", "mag", "quaternion"]
-            assert groups["gyro"] == {"group": "gyro", "fields": ["gyro_x", "gyro_y", "gyro_z"],
-                                      "unit": "°/s", "unit_name": "degrees per second",
-                                      "digits": 2}
+        # the value groups and their units, from the gateway's one table (the
+        # dashboard labels its values with these)
+        groups = {g["group"]: g for g in (await http.get(f"{API}/groups")).json()}
+        assert list(groups) == ["angles", "accel", "gyro", "mag", "quaternion"]
+        assert groups["gyro"] == {"group": "gyro", "fields": ["gyro_x", "gyro_y", "gyro_z"],
+                                  "unit": "°/s", "unit_name": "degrees per second",
+                                  "digits": 2}
 
-            buses_out = {b["name"]: b for b in (await http.get(f"{API}/buses")).json()}
-            assert buses_out["a"]["protocol"] == "native" and buses_out["b"]["protocol"] == "modbus"
-            assert buses_out["a"]["baudrate"] == FAST and buses_out["a"]["sensors"] == ["boom"]
-            assert buses_out["a"]["transactions"] >= 2 and buses_out["a"]["port_open"] is True
-            assert 0 < buses_out["a"]["utilisation"] <= 1.0
-            # each sensor's learned answer timing: never less than the simulator's delay
-            timing = buses_out["a"]["timing"]["boom"]
-            assert timing["latency_ms"] >= 0.9 * ah.answer_delay * 1000
-            assert timing["timeout_ms"] >= timing["latency_ms"]
-            assert set(buses_out["b"]["timing"]) == {"arm"}
-            # the configured rate beside the one achieved (poll_hz of the config below)
-            assert timing["requested_hz"] == gateway.sensors["boom"].poll_hz
-            assert timing["achieved_hz"] > 0
+        buses_out = {b["name"]: b for b in (await http.get(f"{API}/buses")).json()}
+        assert buses_out["a"]["protocol"] == "native" and buses_out["b"]["protocol"] == "modbus"
+        assert buses_out["a"]["baudrate"] == FAST and buses_out["a"]["sensors"] == ["boom"]
+        assert buses_out["a"]["transactions"] >= 2 and buses_out["a"]["port_open"] is True
+        assert 0 < buses_out["a"]["utilisation"] <= 1.0
+        # each sensor's learned answer timing: never less than the simulator's delay
+        timing = buses_out["a"]["timing"]["boom"]
+        assert timing["latency_ms"] >= 0.9 * ah.answer_delay * 1000
+        assert timing["timeout_ms"] >= timing["latency_ms"]
+        assert set(buses_out["b"]["timing"]) == {"arm"}
+        # the configured rate beside the one achieved (poll_hz of the config below)
+        assert timing["requested_hz"] == gateway.sensors["boom"].poll_hz
+        assert timing["achieved_hz"] > 0
 
-            listed = {s["name"]: s for s in (await http.get(f"{API}/sensors")).json()}
-            assert listed["boom"]["series"] == "AH" and listed["arm"]["protocol"] == "modbus"
-            assert listed["boom"]["status"] == "ok" and listed["boom"]["unit_id"] == 1
+        listed = {s["name"]: s for s in (await http.get(f"{API}/sensors")).json()}
+        assert listed["boom"]["series"] == "AH" and listed["arm"]["protocol"] == "modbus"
+        assert listed["boom"]["status"] == "ok" and listed["boom"]["unit_id"] == 1
 
-            detail = (await http.get(f"{API}/sensors/arm")).json()
-            assert detail["config"]["address"] == 1 and detail["reading"]["sensor"] == "arm"
-            # a VG measures no magnetic field: the group is absent, never null, in the
-            # detail's reading as in the reading itself
-            assert set(detail["reading"]) == {"sensor", "ts", "seq", "status", "angles",
-                                              "accel", "gyro", "quaternion"}
-            assert "age_ms" in detail and "settings" in detail  # the route's own fields
+        detail = (await http.get(f"{API}/sensors/arm")).json()
+        assert detail["config"]["address"] == 1 and detail["reading"]["sensor"] == "arm"
+        # a VG measures no magnetic field: the group is absent, never null, in the
+        # detail's reading as in the reading itself
+        assert set(detail["reading"]) == {"sensor", "ts", "seq", "status", "angles",
+                                          "accel", "gyro", "quaternion"}
+        assert "age_ms" in detail and "settings" in detail  # the route's own fields
 
-            for name, sim, protocol in (("boom", ah, WireProtocol.NATIVE),
-                                        ("arm", vg, WireProtocol.MODBUS)):
-                response = await http.get(f"{API}/sensors/{name}/reading")
-                assert response.status_code == 200
-                got = response.json()
-                assert got["status"] == "ok" and got["seq"] >= 2
-                want = expected(sim)
-                assert set(fields_of(got)) == set(want)  # a VG has no "mag" group
-                for field_name, value in fields_of(got).items():
-                    assert abs(value - want[field_name]) <= tolerance(
-                        protocol, field_name, value), (name, field_name)
+        for name, sim, protocol in (("boom", ah, WireProtocol.NATIVE),
+                                    ("arm", vg, WireProtocol.MODBUS)):
+            response = await http.get(f"{API}/sensors/{name}/reading")
+            assert response.status_code == 200
+            got = response.json()
+            assert got["status"] == "ok" and got["seq"] >= 2
+            want = expected(sim)
+            assert set(fields_of(got)) == set(want)  # a VG has no "mag" group
+            for field_name, value in fields_of(got).items():
+                assert abs(value - want[field_name]) <= tolerance(
+                    protocol, field_name, value), (name, field_name)
 
-            assert_error(await http.get(f"{API}/sensors/nobody"), 404, "unknown_sensor")
-            assert_error(await http.get(f"{API}/sensors/nobody/reading"), 404, "unknown_sensor")
-            assert_error(await http.get(f"{API}/nothing/here"), 404, "not_found")
-
-    run(body)
+        assert_error(await http.get(f"{API}/sensors/nobody"), 404, "unknown_sensor")
+        assert_error(await http.get(f"{API}/sensors/nobody/reading"), 404, "unknown_sensor")
+        assert_error(await http.get(f"{API}/nothing/here"), 404, "not_found")
 
 
-def test_max_age_reads_the_bus_and_a_silent_sensor_is_504(two_lines: Any) -> None:
+
+@pytest.mark.anyio
+async def test_max_age_reads_the_bus_and_a_silent_sensor_is_504(two_lines: Any) -> None:
     ah, _, buses = two_lines
     buses[0]["sensors"][0]["poll_hz"] = 0.2  # a reading every 5 s: max_age must ask
 
-    async def body() -> None:
-        async with running(config(buses)) as gateway, client(gateway) as http:
-            await until(lambda: gateway.cache.snapshot("boom").seq >= 1)
-            await asyncio.sleep(0.3)
-            before = gateway.cache.snapshot("boom").seq
-            fresh = (await http.get(f"{API}/sensors/boom/reading",
-                                    params={"max_age_ms": 100})).json()
-            assert fresh["seq"] > before  # read from the bus, not the cache
-            cached = (await http.get(f"{API}/sensors/boom/reading",
-                                     params={"max_age_ms": 60_000})).json()
-            assert cached["seq"] == fresh["seq"]  # young enough: no bus read
-            assert_error(await http.get(f"{API}/sensors/boom/reading",
-                                        params={"max_age_ms": -1}), 422, "bad_arguments")
-            assert_error(await http.get(f"{API}/sensors/boom/reading",
-                                        params={"max_age_ms": "soon"}), 422, "bad_arguments")
-            ah.faults.stalled = True
-            response = await http.get(f"{API}/sensors/boom/reading", params={"max_age_ms": 0})
-            assert response.status_code == 504, response.text
-            # without max_age_ms the cached reading is served, marked for what it is
-            await until(lambda: gateway.cache.snapshot("boom").status.value == "offline",
-                        timeout=20)
-            old = (await http.get(f"{API}/sensors/boom/reading")).json()
-            assert old["status"] == "offline" and old["seq"] == fresh["seq"]
-            assert (await http.get(f"{API}/health")).json()["status"] == "degraded"
-
-    run(body)
+    async with running(config(buses)) as gateway, client(gateway) as http:
+        await until(lambda: gateway.cache.snapshot("boom").seq >= 1)
+        await asyncio.sleep(0.3)
+        before = gateway.cache.snapshot("boom").seq
+        fresh = (await http.get(f"{API}/sensors/boom/reading",
+                                params={"max_age_ms": 100})).json()
+        assert fresh["seq"] > before  # read from the bus, not the cache
+        cached = (await http.get(f"{API}/sensors/boom/reading",
+                                 params={"max_age_ms": 60_000})).json()
+        assert cached["seq"] == fresh["seq"]  # young enough: no bus read
+        assert_error(await http.get(f"{API}/sensors/boom/reading",
+                                    params={"max_age_ms": -1}), 422, "bad_arguments")
+        assert_error(await http.get(f"{API}/sensors/boom/reading",
+                                    params={"max_age_ms": "soon"}), 422, "bad_arguments")
+        ah.faults.stalled = True
+        response = await http.get(f"{API}/sensors/boom/reading", params={"max_age_ms": 0})
+        assert response.status_code == 504, response.text
+        # without max_age_ms the cached reading is served, marked for what it is
+        await until(lambda: gateway.cache.snapshot("boom").status.value == "offline",
+                    timeout=20)
+        old = (await http.get(f"{API}/sensors/boom/reading")).json()
+        assert old["status"] == "offline" and old["seq"] == fresh["seq"]
+        assert (await http.get(f"{API}/health")).json()["status"] == "degraded"
 
 
-def test_no_reading_yet_is_503(tmp_path: Path) -> None:
+
+@pytest.mark.anyio
+async def test_no_reading_yet_is_503(tmp_path: Path) -> None:
     dead = sensor(WireProtocol.NATIVE, Series.AH, faults=Faults(stalled=True))
     with simulated([dead]) as line:
         buses = [bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])]
 
-        async def body() -> None:
-            async with running(config(buses)) as gateway, client(gateway) as http:
-                assert_error(await http.get(f"{API}/sensors/boom/reading"), 503, "no_reading")
-                detail = (await http.get(f"{API}/sensors/boom")).json()
-                assert detail["reading"] is None and detail["status"] == "offline"
-
-        run(body)
+        async with running(config(buses)) as gateway, client(gateway) as http:
+            assert_error(await http.get(f"{API}/sensors/boom/reading"), 503, "no_reading")
+            detail = (await http.get(f"{API}/sensors/boom")).json()
+            assert detail["reading"] is None and detail["status"] == "offline"
 
 
-def test_read_token_required(two_lines: Any) -> None:
+
+@pytest.mark.anyio
+async def test_read_token_required(two_lines: Any) -> None:
     _, _, buses = two_lines
 
-    async def body() -> None:
-        async with running(config(buses, read_token_required=True)) as gateway, \
-                client(gateway) as http:
-            for path in ("/health", "/buses", "/sensors", "/sensors/boom"):
-                response = await http.get(API + path)
-                assert_error(response, 401, "unauthorised")
-                assert response.headers["WWW-Authenticate"] == "Bearer"
-                assert (await http.get(API + path, headers=AUTH)).status_code == 200
-            assert (await http.get("/metrics")).status_code == 401
-            # A stream takes the token as ?access_token= too (EventSource has no headers).
-            assert_error(await http.get(f"{API}/stream", params={"access_token": "no"}),
-                         401, "unauthorised")
-            async with http.stream("GET", f"{API}/sensors/boom/stream",
-                                   params={"access_token": TOKEN}) as response:
-                assert response.status_code == 200
-                async for name, _ in sse_events(response):
-                    assert name in ("reading", "status")
-                    break
-            wrong = {"Authorization": "Bearer not-it"}
-            assert_error(await http.get(f"{API}/health", headers=wrong), 401, "unauthorised")
+    async with running(config(buses, read_token_required=True)) as gateway, \
+            client(gateway) as http:
+        for path in ("/health", "/buses", "/sensors", "/sensors/boom"):
+            response = await http.get(API + path)
+            assert_error(response, 401, "unauthorised")
+            assert response.headers["WWW-Authenticate"] == "Bearer"
+            assert (await http.get(API + path, headers=AUTH)).status_code == 200
+        assert (await http.get("/metrics")).status_code == 401
+        # A stream takes the token as ?access_token= too (EventSource has no headers).
+        assert_error(await http.get(f"{API}/stream", params={"access_token": "no"}),
+                     401, "unauthorised")
+        async with http.stream("GET", f"{API}/sensors/boom/stream",
+                               params={"access_token": TOKEN}) as response:
+            assert response.status_code == 200
+            async for name, _ in sse_events(response):
+                assert name in ("reading", "status")
+                break
+        wrong = {"Authorization": "Bearer not-it"}
+        assert_error(await http.get(f"{API}/health", headers=wrong), 401, "unauthorised")
 
-    run(body)
 
 
 # ------------------------------------------------------------------ commands
@@ -288,18 +284,17 @@ def test_commands_status_codes(two_lines: Any) -> None:
     run(body)
 
 
-def test_commands_turned_off_are_403(two_lines: Any) -> None:
+@pytest.mark.anyio
+async def test_commands_turned_off_are_403(two_lines: Any) -> None:
     ah, _, buses = two_lines
 
-    async def body() -> None:
-        async with running(config(buses, allow_commands=False)) as gateway, \
-                client(gateway) as http:
-            response = await http.post(f"{API}/sensors/boom/commands/set_zero_type",
-                                       json={"type": "relative"}, headers=AUTH)
-            assert_error(response, 403, "forbidden")
-            assert ah.settings.zero_type == "absolute"
+    async with running(config(buses, allow_commands=False)) as gateway, \
+            client(gateway) as http:
+        response = await http.post(f"{API}/sensors/boom/commands/set_zero_type",
+                                   json={"type": "relative"}, headers=AUTH)
+        assert_error(response, 403, "forbidden")
+        assert ah.settings.zero_type == "absolute"
 
-    run(body)
 
 
 # ------------------------------------------------------------------ live stream
@@ -317,134 +312,129 @@ async def sse_events(response: httpx.Response) -> AsyncIterator[tuple[str, dict[
             name, data = "message", ""
 
 
-def test_stream_delivers_every_reading_at_the_poll_rate(two_lines: Any) -> None:
+@pytest.mark.anyio
+async def test_stream_delivers_every_reading_at_the_poll_rate(two_lines: Any) -> None:
     _, _, buses = two_lines
     for b in buses:
         b["sensors"][0]["poll_hz"] = 20
 
-    async def body() -> None:
-        async with running(config(buses)) as gateway, client(gateway) as http:
-            await until(lambda: all(s.seq >= 1 for s in gateway.cache.snapshots()))
-            seen: dict[str, list[int]] = {"boom": [], "arm": []}
-            async with http.stream("GET", f"{API}/stream") as response:
-                assert response.headers["content-type"].startswith("text/event-stream")
-                start = {s.name: s.seq for s in gateway.cache.snapshots()}
-                async for name, event in sse_events(response):
-                    if name == "reading":
-                        seen[event["sensor"]].append(event["seq"])
-                    if all(len(s) >= 30 for s in seen.values()):
-                        break
-            for sensor, seqs in seen.items():
-                # every reading, in order, none skipped: the poll rate is the event rate
-                later = [s for s in seqs if s > start[sensor]]
-                assert later == list(range(later[0], later[0] + len(later))), sensor
-            async with http.stream("GET", f"{API}/sensors/arm/stream") as response:
-                async for name, event in sse_events(response):
-                    assert event["sensor"] == "arm"
-                    if name == "reading":
-                        assert fields_of(event) and "mag" not in event
-                        break
-            response = await http.get(f"{API}/sensors/nobody/stream")
-            assert_error(response, 404, "unknown_sensor")
-
-    run(body)
+    async with running(config(buses)) as gateway, client(gateway) as http:
+        await until(lambda: all(s.seq >= 1 for s in gateway.cache.snapshots()))
+        seen: dict[str, list[int]] = {"boom": [], "arm": []}
+        async with http.stream("GET", f"{API}/stream") as response:
+            assert response.headers["content-type"].startswith("text/event-stream")
+            start = {s.name: s.seq for s in gateway.cache.snapshots()}
+            async for name, event in sse_events(response):
+                if name == "reading":
+                    seen[event["sensor"]].append(event["seq"])
+                if all(len(s) >= 30 for s in seen.values()):
+                    break
+        for sensor, seqs in seen.items():
+            # every reading, in order, none skipped: the poll rate is the event rate
+            later = [s for s in seqs if s > start[sensor]]
+            assert later == list(range(later[0], later[0] + len(later))), sensor
+        async with http.stream("GET", f"{API}/sensors/arm/stream") as response:
+            async for name, event in sse_events(response):
+                assert event["sensor"] == "arm"
+                if name == "reading":
+                    assert fields_of(event) and "mag" not in event
+                    break
+        response = await http.get(f"{API}/sensors/nobody/stream")
+        assert_error(response, 404, "unknown_sensor")
 
 
-def test_a_stream_client_that_does_not_read_is_dropped(two_lines: Any) -> None:
+
+@pytest.mark.anyio
+async def test_a_stream_client_that_does_not_read_is_dropped(two_lines: Any) -> None:
     _, _, buses = two_lines
     buses[0]["sensors"][0]["poll_hz"] = 0  # as fast as the line goes
 
-    async def body() -> None:
-        async with running(config(buses)) as gateway:
-            assert gateway.http is not None and gateway.http.hub is not None
-            hub = gateway.http.hub
-            # A client with a tiny receive window that never reads.
-            sock = socket.socket()
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
-            sock.connect(("127.0.0.1", gateway.http.port))
-            sock.sendall(f"GET {API}/sensors/boom/stream HTTP/1.1\r\n"
-                         "Host: test\r\n\r\n".encode())
-            try:
-                await until(lambda: hub.dropped >= 1, timeout=60)
-                await until(lambda: not hub.subscribers)
-                # a reading client is served meanwhile
-                async with client(gateway) as http:
-                    assert (await http.get(f"{API}/health")).status_code == 200
-            finally:
-                sock.close()
-            await until(lambda: hub.open == 0)  # its stream ended with its connection
+    async with running(config(buses)) as gateway:
+        assert gateway.http is not None and gateway.http.hub is not None
+        hub = gateway.http.hub
+        # A client with a tiny receive window that never reads.
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
+        sock.connect(("127.0.0.1", gateway.http.port))
+        sock.sendall(f"GET {API}/sensors/boom/stream HTTP/1.1\r\n"
+                     "Host: test\r\n\r\n".encode())
+        try:
+            await until(lambda: hub.dropped >= 1, timeout=60)
+            await until(lambda: not hub.subscribers)
+            # a reading client is served meanwhile
+            async with client(gateway) as http:
+                assert (await http.get(f"{API}/health")).status_code == 200
+        finally:
+            sock.close()
+        await until(lambda: hub.open == 0)  # its stream ended with its connection
 
-    run(body)
 
 
 # ------------------------------------------------------------------ metrics, OpenAPI
 
 
-def test_metrics(two_lines: Any) -> None:
+@pytest.mark.anyio
+async def test_metrics(two_lines: Any) -> None:
     _, vg, buses = two_lines
 
-    async def body() -> None:
-        async with running(config(buses)) as gateway, client(gateway) as http:
-            await until(lambda: all(s.seq >= 2 for s in gateway.cache.snapshots()))
-            vg.faults.stalled = True
-            await until(lambda: gateway.cache.snapshot("arm").status.value == "offline",
-                        timeout=20)
-            buses_out = {b["name"]: b for b in (await http.get(f"{API}/buses")).json()}
-            response = await http.get("/metrics")
-            assert response.headers["content-type"].startswith("text/plain")
-            samples = {(s.name, tuple(sorted(s.labels.items()))): s.value
-                       for family in text_string_to_metric_families(response.text)
-                       for s in family.samples}
-            tx = samples[("imu_gateway_bus_transactions_total", (("bus", "a"),))]
-            assert buses_out["a"]["transactions"] <= tx <= buses_out["a"]["transactions"] + 100
-            assert samples[("imu_gateway_bus_port_open", (("bus", "b"),))] == 1
-            assert ("imu_gateway_bus_utilisation", (("bus", "a"),)) in samples
-            assert ("imu_gateway_bus_queue_depth", (("bus", "a"),)) in samples
-            assert samples[("imu_gateway_bus_errors_total",
-                            (("bus", "b"), ("kind", "timeout")))] >= 1
-            status = {labels: v for (name, labels), v in samples.items()
-                      if name == "imu_gateway_sensor_status" and ("sensor", "arm") in labels}
-            assert status == {(("sensor", "arm"), ("status", "offline")): 1.0,
-                              (("sensor", "arm"), ("status", "ok")): 0.0,
-                              (("sensor", "arm"), ("status", "stale")): 0.0}
-            assert samples[("imu_gateway_sensor_rate_hz", (("sensor", "boom"),))] > 0
-            latency = samples[("imu_gateway_sensor_latency_seconds", (("sensor", "boom"),))]
-            timeout = samples[("imu_gateway_sensor_timeout_seconds", (("sensor", "boom"),))]
-            assert 0 < latency <= timeout
-            assert ("imu_gateway_sensor_late_answers_total", (("sensor", "arm"),)) in samples
-            assert samples[("imu_gateway_sensor_age_seconds", (("sensor", "boom"),))] >= 0
-            assert samples[("imu_gateway_frontend_requests_total", (("frontend", "http"),))] >= 2
-            assert ("imu_gateway_frontend_clients", (("frontend", "http"),)) in samples
-
-    run(body)
+    async with running(config(buses)) as gateway, client(gateway) as http:
+        await until(lambda: all(s.seq >= 2 for s in gateway.cache.snapshots()))
+        vg.faults.stalled = True
+        await until(lambda: gateway.cache.snapshot("arm").status.value == "offline",
+                    timeout=20)
+        buses_out = {b["name"]: b for b in (await http.get(f"{API}/buses")).json()}
+        response = await http.get("/metrics")
+        assert response.headers["content-type"].startswith("text/plain")
+        samples = {(s.name, tuple(sorted(s.labels.items()))): s.value
+                   for family in text_string_to_metric_families(response.text)
+                   for s in family.samples}
+        tx = samples[("imu_gateway_bus_transactions_total", (("bus", "a"),))]
+        assert buses_out["a"]["transactions"] <= tx <= buses_out["a"]["transactions"] + 100
+        assert samples[("imu_gateway_bus_port_open", (("bus", "b"),))] == 1
+        assert ("imu_gateway_bus_utilisation", (("bus", "a"),)) in samples
+        assert ("imu_gateway_bus_queue_depth", (("bus", "a"),)) in samples
+        assert samples[("imu_gateway_bus_errors_total",
+                        (("bus", "b"), ("kind", "timeout")))] >= 1
+        status = {labels: v for (name, labels), v in samples.items()
+                  if name == "imu_gateway_sensor_status" and ("sensor", "arm") in labels}
+        assert status == {(("sensor", "arm"), ("status", "offline")): 1.0,
+                          (("sensor", "arm"), ("status", "ok")): 0.0,
+                          (("sensor", "arm"), ("status", "stale")): 0.0}
+        assert samples[("imu_gateway_sensor_rate_hz", (("sensor", "boom"),))] > 0
+        latency = samples[("imu_gateway_sensor_latency_seconds", (("sensor", "boom"),))]
+        timeout = samples[("imu_gateway_sensor_timeout_seconds", (("sensor", "boom"),))]
+        assert 0 < latency <= timeout
+        assert ("imu_gateway_sensor_late_answers_total", (("sensor", "arm"),)) in samples
+        assert samples[("imu_gateway_sensor_age_seconds", (("sensor", "boom"),))] >= 0
+        assert samples[("imu_gateway_frontend_requests_total", (("frontend", "http"),))] >= 2
+        assert ("imu_gateway_frontend_clients", (("frontend", "http"),)) in samples
 
 
-def test_committed_openapi_document_is_what_the_app_serves(two_lines: Any) -> None:
+
+@pytest.mark.anyio
+async def test_committed_openapi_document_is_what_the_app_serves(two_lines: Any) -> None:
     _, _, buses = two_lines
     committed = (ROOT / "openapi" / "openapi.json").read_text()
     assert openapi_json() == committed, "run scripts/openapi and commit the result"
 
-    async def body() -> None:
-        async with running(config(buses)) as gateway, client(gateway) as http:
-            served = (await http.get("/openapi.json")).json()
-            assert served == json.loads(committed)
-
-    run(body)
+    async with running(config(buses)) as gateway, client(gateway) as http:
+        served = (await http.get("/openapi.json")).json()
+        assert served == json.loads(committed)
 
 
-def test_a_taken_port_is_a_clear_startup_error(two_lines: Any) -> None:
+
+@pytest.mark.anyio
+async def test_a_taken_port_is_a_clear_startup_error(two_lines: Any) -> None:
     _, _, buses = two_lines
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
 
-        async def body() -> None:
-            with pytest.raises(StartupError, match=f"http.listen 127.0.0.1:{port}: "):
-                async with running(config(buses, listen=f"127.0.0.1:{port}")):
-                    pass
+        with pytest.raises(StartupError, match=f"http.listen 127.0.0.1:{port}: "):
+            async with running(config(buses, listen=f"127.0.0.1:{port}")):
+                pass
 
-        run(body)
 
 
 def test_busy_with_is_shown_only_while_the_sensor_is_busy() -> None:
@@ -474,7 +464,8 @@ def test_reading_groups_are_optional_and_never_null_in_the_openapi_schema() -> N
         assert schema["properties"][name]["$ref"].startswith("#/components/schemas/")
 
 
-def test_a_value_that_is_not_a_number_is_null_not_broken_json() -> None:
+@pytest.mark.anyio
+async def test_a_value_that_is_not_a_number_is_null_not_broken_json() -> None:
     """A Modbus float register can hold NaN; JSON cannot."""
     from dataclasses import replace
 
@@ -486,18 +477,16 @@ def test_a_value_that_is_not_a_number_is_null_not_broken_json() -> None:
     with simulated([vg]) as line:
         buses = [bus("b", line.path, "modbus", [{"name": "arm", "series": "VG"}])]
 
-        async def body() -> None:
-            async with running(config(buses)) as gateway, client(gateway) as http:
-                await until(lambda: gateway.cache.snapshot("arm").seq >= 1)
-                got = (await http.get(f"{API}/sensors/arm/reading")).json()
-                assert got["accel"]["x"] is None and got["accel"]["z"] is None
-                assert READING.accel is not None
-                assert abs(got["accel"]["y"] - READING.accel.y) < 1e-6
-                detail = await http.get(f"{API}/sensors/arm")
-                assert detail.status_code == 200
-                assert detail.json()["reading"]["accel"]["x"] is None
+        async with running(config(buses)) as gateway, client(gateway) as http:
+            await until(lambda: gateway.cache.snapshot("arm").seq >= 1)
+            got = (await http.get(f"{API}/sensors/arm/reading")).json()
+            assert got["accel"]["x"] is None and got["accel"]["z"] is None
+            assert READING.accel is not None
+            assert abs(got["accel"]["y"] - READING.accel.y) < 1e-6
+            detail = await http.get(f"{API}/sensors/arm")
+            assert detail.status_code == 200
+            assert detail.json()["reading"]["accel"]["x"] is None
 
-        run(body)
 
 
 def test_command_bodies_are_read_only_after_access_is_granted(two_lines: Any) -> None:

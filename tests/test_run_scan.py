@@ -156,27 +156,26 @@ def test_scan_finds_slow_sensors_with_its_defaults(protocol: str) -> None:
         [str(first + 4), str(first + 9)]
 
 
-def test_a_second_program_on_the_gateways_port_gets_a_clear_error() -> None:
+@pytest.mark.anyio
+async def test_a_second_program_on_the_gateways_port_gets_a_clear_error() -> None:
     """One owner per line: the gateway opens its device exclusively, so a scan (or a
     second gateway) started on the same port is refused at once, and the gateway
     carries on."""
     with simulated([make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200)]) as sim:
-        async def body() -> None:
-            async with running({"buses": [{
-                    "name": "a", "port": sim.path, "baudrate": 115200, "protocol": "native",
-                    "sensors": [{"name": "boom", "series": "AH", "poll_hz": 20}]}]}) as gw:
-                await until(lambda: gw.cache.snapshot("boom").seq >= 1)
-                done = await asyncio.to_thread(
-                    subprocess.run, gateway_cli("scan", "--port", sim.path, "--baud", "115200"),
-                    capture_output=True, text=True, timeout=60, check=False)
-                assert done.returncode == 2, done.stderr
-                assert f"{sim.path} is in use by another process: stop the gateway first" \
-                    in done.stderr and "Traceback" not in done.stderr
-                seq = gw.cache.snapshot("boom").seq
-                await until(lambda: gw.cache.snapshot("boom").seq > seq + 5)
-                assert sim.bus.stats.masters_overlaps == 0
+        async with running({"buses": [{
+                "name": "a", "port": sim.path, "baudrate": 115200, "protocol": "native",
+                "sensors": [{"name": "boom", "series": "AH", "poll_hz": 20}]}]}) as gw:
+            await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+            done = await asyncio.to_thread(
+                subprocess.run, gateway_cli("scan", "--port", sim.path, "--baud", "115200"),
+                capture_output=True, text=True, timeout=60, check=False)
+            assert done.returncode == 2, done.stderr
+            assert f"{sim.path} is in use by another process: stop the gateway first" \
+                in done.stderr and "Traceback" not in done.stderr
+            seq = gw.cache.snapshot("boom").seq
+            await until(lambda: gw.cache.snapshot("boom").seq > seq + 5)
+            assert sim.bus.stats.masters_overlaps == 0
 
-        run(body)
 
 
 def test_scan_reports_progress_with_an_estimate_of_the_time_left() -> None:

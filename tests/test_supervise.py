@@ -6,7 +6,7 @@ import asyncio
 import logging
 
 import pytest
-from harness import run, until
+from harness import until
 
 from gateway import supervise
 from gateway.supervise import Frontend, PeerLog, RepeatFilter, Supervisor
@@ -30,7 +30,8 @@ class Flaky(Frontend):
         raise RuntimeError("a broken front end may not stop cleanly either")
 
 
-def test_a_failed_frontend_is_restarted_with_back_off(monkeypatch: pytest.MonkeyPatch,
+@pytest.mark.anyio
+async def test_a_failed_frontend_is_restarted_with_back_off(monkeypatch: pytest.MonkeyPatch,
                                                       caplog: pytest.LogCaptureFixture) -> None:
     delays: list[float] = []
     real_sleep = asyncio.sleep
@@ -41,23 +42,21 @@ def test_a_failed_frontend_is_restarted_with_back_off(monkeypatch: pytest.Monkey
 
     monkeypatch.setattr(asyncio, "sleep", sleep)
 
-    async def body() -> None:
-        frontend = Flaky(failing_starts=3)  # the first restarts fail to start again
-        frontend.arm()
-        supervisor = Supervisor()
-        watcher = asyncio.create_task(supervisor.watch(frontend))
-        frontend.fail(ValueError("a peer's bad value"))
-        frontend.fail(ValueError("the same failure, again"))  # not a second restart
-        await until(lambda: frontend.starts == 4)
-        assert supervisor.restarts["flaky"] == 4  # the failure, then three failed starts
-        # (``until`` polls with short sleeps of its own)
-        assert [d for d in delays if d >= supervise.RESTART_MIN] == [1.0, 2.0, 4.0, 8.0]
-        frontend.fail(KeyError("later"))  # still watched after a good start
-        await until(lambda: supervisor.restarts["flaky"] == 5)
-        watcher.cancel()
-        await asyncio.gather(watcher, return_exceptions=True)
+    frontend = Flaky(failing_starts=3)  # the first restarts fail to start again
+    frontend.arm()
+    supervisor = Supervisor()
+    watcher = asyncio.create_task(supervisor.watch(frontend))
+    frontend.fail(ValueError("a peer's bad value"))
+    frontend.fail(ValueError("the same failure, again"))  # not a second restart
+    await until(lambda: frontend.starts == 4)
+    assert supervisor.restarts["flaky"] == 4  # the failure, then three failed starts
+    # (``until`` polls with short sleeps of its own)
+    assert [d for d in delays if d >= supervise.RESTART_MIN] == [1.0, 2.0, 4.0, 8.0]
+    frontend.fail(KeyError("later"))  # still watched after a good start
+    await until(lambda: supervisor.restarts["flaky"] == 5)
+    watcher.cancel()
+    await asyncio.gather(watcher, return_exceptions=True)
 
-    run(body)
     messages = [r.getMessage() for r in caplog.records if r.levelno == logging.ERROR]
     assert messages[0] == ("flaky failed (ValueError: a peer's bad value); restarting it "
                            "in 1 s; the rest goes on")
