@@ -21,7 +21,7 @@ import enum
 import logging
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from typing import Any
 
@@ -82,6 +82,22 @@ Listener = Callable[[EventKind, Snapshot], None]
 ErrorHook = Callable[[BaseException], None]
 
 
+@dataclass(frozen=True, slots=True)
+class KnownSettings:
+    """A sensor's settings as far as the gateway knows them: learned from the answers
+    to commands and pass-through exchanges, never guessed (``None``: not known)."""
+
+    zero_type: str | None = None
+    declination: float | None = None
+    relative_heading: float | None = None
+    mag_calibration: str | None = None
+    busy_with: str | None = None  # the save or gyro calibration under way
+
+    def to_json(self) -> dict[str, Any]:
+        """The known ones only, as REST shows them."""
+        return {f: getattr(self, f) for f in self.__slots__ if getattr(self, f) is not None}
+
+
 @dataclass(slots=True)
 class _Entry:
     stale_after: float  # seconds
@@ -94,7 +110,7 @@ class _Entry:
     streaming: bool = False
     errors: int = 0
     reported: tuple[Status, bool, bool] | None = None  # last status event sent
-    settings: dict[str, Any] = field(default_factory=dict)
+    settings: KnownSettings = KnownSettings()
 
 
 class Cache:
@@ -169,7 +185,7 @@ class Cache:
         if busy is not None:
             e.busy = busy
             if not busy:  # what it was busy with is over
-                e.settings.pop("busy_with", None)
+                e.settings = replace(e.settings, busy_with=None)
         if streaming is not None:
             e.streaming = streaming
         self._check(name)
@@ -185,11 +201,11 @@ class Cache:
         e = self._entry(name)
         if not e.busy:
             values.pop("busy_with", None)
-        e.settings.update(values)
+        e.settings = replace(e.settings, **values)  # an unknown name is a TypeError
 
-    def settings(self, name: str) -> dict[str, Any]:
+    def settings(self, name: str) -> KnownSettings:
         """The sensor's settings as far as the gateway knows them."""
-        return dict(self._entry(name).settings)
+        return self._entry(name).settings
 
     def check_staleness(self) -> None:
         for name in self._entries:

@@ -45,7 +45,7 @@ async def test_calibration_answered_complete_is_over_at_once() -> None:
             result = await gw.command("vg", "calibrate_gyro")
             assert result.ok and result.answer == {"value": 1}  # 1 = complete
             assert not gw.cache.snapshot("vg").busy
-            assert "busy_with" not in gw.cache.settings("vg")
+            assert gw.cache.settings("vg").busy_with is None
             again = await gw.command("vg", "set_zero_type", {"type": "relative"})
             assert again.ok, again  # not refused as busy
 
@@ -60,12 +60,12 @@ async def test_calibration_under_way_is_busy_for_commands_but_still_read() -> No
             result = await gw.command("vg", "calibrate_gyro")
             assert result.ok and result.answer == {"value": 0}  # 0 = started
             assert gw.cache.snapshot("vg").busy
-            assert gw.cache.settings("vg")["busy_with"] == "calibrate_gyro"
+            assert gw.cache.settings("vg").busy_with == "calibrate_gyro"
             refused = await gw.command("vg", "save")
             assert refused.kind is ErrorKind.BUSY
             seq = gw.cache.snapshot("vg").seq
             await until(lambda: gw.cache.snapshot("vg").seq >= seq + 5, 1.0)
             assert gw.cache.snapshot("vg").busy  # still calibrating, and read
             await until(lambda: not gw.cache.snapshot("vg").busy, 5.0)  # "done"
-            assert "busy_with" not in gw.cache.settings("vg")
+            assert gw.cache.settings("vg").busy_with is None
             assert (await gw.command("vg", "set_zero_type", {"type": "absolute"})).ok

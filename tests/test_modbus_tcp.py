@@ -802,7 +802,7 @@ async def test_passthrough_unit_reaches_the_modbus_sensors_own_registers() -> No
             # what the gateway knows follows, whichever unit set it: its map reads
             # the zero type back (1000: 1 relative)
             assert await registers(client, 2, 1000, 1) == [1]
-            assert gw.cache.settings("vg")["zero_type"] == "relative"
+            assert gw.cache.settings("vg").zero_type == "relative"
             assert await registers(client, 50, 0x05, 1) == own(0x05, 1)
             # a change behind the gateway's back is learnt from a read of 0x05 too
             vg.settings.zero_type = "absolute"

@@ -445,14 +445,14 @@ def test_busy_with_is_shown_only_while_the_sensor_is_busy() -> None:
     cache = Cache([("boom", 1000)])
     cache.set_state("boom", online=True, busy=True)
     cache.note_settings("boom", busy_with="save", zero_type="relative")
-    assert cache.settings("boom") == {"busy_with": "save", "zero_type": "relative"}
+    assert cache.settings("boom").to_json() == {"busy_with": "save", "zero_type": "relative"}
     cache.set_state("boom", busy=False)
-    assert cache.settings("boom") == {"zero_type": "relative"}
+    assert cache.settings("boom").to_json() == {"zero_type": "relative"}
     # noted after its busy period ended (or a command that had none): never shown
     cache.note_settings("boom", busy_with="calibrate_gyro")
-    assert cache.settings("boom") == {"zero_type": "relative"}
+    assert cache.settings("boom").to_json() == {"zero_type": "relative"}
     cache.set_state("boom", busy=True)  # a later busy period starts with nothing named
-    assert cache.settings("boom") == {"zero_type": "relative"}
+    assert cache.settings("boom").to_json() == {"zero_type": "relative"}
 
 
 def test_reading_groups_are_optional_and_never_null_in_the_openapi_schema() -> None:

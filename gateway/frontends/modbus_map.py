@@ -16,9 +16,8 @@ import math
 import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
 
-from ..cache import Snapshot
+from ..cache import KnownSettings, Snapshot
 from ..model import CAPABILITIES, GROUP_UNITS, Group, Reading, Series, WireProtocol
 from ..normalise import GROUP_FIELDS, field_values
 from ..stats import BusStats
@@ -182,17 +181,17 @@ class SensorImage:
                                        snap.errors & 0xFFFFFFFF, self.series.value,
                                        self.protocol.value, self.address)
 
-    def refresh_commands(self, snap: Snapshot, known: Mapping[str, Any]) -> None:
+    def refresh_commands(self, snap: Snapshot, known: KnownSettings) -> None:
         """The command block: the settings as far as the gateway knows them."""
-        zero = ZERO_TYPES.get(known.get("zero_type", ""), 0xFFFF)
-        busy_with = known.get("busy_with") if snap.busy else None
+        zero = ZERO_TYPES.get(known.zero_type or "", 0xFFFF)
+        busy_with = known.busy_with if snap.busy else None
         words = struct.pack(">HHHH", zero, int(busy_with == "save"),
                             int(busy_with == "calibrate_gyro"), 0)
-        heading = known.get("relative_heading")
-        declination = known.get("declination")
+        heading = known.relative_heading
+        declination = known.declination
         words += NAN32 if heading is None else struct.pack(">f", heading)
         words += NAN32 if declination is None else struct.pack(">f", declination)
-        action = known.get("mag_calibration")
+        action = known.mag_calibration
         words += struct.pack(">H", MAG_CODES.get(action, 0) if action else 0)
         self.words[2 * 1000: 2 * 1009] = words
 

@@ -239,7 +239,7 @@ def _sensor_routes(app: FastAPI, routes: _Routes) -> None:
         stats = gateway.sensor_stats(name)
         return {**sensor_out(snap, stats),
                 "config": gateway.sensors[name].model_dump(mode="json"),
-                "settings": gateway.cache.settings(name),
+                "settings": gateway.cache.settings(name).to_json(),
                 "stats": stats.as_dict(),
                 "reading": snap.to_json() if snap.has_reading else None}
 
