@@ -12,7 +12,7 @@ import asyncio
 from typing import Any
 
 import pytest
-from harness import run, running, until
+from harness import running, until
 
 from gateway.app import Gateway
 from gateway.bus.master import OFFLINE_AFTER, BusMaster
@@ -210,20 +210,20 @@ async def test_dead_address_costs_the_live_sensors_little_and_comes_back() -> No
         no_overlap(sim)
 
 
-def test_offline_is_logged_once_and_recovery_once(caplog: pytest.LogCaptureFixture) -> None:
+@pytest.mark.anyio
+async def test_offline_is_logged_once_and_recovery_once(
+        caplog: pytest.LogCaptureFixture) -> None:
     faults = Faults()
-    with simulated([native(Series.AH, 0, faults=faults)]) as sim:
-        async def body() -> None:
-            async with running(bus_config(sim.path, "native", [
-                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0}])) as gw:
-                await until(lambda: gw.cache.snapshot("ah").status is Status.OK)
-                faults.stalled = True
-                await until(lambda: gw.cache.snapshot("ah").status is Status.OFFLINE)
-                await until(lambda: master(gw).sensors["ah"].failures >= OFFLINE_AFTER + 3, 20)
-                faults.stalled = False
-                await until(lambda: gw.cache.snapshot("ah").status is Status.OK, 15)
-        with caplog.at_level("INFO", logger="gateway"):
-            run(body)
+    with simulated([native(Series.AH, 0, faults=faults)]) as sim, \
+            caplog.at_level("INFO", logger="gateway"):
+        async with running(bus_config(sim.path, "native", [
+            {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0}])) as gw:
+            await until(lambda: gw.cache.snapshot("ah").status is Status.OK)
+            faults.stalled = True
+            await until(lambda: gw.cache.snapshot("ah").status is Status.OFFLINE)
+            await until(lambda: master(gw).sensors["ah"].failures >= OFFLINE_AFTER + 3, 20)
+            faults.stalled = False
+            await until(lambda: gw.cache.snapshot("ah").status is Status.OK, 15)
     lines = [r.getMessage() for r in caplog.records if r.name == "gateway.bus"]
     assert sum("offline" in line for line in lines) == 1
     assert sum("recovered" in line for line in lines) == 1
@@ -534,7 +534,8 @@ def test_kernel_rs485_mode_where_it_cannot_work_is_a_clear_error(port: str) -> N
         asyncio.run(body(port))
 
 
-def test_bytes_on_their_way_count_as_pending_until_the_master_has_them() -> None:
+@pytest.mark.anyio
+async def test_bytes_on_their_way_count_as_pending_until_the_master_has_them() -> None:
     """A busy machine's timer can run before the reader's bytes, already handed to the
     loop: ``pending`` must still count them, or an answer that came is called missing."""
     import os
@@ -546,8 +547,7 @@ def test_bytes_on_their_way_count_as_pending_until_the_master_has_them() -> None
     master, slave = os.openpty()
     tty.setraw(slave)
     got: list[bytes] = []
-
-    async def body() -> None:
+    try:
         link = SerialLink(os.ttyname(slave), 115200)
         await link.open(lambda data, at: got.append(data), lambda exc: None)
         try:
@@ -563,16 +563,14 @@ def test_bytes_on_their_way_count_as_pending_until_the_master_has_them() -> None
             assert b"".join(got) == b"\x77\x04\x00\x04\x08" and link.pending() == 0
         finally:
             link.close()
-
-    try:
-        run(body)
     finally:
         os.close(master)
         os.close(slave)
 
 
-def test_a_bug_costs_one_request_not_the_bus(monkeypatch: pytest.MonkeyPatch,
-                                             caplog: pytest.LogCaptureFixture) -> None:
+@pytest.mark.anyio
+async def test_a_bug_costs_one_request_not_the_bus(monkeypatch: pytest.MonkeyPatch,
+                                                   caplog: pytest.LogCaptureFixture) -> None:
     from gateway.bus.outcomes import Outcomes
 
     real = Outcomes._done
@@ -586,7 +584,7 @@ def test_a_bug_costs_one_request_not_the_bus(monkeypatch: pytest.MonkeyPatch,
 
     monkeypatch.setattr(Outcomes, "_done", broken_once)
     with simulated([native(Series.AH, 0)]) as sim:
-        async def body() -> None:
+        with caplog.at_level("ERROR", logger="gateway.bus"):
             async with running(bus_config(sim.path, "native", [
                 {"name": "ah", "series": "AH", "address": 0, "poll_hz": 20}])) as gw:
                 await until(lambda: gw.cache.snapshot("ah").seq >= 1)
@@ -597,7 +595,5 @@ def test_a_bug_costs_one_request_not_the_bus(monkeypatch: pytest.MonkeyPatch,
                 assert second.ok, second
                 seq = gw.cache.snapshot("ah").seq
                 await until(lambda: gw.cache.snapshot("ah").seq >= seq + 3)
-        with caplog.at_level("ERROR", logger="gateway.bus"):
-            run(body)
         no_overlap(sim)
     assert any("a bug in the schedule" in r.getMessage() or r.exc_info for r in caplog.records)

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from harness import FIELDS, GROUP_OF, expected, run, running, tolerance, until
+from harness import FIELDS, GROUP_OF, expected, running, tolerance, until
 from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
@@ -1010,9 +1010,10 @@ async def fuzzer(port: int, seed: int, frames: int) -> dict[str, int]:
     return counts
 
 
-def test_fuzzed_frames_leave_a_well_behaved_client_served(
+@pytest.mark.anyio
+async def test_fuzzed_frames_leave_a_well_behaved_client_served(
         caplog: pytest.LogCaptureFixture) -> None:
-    async def body() -> None:
+    with caplog.at_level(logging.WARNING, logger="gateway.modbus"):
         async with two_protocols() as (gw, ah, vg), pymodbus_client(port_of(gw)) as client:
             port = port_of(gw)
             stop = asyncio.Event()
@@ -1033,8 +1034,6 @@ def test_fuzzed_frames_leave_a_well_behaved_client_served(
                 values = floats(fresh, await registers(fresh, 2, 100, 32))
                 assert values[0] == pytest.approx(expected(vg)["pitch"], abs=1e-4)
             assert ah.settings.zero_type == "absolute"  # writes were refused throughout
-    with caplog.at_level(logging.WARNING, logger="gateway.modbus"):
-        run(body)
     errors = [r.getMessage() for r in caplog.records
               if r.name.startswith("gateway.modbus") and r.levelno >= logging.ERROR]
     assert not errors, errors

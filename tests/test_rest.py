@@ -16,7 +16,7 @@ from typing import Any
 
 import httpx
 import pytest
-from harness import expected, fields_of, run, running, tolerance, until
+from harness import expected, fields_of, running, tolerance, until
 from prometheus_client.parser import text_string_to_metric_families
 
 from gateway.app import Gateway, openapi_json
@@ -210,78 +210,76 @@ async def test_read_token_required(two_lines: Any) -> None:
 # ------------------------------------------------------------------ commands
 
 
-def test_commands_status_codes(two_lines: Any) -> None:
+@pytest.mark.anyio
+async def test_commands_status_codes(two_lines: Any) -> None:
     ah, vg, buses = two_lines
 
     async def post(http: httpx.AsyncClient, path: str, body: Any = None, *,
                    headers: dict[str, str] | None = AUTH, **options: Any) -> httpx.Response:
         return await http.post(f"{API}/sensors/{path}", json=body, headers=headers, **options)
 
-    async def body() -> None:
-        async with running(config(buses)) as gateway, client(gateway) as http:
-            await until(lambda: all(s.seq >= 1 for s in gateway.cache.snapshots()))
-            response = await post(http, "boom/commands/set_zero_type", {"type": "relative"})
-            assert response.status_code == 200, response.text
-            assert response.json()["ok"] is True and ah.settings.zero_type == "relative"
-            settings = (await post(http, "boom/commands/read_settings")).json()
-            assert settings["answer"]["zero_type"] == "relative"
-            assert (await http.get(f"{API}/sensors/boom")).json()["settings"]["zero_type"] \
-                == "relative"
+    async with running(config(buses)) as gateway, client(gateway) as http:
+        await until(lambda: all(s.seq >= 1 for s in gateway.cache.snapshots()))
+        response = await post(http, "boom/commands/set_zero_type", {"type": "relative"})
+        assert response.status_code == 200, response.text
+        assert response.json()["ok"] is True and ah.settings.zero_type == "relative"
+        settings = (await post(http, "boom/commands/read_settings")).json()
+        assert settings["answer"]["zero_type"] == "relative"
+        assert (await http.get(f"{API}/sensors/boom")).json()["settings"]["zero_type"] \
+            == "relative"
 
-            # auth
-            response = await post(http, "boom/commands/save", headers=None)
-            assert_error(response, 401, "unauthorised")
-            assert response.headers["WWW-Authenticate"] == "Bearer"
-            assert_error(await post(http, "boom/commands/save",
-                                    headers={"Authorization": "Bearer nope"}),
-                         401, "unauthorised")
-            assert_error(await post(http, "boom/commands/save",
-                                    headers={"Authorization": "Basic dXNlcjpwdw=="}),
-                         401, "unauthorised")
-            # bad arguments, each with its reason
-            bad = await post(http, "boom/commands/set_zero_type", {"type": "sideways"})
-            assert_error(bad, 422, "bad_arguments")
-            assert "type" in bad.json()["error"]
-            assert_error(await post(http, "boom/commands/set_zero_type", {"type": "absolute",
-                                                                          "extra": 1}),
-                         422, "bad_arguments")
-            assert_error(await post(http, "boom/commands/set_zero_type"), 422, "bad_arguments")
-            assert_error(await post(http, "boom/commands/set_declination", {"degrees": 200}),
-                         422, "bad_arguments")
-            assert_error(await post(http, "boom/commands/save", {"now": True}),
-                         422, "bad_arguments")
-            raw = await http.post(f"{API}/sensors/boom/commands/set_zero_type",
-                                  content=b"{not json", headers={
-                                      **AUTH, "Content-Type": "application/json"})
-            assert_error(raw, 422, "bad_arguments")
-            # the series or protocol lacks it
-            lacks = await post(http, "arm/commands/set_declination", {"degrees": 3})
-            assert_error(lacks, 422, "unsupported")
-            # unknown names
-            assert_error(await post(http, "boom/commands/explode"), 404, "unknown_command")
-            assert_error(await post(http, "nobody/commands/save"), 404, "unknown_sensor")
-            # a native gyro calibration is over with its answer: nothing is busy after it
-            assert (await post(http, "boom/commands/calibrate_gyro")).status_code == 200
-            assert "busy_with" not in (await http.get(f"{API}/sensors/boom")).json()[
-                "settings"]
-            # the declination is sent rounded half away from zero, as the sensor shows it
-            declination = await post(http, "boom/commands/set_declination", {"degrees": 0.25})
-            assert declination.json()["answer"] == {"degrees": 0.3}
-            assert ah.settings.declination == 0.3
-            # busy: during the save's deaf period
-            saving = asyncio.create_task(post(http, "boom/commands/save"))
-            await until(lambda: gateway.cache.snapshot("boom").busy)
-            assert (await http.get(f"{API}/sensors/boom")).json()["settings"][
-                "busy_with"] == "save"
-            assert_error(await post(http, "boom/commands/calibrate_gyro"), 409, "busy")
-            assert (await saving).status_code == 200
-            # the sensor does not answer
-            vg.faults.stalled = True
-            assert_error(await post(http, "arm/commands/set_zero_type", {"type": "absolute"}),
-                         504, "timeout")
-            assert ah.settings.zero_type == "relative"  # nothing else happened to it
-
-    run(body)
+        # auth
+        response = await post(http, "boom/commands/save", headers=None)
+        assert_error(response, 401, "unauthorised")
+        assert response.headers["WWW-Authenticate"] == "Bearer"
+        assert_error(await post(http, "boom/commands/save",
+                                headers={"Authorization": "Bearer nope"}),
+                     401, "unauthorised")
+        assert_error(await post(http, "boom/commands/save",
+                                headers={"Authorization": "Basic dXNlcjpwdw=="}),
+                     401, "unauthorised")
+        # bad arguments, each with its reason
+        bad = await post(http, "boom/commands/set_zero_type", {"type": "sideways"})
+        assert_error(bad, 422, "bad_arguments")
+        assert "type" in bad.json()["error"]
+        assert_error(await post(http, "boom/commands/set_zero_type", {"type": "absolute",
+                                                                      "extra": 1}),
+                     422, "bad_arguments")
+        assert_error(await post(http, "boom/commands/set_zero_type"), 422, "bad_arguments")
+        assert_error(await post(http, "boom/commands/set_declination", {"degrees": 200}),
+                     422, "bad_arguments")
+        assert_error(await post(http, "boom/commands/save", {"now": True}),
+                     422, "bad_arguments")
+        raw = await http.post(f"{API}/sensors/boom/commands/set_zero_type",
+                              content=b"{not json", headers={
+                                  **AUTH, "Content-Type": "application/json"})
+        assert_error(raw, 422, "bad_arguments")
+        # the series or protocol lacks it
+        lacks = await post(http, "arm/commands/set_declination", {"degrees": 3})
+        assert_error(lacks, 422, "unsupported")
+        # unknown names
+        assert_error(await post(http, "boom/commands/explode"), 404, "unknown_command")
+        assert_error(await post(http, "nobody/commands/save"), 404, "unknown_sensor")
+        # a native gyro calibration is over with its answer: nothing is busy after it
+        assert (await post(http, "boom/commands/calibrate_gyro")).status_code == 200
+        assert "busy_with" not in (await http.get(f"{API}/sensors/boom")).json()[
+            "settings"]
+        # the declination is sent rounded half away from zero, as the sensor shows it
+        declination = await post(http, "boom/commands/set_declination", {"degrees": 0.25})
+        assert declination.json()["answer"] == {"degrees": 0.3}
+        assert ah.settings.declination == 0.3
+        # busy: during the save's deaf period
+        saving = asyncio.create_task(post(http, "boom/commands/save"))
+        await until(lambda: gateway.cache.snapshot("boom").busy)
+        assert (await http.get(f"{API}/sensors/boom")).json()["settings"][
+            "busy_with"] == "save"
+        assert_error(await post(http, "boom/commands/calibrate_gyro"), 409, "busy")
+        assert (await saving).status_code == 200
+        # the sensor does not answer
+        vg.faults.stalled = True
+        assert_error(await post(http, "arm/commands/set_zero_type", {"type": "absolute"}),
+                     504, "timeout")
+        assert ah.settings.zero_type == "relative"  # nothing else happened to it
 
 
 @pytest.mark.anyio
@@ -489,7 +487,8 @@ async def test_a_value_that_is_not_a_number_is_null_not_broken_json() -> None:
 
 
 
-def test_command_bodies_are_read_only_after_access_is_granted(two_lines: Any) -> None:
+@pytest.mark.anyio
+async def test_command_bodies_are_read_only_after_access_is_granted(two_lines: Any) -> None:
     """Auth and allow_commands come before the body is even read; a body is at most
     16 KiB."""
     _, _, buses = two_lines
@@ -497,19 +496,16 @@ def test_command_bodies_are_read_only_after_access_is_granted(two_lines: Any) ->
     route = f"{API}/sensors/boom/commands/set_zero_type"
     json_type = {"Content-Type": "application/json"}
 
-    async def body() -> None:
-        async with running(config(buses, allow_commands=False)) as gateway, \
-                client(gateway) as http:
-            assert_error(await http.post(route, content=b"{not json", headers=json_type),
-                         403, "forbidden")
-        async with running(config(buses)) as gateway, client(gateway) as http:
-            assert_error(await http.post(route, content=b"{not json", headers=json_type),
-                         401, "unauthorised")
-            assert_error(await http.post(route, content=huge, headers=json_type),
-                         401, "unauthorised")
-            assert_error(await http.post(route, content=huge,
-                                         headers={**json_type, **AUTH}), 413, "too_large")
-            ok = await http.post(route, json={"type": "relative"}, headers=AUTH)
-            assert ok.status_code == 200, ok.text
-
-    run(body)
+    async with running(config(buses, allow_commands=False)) as gateway, \
+            client(gateway) as http:
+        assert_error(await http.post(route, content=b"{not json", headers=json_type),
+                     403, "forbidden")
+    async with running(config(buses)) as gateway, client(gateway) as http:
+        assert_error(await http.post(route, content=b"{not json", headers=json_type),
+                     401, "unauthorised")
+        assert_error(await http.post(route, content=huge, headers=json_type),
+                     401, "unauthorised")
+        assert_error(await http.post(route, content=huge,
+                                     headers={**json_type, **AUTH}), 413, "too_large")
+        ok = await http.post(route, json={"type": "relative"}, headers=AUTH)
+        assert ok.status_code == 200, ok.text
