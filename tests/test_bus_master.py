@@ -517,11 +517,12 @@ async def test_a_stream_that_comes_back_by_itself_is_no_longer_polled() -> None:
 
 
 @pytest.mark.parametrize("port", ["pty", "socket://127.0.0.1:9"])
-def test_kernel_rs485_mode_where_it_cannot_work_is_a_clear_error(port: str) -> None:
+@pytest.mark.anyio
+async def test_kernel_rs485_mode_where_it_cannot_work_is_a_clear_error(port: str) -> None:
     from gateway.bus.link import SerialLink
     from gateway.errors import LinkError
 
-    async def body(path: str) -> None:
+    async def refused(path: str) -> None:
         link = SerialLink(path, 9600, rs485=True)
         with pytest.raises(LinkError, match=r"RS-?485"):
             await link.open(lambda data, at: None, lambda exc: None)
@@ -529,9 +530,9 @@ def test_kernel_rs485_mode_where_it_cannot_work_is_a_clear_error(port: str) -> N
 
     if port == "pty":
         with simulated([native(Series.AH, 0)]) as sim:
-            asyncio.run(body(sim.path))
+            await refused(sim.path)
     else:
-        asyncio.run(body(port))
+        await refused(port)
 
 
 @pytest.mark.anyio
