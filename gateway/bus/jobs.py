@@ -55,7 +55,7 @@ class JobQueue:
     def full(self, s: SensorState) -> RequestFailed | None:
         if sum(j.sensor is s for j in self.commands) >= MAX_QUEUED_PER_SENSOR:
             return RequestFailed(ErrorKind.BUSY, f"{MAX_QUEUED_PER_SENSOR} requests for "
-                                f"{s.name} are already waiting")
+                                 f"{s.name} are already waiting")
         return None
 
     def command(self, s: SensorState, command: Command) -> Job:
@@ -114,7 +114,7 @@ class JobQueue:
         for name, job in list(self.reads.items()):
             if job.sensor.busy_until > now and not job.sensor.read_while_busy:
                 self.finish(job, error=RequestFailed(ErrorKind.BUSY, f"{name} is busy (save "
-                                                    "or calibration)"))
+                                                     "or calibration)"))
             elif not job.sensor.streaming and not job.started:
                 return job  # stays listed until answered, for later askers
         due = [s for s in sensors if s.due(now)]

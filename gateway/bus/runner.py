@@ -109,7 +109,7 @@ class BusRunner:
         except RuntimeError:  # the loop closed under us: the bus has stopped
             coro.close()
             raise RequestFailed(ErrorKind.OFFLINE,
-                                    f"bus {self.master.name} is not running") from None
+                                f"bus {self.master.name} is not running") from None
 
     def stop(self) -> None:
         """Ask the master to finish its exchange in flight and stop."""

@@ -87,10 +87,10 @@ class Schedule:
             return RequestFailed(ErrorKind.OFFLINE, "the gateway is stopping")
         if not self.port_open:
             return RequestFailed(ErrorKind.OFFLINE, f"the port of bus {self.config.name} "
-                                f"({self.config.port}) is not open")
+                                 f"({self.config.port}) is not open")
         if s.online is False:
             return RequestFailed(ErrorKind.OFFLINE, f"{s.name} is offline (it is retried in "
-                                f"the background; {s.failures} failed exchanges so far)")
+                                 f"the background; {s.failures} failed exchanges so far)")
         return self.jobs.full(s) if queued else None
 
     def command(self, name: str, command: Command) -> Job:

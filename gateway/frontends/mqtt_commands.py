@@ -127,7 +127,7 @@ def _command_args(payload: bytes) -> dict[str, Any]:
     """A command's arguments: a JSON object (blank: none)."""
     if len(payload) > MAX_COMMAND_PAYLOAD:
         raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"the payload is {len(payload)} bytes; "
-                           f"at most {MAX_COMMAND_PAYLOAD}")
+                            f"at most {MAX_COMMAND_PAYLOAD}")
     if not payload.strip():
         return {}
     try:

@@ -89,7 +89,7 @@ class StateDesk:
         if payload != out.availability:
             out.availability = payload
             self.send_control(Message(self.topics.sensor(snap.name, "availability"),
-                                       payload, CONTROL_QOS, True))
+                                      payload, CONTROL_QOS, True))
 
     def _consider(self, snap: Snapshot) -> None:
         """A new reading: send it now, later (min_interval) or not (deadband)."""
@@ -123,9 +123,9 @@ class StateDesk:
         out.status = snap.status
         c = self.config
         self.send(Message(self.topics.sensor(snap.name, "state"), json_bytes(snap.to_json()),
-                           c.qos, c.retain))
+                          c.qos, c.retain))
         if c.per_field_topics:
             for name, value in out.values.items():
                 if math.isfinite(value):  # a plain number or nothing
                     self.send(Message(self.topics.sensor(snap.name, name),
-                                       json.dumps(value).encode(), c.qos, c.retain))
+                                      json.dumps(value).encode(), c.qos, c.retain))
