@@ -22,7 +22,7 @@ from .cache import Cache, Snapshot
 from .capacity import line_loads
 from .commands import CommandResult, validate
 from .config import GatewayConfig, HttpConfig, SensorConfig, config_from_dict
-from .errors import ErrorKind, RequestFailed, StartupError
+from .errors import RequestFailed, StartupError, unknown_sensor
 from .frontends.modbus_tcp import ModbusTcpServer
 from .frontends.mqtt import MqttClient
 from .frontends.rest import HttpServer, openapi_document
@@ -63,8 +63,7 @@ class Gateway:
         """Validate and carry out a command; returns after the sensor's answer."""
         config = self.sensors.get(sensor)
         if config is None:
-            return CommandResult.failed(sensor, name, RequestFailed(
-                ErrorKind.UNKNOWN_SENSOR, f"unknown sensor {sensor!r}"))
+            return CommandResult.failed(sensor, name, unknown_sensor(sensor))
         runner = self._runner_of[sensor]
         try:
             command = validate(name, args, config.series, runner.master.config.protocol)

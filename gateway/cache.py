@@ -25,7 +25,7 @@ from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from typing import Any
 
-from .errors import ErrorKind, RequestFailed
+from .errors import unknown_sensor
 from .model import Reading
 
 log = logging.getLogger("gateway.cache")
@@ -133,7 +133,7 @@ class Cache:
         try:
             return self._entries[name]
         except KeyError:
-            raise RequestFailed(ErrorKind.UNKNOWN_SENSOR, f"unknown sensor {name!r}") from None
+            raise unknown_sensor(name) from None
 
     # ------------------------------------------------------------ reading
 

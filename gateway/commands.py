@@ -159,13 +159,18 @@ def _friendly(exc: ValidationError) -> str:
     return "; ".join(parts)
 
 
+def unknown_command(name: str) -> RequestFailed:
+    """The one way every front end words a command the catalogue lacks."""
+    return RequestFailed(ErrorKind.UNKNOWN_COMMAND,
+                         f"unknown command {name!r} (known: {', '.join(CATALOGUE)})")
+
+
 def validate(name: str, args: Mapping[str, Any] | None, series: Series,
              protocol: WireProtocol) -> Command:
     """Check a command for a sensor of ``series``; raises ``RequestFailed``."""
     spec = CATALOGUE.get(name)
     if spec is None:
-        raise RequestFailed(ErrorKind.UNKNOWN_COMMAND,
-                           f"unknown command {name!r} (known: {', '.join(CATALOGUE)})")
+        raise unknown_command(name)
     if name not in commands_for(series, protocol):
         # the series has it, so the protocol cannot carry it
         over = " over Modbus" if name in CAPABILITIES[series].commands else ""

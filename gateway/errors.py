@@ -124,3 +124,8 @@ class RequestFailed(GatewayError):
     @property
     def status(self) -> int:
         return KINDS[self.kind].status
+
+
+def unknown_sensor(name: str) -> RequestFailed:
+    """The one way every front end words a sensor it does not know."""
+    return RequestFailed(ErrorKind.UNKNOWN_SENSOR, f"unknown sensor {name!r}")

@@ -22,7 +22,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from ... import __version__
 from ...cache import Snapshot, Status
-from ...commands import CATALOGUE
+from ...commands import CATALOGUE, unknown_command
 from ...config import HttpConfig
 from ...errors import KINDS, ErrorKind, RequestFailed
 from ...model import GROUP_UNITS
@@ -72,8 +72,7 @@ class _Routes:
     commands: Callable[..., Awaitable[None]]  # the dependency of a command
 
     def sensor_or_404(self, name: str) -> Snapshot:
-        if name not in self.gateway.sensors:
-            raise RequestFailed(ErrorKind.UNKNOWN_SENSOR, f"unknown sensor {name!r}")
+        """(The cache refuses a sensor it does not know: ``unknown_sensor``, 404.)"""
         return self.gateway.cache.snapshot(name)
 
 
@@ -299,10 +298,9 @@ def _metrics_route(app: FastAPI, routes: _Routes) -> None:
     registry.register(GatewayCollector(routes.gateway))
 
     @app.post(f"{API}/sensors/{{name}}/commands/{{command}}", include_in_schema=False)
-    async def unknown_command(name: str, command: str) -> None:
+    async def other_command(name: str, command: str) -> None:
         routes.sensor_or_404(name)
-        raise RequestFailed(ErrorKind.UNKNOWN_COMMAND,
-                            f"unknown command {command!r} (known: {', '.join(CATALOGUE)})")
+        raise unknown_command(command)
 
     @app.get("/metrics", response_class=Response, dependencies=routes.reads,
              responses={200: {"content": {"text/plain": {}}}, **_errors(401)},
