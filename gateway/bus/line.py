@@ -176,9 +176,9 @@ class Line:
         could have been, since an answer is recognised by not coming before it, and
         the answer times nothing: from which moment would it be measured?"""
         a = self.attempt
-        delay = at - a.sent if a is not None else 0.0
-        if a is None or delay <= SLOW_WRITE:
+        if a is None or at - a.sent <= SLOW_WRITE:
             return
+        delay = at - a.sent
         a.deadline += delay
         a.give_up += delay
         a.untimed = True

@@ -42,8 +42,6 @@ MIN_WAIT = 0.0001
 BUG_PAUSE = 0.1
 T = TypeVar("T")
 
-#: the master's on-demand read of one sensor
-
 
 class BusToCache(typing.Protocol):
     """What a bus master writes to the cache (``Cache`` itself, or a ``CacheWriter`` that
@@ -101,7 +99,7 @@ class BusMaster:
         the sensor's answer PDU (its exceptions included).  Raises ``RequestFailed``
         when it does not answer."""
         if (refusal := self.schedule.refusal(sensor)) is not None:
-            raise RequestFailed(refusal.kind, str(refusal))
+            raise refusal
         if not isinstance(self.adapter, ModbusAdapter):
             raise RequestFailed(ErrorKind.UNSUPPORTED, f"{sensor} does not speak Modbus")
         exchange = self.adapter.raw(self.sensors[sensor].address, pdu)
@@ -112,7 +110,7 @@ class BusMaster:
         """Read the sensor now (behind commands).  Concurrent calls share one exchange;
         a streaming sensor's next frame serves them.  Raises ``RequestFailed``."""
         if (refusal := self.schedule.refusal(sensor, queued=False)) is not None:
-            raise RequestFailed(refusal.kind, str(refusal))
+            raise refusal
         job, new = self.schedule.read(sensor)
         if new:
             self._futures[job] = asyncio.get_running_loop().create_future()
@@ -300,7 +298,7 @@ class BusMaster:
         if error is None:
             future.set_result(outcome)
             return
-        future.set_exception(RequestFailed(error.kind, str(error)))
+        future.set_exception(error)  # (each job's error is its own: made when it ended)
         future.exception()  # retrieved here: a read nobody awaits any more is not an error
 
     # ------------------------------------------------------------ views

@@ -227,14 +227,15 @@ class PtyBus:
     # ------------------------------------------------------------ the wire
 
     def _note(self, text: str) -> None:
-        if text.startswith(("OVERLAP", "COLLISION")) and self._holds.in_shadow():
+        incident = text.startswith(("OVERLAP", "COLLISION"))
+        if incident and self._holds.in_shadow():
             if text.startswith("OVERLAP"):
                 self.stats.overlaps_after_hold += 1
             else:
                 self.stats.collisions_after_hold += 1
             text += " (right after the simulator was held)"
         self._timeline(text)
-        if text.startswith(("OVERLAP", "COLLISION")) and len(self.stats.incidents) < 10:
+        if incident and len(self.stats.incidents) < 10:
             self.stats.incidents.append(list(self._recent))
         self.stats.events.append(text)
 
