@@ -20,7 +20,7 @@ from typing import Any
 from .bus.runner import BusRunner
 from .cache import Cache, Snapshot
 from .capacity import line_loads
-from .commands import CommandResult, validate
+from .commands import CATALOGUE, CommandResult, validate
 from .config import GatewayConfig, HttpConfig, SensorConfig, config_from_dict
 from .errors import RequestFailed, StartupError, unknown_sensor
 from .frontends.modbus_tcp import ModbusTcpServer
@@ -70,31 +70,9 @@ class Gateway:
             result = await runner.call(runner.master.submit(sensor, command))
         except RequestFailed as exc:
             return CommandResult.failed(sensor, name, exc)
-        if result.ok:
-            self._learn(sensor, command.name, command.args, result.answer)
+        if result.ok:  # what the answer shows of the settings, for the front ends
+            self.cache.learn(sensor, CATALOGUE[name].learns(command.args, result.answer))
         return result
-
-    def _learn(self, sensor: str, name: str, args: Mapping[str, Any],
-               answer: Mapping[str, Any]) -> None:
-        """Remember what a successful command tells about the sensor's settings, for
-        the front ends that show them (Modbus TCP reads them back)."""
-        note = self.cache.note_settings
-        match name:
-            case "set_zero_type":
-                note(sensor, zero_type=args["type"])
-            case "read_settings":
-                if "zero_type" in answer:
-                    note(sensor, zero_type=answer["zero_type"])
-                if "degrees" in answer:
-                    note(sensor, declination=answer["degrees"])
-            case "set_declination" | "set_relative_heading":
-                # the sensor's echo, at its resolution (-1.25 is sent and stored as -1.3)
-                key = "declination" if name == "set_declination" else "relative_heading"
-                note(sensor, **{key: answer.get("degrees", args["degrees"])})
-            case "mag_calibration":
-                note(sensor, mag_calibration=args["action"])
-            case "save" | "calibrate_gyro":
-                note(sensor, busy_with=name)
 
     async def start_frontends(self) -> None:
         """Open the listening sockets (once); raises ``StartupError`` when one cannot be
@@ -169,8 +147,7 @@ class Gateway:
 
         runner = self._runner_of[sensor]
         answer = await runner.call(runner.master.passthrough(sensor, pdu))
-        if learnt := settings_shown(pdu, answer):
-            self.cache.note_settings(sensor, **learnt)
+        self.cache.learn(sensor, settings_shown(pdu, answer))
         return answer
 
     def stats(self) -> list[BusStats]:

@@ -1,9 +1,9 @@
 """The latest reading of every sensor, and how fresh it is.
 
 The bus masters write here; the front ends only read here and listen for changes,
-so a hundred clients cost the serial bus nothing.  ``fresh()`` is the one way a front
-end can cause bus traffic: it asks the sensor's bus master for a reading no older
-than N ms, and identical requests share one transaction.
+so a hundred clients cost the serial bus nothing.  The cache is passive: it never
+calls a bus.  A front end that wants a reading no older than N ms asks the gateway
+(``Gateway.read``), which asks the sensor's bus master.
 
 Status, as clients see it:
 
@@ -21,12 +21,12 @@ import enum
 import logging
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from typing import Any
 
 from .errors import unknown_sensor
-from .model import Reading
+from .model import KnownSettings, Reading
 
 log = logging.getLogger("gateway.cache")
 
@@ -82,22 +82,6 @@ Listener = Callable[[EventKind, Snapshot], None]
 ErrorHook = Callable[[BaseException], None]
 
 
-@dataclass(frozen=True, slots=True)
-class KnownSettings:
-    """A sensor's settings as far as the gateway knows them: learned from the answers
-    to commands and pass-through exchanges, never guessed (``None``: not known)."""
-
-    zero_type: str | None = None
-    declination: float | None = None
-    relative_heading: float | None = None
-    mag_calibration: str | None = None
-    busy_with: str | None = None  # the save or gyro calibration under way
-
-    def to_json(self) -> dict[str, Any]:
-        """The known ones only, as REST shows them."""
-        return {f: getattr(self, f) for f in self.__slots__ if getattr(self, f) is not None}
-
-
 @dataclass(slots=True)
 class _Entry:
     stale_after: float  # seconds
@@ -110,7 +94,7 @@ class _Entry:
     streaming: bool = False
     errors: int = 0
     reported: tuple[Status, bool, bool] | None = None  # last status event sent
-    settings: KnownSettings = KnownSettings()
+    settings: KnownSettings = field(default_factory=KnownSettings)
 
 
 class Cache:
@@ -193,15 +177,15 @@ class Cache:
     def count_error(self, name: str) -> None:
         self._entry(name).errors += 1
 
-    def note_settings(self, name: str, **values: Any) -> None:
-        """Settings learnt from a command's answer (zero type, declination, …).
-        ``busy_with`` is kept only while the sensor is busy: the busy period starts
-        before the command's answer is noted, and may be over (or never have begun: a
-        calibration answered "complete") by then."""
+    def learn(self, name: str, shown: KnownSettings) -> None:
+        """Settings an answer showed (zero type, declination, …).  ``busy_with`` is
+        kept only while the sensor is busy: the busy period starts before the command's
+        answer is noted, and may be over (or never have begun: a calibration answered
+        "complete") by then."""
         e = self._entry(name)
         if not e.busy:
-            values.pop("busy_with", None)
-        e.settings = replace(e.settings, **values)  # an unknown name is a TypeError
+            shown = replace(shown, busy_with=None)
+        e.settings = e.settings.updated(shown)
 
     def settings(self, name: str) -> KnownSettings:
         """The sensor's settings as far as the gateway knows them."""

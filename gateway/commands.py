@@ -1,24 +1,33 @@
 """The command catalogue (docs/commands.md): the same names on REST, MQTT, Modbus TCP and CLI.
 
-One table: each command's argument model (pydantic, so every front end gets the same
-validation and the same messages) and its summary.  Which series has which command
-comes from the capability table in ``model``; which protocol can carry it is the
-protocol adapter's business (``protocol.exchanges``), since that is where the frames
-are.
+One row per command (``CATALOGUE``): its argument model (pydantic, so every front end
+gets the same validation and the same messages), its summary, the series that have
+it, what it does to the bus, what its answer teaches about the sensor's settings, and
+its Modbus TCP register.  REST's routes, MQTT's topics, the Modbus TCP command block and
+``docs/commands.md`` are all derived from these rows.
+
+How a command goes on the wire is the protocol rows' business (``protocol.exchanges``:
+one row per command per protocol), since that is where the frames are; a protocol
+without a row for a command cannot carry it.  Adding a command: a row here, a row in
+each protocol that has it, the sensor's side in the simulator, and
+``scripts/generate-docs`` (docs/architecture.md walks through one).
 """
 
 from __future__ import annotations
 
+import enum
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from .errors import ErrorKind, RequestFailed
-from .model import CAPABILITIES, Series, WireProtocol, commands_for
+from .model import KnownSettings, Series, WireProtocol
 from .protocol.bcd import ANGLE, DECLINATION, BcdFormat
+from .protocol.exchanges import adapter_for
 from .protocol.native import BAUD_CODES
 
 
@@ -94,29 +103,126 @@ class BaudrateArgs(_Args):
         return value
 
 
+class BusEffect(enum.Enum):
+    """What a command does to the bus besides its exchange (the protocol rows in
+    ``protocol.exchanges`` carry it out; a test holds the two to each other)."""
+
+    NONE = "none"
+    BUSY = "the sensor is busy for a while"
+    NEW_ADDRESS = "the sensor answers at its new address"
+    NEW_BAUD = "the line follows the new baud rate"
+
+
+Args = Mapping[str, Any]
+#: What a successful command's arguments and answer show of the sensor's settings.
+Learn = Callable[[Args, Args], KnownSettings]
+
+
+def _nothing(args: Args, answer: Args) -> KnownSettings:
+    return KnownSettings()
+
+
+@dataclass(frozen=True, slots=True)
+class TcpRegister:
+    """The command's holding register in the Modbus TCP map (docs/register-map.md).
+    Writing it runs the command: 1 for a command without arguments, ``codes`` for a
+    choice, a float32 for degrees.  Reading it gives ``shows`` of the known settings:
+    a choice as its code (``unknown`` when not known), a flag as 0/1, a float (NaN
+    when not known).  The address is part of the public map: never move one."""
+
+    address: int
+    name: str
+    description: str
+    shows: Callable[[KnownSettings], str | float | bool | None] = lambda known: False
+    codes: Mapping[str, int] = field(default_factory=dict)
+    unknown: int = 0xFFFF
+
+
 @dataclass(frozen=True, slots=True)
 class CommandSpec:
+    """One command, as every front end knows it (REST, MQTT, Modbus TCP, the CLI)."""
+
     name: str
     args: type[_Args]
     summary: str
+    series: frozenset[Series]
+    bus: BusEffect = BusEffect.NONE
+    #: what a successful answer teaches about the sensor's settings
+    learns: Learn = _nothing
+    register: TcpRegister | None = None
 
 
-CATALOGUE: Mapping[str, CommandSpec] = {
+ALL, AH, MINS = frozenset(Series), frozenset({Series.AH}), frozenset({Series.MINS})
+
+#: The catalogue, one row per command; its order is the docs' and the API's.
+CATALOGUE: Mapping[str, CommandSpec] = MappingProxyType({
     spec.name: spec
     for spec in (
-        CommandSpec("set_zero_type", ZeroTypeArgs, "absolute or relative zero point"),
-        CommandSpec("save", NoArgs, "save the settings (3-5 s, the sensor does not answer)"),
-        CommandSpec("calibrate_gyro", NoArgs, "gyro zero-offset calibration (keep still)"),
-        CommandSpec("clear_heading", NoArgs, "clear the heading angle (MINS)"),
-        CommandSpec("set_relative_heading", HeadingArgs, "heading start point (MINS)"),
-        CommandSpec("set_declination", DeclinationArgs, "magnetic declination (AH)"),
-        CommandSpec("mag_calibration", MagCalibrationArgs,
-                    "plane circumference calibration: start, finish, clear (AH)"),
-        CommandSpec("set_address", AddressArgs, "a new bus address"),
-        CommandSpec("set_baudrate", BaudrateArgs, "a new baud rate; the gateway follows"),
-        CommandSpec("read_settings", NoArgs, "zero type, address, declination (AH)"),
+        CommandSpec(
+            "set_zero_type", ZeroTypeArgs, "absolute or relative zero point", ALL,
+            learns=lambda args, answer: KnownSettings(zero_type=args["type"]),
+            register=TcpRegister(1000, "zero_type", "zero type: write 0 absolute, 1 relative; "
+                                 "reads the last known (0xFFFF unknown)",
+                                 lambda known: known.zero_type,
+                                 {"absolute": 0, "relative": 1})),
+        CommandSpec(
+            "save", NoArgs, "save the settings (3-5 s, the sensor does not answer)", ALL,
+            BusEffect.BUSY, lambda args, answer: KnownSettings(busy_with="save"),
+            TcpRegister(1001, "save", "write 1: save settings; reads 1 while saving",
+                        lambda known: known.busy_with == "save")),
+        CommandSpec(
+            "calibrate_gyro", NoArgs, "gyro zero-offset calibration (keep still)", ALL,
+            BusEffect.BUSY, lambda args, answer: KnownSettings(busy_with="calibrate_gyro"),
+            TcpRegister(1002, "gyro_calibration", "write 1: gyro calibration; reads 1 while "
+                        "it runs", lambda known: known.busy_with == "calibrate_gyro")),
+        CommandSpec(
+            "clear_heading", NoArgs, "clear the heading angle (MINS)", MINS,
+            register=TcpRegister(1003, "clear_heading", "write 1: clear heading (MINS); "
+                                 "reads 0")),
+        CommandSpec(
+            "set_relative_heading", HeadingArgs, "heading start point (MINS)", MINS,
+            # the sensor's echo, at its resolution (what it holds)
+            learns=lambda args, answer: KnownSettings(
+                relative_heading=answer.get("degrees", args["degrees"])),
+            register=TcpRegister(1004, "relative_heading", "relative heading start point, "
+                                 "degrees (MINS), rounded to 0.01 half away from zero; reads "
+                                 "the last written (NaN unknown)",
+                                 lambda known: known.relative_heading)),
+        CommandSpec(
+            "set_declination", DeclinationArgs, "magnetic declination (AH)", AH,
+            # the sensor's echo: -1.25 is sent and stored as -1.3
+            learns=lambda args, answer: KnownSettings(
+                declination=answer.get("degrees", args["degrees"])),
+            register=TcpRegister(1006, "declination", "magnetic declination, degrees (AH), "
+                                 "-99.9 to 99.9, rounded to 0.1 half away from zero; reads "
+                                 "the last known (NaN unknown)",
+                                 lambda known: known.declination)),
+        CommandSpec(
+            "mag_calibration", MagCalibrationArgs,
+            "plane circumference calibration: start, finish, clear (AH)", AH,
+            learns=lambda args, answer: KnownSettings(mag_calibration=args["action"]),
+            register=TcpRegister(1008, "mag_calibration", "magnetic calibration: write 1 "
+                                 "start, 2 finish, 3 clear (AH); reads the last action "
+                                 "(0 none)", lambda known: known.mag_calibration,
+                                 {"start": 1, "finish": 2, "clear": 3}, unknown=0)),
+        CommandSpec("set_address", AddressArgs, "a new bus address", ALL,
+                    BusEffect.NEW_ADDRESS),
+        CommandSpec("set_baudrate", BaudrateArgs, "a new baud rate; the gateway follows", ALL,
+                    BusEffect.NEW_BAUD),
+        CommandSpec(
+            "read_settings", NoArgs, "zero type, address, declination (AH)", ALL,
+            learns=lambda args, answer: KnownSettings(zero_type=answer.get("zero_type"),
+                                                      declination=answer.get("degrees"))),
     )
-}
+})
+
+
+def commands_for(series: Series, protocol: WireProtocol) -> frozenset[str]:
+    """The commands a sensor of this series, speaking this protocol, can carry out: the
+    series has it (the catalogue) and the protocol can carry it (its rows)."""
+    carries = adapter_for(protocol).carries
+    return frozenset(name for name, spec in CATALOGUE.items()
+                     if series in spec.series and carries(name))
 
 
 @dataclass(frozen=True, slots=True)
@@ -173,7 +279,7 @@ def validate(name: str, args: Mapping[str, Any] | None, series: Series,
         raise unknown_command(name)
     if name not in commands_for(series, protocol):
         # the series has it, so the protocol cannot carry it
-        over = " over Modbus" if name in CAPABILITIES[series].commands else ""
+        over = " over Modbus" if series in spec.series else ""
         raise RequestFailed(ErrorKind.UNSUPPORTED, f"{series.name} sensors have no {name}{over}")
     if args is not None and not isinstance(args, Mapping):
         raise RequestFailed(ErrorKind.BAD_ARGUMENTS, "arguments must be a JSON object")

@@ -11,7 +11,7 @@ import enum
 import math
 import struct
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from types import MappingProxyType
 from typing import Any
 
@@ -146,43 +146,41 @@ def shortest_float32(value: float) -> float:
 
 @dataclass(frozen=True, slots=True)
 class Capabilities:
-    """What a series measures and which series-specific commands it has."""
+    """What a series measures.  (Which commands it has is the command catalogue's
+    business: ``commands.CATALOGUE``, one row per command.)"""
 
     groups: frozenset[Group]
-    commands: frozenset[str]
 
-
-# Commands every series has (the catalogue, docs/commands.md); the series-specific ones
-# are listed per row.
-COMMON_COMMANDS = frozenset(
-    {"set_zero_type", "save", "calibrate_gyro", "set_address", "set_baudrate", "read_settings"}
-)
 
 # The one table of per-series capabilities.  The native document says which series
 # answer which data command (2.13-2.15, 2.19-2.26); the Modbus map is the same for all
 # series, and a series simply leaves the registers it lacks at zero.
-CAPABILITIES: dict[Series, Capabilities] = {
-    Series.IMU: Capabilities(frozenset({Group.ACCEL, Group.GYRO}), COMMON_COMMANDS),
-    Series.VG: Capabilities(
-        frozenset({Group.ANGLES, Group.ACCEL, Group.GYRO, Group.QUATERNION}), COMMON_COMMANDS
-    ),
-    Series.AH: Capabilities(
-        frozenset(Group), COMMON_COMMANDS | {"set_declination", "mag_calibration"}
-    ),
-    Series.MINS: Capabilities(
-        frozenset({Group.ANGLES, Group.ACCEL, Group.GYRO, Group.QUATERNION}),
-        COMMON_COMMANDS | {"clear_heading", "set_relative_heading"},
-    ),
-}
-
-#: Commands a protocol cannot carry at all: the Modbus register list has nothing for the
-#: magnetic declination or the magnetometer calibration (native 2.21-2.26 only).
-PROTOCOL_LACKS: dict[WireProtocol, frozenset[str]] = {
-    WireProtocol.NATIVE: frozenset(),
-    WireProtocol.MODBUS: frozenset({"set_declination", "mag_calibration"}),
-}
+CAPABILITIES: Mapping[Series, Capabilities] = MappingProxyType({
+    Series.IMU: Capabilities(frozenset({Group.ACCEL, Group.GYRO})),
+    Series.VG: Capabilities(frozenset({Group.ANGLES, Group.ACCEL, Group.GYRO, Group.QUATERNION})),
+    Series.AH: Capabilities(frozenset(Group)),
+    Series.MINS: Capabilities(frozenset({Group.ANGLES, Group.ACCEL, Group.GYRO, Group.QUATERNION})),
+})
 
 
-def commands_for(series: Series, protocol: WireProtocol) -> frozenset[str]:
-    """The commands a sensor of this series, speaking this protocol, can carry out."""
-    return CAPABILITIES[series].commands - PROTOCOL_LACKS[protocol]
+@dataclass(frozen=True, slots=True)
+class KnownSettings:
+    """A sensor's settings as far as the gateway knows them: learned from the answers
+    to commands and pass-through exchanges, never guessed (``None``: not known).  The
+    same type says what one answer *shows* (``None``: it says nothing of that one)."""
+
+    zero_type: str | None = None
+    declination: float | None = None
+    relative_heading: float | None = None
+    mag_calibration: str | None = None
+    busy_with: str | None = None  # the save or gyro calibration under way
+
+    def updated(self, shown: KnownSettings) -> KnownSettings:
+        """These settings, with what ``shown`` knows taking the place of the old."""
+        changes: dict[str, Any] = shown.to_json()
+        return replace(self, **changes)
+
+    def to_json(self) -> dict[str, str | float]:
+        """The known ones only, as REST shows them."""
+        return {f.name: value for f in fields(self)
+                if (value := getattr(self, f.name)) is not None}

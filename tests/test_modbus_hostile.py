@@ -23,7 +23,7 @@ import yaml
 from harness import free_port, interrupt
 from pymodbus.client import ModbusTcpClient
 
-from gateway.frontends.modbus_map import BY_ADDRESS, ZERO_TYPES
+from gateway.commands import CATALOGUE
 from gateway.model import Series, WireProtocol
 from gateway.simulator import make_sensor, simulated
 
@@ -173,14 +173,16 @@ def test_trickling_connections_do_not_lock_out_a_fresh_client(tmp_path: Path) ->
 def test_requests_before_a_half_close_are_answered(tmp_path: Path, pipelined: int) -> None:
     """A write (carried out on the sensor), then the client's FIN: the answer still
     comes, and so do the reads pipelined behind the write."""
-    zero_type = next(r.address for r in BY_ADDRESS.values() if r.command == "set_zero_type")
+    register = CATALOGUE["set_zero_type"].register
+    assert register is not None
+    zero_type = register.address
     with gateway(tmp_path, allow_writes=True) as gw:
         good = gw.client()
         timed_read(good)
         good.close()  # type: ignore[no-untyped-call]
         sock = socket.create_connection(("127.0.0.1", gw.port))
         write = MBAP.pack(1, 0, 6, 1) + struct.pack(">BHH", 6, zero_type,
-                                                      ZERO_TYPES["relative"])
+                                                      register.codes["relative"])
         sock.sendall(write + b"".join(read_request(2 + i) for i in range(pipelined)))
         sock.shutdown(socket.SHUT_WR)
         sock.settimeout(30)

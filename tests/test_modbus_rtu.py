@@ -290,7 +290,8 @@ def test_angle_register_rounds_half_away_from_zero() -> None:
 ])
 def test_settings_shown_by_a_passthrough_exchange(request_hex: str, answer_hex: str,
                                                   learnt: dict[str, object]) -> None:
-    assert rtu.settings_shown(bytes.fromhex(request_hex), bytes.fromhex(answer_hex)) == learnt
+    shown = rtu.settings_shown(bytes.fromhex(request_hex), bytes.fromhex(answer_hex))
+    assert shown.to_json() == learnt
 
 
 def test_gyro_calibration_answer_decides_the_busy_period() -> None:

@@ -439,15 +439,16 @@ def test_busy_with_is_shown_only_while_the_sensor_is_busy() -> None:
     """settings.busy_with names the save or calibration under way, and goes once the
     busy period ended, whichever came first: the end, or the command's answer noted."""
     from gateway.cache import Cache
+    from gateway.model import KnownSettings
 
     cache = Cache([("boom", 1000)])
     cache.set_state("boom", online=True, busy=True)
-    cache.note_settings("boom", busy_with="save", zero_type="relative")
+    cache.learn("boom", KnownSettings(busy_with="save", zero_type="relative"))
     assert cache.settings("boom").to_json() == {"busy_with": "save", "zero_type": "relative"}
     cache.set_state("boom", busy=False)
     assert cache.settings("boom").to_json() == {"zero_type": "relative"}
     # noted after its busy period ended (or a command that had none): never shown
-    cache.note_settings("boom", busy_with="calibrate_gyro")
+    cache.learn("boom", KnownSettings(busy_with="calibrate_gyro"))
     assert cache.settings("boom").to_json() == {"zero_type": "relative"}
     cache.set_state("boom", busy=True)  # a later busy period starts with nothing named
     assert cache.settings("boom").to_json() == {"zero_type": "relative"}

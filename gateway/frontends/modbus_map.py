@@ -15,10 +15,21 @@ import enum
 import math
 import struct
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Any
 
-from ..cache import KnownSettings, Snapshot
-from ..model import CAPABILITIES, GROUP_UNITS, Group, Reading, Series, WireProtocol
+from ..cache import Snapshot
+from ..commands import CATALOGUE, CommandSpec
+from ..model import (
+    CAPABILITIES,
+    GROUP_UNITS,
+    Group,
+    KnownSettings,
+    Reading,
+    Series,
+    WireProtocol,
+    shortest_float32,
+)
 from ..normalise import GROUP_FIELDS, field_values
 from ..stats import BusStats
 
@@ -51,6 +62,20 @@ class Register:
 
 STATUS_BITS = {"online": 0, "stale": 1, "busy": 2, "streaming": 3, "no_reading": 4}
 
+def _argument(spec: CommandSpec) -> str | None:
+    """The one argument a command register carries (the catalogue's commands with a
+    register have at most one), or ``None``."""
+    names = list(spec.args.model_fields)
+    assert len(names) <= 1, f"{spec.name}: a register carries one argument"
+    return names[0] if names else None
+
+
+def _command_type(spec: CommandSpec) -> Type:
+    """A float32 for an angle, else one word (a flag, or a choice's code)."""
+    name = _argument(spec)
+    return Type.F32 if name and spec.args.model_fields[name].annotation is float else Type.U16
+
+
 #: The sixteen measured values in the map's order (the reading JSON's): name, group,
 #: the i32 copy's scale (it holds round(value × scale): the group's resolution), unit.
 _MEASURED: tuple[tuple[str, Group, int, str], ...] = tuple(
@@ -74,23 +99,9 @@ REGISTERS: tuple[Register, ...] = (
     *(Register(INT_BASE + 2 * i, Type.I32, f"{name}_scaled",
                f"{name} × {scale}" + (f" ({unit})" if unit else ""), group, scale)
       for i, (name, group, scale, unit) in enumerate(_MEASURED)),
-    Register(1000, Type.U16, "zero_type", "zero type: write 0 absolute, 1 relative; reads the "
-             "last known (0xFFFF unknown)", command="set_zero_type"),
-    Register(1001, Type.U16, "save", "write 1: save settings; reads 1 while saving",
-             command="save"),
-    Register(1002, Type.U16, "gyro_calibration", "write 1: gyro calibration; reads 1 while "
-             "it runs", command="calibrate_gyro"),
-    Register(1003, Type.U16, "clear_heading", "write 1: clear heading (MINS); reads 0",
-             command="clear_heading", series=MINS),
-    Register(1004, Type.F32, "relative_heading", "relative heading start point, degrees "
-             "(MINS), rounded to 0.01 half away from zero; reads the last written (NaN "
-             "unknown)", command="set_relative_heading", series=MINS),
-    Register(1006, Type.F32, "declination", "magnetic declination, degrees (AH), -99.9 to "
-             "99.9, rounded to 0.1 half away from zero; reads the last known (NaN unknown)",
-             command="set_declination", series=AH),
-    Register(1008, Type.U16, "mag_calibration", "magnetic calibration: write 1 start, "
-             "2 finish, 3 clear (AH); reads the last action (0 none)",
-             command="mag_calibration", series=AH),
+    *(Register(spec.register.address, _command_type(spec), spec.register.name,
+               spec.register.description, command=spec.name, series=spec.series)
+      for spec in CATALOGUE.values() if spec.register is not None),
 )
 
 #: Contiguous blocks of the map: a read must lie inside one.
@@ -98,9 +109,27 @@ BLOCKS: tuple[range, ...] = (range(0, 9), range(100, 132), range(200, 232), rang
 BY_ADDRESS: Mapping[int, Register] = {r.address: r for r in REGISTERS}
 IMAGE_WORDS = BLOCKS[-1].stop
 
-ZERO_TYPES = {"absolute": 0, "relative": 1}
-MAG_ACTIONS = {1: "start", 2: "finish", 3: "clear"}
-MAG_CODES = {action: code for code, action in MAG_ACTIONS.items()}
+#: The command registers, with the catalogue rows they are made of.
+COMMANDS: Mapping[int, CommandSpec] = {
+    spec.register.address: spec for spec in CATALOGUE.values() if spec.register is not None}
+
+
+def command_args(spec: CommandSpec, words: Sequence[int]) -> dict[str, Any] | None:
+    """The arguments a write of ``spec``'s register carries, or ``None`` for a bad
+    value: 1 runs a command without arguments, a choice is its code, an angle a
+    float32."""
+    assert spec.register is not None
+    name = _argument(spec)
+    if name is None:
+        return {} if words[0] == 1 else None
+    if _command_type(spec) is Type.F32:
+        # The float32 a client wrote for 99.9 is 99.90000153: the decimal it stands for
+        # is what the command gets (the command rounds it to the sensor's resolution,
+        # so a half such as 0.35, 0.3499999940 as float32, stays one).
+        value = shortest_float32(struct.unpack(">f", struct.pack(">HH", *words))[0])
+        return {name: value} if math.isfinite(value) else None
+    choices = {code: choice for choice, code in spec.register.codes.items()}
+    return {name: choices[words[0]]} if words[0] in choices else None
 
 
 def inside_a_value(address: int) -> bool:
@@ -182,18 +211,17 @@ class SensorImage:
                                        self.protocol.value, self.address)
 
     def refresh_commands(self, snap: Snapshot, known: KnownSettings) -> None:
-        """The command block: the settings as far as the gateway knows them."""
-        zero = ZERO_TYPES.get(known.zero_type or "", 0xFFFF)
-        busy_with = known.busy_with if snap.busy else None
-        words = struct.pack(">HHHH", zero, int(busy_with == "save"),
-                            int(busy_with == "calibrate_gyro"), 0)
-        heading = known.relative_heading
-        declination = known.declination
-        words += NAN32 if heading is None else struct.pack(">f", heading)
-        words += NAN32 if declination is None else struct.pack(">f", declination)
-        action = known.mag_calibration
-        words += struct.pack(">H", MAG_CODES.get(action, 0) if action else 0)
-        self.words[2 * 1000: 2 * 1009] = words
+        """The command block: the settings as far as the gateway knows them (a
+        ``busy_with`` outlives the busy period it names: not past it)."""
+        if not snap.busy:
+            known = replace(known, busy_with=None)
+        for address, spec in COMMANDS.items():
+            reg, row = BY_ADDRESS[address], spec.register
+            assert row is not None
+            shown = row.shows(known)
+            if isinstance(shown, str) or (shown is None and reg.type is Type.U16):
+                shown = row.codes.get(shown or "", row.unknown)
+            self.words[2 * address: 2 * (address + reg.type.words)] = _pack(reg, shown)
 
 
 #: Unit 255: the gateway's own diagnostics, one block of ``DIAG_STRIDE`` registers per

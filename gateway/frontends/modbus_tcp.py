@@ -29,7 +29,6 @@ import asyncio
 import contextlib
 import functools
 import logging
-import math
 import socket
 import struct
 import time
@@ -55,7 +54,6 @@ from ..modbus_codes import (
     WRITE_MULTIPLE,
     WRITE_SINGLE,
 )
-from ..model import shortest_float32
 from ..supervise import Frontend, PeerLog
 from . import modbus_map as mm
 from .common import GatewayLike
@@ -259,7 +257,7 @@ class ModbusTcpServer(Frontend):
             return exception(function, ILLEGAL_VALUE)  # half a float, or two commands
         if unit.sensor.series not in reg.series:
             return exception(function, ILLEGAL_ADDRESS)
-        args = _command_args(reg, words)
+        args = mm.command_args(mm.COMMANDS[address], words)
         if args is None:
             return exception(function, ILLEGAL_VALUE)
         self.counts["writes"] += 1
@@ -295,26 +293,6 @@ def _read_span(pdu: bytes) -> tuple[int, int] | None:
         return None
     start, count = struct.unpack_from(">HH", pdu, 1)
     return (start, count) if 1 <= count <= MAX_READ else None
-
-
-def _command_args(reg: mm.Register, words: list[int]) -> dict[str, Any] | None:
-    """The command arguments a write carries, or ``None`` for a bad value."""
-    value = words[0]
-    match reg.command:
-        case "set_zero_type":
-            types = {code: name for name, code in mm.ZERO_TYPES.items()}
-            return {"type": types[value]} if value in types else None
-        case "save" | "calibrate_gyro" | "clear_heading":
-            return {} if value == 1 else None
-        case "mag_calibration":
-            return {"action": mm.MAG_ACTIONS[value]} if value in mm.MAG_ACTIONS else None
-        case "set_relative_heading" | "set_declination":
-            # The float32 a client wrote for 99.9 is 99.90000153: the decimal it stands
-            # for is what the command gets (the command rounds it to the sensor's
-            # resolution, so a half such as 0.35, 0.3499999940 as float32, stays one).
-            degrees = shortest_float32(struct.unpack(">f", struct.pack(">HH", *words))[0])
-            return {"degrees": degrees} if math.isfinite(degrees) else None
-    return None
 
 
 class _Connection(asyncio.Protocol):

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any, Protocol
 
 from ..modbus_codes import READ_HOLDING, READ_INPUT, WRITE_MULTIPLE, WRITE_SINGLE
@@ -113,6 +114,10 @@ class ProtocolAdapter(Protocol):
 
     def poll(self, series: Series, address: int) -> Exchange: ...
 
+    def carries(self, name: str) -> bool:
+        """Whether the protocol has a row for the catalogue command ``name``."""
+        ...
+
     def command(self, series: Series, address: int, name: str,
                 args: Mapping[str, Any]) -> list[Exchange]: ...
 
@@ -151,6 +156,53 @@ def _native_match(shape: native.Shape, address: int) -> Callable[[Any], Answer |
     return match
 
 
+@dataclass(frozen=True, slots=True)
+class _NativeSteps:
+    """Builds one sensor's native exchanges, by the document's command names."""
+
+    series: Series
+    address: int
+
+    def __call__(self, name: str, effect: Effect = Effect(), answer_address: int | None = None,
+                 **values: Any) -> Exchange:
+        command = native.COMMANDS_BY_NAME[name]
+        if not self.has(name):
+            raise Unsupported(f"{self.series.name} has no {name} ({command.section})")
+        shape = command.answer_for(self.series)
+        assert shape is not None
+        request = native.encode_request(name, self.address, **values)
+        at = self.address if answer_address is None else answer_address
+        return Exchange(name, request, shape.length_byte + 1, _native_match(shape, at), effect)
+
+    def has(self, name: str) -> bool:
+        return self.series in native.COMMANDS_BY_NAME[name].request.series
+
+    def if_has(self, name: str) -> list[Exchange]:
+        return [self(name)] if self.has(name) else []
+
+
+NativeRow = Callable[[_NativeSteps, Mapping[str, Any]], list[Exchange]]
+
+#: How each catalogue command goes over the native protocol: one row per command, by
+#: the document's own command names (``native.COMMANDS``, with their sections).
+NATIVE_COMMANDS: Mapping[str, NativeRow] = MappingProxyType({
+    "set_zero_type": lambda ex, a: [ex("set_zero_type", zero_type=a["type"])],
+    "save": lambda ex, a: [ex("save", Effect(busy_for=SAVE_SECONDS))],
+    "calibrate_gyro": lambda ex, a: [ex("calibrate_gyro")],
+    "clear_heading": lambda ex, a: [ex("clear_heading")],
+    "set_relative_heading": lambda ex, a: [ex("set_relative_heading", degrees=a["degrees"])],
+    "set_declination": lambda ex, a: [ex("set_declination", degrees=a["degrees"])],
+    "mag_calibration": lambda ex, a: [ex(f"{a['action']}_mag_calibration")],
+    # the answer comes from the new address (2.10)
+    "set_address": lambda ex, a: [ex("set_address", Effect(new_address=a["address"]),
+                                     a["address"], new_address=a["address"])],
+    # answered at the old rate, then the line switches (2.4)
+    "set_baudrate": lambda ex, a: [ex("set_baudrate", Effect(new_baud=a["baudrate"]),
+                                      baudrate=a["baudrate"])],
+    "read_settings": lambda ex, a: [ex("read_zero_type"), *ex.if_has("read_declination")],
+})
+
+
 class NativeAdapter:
     wire = Wire.NATIVE
 
@@ -166,47 +218,20 @@ class NativeAdapter:
 
     def _exchange(self, series: Series, address: int, name: str, effect: Effect = Effect(),
                   answer_address: int | None = None, **values: Any) -> Exchange:
-        command = native.COMMANDS_BY_NAME[name]
-        if series not in command.request.series:
-            raise Unsupported(f"{series.name} has no {name} ({command.section})")
-        shape = command.answer_for(series)
-        assert shape is not None
-        request = native.encode_request(name, address, **values)
-        match = _native_match(shape, address if answer_address is None else answer_address)
-        return Exchange(name, request, shape.length_byte + 1, match, effect)
+        return _NativeSteps(series, address)(name, effect, answer_address, **values)
 
     def poll(self, series: Series, address: int) -> Exchange:
         return self._exchange(series, address, "read_all")
 
+    def carries(self, name: str) -> bool:
+        return name in NATIVE_COMMANDS
+
     def command(self, series: Series, address: int, name: str,
                 args: Mapping[str, Any]) -> list[Exchange]:
-        ex = self._exchange
-        match name:
-            case "set_zero_type":
-                return [ex(series, address, name, zero_type=args["type"])]
-            case "save":
-                return [ex(series, address, name, Effect(busy_for=SAVE_SECONDS))]
-            case "calibrate_gyro" | "clear_heading":
-                return [ex(series, address, name)]
-            case "set_relative_heading" | "set_declination":
-                return [ex(series, address, name, degrees=args["degrees"])]
-            case "mag_calibration":
-                action = {"start": "start_mag_calibration", "finish": "finish_mag_calibration",
-                          "clear": "clear_mag_calibration"}[args["action"]]
-                return [ex(series, address, action)]
-            case "set_address":
-                new = args["address"]
-                return [ex(series, address, name, Effect(new_address=new), answer_address=new,
-                           new_address=new)]
-            case "set_baudrate":
-                baud = args["baudrate"]
-                return [ex(series, address, name, Effect(new_baud=baud), baudrate=baud)]
-            case "read_settings":
-                reads = [ex(series, address, "read_zero_type")]
-                if series is Series.AH:
-                    reads.append(ex(series, address, "read_declination"))
-                return reads
-        raise Unsupported(f"no native command {name!r}")
+        row = NATIVE_COMMANDS.get(name)
+        if row is None:
+            raise Unsupported(f"no native command {name!r}")
+        return row(_NativeSteps(series, address), args)
 
     def stream_start(self, series: Series, address: int, hz: float) -> list[Exchange]:
         """2.16 then 2.17: stream the combined frame (2.13-2.15) at ``hz``."""
@@ -346,34 +371,16 @@ class ModbusAdapter:
 
         return Exchange("pass-through", rtu.encode_pdu(unit, pdu), answer_bytes, match)
 
+    def carries(self, name: str) -> bool:
+        return name in MODBUS_COMMANDS
+
     def command(self, series: Series, address: int, name: str,
                 args: Mapping[str, Any]) -> list[Exchange]:
-        w = self.write
-        match name:
-            case "set_zero_type":
-                return [w(series, address, name, args["type"])]
-            case "save":
-                return [w(series, address, name, 0, Effect(busy_for=SAVE_SECONDS))]
-            case "calibrate_gyro":
-                return [w(series, address, name, 0,
-                          Effect(busy_until_done=True, read_while_busy=True))]
-            case "clear_heading":
-                return [w(series, address, name, 0)]
-            case "set_relative_heading":
-                return [w(series, address, name, args["degrees"])]
-            case "set_address":
-                new = args["address"]
-                return [w(series, address, name, new, Effect(new_address=new), answer_unit=new)]
-            case "set_baudrate":
-                # No answer (2.3): switch the line, then prove the sensor is there.
-                return [w(series, address, name, args["baudrate"],
-                          Effect(new_baud=args["baudrate"])),
-                        self.read("verify", address, 0x04, 1)]
-            case "read_settings":
-                return [self.read(name, address, 0x04, 2)]
-            case "set_declination" | "mag_calibration":
-                raise Unsupported(f"{name} has no Modbus register (the native protocol has it)")
-        raise Unsupported(f"no Modbus command {name!r}")
+        row = MODBUS_COMMANDS.get(name)
+        if row is None:
+            raise Unsupported(f"{name} has no Modbus register (the native protocol has it)"
+                              if name in NATIVE_COMMANDS else f"no Modbus command {name!r}")
+        return row(_ModbusSteps(self, series, address), args)
 
     def stream_start(self, series: Series, address: int, hz: float) -> list[Exchange]:
         interval = round(1000 / hz)
@@ -395,6 +402,43 @@ class ModbusAdapter:
             return Answer({"done": True})
         start, count = poll_span(series)
         return _rtu_read_match(address, start, count)(frame)
+
+
+@dataclass(frozen=True, slots=True)
+class _ModbusSteps:
+    """Builds one sensor's Modbus exchanges, by the document's register names."""
+
+    adapter: ModbusAdapter
+    series: Series
+    unit: int
+
+    def __call__(self, name: str, value: Any, effect: Effect = Effect(),
+                 answer_unit: int | None = None) -> Exchange:
+        return self.adapter.write(self.series, self.unit, name, value, effect, answer_unit)
+
+    def read(self, label: str, start: int, count: int) -> Exchange:
+        return self.adapter.read(label, self.unit, start, count)
+
+
+ModbusRow = Callable[[_ModbusSteps, Mapping[str, Any]], list[Exchange]]
+
+#: How each catalogue command goes over Modbus RTU: one row per command, by the
+#: document's register names (``modbus_rtu.REGISTERS``).  The declination and the
+#: magnetometer calibration have no register (native 2.21-2.26 only): no row.
+MODBUS_COMMANDS: Mapping[str, ModbusRow] = MappingProxyType({
+    "set_zero_type": lambda w, a: [w("set_zero_type", a["type"])],
+    "save": lambda w, a: [w("save", 0, Effect(busy_for=SAVE_SECONDS))],
+    "calibrate_gyro": lambda w, a: [w("calibrate_gyro", 0, Effect(busy_until_done=True,
+                                                                  read_while_busy=True))],
+    "clear_heading": lambda w, a: [w("clear_heading", 0)],
+    "set_relative_heading": lambda w, a: [w("set_relative_heading", a["degrees"])],
+    "set_address": lambda w, a: [w("set_address", a["address"], Effect(new_address=a["address"]),
+                                   answer_unit=a["address"])],
+    # never answered (2.3): switch the line, then prove the sensor is there
+    "set_baudrate": lambda w, a: [w("set_baudrate", a["baudrate"], Effect(new_baud=a["baudrate"])),
+                                  w.read("verify", 0x04, 1)],
+    "read_settings": lambda w, a: [w.read("read_settings", 0x04, 2)],
+})
 
 
 def adapter_for(wire: Wire) -> ProtocolAdapter:

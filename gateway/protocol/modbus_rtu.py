@@ -51,7 +51,7 @@ from pymodbus.pdu.register_message import (
 )
 
 from ..modbus_codes import READ_HOLDING, READ_INPUT, WRITE_MULTIPLE, WRITE_SINGLE
-from ..model import Series, shortest_float32
+from ..model import KnownSettings, Series, shortest_float32
 from .bcd import round_half_away
 from .errors import BadChecksum, BadLength, FrameError, UnknownFrame, UsageError
 from .native import BAUD_CODES
@@ -253,15 +253,21 @@ def register_image(values: Mapping[str, Any]) -> dict[int, int]:
     return image
 
 
-#: Sensor registers that show a setting the gateway keeps (``Cache.note_settings``'s
-#: names), read or written: what a pass-through exchange teaches about the sensor.
+#: Sensor registers that show a setting the gateway keeps (``model.KnownSettings``'s
+#: fields), read or written: what a pass-through exchange teaches about the sensor.
 SETTING_REGISTERS: Mapping[str, str] = MappingProxyType({
     "zero_type": "zero_type", "set_zero_type": "zero_type",
     "set_relative_heading": "relative_heading",
 })
 
 
-def settings_shown(request: bytes, answer: bytes) -> dict[str, Any]:
+def settings_shown(request: bytes, answer: bytes) -> KnownSettings:
+    """The settings a pass-through exchange (request and answer PDUs) shows (see
+    ``_settings_shown``)."""
+    return KnownSettings(**_settings_shown(request, answer))
+
+
+def _settings_shown(request: bytes, answer: bytes) -> dict[str, Any]:
     """The settings a pass-through exchange (request and answer PDUs) shows: a write
     the sensor acknowledged, or a read of a register that holds one.  A refused or
     malformed exchange shows nothing."""

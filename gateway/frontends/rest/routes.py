@@ -3,7 +3,7 @@ command catalogue."""
 
 from __future__ import annotations
 
-import inspect
+import json
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -17,12 +17,11 @@ from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingRes
 from fastapi.security import HTTPAuthorizationCredentials
 from fastapi.staticfiles import StaticFiles
 from prometheus_client import CollectorRegistry, generate_latest
-from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from ... import __version__
 from ...cache import Snapshot, Status
-from ...commands import CATALOGUE, unknown_command
+from ...commands import CATALOGUE, CommandSpec, unknown_command
 from ...config import HttpConfig
 from ...errors import KINDS, ErrorKind, RequestFailed
 from ...model import GROUP_UNITS
@@ -94,7 +93,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     _sensor_routes(app, routes)
     _stream_routes(app, routes, hub if hub is not None else StreamHub(gateway))
     for spec in CATALOGUE.values():
-        _command_route(app, routes, spec.name, spec.args, spec.summary)
+        _command_route(app, routes, spec)
     _metrics_route(app, routes)
     app.add_middleware(CommandGuard, config=config)
     counts = counters if counters is not None else {"requests": 0}
@@ -312,9 +311,9 @@ def _metrics_route(app: FastAPI, routes: _Routes) -> None:
 
 def _openapi_of(app: FastAPI) -> Callable[[], dict[str, Any]]:
     def openapi() -> dict[str, Any]:
-        """FastAPI's document, with one correction: a read's bearer token is optional
-        (required only with ``http.read_token_required``), which OpenAPI says with an
-        empty alternative."""
+        """FastAPI's document, with one correction and one addition: a read's bearer
+        token is optional (required only with ``http.read_token_required``), which
+        OpenAPI says with an empty alternative; and the command bodies' models."""
         if app.openapi_schema is None:
             document = get_openapi(title=app.title, version=app.version,
                                    description=app.description, routes=app.routes)
@@ -322,38 +321,57 @@ def _openapi_of(app: FastAPI) -> Callable[[], dict[str, Any]]:
                 operation = path.get("get")
                 if operation is not None and "security" in operation:
                     operation["security"] = [{}, *operation["security"]]
+            schemas = document.setdefault("components", {}).setdefault("schemas", {})
+            for spec in CATALOGUE.values():  # the command bodies (``_command_route``)
+                schemas[spec.args.__name__] = spec.args.model_json_schema(
+                    ref_template="#/components/schemas/{model}")
             app.openapi_schema = document
         return app.openapi_schema
 
     return openapi
 
 
-def _command_route(app: FastAPI, routes: _Routes, command: str, args: type[BaseModel],
-                   summary: str) -> None:
-    """``POST …/commands/{command}``, its body the command's own argument model (a
-    command without arguments takes no body, or an empty object)."""
+async def command_arguments(request: Request) -> Any:
+    """A command's arguments: its JSON body (no body: none).  The catalogue checks them
+    (``Gateway.command``), as it checks MQTT's and Modbus TCP's, so every front end
+    refuses the same mistakes in the same words."""
+    raw = await request.body()
+    if not raw.strip():
+        return None
+    media = request.headers.get("content-type", "application/json").split(";")[0]
+    media = media.strip().lower()
+    if media != "application/json" and not media.endswith("+json"):
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS,
+                            f"body: {media} is not JSON (send Content-Type: application/json)")
+    try:
+        return json.loads(raw)
+    except (ValueError, RecursionError) as exc:  # bad UTF-8 is a ValueError too
+        reason = str(exc) if isinstance(exc, ValueError) else "nested too deep"
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"body: not JSON ({reason})") from None
 
-    async def endpoint(name: str, body: BaseModel | None = None) -> JSONResponse:
+
+def _command_route(app: FastAPI, routes: _Routes, spec: CommandSpec) -> None:
+    """``POST …/commands/{command}``, its body the command's own argument model (a
+    command without arguments takes no body, or an empty object).  The OpenAPI
+    document names that model (``_openapi_of`` adds it to the components)."""
+
+    async def endpoint(name: str,
+                       args: Annotated[Any, Depends(command_arguments)]) -> JSONResponse:
         routes.sensor_or_404(name)
-        values = body.model_dump() if body is not None else {}
-        result = await routes.gateway.command(name, command, values)
+        result = await routes.gateway.command(name, spec.name, args)
         status = 200 if result.ok else KINDS[result.kind or ErrorKind.FAILURE].status
         return JSONResponse(result.to_json(), status)
 
-    # The body's type is the command's model, known only here: FastAPI reads it from
-    # the signature.
-    body = inspect.Parameter(
-        "body", inspect.Parameter.POSITIONAL_OR_KEYWORD,
-        annotation=args if args.model_fields else args | None,
-        **({} if args.model_fields else {"default": None}))
-    endpoint.__signature__ = inspect.Signature(  # type: ignore[attr-defined]
-        [inspect.Parameter("name", inspect.Parameter.POSITIONAL_OR_KEYWORD, annotation=str),
-         body], return_annotation=JSONResponse)
+    schema: dict[str, Any] = {"$ref": f"#/components/schemas/{spec.args.__name__}"}
+    if not spec.args.model_fields:  # no arguments: no body, ``{}`` or ``null``
+        schema = {"anyOf": [schema, {"type": "null"}], "title": "Body"}
     app.add_api_route(
-        f"{API}/sensors/{{name}}/commands/{command}", endpoint, methods=["POST"],
-        response_model=CommandOut, summary=summary, name=f"command_{command}",
+        f"{API}/sensors/{{name}}/commands/{spec.name}", endpoint, methods=["POST"],
+        response_model=CommandOut, summary=spec.summary, name=f"command_{spec.name}",
         dependencies=[Depends(routes.commands)], tags=["commands"],
-        responses=_errors(401, 403, 404, 409, 413, 422, 502, 504))
+        responses=_errors(401, 403, 404, 409, 413, 422, 502, 504),
+        openapi_extra={"requestBody": {"required": bool(spec.args.model_fields),
+                                       "content": {"application/json": {"schema": schema}}}})
 
 
 def openapi_document(gateway: GatewayLike, config: HttpConfig) -> dict[str, Any]:
