@@ -93,7 +93,7 @@ class AddressArgs(_Args):
 
 
 class BaudrateArgs(_Args):
-    baudrate: int
+    baudrate: int = Field(description=f"one of {', '.join(map(str, sorted(BAUD_CODES.values())))}")
 
     @field_validator("baudrate")
     @classmethod
@@ -104,8 +104,10 @@ class BaudrateArgs(_Args):
 
 
 class BusEffect(enum.Enum):
-    """What a command does to the bus besides its exchange (the protocol rows in
-    ``protocol.exchanges`` carry it out; a test holds the two to each other)."""
+    """What a command may do to the bus besides its exchange.  The protocol rows in
+    ``protocol.exchanges`` carry it out, where their protocol needs it (a native gyro
+    calibration is over when answered; a Modbus one keeps the sensor busy); a test
+    holds the two to each other."""
 
     NONE = "none"
     BUSY = "the sensor is busy for a while"
@@ -150,6 +152,8 @@ class CommandSpec:
     #: what a successful answer teaches about the sensor's settings
     learns: Learn = _nothing
     register: TcpRegister | None = None
+    #: arguments to show in examples (the dashboard's, the demo's, the docs')
+    example: Args = field(default_factory=dict)
 
 
 ALL, AH, MINS = frozenset(Series), frozenset({Series.AH}), frozenset({Series.MINS})
@@ -164,7 +168,8 @@ CATALOGUE: Mapping[str, CommandSpec] = MappingProxyType({
             register=TcpRegister(1000, "zero_type", "zero type: write 0 absolute, 1 relative; "
                                  "reads the last known (0xFFFF unknown)",
                                  lambda known: known.zero_type,
-                                 {"absolute": 0, "relative": 1})),
+                                 {"absolute": 0, "relative": 1}),
+            example={"type": "relative"}),
         CommandSpec(
             "save", NoArgs, "save the settings (3-5 s, the sensor does not answer)", ALL,
             BusEffect.BUSY, lambda args, answer: KnownSettings(busy_with="save"),
@@ -187,7 +192,8 @@ CATALOGUE: Mapping[str, CommandSpec] = MappingProxyType({
             register=TcpRegister(1004, "relative_heading", "relative heading start point, "
                                  "degrees (MINS), rounded to 0.01 half away from zero; reads "
                                  "the last written (NaN unknown)",
-                                 lambda known: known.relative_heading)),
+                                 lambda known: known.relative_heading),
+            example={"degrees": 90.0}),
         CommandSpec(
             "set_declination", DeclinationArgs, "magnetic declination (AH)", AH,
             # the sensor's echo: -1.25 is sent and stored as -1.3
@@ -196,7 +202,8 @@ CATALOGUE: Mapping[str, CommandSpec] = MappingProxyType({
             register=TcpRegister(1006, "declination", "magnetic declination, degrees (AH), "
                                  "-99.9 to 99.9, rounded to 0.1 half away from zero; reads "
                                  "the last known (NaN unknown)",
-                                 lambda known: known.declination)),
+                                 lambda known: known.declination),
+            example={"degrees": -3.5}),
         CommandSpec(
             "mag_calibration", MagCalibrationArgs,
             "plane circumference calibration: start, finish, clear (AH)", AH,
@@ -204,11 +211,12 @@ CATALOGUE: Mapping[str, CommandSpec] = MappingProxyType({
             register=TcpRegister(1008, "mag_calibration", "magnetic calibration: write 1 "
                                  "start, 2 finish, 3 clear (AH); reads the last action "
                                  "(0 none)", lambda known: known.mag_calibration,
-                                 {"start": 1, "finish": 2, "clear": 3}, unknown=0)),
+                                 {"start": 1, "finish": 2, "clear": 3}, unknown=0),
+            example={"action": "start"}),
         CommandSpec("set_address", AddressArgs, "a new bus address", ALL,
-                    BusEffect.NEW_ADDRESS),
+                    BusEffect.NEW_ADDRESS, example={"address": 5}),
         CommandSpec("set_baudrate", BaudrateArgs, "a new baud rate; the gateway follows", ALL,
-                    BusEffect.NEW_BAUD),
+                    BusEffect.NEW_BAUD, example={"baudrate": 115200}),
         CommandSpec(
             "read_settings", NoArgs, "zero type, address, declination (AH)", ALL,
             learns=lambda args, answer: KnownSettings(zero_type=answer.get("zero_type"),

@@ -155,7 +155,7 @@ class SimSensor(ABC):
             )
         return reading
 
-    def set_zero_type(self, zero_type: str, now: float) -> None:
+    def apply_zero_type(self, zero_type: str, now: float) -> None:
         self.settings.zero_type = zero_type
         if zero_type == "relative":
             angles = self.source.sample(now).angles
@@ -344,7 +344,7 @@ class NativeSensor(SimSensor):
                 self.busy_until = at + self.save_duration
                 answer = {"result": "success"}
             case "set_zero_type":
-                self.set_zero_type(args["zero_type"], now)
+                self.apply_zero_type(args["zero_type"], now)
                 answer = {"result": "success"}
             case "read_zero_type":
                 answer = {"zero_type": self.settings.zero_type}
@@ -481,7 +481,7 @@ class ModbusSensor(SimSensor):
         echo = rtu.WriteRegister(self.address, address, value)
         match reg.name:
             case "set_zero_type":
-                self.set_zero_type(decoded, now)
+                self.apply_zero_type(decoded, now)
             case "set_baudrate":
                 self.settings.baud = decoded  # 2.3: no answer, effective at once
                 return None

@@ -11,6 +11,7 @@ command lines printed at start are the quickest tour.
 from __future__ import annotations
 
 import asyncio
+import json
 import secrets
 import shlex
 from collections.abc import Iterator
@@ -18,6 +19,7 @@ from contextlib import ExitStack
 from dataclasses import dataclass
 
 from ..app import Gateway, run_until_signalled
+from ..commands import CATALOGUE
 from ..config import GatewayConfig, config_from_dict
 from ..model import Series, WireProtocol
 from ..simulator import SimulatorThread, make_sensor
@@ -99,11 +101,13 @@ def banner(gateway: Gateway, token: str) -> str:
             f"polled {sensor.poll_hz:g} Hz"
         rows.append(f"  {sensor.name:<6} {sensor.series.name:<5} {bus.protocol.name.lower():<7}"
                     f"{bus.name:<8} Modbus unit {sensor.unit_id}   {how}")
-    first = next(iter(gateway.sensors))
+    first, sensor = next(iter(gateway.sensors.items()))
+    # the first catalogue command with arguments this sensor has
+    spec = next(s for s in CATALOGUE.values() if s.example and sensor.series in s.series)
     command = shlex.join(["curl", "-X", "POST", "-H", f"Authorization: Bearer {token}",
                           "-H", "Content-Type: application/json",
-                          "-d", '{"type": "relative"}',
-                          f"{base}/api/v1/sensors/{first}/commands/set_zero_type"])
+                          "-d", json.dumps(dict(spec.example)),
+                          f"{base}/api/v1/sensors/{first}/commands/{spec.name}"])
     lines = [
         f"imu-gateway demo: {len(gateway.sensors)} simulated sensors on "
         f"{len(config.buses)} simulated serial lines at {BAUD} baud (no hardware)",
