@@ -43,34 +43,6 @@ class Group(enum.Enum):
 
 
 @dataclass(frozen=True, slots=True)
-class GroupUnit:
-    """How one group's values are told, the one place for it: ``symbol`` is what the
-    register map, Home Assistant and the dashboard show, ``name`` what the API
-    descriptions say, and ``digits`` the decimals the documents give its values (the
-    BCD formats' and the Modbus registers' resolution), which is also the integer
-    registers' scale (``10 ** digits``)."""
-
-    symbol: str
-    name: str
-    digits: int
-
-    @property
-    def scale(self) -> int:
-        return int(10**self.digits)
-
-
-#: The unit of each group's values (the module docstring says why there is no
-#: conversion): one row per group.
-GROUP_UNITS: Mapping[Group, GroupUnit] = MappingProxyType({
-    Group.ANGLES: GroupUnit("°", "degrees", 2),
-    Group.ACCEL: GroupUnit("g", "standard gravity (g)", 4),
-    Group.GYRO: GroupUnit("°/s", "degrees per second", 2),
-    Group.MAG: GroupUnit("G", "gauss", 5),
-    Group.QUATERNION: GroupUnit("", "unitless", 6),
-})
-
-
-@dataclass(frozen=True, slots=True)
 class Angles:
     pitch: float
     roll: float
@@ -90,6 +62,42 @@ class Quaternion:
     q1: float
     q2: float
     q3: float
+
+
+_XYZ = ("x", "y", "z")
+
+
+@dataclass(frozen=True, slots=True)
+class ValueGroup:
+    """One value group, the one place for it: its dataclass, the per-field names of its
+    members in order (the reading JSON's and the Modbus TCP map's), and how its values
+    are told.  ``symbol`` is what the register map, Home Assistant and the dashboard
+    show, ``name`` what the API descriptions say, and ``digits`` the decimals the
+    documents give its values (the BCD formats' and the Modbus registers' resolution),
+    which is also the integer registers' scale (``10 ** digits``)."""
+
+    type: type[Angles | Vector3 | Quaternion]
+    fields: tuple[str, ...]
+    symbol: str
+    name: str
+    digits: int
+
+    @property
+    def scale(self) -> int:
+        return int(10**self.digits)
+
+
+#: The value groups, one row each.  The units are the sensors' own in both protocols
+#: (the module docstring says why there is no conversion).
+VALUE_GROUPS: Mapping[Group, ValueGroup] = MappingProxyType({
+    Group.ANGLES: ValueGroup(Angles, ("pitch", "roll", "yaw"), "°", "degrees", 2),
+    Group.ACCEL: ValueGroup(Vector3, tuple(f"accel_{a}" for a in _XYZ), "g",
+                            "standard gravity (g)", 4),
+    Group.GYRO: ValueGroup(Vector3, tuple(f"gyro_{a}" for a in _XYZ), "°/s",
+                           "degrees per second", 2),
+    Group.MAG: ValueGroup(Vector3, tuple(f"mag_{a}" for a in _XYZ), "G", "gauss", 5),
+    Group.QUATERNION: ValueGroup(Quaternion, ("q0", "q1", "q2", "q3"), "", "unitless", 6),
+})
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,7 +1,7 @@
 """Data answers of both protocols to the normalised ``Reading``.
 
 Both protocol modules name the values they decode with the per-field names of the
-reading JSON (``pitch``, ``accel_x``, ``q0`` …; ``GROUP_FIELDS`` below), so normalising
+reading JSON (``pitch``, ``accel_x``, ``q0`` …; ``model.VALUE_GROUPS``), so normalising
 is one table from field name to (group, member) and no per-command code.
 """
 
@@ -10,19 +10,10 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from .model import CAPABILITIES, Angles, Group, Quaternion, Reading, Series, Vector3
+from .model import CAPABILITIES, VALUE_GROUPS, Group, Reading, Series
 
-_XYZ = ("x", "y", "z")
-#: group -> (its dataclass, the per-field name of each member in order)
-GROUP_FIELDS: dict[Group, tuple[type, tuple[str, ...]]] = {
-    Group.ANGLES: (Angles, ("pitch", "roll", "yaw")),
-    Group.ACCEL: (Vector3, tuple(f"accel_{a}" for a in _XYZ)),
-    Group.GYRO: (Vector3, tuple(f"gyro_{a}" for a in _XYZ)),
-    Group.MAG: (Vector3, tuple(f"mag_{a}" for a in _XYZ)),
-    Group.QUATERNION: (Quaternion, ("q0", "q1", "q2", "q3")),
-}
 #: every per-field name, in the reading JSON's order
-FIELD_NAMES: tuple[str, ...] = tuple(n for _, names in GROUP_FIELDS.values() for n in names)
+FIELD_NAMES: tuple[str, ...] = tuple(n for group in VALUE_GROUPS.values() for n in group.fields)
 
 
 def member_name(group: Group, field_name: str) -> str:
@@ -38,8 +29,8 @@ def group_values(values: Mapping[str, Any]) -> dict[str, dict[str, float]]:
     for a person reading one frame; ``to_reading`` is the one for the cache.
     """
     out: dict[str, dict[str, float]] = {}
-    for group, (_, names) in GROUP_FIELDS.items():
-        members = {member_name(group, n): float(values[n]) for n in names if n in values}
+    for group, spec in VALUE_GROUPS.items():
+        members = {member_name(group, n): float(values[n]) for n in spec.fields if n in values}
         if members:
             out[group.value] = members
     return out
@@ -48,7 +39,7 @@ def group_values(values: Mapping[str, Any]) -> dict[str, dict[str, float]]:
 #: series -> (reading attribute, its dataclass, per-field names) of each group the
 #: series measures: ``to_reading``'s table, worked out once (it runs for every answer).
 _MEASURED: dict[Series, tuple[tuple[str, type, tuple[str, ...]], ...]] = {
-    series: tuple((group.value, cls, names) for group, (cls, names) in GROUP_FIELDS.items()
+    series: tuple((group.value, spec.type, spec.fields) for group, spec in VALUE_GROUPS.items()
                   if group in caps.groups)
     for series, caps in CAPABILITIES.items()
 }
@@ -73,9 +64,9 @@ def to_reading(values: Mapping[str, Any], series: Series) -> Reading | None:
 def field_values(reading: Reading) -> dict[str, float]:
     """The inverse view: a reading's measured values by per-field name."""
     out: dict[str, float] = {}
-    for group, (_, names) in GROUP_FIELDS.items():
+    for group, spec in VALUE_GROUPS.items():
         value = getattr(reading, group.value)
         if value is not None:
-            for name in names:
+            for name in spec.fields:
                 out[name] = getattr(value, member_name(group, name))
     return out

@@ -22,8 +22,8 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from ..errors import ConfigError
-from ..model import Group, Series, WireProtocol
-from ..normalise import FIELD_NAMES, GROUP_FIELDS
+from ..model import VALUE_GROUPS, Group, Series, WireProtocol
+from ..normalise import FIELD_NAMES
 from .fields import (
     ADDRESS_RANGE,
     BAUD_RATES,
@@ -248,9 +248,9 @@ class MqttConfig(_Model):
         """The deadband of each field, a group's applied to its members (a field's own
         value wins)."""
         out: dict[str, float] = {}
-        for group, (_, names) in GROUP_FIELDS.items():
+        for group, spec in VALUE_GROUPS.items():
             if group.value in self.deadband:
-                out.update(dict.fromkeys(names, self.deadband[group.value]))
+                out.update(dict.fromkeys(spec.fields, self.deadband[group.value]))
         out.update({k: v for k, v in self.deadband.items() if k in FIELD_NAMES})
         return out
 

@@ -22,7 +22,7 @@ from ..cache import Snapshot
 from ..commands import CATALOGUE, CommandSpec
 from ..model import (
     CAPABILITIES,
-    GROUP_UNITS,
+    VALUE_GROUPS,
     Group,
     KnownSettings,
     Reading,
@@ -30,7 +30,7 @@ from ..model import (
     WireProtocol,
     shortest_float32,
 )
-from ..normalise import GROUP_FIELDS, field_values
+from ..normalise import field_values
 from ..stats import BusStats
 
 INT32_MIN = -(2**31)
@@ -79,8 +79,8 @@ def _command_type(spec: CommandSpec) -> Type:
 #: The sixteen measured values in the map's order (the reading JSON's): name, group,
 #: the i32 copy's scale (it holds round(value × scale): the group's resolution), unit.
 _MEASURED: tuple[tuple[str, Group, int, str], ...] = tuple(
-    (name, group, GROUP_UNITS[group].scale, GROUP_UNITS[group].symbol)
-    for group, (_, names) in GROUP_FIELDS.items() for name in names
+    (name, group, spec.scale, spec.symbol)
+    for group, spec in VALUE_GROUPS.items() for name in spec.fields
 )
 FLOAT_BASE, INT_BASE, COMMAND_BASE = 100, 200, 1000
 MINS, AH = frozenset({Series.MINS}), frozenset({Series.AH})

@@ -16,8 +16,8 @@ from paho.mqtt.properties import Properties
 
 from .. import __version__
 from ..config import MqttConfig, SensorConfig
-from ..model import CAPABILITIES, GROUP_UNITS
-from ..normalise import GROUP_FIELDS, member_name
+from ..model import CAPABILITIES, VALUE_GROUPS
+from ..normalise import member_name
 
 CONTROL_QOS = 1  # status, availability, discovery, results: small and must arrive
 ONLINE, OFFLINE = b"online", b"offline"  # the status and availability payloads
@@ -88,10 +88,10 @@ def discovery_configs(topics: Topics,
                   "name": f"{name} ({sensor.series.name})",
                   "model": f"{sensor.series.name} series",
                   "manufacturer": "imu-gateway", "sw_version": __version__}
-        for group, (_, fields) in GROUP_FIELDS.items():
+        for group, spec in VALUE_GROUPS.items():
             if group not in CAPABILITIES[sensor.series].groups:
                 continue
-            for field_name in fields:
+            for field_name in spec.fields:
                 payload: dict[str, Any] = {
                     "name": field_name.replace("_", " "),
                     "unique_id": topics.object_id(name, field_name),
@@ -105,8 +105,8 @@ def discovery_configs(topics: Topics,
                     "device": device,
                     "origin": {"name": "imu-gateway", "sw_version": __version__},
                 }
-                if GROUP_UNITS[group].symbol:
-                    payload["unit_of_measurement"] = GROUP_UNITS[group].symbol
+                if spec.symbol:
+                    payload["unit_of_measurement"] = spec.symbol
                 out[topics.discovery(name, field_name)] = payload
     return out
 

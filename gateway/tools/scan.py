@@ -34,8 +34,7 @@ import serial
 
 from ..bus.timing import RTO_INITIAL
 from ..modbus_codes import READ_HOLDING
-from ..model import CAPABILITIES, Series, WireProtocol
-from ..normalise import GROUP_FIELDS
+from ..model import CAPABILITIES, VALUE_GROUPS, Series, WireProtocol
 from ..protocol import modbus_rtu as rtu
 from ..protocol import native
 from ..protocol.exchanges import NativeAdapter, char_time, poll_span, rtu_silence
@@ -305,8 +304,8 @@ def _modbus_series(prober: Prober, unit: int) -> str:
     for frame in frames:
         if isinstance(frame, rtu.ReadResponse) and frame.unit == unit:
             values = rtu.read_values(start, frame.registers)
-            measured = {g for g, (_, members) in GROUP_FIELDS.items()
-                        if any(values.get(n) for n in members)}
+            measured = {g for g, spec in VALUE_GROUPS.items()
+                        if any(values.get(n) for n in spec.fields)}
             # A series leaves what it does not measure at zero: the smallest series
             # whose groups cover what is non-zero is the best guess.
             for series, label in ((Series.IMU, "IMU"), (Series.VG, "VG or MINS"),

@@ -6,7 +6,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from ...model import GROUP_UNITS, Group
+from ...model import VALUE_GROUPS, Group
 
 # ------------------------------------------------------------------ response models
 
@@ -65,12 +65,12 @@ class ReadingOut(_Out):
     ts: str | None = Field(description="when the sample arrived, UTC")
     seq: int
     status: Literal["ok", "stale", "offline"]
-    angles: AnglesOut | None = Field(None, description=GROUP_UNITS[Group.ANGLES].name)
-    accel: VectorOut | None = Field(None, description=GROUP_UNITS[Group.ACCEL].name)
-    gyro: VectorOut | None = Field(None, description=GROUP_UNITS[Group.GYRO].name)
-    mag: VectorOut | None = Field(None, description=GROUP_UNITS[Group.MAG].name)
+    angles: AnglesOut | None = Field(None, description=VALUE_GROUPS[Group.ANGLES].name)
+    accel: VectorOut | None = Field(None, description=VALUE_GROUPS[Group.ACCEL].name)
+    gyro: VectorOut | None = Field(None, description=VALUE_GROUPS[Group.GYRO].name)
+    mag: VectorOut | None = Field(None, description=VALUE_GROUPS[Group.MAG].name)
     quaternion: QuaternionOut | None = Field(
-        None, description=GROUP_UNITS[Group.QUATERNION].name)
+        None, description=VALUE_GROUPS[Group.QUATERNION].name)
 
 
 class GroupOut(_Out):

@@ -24,8 +24,7 @@ from ...cache import Snapshot, Status
 from ...commands import CATALOGUE, CommandSpec, unknown_command
 from ...config import HttpConfig
 from ...errors import KINDS, ErrorKind, RequestFailed
-from ...model import GROUP_UNITS
-from ...normalise import GROUP_FIELDS
+from ...model import VALUE_GROUPS
 from ...stats import SensorStats
 from ..common import GatewayLike, json_bytes
 from .access import (
@@ -170,10 +169,9 @@ def _status_routes(app: FastAPI, routes: _Routes) -> None:
     @app.get(f"{API}/groups", response_model=list[GroupOut], dependencies=routes.reads,
              responses=_errors(401), summary="the value groups and their units")
     async def groups() -> list[dict[str, Any]]:
-        return [{"group": group.value, "fields": list(fields), "unit": unit.symbol,
-                 "unit_name": unit.name, "digits": unit.digits}
-                for group, (_, fields) in GROUP_FIELDS.items()
-                for unit in (GROUP_UNITS[group],)]
+        return [{"group": group.value, "fields": list(spec.fields), "unit": spec.symbol,
+                 "unit_name": spec.name, "digits": spec.digits}
+                for group, spec in VALUE_GROUPS.items()]
 
     @app.get(f"{API}/health", response_model=HealthOut, dependencies=routes.reads,
              responses=_errors(401), summary="gateway and bus status")
