@@ -26,7 +26,7 @@ from .errors import RequestFailed, StartupError, unknown_sensor
 from .frontends.modbus_tcp import ModbusTcpServer
 from .frontends.mqtt import MqttClient
 from .frontends.rest import HttpServer, openapi_document
-from .stats import BusStats, SensorStats
+from .stats import BusStats, FrontendCounts, SensorStats
 from .supervise import Frontend, Supervisor
 
 log = logging.getLogger("gateway")
@@ -151,12 +151,12 @@ class Gateway:
         return answer
 
     def stats(self) -> list[BusStats]:
-        return [m.bus_stats() for m in self.masters.values()]
+        return self.cache.bus_stats()
 
     def sensor_stats(self, name: str) -> SensorStats:
-        return self._runner_of[name].master.sensor_stats(name)
+        return self.cache.sensor_stats(name)
 
-    def frontend_stats(self) -> dict[str, dict[str, Any]]:
+    def frontend_stats(self) -> dict[str, FrontendCounts]:
         running = {"modbus": self.modbus, "mqtt": self.mqtt, "http": self.http}
         return {name: {**f.stats(), "restarts": self.supervisor.restarts[name]}
                 for name, f in running.items() if f is not None}

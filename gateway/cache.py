@@ -20,13 +20,14 @@ from __future__ import annotations
 import enum
 import logging
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from typing import Any
 
 from .errors import unknown_sensor
 from .model import KnownSettings, Reading
+from .stats import BusStats, SensorStats
 
 log = logging.getLogger("gateway.cache")
 
@@ -108,6 +109,8 @@ class Cache:
         self._entries = {name: _Entry(stale_ms / 1000) for name, stale_ms in sensors}
         self._clock = clock
         self._listeners: list[tuple[Listener, ErrorHook | None]] = []
+        self._buses: dict[str, BusStats] = {}
+        self._sensor_stats: dict[str, SensorStats] = {}
 
     @property
     def names(self) -> list[str]:
@@ -176,6 +179,20 @@ class Cache:
 
     def count_error(self, name: str) -> None:
         self._entry(name).errors += 1
+
+    def note_stats(self, bus: BusStats, sensors: Mapping[str, SensorStats]) -> None:
+        """A bus master's counters, as it published them (frozen, made on its thread)."""
+        self._buses[bus.name] = bus
+        self._sensor_stats.update(sensors)
+
+    def bus_stats(self) -> list[BusStats]:
+        """Every bus's latest published counters, in the order they first came."""
+        return list(self._buses.values())
+
+    def sensor_stats(self, name: str) -> SensorStats:
+        """The sensor's latest published counters (its bus publishes before it runs)."""
+        self._entry(name)  # an unknown sensor is refused as one
+        return self._sensor_stats[name]
 
     def learn(self, name: str, shown: KnownSettings) -> None:
         """Settings an answer showed (zero type, declination, …).  ``busy_with`` is

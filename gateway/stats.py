@@ -98,8 +98,12 @@ class BusStats:
         return {**dataclasses.asdict(self), "errors": dict(self.errors)}
 
 
+#: A front end's own counters, by name (``clients``, ``requests``, ``connected`` …).
+FrontendCounts = dict[str, int | bool]
+
+
 def share(part: float, elapsed: float) -> float:
     return round(part / elapsed, 4) if elapsed > 0 else 0.0
 
 
-__all__ = ["BusStats", "Counters", "RateMeter", "SensorStats", "ms", "share"]
+__all__ = ["BusStats", "Counters", "FrontendCounts", "RateMeter", "SensorStats", "ms", "share"]

@@ -10,6 +10,7 @@ source with ``ast``, so nothing is run.
 from __future__ import annotations
 
 import ast
+import re
 import sys
 from pathlib import Path
 
@@ -114,6 +115,15 @@ def test_the_cache_is_a_passive_store() -> None:
         assert not _within(name, "gateway.commands"), name
         assert not _within(name, "gateway.bus"), name
         assert not _within(name, "gateway.frontends"), name
+
+
+@pytest.mark.parametrize("path", sorted(FRONTENDS.rglob("*.py")), ids=lambda p: p.name)
+def test_front_ends_never_reach_into_a_bus_master(path: Path) -> None:
+    """A bus master's state changes on its own thread: a front end reads the frozen
+    snapshots it publishes through the cache (``gateway.stats()``,
+    ``gateway.sensor_stats()``), never the master itself."""
+    text = path.read_text(encoding="utf-8")
+    assert not re.search(r"\.(master|masters|runners|_runner_of)\b", text), path.name
 
 
 @pytest.mark.parametrize("path", sorted((PROTOCOL.parent / "bus").glob("*.py")),

@@ -79,6 +79,8 @@ async def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
 
     async with running(config(buses)) as gateway, client(gateway) as http:
         await until(lambda: all(s.seq >= 2 for s in gateway.cache.snapshots()))
+        # the counters come as the bus publishes them (at most STATS_EVERY old)
+        await until(lambda: all(b.transactions >= 2 for b in gateway.stats()))
         health = (await http.get(f"{API}/health")).json()
         assert health["status"] == "ok" and health["gateway_id"] == "test"
         assert health["buses"] == {"a": True, "b": True}

@@ -17,7 +17,7 @@ import asyncio
 import contextlib
 import logging
 import typing
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
 
 from ..commands import Command, CommandResult
@@ -40,6 +40,10 @@ REOPEN_MIN, REOPEN_MAX = 0.5, 5.0  # seconds between tries to reopen a lost port
 MIN_WAIT = 0.0001
 #: After an internal error, the bus waits this long before it goes on.
 BUG_PAUSE = 0.1
+#: How often the counters are published while nothing else publishes them: the front
+#: ends' rates and shares are at most this old.  (Before a command's answer or a state
+#: change is passed on, they are published too: a client never sees the old address.)
+STATS_EVERY = 0.25
 T = TypeVar("T")
 
 
@@ -53,6 +57,8 @@ class BusToCache(typing.Protocol):
                   streaming: bool | None = None) -> None: ...
 
     def count_error(self, name: str) -> None: ...
+
+    def note_stats(self, bus: BusStats, sensors: Mapping[str, SensorStats]) -> None: ...
 
 
 class BusMaster:
@@ -140,6 +146,7 @@ class BusMaster:
         self.schedule.started = self.stats.rate.started = started
         for s in self.sensors.values():
             s.stats.rate.started = started
+        ticker = _Ticker(loop, STATS_EVERY, self._publish_stats)
         try:
             while not self.schedule.finished:
                 if not self.port_open and not self.schedule.stopping:
@@ -148,11 +155,13 @@ class BusMaster:
                 wake = self._guarded(self._step)
                 await self._sleep_until(wake if wake is not None else loop.time() + BUG_PAUSE)
         finally:
+            ticker.cancel()
             self.link.close()
             self.schedule.port_open = False
             self.schedule.abort(self._now(), "the gateway is stopping")
             self.schedule.fail_pending(ErrorKind.OFFLINE, "the gateway is stopping")
             self._dispatch()
+            self._publish_stats()
 
     def _step(self) -> float:
         """The timer's turn: deadlines, the next request, the events; when to wake."""
@@ -265,8 +274,12 @@ class BusMaster:
             self._on_lost(exc)
 
     def _dispatch(self) -> None:
-        """Carry out what the schedule says happened, in order."""
-        for event in self.schedule.take_events():
+        """Carry out what the schedule says happened, in order.  A state change or a
+        job's end is passed on after the counters: whoever it wakes reads them new."""
+        events = self.schedule.take_events()
+        if any(isinstance(e, StateChange | Finished) for e in events):
+            self._publish_stats()
+        for event in events:
             try:
                 self._carry_out(event)
             except Exception:  # one event's failure must not lose the others
@@ -303,6 +316,16 @@ class BusMaster:
 
     # ------------------------------------------------------------ views
 
+    def _publish_stats(self) -> None:
+        try:
+            self.cache.note_stats(*self.stats_snapshot())
+        except Exception:  # counters must never cost the bus an exchange
+            log.exception("bus %s: internal error publishing its counters", self.name)
+
+    def stats_snapshot(self) -> tuple[BusStats, dict[str, SensorStats]]:
+        """The bus's and its sensors' counters, frozen (made on the bus's thread)."""
+        return self.bus_stats(), {name: self.sensor_stats(name) for name in self.sensors}
+
     def sensor_stats(self, name: str) -> SensorStats:
         s, now = self.sensors[name], self._now()
         timer = s.timer
@@ -328,6 +351,22 @@ class BusMaster:
             transactions_per_s=round(stats.rate.per_second(now), 2),
             utilisation=share(stats.busy_time, elapsed), busy_ms=round(stats.busy_time * 1000),
             wire_utilisation=share(stats.wire_time, elapsed), queue_depth=self.queue_depth())
+
+
+class _Ticker:
+    """``callback`` every ``interval`` seconds on ``loop``, until cancelled."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, interval: float,
+                 callback: Callable[[], None]) -> None:
+        self.loop, self.interval, self.callback = loop, interval, callback
+        self.handle = loop.call_later(interval, self._tick)
+
+    def _tick(self) -> None:
+        self.callback()
+        self.handle = self.loop.call_later(self.interval, self._tick)
+
+    def cancel(self) -> None:
+        self.handle.cancel()
 
 
 def _wake(future: asyncio.Future[None]) -> None:

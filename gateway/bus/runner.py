@@ -8,7 +8,9 @@ bus master runs its own event loop on its own thread.
 
 The master writes to the cache through ``CacheWriter``, which hands every write to the
 loop that owns the cache, in order, so cache listeners (the front ends) always run
-there.  Calls into the master (commands, on-demand reads, pass-through) go through
+there.  Its counters travel the same way, as frozen snapshots made on the bus thread
+(``BusMaster.stats_snapshot``): the front ends never touch the master's state.
+Calls into the master (commands, on-demand reads, pass-through) go through
 ``BusRunner.call``.
 """
 
@@ -19,13 +21,14 @@ import functools
 import logging
 import selectors
 import threading
-from collections.abc import Awaitable, Callable, Coroutine
+from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from typing import Any, TypeVar
 
 from ..cache import Cache
 from ..config import BusConfig
 from ..errors import ErrorKind, RequestFailed
 from ..model import Reading
+from ..stats import BusStats, SensorStats
 from ..threads import tighten_timers
 from .link import BUS_NICE
 from .master import BusMaster
@@ -61,11 +64,17 @@ class CacheWriter:
     def count_error(self, name: str) -> None:
         self._hand_over(self.cache.count_error, name)
 
+    def note_stats(self, bus: BusStats, sensors: Mapping[str, SensorStats]) -> None:
+        self._hand_over(self.cache.note_stats, bus, sensors)
+
 
 class BusRunner:
     def __init__(self, config: BusConfig, cache: Cache) -> None:
         self.writer = CacheWriter(cache, self)
         self.master = BusMaster(config, self.writer)
+        # the counters as they are before the thread runs (read here, while no other
+        # thread touches them): the front ends never see a bus without any
+        cache.note_stats(*self.master.stats_snapshot())
         self._thread = threading.Thread(target=self._main, name=f"bus {config.name}",
                                         daemon=True)
         self._loop: asyncio.AbstractEventLoop | None = None

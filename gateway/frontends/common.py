@@ -9,7 +9,7 @@ from typing import Any, Protocol
 from ..cache import Cache, Snapshot
 from ..commands import CommandResult
 from ..config import GatewayConfig, SensorConfig
-from ..stats import BusStats, SensorStats
+from ..stats import BusStats, FrontendCounts, SensorStats
 
 
 class GatewayLike(Protocol):
@@ -33,7 +33,7 @@ class GatewayLike(Protocol):
 
     def sensor_stats(self, name: str) -> SensorStats: ...
 
-    def frontend_stats(self) -> dict[str, dict[str, Any]]:
+    def frontend_stats(self) -> dict[str, FrontendCounts]:
         """Each running front end's ``stats()``, by name (``modbus``, ``mqtt``, ``http``)."""
         ...
 

@@ -54,6 +54,7 @@ from ..modbus_codes import (
     WRITE_MULTIPLE,
     WRITE_SINGLE,
 )
+from ..stats import FrontendCounts
 from ..supervise import Frontend, PeerLog
 from . import modbus_map as mm
 from .common import GatewayLike
@@ -154,7 +155,7 @@ class ModbusTcpServer(Frontend):
     def listening(self) -> bool:
         return self._server is not None
 
-    def stats(self) -> dict[str, Any]:
+    def stats(self) -> FrontendCounts:
         return {"clients": len(self.connections), "requests": self.counts["requests"],
                 **self.counts}
 

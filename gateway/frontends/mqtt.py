@@ -47,6 +47,7 @@ from paho.mqtt.reasoncodes import ReasonCode
 from paho.mqtt.subscribeoptions import SubscribeOptions
 
 from ..config import MqttConfig
+from ..stats import FrontendCounts
 from ..supervise import Frontend, PeerLog
 from .common import GatewayLike, json_bytes
 from .mqtt_commands import CommandDesk
@@ -504,7 +505,7 @@ class MqttClient(Frontend):
     def _send_control(self, message: Message, key: str | None = None) -> None:
         self.pipe.send_control(message, key)
 
-    def stats(self) -> dict[str, Any]:
+    def stats(self) -> FrontendCounts:
         return {"connected": self.publishing, "published": self.counters.published,
                 "queued": self.pipe.queued(),
                 "dropped": self.outbox.dropped + self.counters.lost_in_flight,

@@ -14,6 +14,7 @@ from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 from ...config import HttpConfig
 from ...errors import ErrorKind
+from ...stats import FrontendCounts
 from ...supervise import Frontend, RepeatFilter
 from ..common import GatewayLike, json_bytes
 from .limits import (
@@ -228,7 +229,7 @@ class HttpServer(Frontend):
         assert self._socket is not None
         return int(self._socket.getsockname()[1])
 
-    def stats(self) -> dict[str, Any]:
+    def stats(self) -> FrontendCounts:
         streams = self.hub.open if self.hub is not None else 0
         connections = len(self._server.server_state.connections) if self._server else 0
         return {"clients": connections, "streams": streams,
