@@ -10,7 +10,7 @@ How a command goes on the wire is the protocol rows' business (``protocol.exchan
 one row per command per protocol), since that is where the frames are; a protocol
 without a row for a command cannot carry it.  Adding a command: a row here, a row in
 each protocol that has it, the sensor's side in the simulator, and
-``scripts/generate-docs`` (docs/architecture.md walks through one).
+``scripts/command-reference`` (docs/architecture.md walks through one).
 """
 
 from __future__ import annotations
