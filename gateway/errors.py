@@ -15,7 +15,8 @@ when it cannot be done, whichever front end asked.  Its ``kind`` is one row of
 ``KINDS``: the name every front end shows (REST's and MQTT's ``kind``), the HTTP
 status REST answers with, and the Modbus exception code Modbus TCP answers with.
 Library errors are turned into these where the library is called: pyserial's in
-``bus/link.py``, pydantic's in ``config.py`` and ``commands.py``, pymodbus's in
+``bus/link.py``, pydantic's in ``config/problems.py`` and ``commands.py`` (FastAPI's, for
+query parameters, in ``frontends/rest/routes.py``), pymodbus's in
 ``protocol/modbus_rtu.py``.
 
 Nothing here imports anything of the gateway but ``modbus_codes`` (a leaf): every

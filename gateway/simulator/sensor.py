@@ -77,7 +77,6 @@ class SimSensor(ABC):
     stream_interval: float = 0.0  # seconds between auto-output frames, 0 = off
     next_stream: float = 0.0
     gyro_cal_done_at: float | None = None
-    requests_heard: int = 0
     #: every write it heard addressed to it (settings, stream set-up or stop), by name:
     #: what lets a test say the gateway wrote nothing nobody asked for
     writes_heard: Counter[str] = field(default_factory=Counter)
@@ -188,7 +187,6 @@ class SimSensor(ABC):
         for message in self._messages(frames):
             if self.busy(now):
                 continue  # save in progress: deaf
-            self.requests_heard += 1
             if (write := self._write_name(message)) is not None:
                 self.writes_heard[write] += 1
             # Drops are decided per message, before the next one is handled: the next
@@ -374,16 +372,13 @@ class NativeSensor(SimSensor):
                 answer = {"degrees": self.settings.declination}
             case "start_mag_calibration" | "finish_mag_calibration" | "clear_mag_calibration":
                 answer = {"result": "success"}
-        shape = command.answer_for(self.series)
-        assert shape is not None
-        frame = native.encode(shape, self.address, **answer)
+        frame = native.encode_answer(command.name, self.series, self.address, **answer)
         return [self._send(frame, at, baud=old_baud)]
 
     def _stream_frame(self, now: float) -> list[Outgoing]:
         command = native.OUTPUT_TYPES[self.series][self.output_type]
-        shape = native.COMMANDS_BY_NAME[command].answer_for(self.series)
-        assert shape is not None
-        frame = native.encode(shape, self.address, **self._data_values(command, now))
+        frame = native.encode_answer(command, self.series, self.address,
+                                     **self._data_values(command, now))
         return [self._send(frame, now, solicited=False)]
 
     def _gyro_cal_done(self, now: float) -> list[Outgoing]:
