@@ -35,10 +35,10 @@ from dataclasses import dataclass
 
 import serial
 
-from gateway.app import GIL_SWITCH_INTERVAL, Gateway
-from gateway.config import config_from_dict
-from gateway.model import Series
-from gateway.protocol.exchanges import ModbusAdapter, NativeAdapter, char_time, rtu_silence
+from imu_gateway.app import GIL_SWITCH_INTERVAL, Gateway
+from imu_gateway.config import config_from_dict
+from imu_gateway.model import Series
+from imu_gateway.protocol.exchanges import ModbusAdapter, NativeAdapter, char_time, rtu_silence
 
 
 @dataclass(frozen=True)
@@ -86,7 +86,7 @@ def bare_loop(case: Case, port: str, seconds: float) -> float:
 
 def start_simulator(case: Case) -> tuple[subprocess.Popen[str], str]:
     first = 0 if case.protocol == "native" else 1
-    args = [sys.executable, "-m", "gateway", "simulate", "--answer-delay-ms",
+    args = [sys.executable, "-m", "imu_gateway", "simulate", "--answer-delay-ms",
             str(case.delay * 1000), "--jitter-ms", str(case.jitter * 1000)]
     for i in range(case.sensors):
         args += ["--sensor", f"{case.protocol}:AH:{first + i}:{case.baud}"]

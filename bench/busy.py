@@ -83,7 +83,7 @@ LINES = {
 @contextlib.contextmanager
 def simulator(line: Line, seed: int) -> Iterator[tuple[str, subprocess.Popen[str]]]:
     """``imu-gateway simulate`` for one line, in a process of its own."""
-    args = [*REALTIME, sys.executable, "-m", "gateway", "simulate", "--seed", str(seed),
+    args = [*REALTIME, sys.executable, "-m", "imu_gateway", "simulate", "--seed", str(seed),
             *line.simulate]
     for _, series, address, _ in line.sensors:
         args += ["--sensor", f"{line.protocol}:{series}:{address}:{line.baud}"]
@@ -154,7 +154,7 @@ def main() -> int:
         stack.enter_context(load(args.burners, args.chatty))
         with log.open("w") as out:
             gateway = subprocess.Popen([*(GATEWAY_REALTIME if args.gateway_realtime else []),
-                                        sys.executable, "-m", "gateway", "run", "-c",
+                                        sys.executable, "-m", "imu_gateway", "run", "-c",
                                         str(config)], stderr=out)
             try:
                 time.sleep(args.seconds)  # the measurement's length, not a wait for an event

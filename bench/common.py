@@ -27,7 +27,7 @@ def processes(sensor_yaml: str, interfaces_yaml: str, *others: list[str],
     block ends."""
     python = sys.executable
     simulator = subprocess.Popen(
-        [python, "-m", "gateway", "simulate", "--protocol", "native", "--series", "AH",
+        [python, "-m", "imu_gateway", "simulate", "--protocol", "native", "--series", "AH",
          "--baud", str(baud)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     assert simulator.stdout is not None
     pty = simulator.stdout.readline().split()[1]
@@ -42,7 +42,7 @@ buses:
     sensors: [{sensor_yaml}]
 {interfaces_yaml}
 """)
-        procs = [subprocess.Popen([python, "-m", "gateway", "run", "-c", str(config),
+        procs = [subprocess.Popen([python, "-m", "imu_gateway", "run", "-c", str(config),
                                    "--log-level", "warning"]),
                  *(subprocess.Popen(cmd, stderr=subprocess.DEVNULL) for cmd in others)]
         try:

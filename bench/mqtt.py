@@ -44,14 +44,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from broker import Mosquitto
 from harness import fields_of
 
-from gateway.app import GIL_SWITCH_INTERVAL, Gateway
-from gateway.config import config_from_dict
-from gateway.model import Series, WireProtocol
-from gateway.normalise import field_values, to_reading
-from gateway.protocol import native
-from gateway.simulator import make_sensor
-from gateway.simulator.bus import PtyBus
-from gateway.simulator.motion import Motion
+from imu_gateway.app import GIL_SWITCH_INTERVAL, Gateway
+from imu_gateway.config import config_from_dict
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.normalise import field_values, to_reading
+from imu_gateway.protocol import native
+from imu_gateway.simulator import make_sensor
+from imu_gateway.simulator.bus import PtyBus
+from imu_gateway.simulator.motion import Motion
 
 TOPIC = "imu/bench/boom/state"
 WARM_UP = 1.0  # seconds left out at the start

@@ -22,10 +22,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from harness import running
 
-from gateway.bus.link import SerialLink
-from gateway.model import Series, WireProtocol
-from gateway.simulator import make_sensor, simulated
-from gateway.simulator.bus import PtyBus
+from imu_gateway.bus.link import SerialLink
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.simulator import make_sensor, simulated
+from imu_gateway.simulator.bus import PtyBus
 
 
 class Timings:

@@ -7,14 +7,14 @@ Run: ``scripts/soak --minutes N [--json PATH] [--only PHASE,...] [--keep DIR]``
 
 What runs, each in a process of its own as in a plant:
 
-* two simulated RS-485 lines (``gateway.simulator``), each reached through a symlink
+* two simulated RS-485 lines (``imu_gateway.simulator``), each reached through a symlink
   that an unplug removes and a replug puts back:
   ``line-a``: native at 115200, an AH and a VG that answer 5-40 ms late (jittered);
   ``line-b``: Modbus RTU at 115200, an AH streaming at 20 Hz next to a VG polled at
   10 Hz.  They run at real-time priority where allowed: they play hardware, which
   never waits for the gateway's CPU;
 * mosquitto on a free port;
-* ``python -m gateway run`` with Modbus TCP (writes allowed), MQTT 5 (commands, Home
+* ``python -m imu_gateway run`` with Modbus TCP (writes allowed), MQTT 5 (commands, Home
   Assistant discovery) and HTTP (commands) on; at real-time priority (SCHED_FIFO 10) as
   the systemd unit runs it, unless ``--gateway-priority normal``.
 
@@ -54,9 +54,9 @@ import hostile as h
 from broker import Mosquitto
 from harness import free_port
 
-from gateway.model import Series, WireProtocol
-from gateway.simulator import PtyBus, make_sensor
-from gateway.simulator.motion import Motion
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.simulator import PtyBus, make_sensor
+from imu_gateway.simulator.motion import Motion
 
 ROOT = Path(__file__).resolve().parents[1]
 GATEWAY_ID = "soak"
@@ -283,14 +283,14 @@ def realtime_allowed() -> bool:
 
 
 class GatewayProcess:
-    """``python -m gateway run`` with its log (stdout and stderr) in a file."""
+    """``python -m imu_gateway run`` with its log (stdout and stderr) in a file."""
 
     def __init__(self, config: Path, log: Path, realtime: bool) -> None:
         self.log = log
         prefix = ["chrt", "--fifo", str(GATEWAY_PRIORITY)] if realtime else []
         with log.open("wb") as out:  # the child keeps its own descriptor
             self.proc = subprocess.Popen(
-                [*prefix, sys.executable, "-m", "gateway", "run", "-c", str(config)],
+                [*prefix, sys.executable, "-m", "imu_gateway", "run", "-c", str(config)],
                 stdout=out, stderr=subprocess.STDOUT, cwd=ROOT)
         self.exit_status: int | None = None
 

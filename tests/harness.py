@@ -11,11 +11,11 @@ import subprocess
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
 
-from gateway.app import Gateway
-from gateway.config import config_from_dict
-from gateway.model import WireProtocol
-from gateway.normalise import field_values
-from gateway.simulator import SimSensor
+from imu_gateway.app import Gateway
+from imu_gateway.config import config_from_dict
+from imu_gateway.model import WireProtocol
+from imu_gateway.normalise import field_values
+from imu_gateway.simulator import SimSensor
 
 # The reading JSON's per-field names in order, written out here so the tests do not trust
 # the gateway's.

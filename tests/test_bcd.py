@@ -1,4 +1,4 @@
-"""Packed BCD with a sign nibble (``gateway.protocol.bcd``).
+"""Packed BCD with a sign nibble (``imu_gateway.protocol.bcd``).
 
 Every value example of the native document, per format, both ways; the refusals
 (bad nibbles, values that do not fit, wrong lengths); and Hypothesis round trips over
@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gateway.protocol import bcd
-from gateway.protocol.errors import BadBcd, BadLength, FrameError, UsageError
+from imu_gateway.protocol import bcd
+from imu_gateway.protocol.errors import BadBcd, BadLength, FrameError, UsageError
 
 # (format, bytes as printed, value as printed), from the native document's sections.
 EXAMPLES = [

@@ -14,15 +14,15 @@ from typing import Any
 import pytest
 from harness import running, until
 
-from gateway.app import Gateway
-from gateway.bus.master import OFFLINE_AFTER, BusMaster
-from gateway.cache import EventKind, Snapshot, Status
-from gateway.commands import Command, CommandResult
-from gateway.config import config_from_dict
-from gateway.errors import ErrorKind, RequestFailed
-from gateway.model import Series, WireProtocol
-from gateway.simulator import Faults, SimSensor, SimulatorThread, hold, make_sensor, simulated
-from gateway.simulator.motion import Motion
+from imu_gateway.app import Gateway
+from imu_gateway.bus.master import OFFLINE_AFTER, BusMaster
+from imu_gateway.cache import EventKind, Snapshot, Status
+from imu_gateway.commands import Command, CommandResult
+from imu_gateway.config import config_from_dict
+from imu_gateway.errors import ErrorKind, RequestFailed
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.simulator import Faults, SimSensor, SimulatorThread, hold, make_sensor, simulated
+from imu_gateway.simulator.motion import Motion
 
 FAST = 115200
 #: For tests about scheduling rather than failures: a hiccup of this busy machine must
@@ -223,7 +223,7 @@ async def test_offline_is_logged_once_and_recovery_once(
         caplog: pytest.LogCaptureFixture) -> None:
     faults = Faults()
     with simulated([native(Series.AH, 0, faults=faults)]) as sim, \
-            caplog.at_level("INFO", logger="gateway"):
+            caplog.at_level("INFO", logger="imu_gateway"):
         async with running(bus_config(sim.path, "native", [
             {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0}])) as gw:
             await until(lambda: gw.cache.snapshot("ah").status is Status.OK)
@@ -232,7 +232,7 @@ async def test_offline_is_logged_once_and_recovery_once(
             await until(lambda: master(gw).sensors["ah"].failures >= OFFLINE_AFTER + 3, 20)
             faults.stalled = False
             await until(lambda: gw.cache.snapshot("ah").status is Status.OK, 15)
-    lines = [r.getMessage() for r in caplog.records if r.name == "gateway.bus"]
+    lines = [r.getMessage() for r in caplog.records if r.name == "imu_gateway.bus"]
     assert sum("offline" in line for line in lines) == 1
     assert sum("recovered" in line for line in lines) == 1
 
@@ -527,8 +527,8 @@ async def test_a_stream_that_comes_back_by_itself_is_no_longer_polled() -> None:
 @pytest.mark.parametrize("port", ["pty", "socket://127.0.0.1:9"])
 @pytest.mark.anyio
 async def test_kernel_rs485_mode_where_it_cannot_work_is_a_clear_error(port: str) -> None:
-    from gateway.bus.link import SerialLink
-    from gateway.errors import LinkError
+    from imu_gateway.bus.link import SerialLink
+    from imu_gateway.errors import LinkError
 
     async def refused(path: str) -> None:
         link = SerialLink(path, 9600, rs485=True)
@@ -551,7 +551,7 @@ async def test_bytes_on_their_way_count_as_pending_until_the_master_has_them() -
     import time
     import tty
 
-    from gateway.bus.link import SerialLink
+    from imu_gateway.bus.link import SerialLink
 
     master, slave = os.openpty()
     tty.setraw(slave)
@@ -580,7 +580,7 @@ async def test_bytes_on_their_way_count_as_pending_until_the_master_has_them() -
 @pytest.mark.anyio
 async def test_a_bug_costs_one_request_not_the_bus(monkeypatch: pytest.MonkeyPatch,
                                                    caplog: pytest.LogCaptureFixture) -> None:
-    from gateway.bus.outcomes import Outcomes
+    from imu_gateway.bus.outcomes import Outcomes
 
     real = Outcomes._done
     failed: list[bool] = []
@@ -593,7 +593,7 @@ async def test_a_bug_costs_one_request_not_the_bus(monkeypatch: pytest.MonkeyPat
 
     monkeypatch.setattr(Outcomes, "_done", broken_once)
     with simulated([native(Series.AH, 0)]) as sim:
-        with caplog.at_level("ERROR", logger="gateway.bus"):
+        with caplog.at_level("ERROR", logger="imu_gateway.bus"):
             async with running(bus_config(sim.path, "native", [
                 {"name": "ah", "series": "AH", "address": 0, "poll_hz": 20}])) as gw:
                 await until(lambda: gw.cache.snapshot("ah").seq >= 1)

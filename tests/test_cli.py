@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 import serial
 
-from gateway.protocol import modbus_rtu as rtu
-from gateway.protocol import native
+from imu_gateway.protocol import modbus_rtu as rtu
+from imu_gateway.protocol import native
 
 AH_215 = (
     "77 38 00 59 10 13 15 00 25 58 02 51 87 10 18 07 10 28 16 01 02 65 10 06 48 01 24 13 00 03"
@@ -21,7 +21,7 @@ AH_215 = (
 
 
 def cli(*args: str, timeout: float = 30) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "gateway", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "imu_gateway", *args], capture_output=True,
                           text=True, timeout=timeout, check=False)
 
 
@@ -114,7 +114,7 @@ def test_bad_arguments_exit_2_with_one_clear_error(args: list[str]) -> None:
 
 def test_simulate_prints_pty_first_and_stops_cleanly_on_sigint() -> None:
     with subprocess.Popen(
-        [sys.executable, "-m", "gateway", "simulate", "--protocol", "native", "--series", "AH",
+        [sys.executable, "-m", "imu_gateway", "simulate", "--protocol", "native", "--series", "AH",
          "--sensor", "modbus:VG:3"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     ) as proc:

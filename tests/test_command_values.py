@@ -1,4 +1,4 @@
-"""The angle arguments of the command catalogue (``gateway.commands``): the ranges the
+"""The angle arguments of the command catalogue (``imu_gateway.commands``): the ranges the
 sensors' formats carry, and rounding to their resolution before the range is checked.
 
 Native 2.20 sends the relative heading as SXXX.YY (signed, 0.01), 2.21 the declination
@@ -12,9 +12,9 @@ from typing import Any
 
 import pytest
 
-from gateway.commands import validate
-from gateway.errors import ErrorKind, RequestFailed
-from gateway.model import Series, WireProtocol
+from imu_gateway.commands import validate
+from imu_gateway.errors import ErrorKind, RequestFailed
+from imu_gateway.model import Series, WireProtocol
 
 
 def degrees(name: str, value: Any, series: Series,

@@ -1,6 +1,6 @@
 """Every catalogue command against every layer that carries it.
 
-The catalogue (``gateway.commands.CATALOGUE``) is one row per command; each protocol
+The catalogue (``imu_gateway.commands.CATALOGUE``) is one row per command; each protocol
 has one row per command it can carry (``protocol.exchanges``); the Modbus TCP command
 block, REST's routes and ``docs/commands.md`` are derived from the catalogue.  These
 tests hold the rows to each other: a command added to one layer and forgotten in
@@ -15,10 +15,10 @@ from typing import Any
 
 import pytest
 
-from gateway.commands import CATALOGUE, BusEffect, CommandSpec, commands_for, validate
-from gateway.frontends import modbus_map as mm
-from gateway.model import KnownSettings, Series, WireProtocol
-from gateway.protocol.exchanges import (
+from imu_gateway.commands import CATALOGUE, BusEffect, CommandSpec, commands_for, validate
+from imu_gateway.frontends import modbus_map as mm
+from imu_gateway.model import KnownSettings, Series, WireProtocol
+from imu_gateway.protocol.exchanges import (
     MODBUS_COMMANDS,
     NATIVE_COMMANDS,
     Answer,
@@ -26,8 +26,8 @@ from gateway.protocol.exchanges import (
     Exchange,
     adapter_for,
 )
-from gateway.simulator.sensor import SimSensor, make_sensor
-from gateway.tools import command_reference
+from imu_gateway.simulator.sensor import SimSensor, make_sensor
+from imu_gateway.tools import command_reference
 
 DOC = Path(__file__).parent.parent / "docs" / "commands.md"
 WIRES = tuple(WireProtocol)
@@ -167,7 +167,7 @@ def test_each_register_command_round_trips_through_its_modbus_tcp_register(name:
 
 
 def _busy_snapshot() -> Any:
-    from gateway.cache import Snapshot, Status
+    from imu_gateway.cache import Snapshot, Status
 
     return Snapshot("s", None, 0, None, None, Status.OFFLINE, online=True, busy=True,
                     streaming=False, errors=0)

@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 import yaml
 
-from gateway.config import (
+from imu_gateway.config import (
     BusConfig,
     GatewayConfig,
     HttpConfig,
@@ -30,8 +30,8 @@ from gateway.config import (
     load_config,
     load_config_text,
 )
-from gateway.errors import ConfigError
-from gateway.model import Series, WireProtocol
+from imu_gateway.errors import ConfigError
+from imu_gateway.model import Series, WireProtocol
 
 CONFIGS = Path(__file__).parent / "configs"
 SPEC_EXAMPLE = CONFIGS / "spec_example.yaml"
@@ -85,7 +85,7 @@ def with_bus(bus: int, **fields: Any) -> dict[str, Any]:
 
 
 def cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "gateway", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "imu_gateway", *args], capture_output=True,
                           text=True, timeout=60, check=False)
 
 

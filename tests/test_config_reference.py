@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from pydantic import BaseModel
 
-from gateway.config import (
+from imu_gateway.config import (
     BusConfig,
     GatewayConfig,
     HttpConfig,
@@ -19,7 +19,7 @@ from gateway.config import (
     SensorConfig,
     config_from_dict,
 )
-from gateway.tools import config_reference as ref
+from imu_gateway.tools import config_reference as ref
 
 ROOT = Path(__file__).parent.parent
 DOC = ROOT / "docs" / "config-reference.md"
@@ -93,6 +93,6 @@ def test_a_pipe_in_a_rule_does_not_break_the_table() -> None:
 
 
 def test_module_prints_the_document() -> None:
-    out = subprocess.run([sys.executable, "-m", "gateway.tools.config_reference"],
+    out = subprocess.run([sys.executable, "-m", "imu_gateway.tools.config_reference"],
                          capture_output=True, text=True, check=True, cwd=ROOT)
     assert out.stdout == ref.markdown()

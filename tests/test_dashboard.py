@@ -1,6 +1,6 @@
 """The live dashboard at ``GET /`` (docs/dashboard.md, issue 6) in a real headless Chromium.
 
-The gateway runs in a subprocess (``python -m gateway run``) on simulated sensors on
+The gateway runs in a subprocess (``python -m imu_gateway run``) on simulated sensors on
 real pseudo-terminals, served from this process; selenium drives Chromium through
 Debian's chromedriver.  The dashboard's test hooks: each sensor's card has
 ``data-sensor``, its horizon canvas ``data-pitch``/``data-roll``/``data-yaw`` (the values
@@ -28,9 +28,9 @@ import pytest
 import yaml
 from harness import free_port, interrupt
 
-from gateway.model import Series, WireProtocol
-from gateway.simulator import Faults, make_sensor, simulated
-from gateway.simulator.motion import Motion
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.simulator import Faults, make_sensor, simulated
+from imu_gateway.simulator.motion import Motion
 
 webdriver = pytest.importorskip("selenium.webdriver")
 from selenium.webdriver.chrome.service import Service  # noqa: E402
@@ -81,14 +81,14 @@ def get_json(url: str, token: str | None = None) -> Any:
 
 @contextlib.contextmanager
 def gateway(tmp_path: Path, cfg: dict[str, Any], token: str | None = None) -> Iterator[str]:
-    """``python -m gateway run`` on ``cfg``; its base URL once the API answers."""
+    """``python -m imu_gateway run`` on ``cfg``; its base URL once the API answers."""
     port = free_port()
     cfg = {**cfg, "http": {**cfg.get("http", {}), "listen": f"127.0.0.1:{port}"}}
     path = tmp_path / "gateway.yaml"
     path.write_text(yaml.safe_dump(cfg))
     log_path = tmp_path / "gateway.log"
     with log_path.open("wb") as log:
-        process = subprocess.Popen([sys.executable, "-m", "gateway", "run", "-c", str(path)],
+        process = subprocess.Popen([sys.executable, "-m", "imu_gateway", "run", "-c", str(path)],
                                    stdout=log, stderr=subprocess.STDOUT)
     base = f"http://127.0.0.1:{port}"
 

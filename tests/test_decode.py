@@ -1,4 +1,4 @@
-"""``imu-gateway decode``'s reading of frames (``gateway.tools.decode``), called in-process:
+"""``imu-gateway decode``'s reading of frames (``imu_gateway.tools.decode``), called in-process:
 what a frame that is not one whole frame most likely is, the 2.16 frame read both
 ways, the native reads any series answers, and Modbus frames of any address.
 
@@ -11,9 +11,9 @@ from typing import Any
 
 import pytest
 
-from gateway.model import Series, WireProtocol
-from gateway.protocol import modbus_rtu as rtu
-from gateway.tools.decode import decode_all
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.protocol import modbus_rtu as rtu
+from imu_gateway.tools.decode import decode_all
 
 PITCH = "77 07 00 81 10 34 63 2F"  # native 2.1's answer: -34.63
 

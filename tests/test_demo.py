@@ -54,7 +54,7 @@ def test_demo_serves_every_interface_and_stops_on_ctrl_c(tmp_path: Path) -> None
     http_port, modbus_port = free_port(), free_port()
     with Mosquitto(tmp_path) as broker:
         demo = subprocess.Popen(
-            [sys.executable, "-m", "gateway", "demo", "--http-port", str(http_port),
+            [sys.executable, "-m", "imu_gateway", "demo", "--http-port", str(http_port),
              "--modbus-port", str(modbus_port), "--mqtt", broker.url],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:

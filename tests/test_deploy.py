@@ -33,8 +33,8 @@ from harness import free_port
 from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.reasoncodes import ReasonCode
 
-from gateway.config import GatewayConfig, load_config
-from gateway.tools.cli import build_parser
+from imu_gateway.config import GatewayConfig, load_config
+from imu_gateway.tools.cli import build_parser
 
 ROOT = Path(__file__).resolve().parent.parent
 DEPLOY = ROOT / "deploy"

@@ -14,8 +14,8 @@ from typing import Any
 import pytest
 import yaml
 
-from gateway.model import Series, WireProtocol
-from gateway.simulator import SimSensor, make_sensor, simulated
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.simulator import SimSensor, make_sensor, simulated
 
 FAST = 115200
 
@@ -25,7 +25,7 @@ def log_until(config: dict[str, Any], path: Path, done: Callable[[list[str]], bo
     """Run the gateway on ``config`` (written to ``path``) until ``done(lines)`` holds
     for its log so far; the log's lines."""
     path.write_text(yaml.safe_dump(config))
-    with subprocess.Popen([sys.executable, "-m", "gateway", "run", "-c", str(path),
+    with subprocess.Popen([sys.executable, "-m", "imu_gateway", "run", "-c", str(path),
                            *options], stderr=subprocess.PIPE, text=True) as proc:
         watchdog = threading.Timer(60, proc.kill)  # a gateway that never says it
         watchdog.start()
@@ -138,7 +138,7 @@ def test_a_bad_trace_bus_is_refused(tmp_path: Path) -> None:
     config.write_text(yaml.safe_dump({"buses": [{
         "name": "line", "port": "/dev/null", "protocol": "native",
         "sensors": [{"name": "boom", "series": "AH"}]}]}))
-    done = subprocess.run([sys.executable, "-m", "gateway", "run", "-c", str(config),
+    done = subprocess.run([sys.executable, "-m", "imu_gateway", "run", "-c", str(config),
                            "--trace", "lime"], capture_output=True, text=True, timeout=60,
                           check=False)
     assert done.returncode == 2
@@ -152,7 +152,7 @@ def test_check_config_warns_of_an_overloaded_line_and_a_missing_port(tmp_path: P
         "baudrate": 9600, "sensors": [{"name": "a", "series": "AH", "poll_hz": 10},
                                       {"name": "b", "series": "AH", "address": 1,
                                        "poll_hz": 10}]}]}))
-    done = subprocess.run([sys.executable, "-m", "gateway", "check-config", "-c",
+    done = subprocess.run([sys.executable, "-m", "imu_gateway", "check-config", "-c",
                            str(config)], capture_output=True, text=True, timeout=60,
                           check=False)
     assert done.returncode == 0, done.stderr

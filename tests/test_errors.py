@@ -1,4 +1,4 @@
-"""One exception tree, one vocabulary (``gateway.errors``).
+"""One exception tree, one vocabulary (``imu_gateway.errors``).
 
 Every error class the gateway defines descends from ``GatewayError``, and every kind
 of failed request has one row: the name REST and MQTT show, the HTTP status and the
@@ -11,14 +11,14 @@ import importlib
 import pkgutil
 from pathlib import Path
 
-import gateway
-from gateway.errors import KINDS, ErrorKind, GatewayError, RequestFailed
+import imu_gateway
+from imu_gateway.errors import KINDS, ErrorKind, GatewayError, RequestFailed
 
 
 def test_every_exception_class_of_the_gateway_is_in_the_one_tree() -> None:
-    root = Path(gateway.__file__).parent
+    root = Path(imu_gateway.__file__).parent
     outside = []
-    for info in pkgutil.walk_packages([str(root)], "gateway."):
+    for info in pkgutil.walk_packages([str(root)], "imu_gateway."):
         if info.name.endswith("__main__"):
             continue  # importing it runs the command line
         module = importlib.import_module(info.name)

@@ -19,10 +19,10 @@ from typing import Any
 import pytest
 from harness import running, until
 
-from gateway.errors import ErrorKind
-from gateway.model import Series, WireProtocol
-from gateway.simulator import hold, make_sensor, simulated
-from gateway.simulator.motion import Motion
+from imu_gateway.errors import ErrorKind
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.simulator import hold, make_sensor, simulated
+from imu_gateway.simulator.motion import Motion
 
 FAST = 115200
 READING = Motion.from_seed(3).sample(10.0)

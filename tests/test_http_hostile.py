@@ -2,9 +2,9 @@
 idle clients").
 
 The connection rules (idle connections, late headers, late bodies) are tested against
-the real gateway process (``python -m gateway run``) on a simulated line; the stream
+the real gateway process (``python -m imu_gateway run``) on a simulated line; the stream
 rules in-process (``harness.running``), where the test can hold up the gateway's own
-event loop.  The time limits come from ``gateway.frontends.rest``.  Waits for
+event loop.  The time limits come from ``imu_gateway.frontends.rest``.  Waits for
 something to happen are generous deadlines on a condition; the one measurement is
 the time to an answer with 400 idle connections open.
 """
@@ -29,9 +29,9 @@ import pytest
 import yaml
 from harness import free_port, interrupt, running, until
 
-from gateway.app import Gateway
-from gateway.config import config_from_dict
-from gateway.frontends.rest import (
+from imu_gateway.app import Gateway
+from imu_gateway.config import config_from_dict
+from imu_gateway.frontends.rest import (
     BODY_DEADLINE_S,
     HEADER_DEADLINE_S,
     IDLE_S,
@@ -39,9 +39,9 @@ from gateway.frontends.rest import (
     HttpServer,
     StreamHub,
 )
-from gateway.model import Series, WireProtocol
-from gateway.simulator import SimulatorThread, make_sensor, simulated
-from gateway.simulator.motion import Motion
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.simulator import SimulatorThread, make_sensor, simulated
+from imu_gateway.simulator.motion import Motion
 
 FAST = 115200
 LINE_FAST = 460800  # the stream tests' line: the fastest the config takes
@@ -66,7 +66,7 @@ def _get(url: str) -> int:
 
 @pytest.fixture(scope="module")
 def gateway_process(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Address]:
-    """``python -m gateway run`` with HTTP (commands on) and one polled AH; its address
+    """``python -m imu_gateway run`` with HTTP (commands on) and one polled AH; its address
     once ``/api/v1/health`` answers."""
     tmp = tmp_path_factory.mktemp("hostile")
     sim = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST, source=Motion.from_seed(3))
@@ -83,7 +83,7 @@ def gateway_process(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Addres
         log_path = tmp / "gateway.log"
         with log_path.open("wb") as log:
             process = subprocess.Popen(
-                [sys.executable, "-m", "gateway", "run", "-c", str(path)],
+                [sys.executable, "-m", "imu_gateway", "run", "-c", str(path)],
                 stdout=log, stderr=subprocess.STDOUT)
         try:
             deadline = time.monotonic() + 30

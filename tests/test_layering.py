@@ -1,8 +1,8 @@
 """The protocol layer stays sans-IO (the layering rule, docs/architecture.md).
 
-Every module of ``gateway/protocol`` may import only the standard library, pymodbus,
-``gateway.protocol``, ``gateway.model``, ``gateway.errors`` (the exception tree) and
-``gateway.modbus_codes`` (Modbus's numbers), and none of the standard library's I/O,
+Every module of ``imu_gateway/protocol`` may import only the standard library, pymodbus,
+``imu_gateway.protocol``, ``imu_gateway.model``, ``imu_gateway.errors`` (the exception tree) and
+``imu_gateway.modbus_codes`` (Modbus's numbers), and none of the standard library's I/O,
 clock or concurrency modules.  Checked on the
 source with ``ast``, so nothing is run.
 """
@@ -16,9 +16,10 @@ from pathlib import Path
 
 import pytest
 
-PROTOCOL = Path(__file__).resolve().parents[1] / "gateway" / "protocol"
-PACKAGE = "gateway.protocol"
-ALLOWED_PROJECT = ("gateway.protocol", "gateway.model", "gateway.errors", "gateway.modbus_codes")
+PROTOCOL = Path(__file__).resolve().parents[1] / "imu_gateway" / "protocol"
+PACKAGE = "imu_gateway.protocol"
+ALLOWED_PROJECT = ("imu_gateway.protocol", "imu_gateway.model", "imu_gateway.errors",
+                   "imu_gateway.modbus_codes")
 ALLOWED_THIRD_PARTY = ("pymodbus",)
 FORBIDDEN = frozenset(
     {"asyncio", "serial", "time", "socket", "threading", "selectors", "subprocess",
@@ -45,7 +46,7 @@ def package_imports(path: Path, package: str) -> list[str]:
 
 
 def imported_names(path: Path) -> list[str]:
-    """What a module of ``gateway.protocol`` imports."""
+    """What a module of ``imu_gateway.protocol`` imports."""
     return package_imports(path, PACKAGE)
 
 
@@ -58,7 +59,7 @@ def test_protocol_modules_found() -> None:
 
 
 def test_resolver() -> None:
-    assert imported_names(PROTOCOL / "native.py").count("gateway.model") == 1
+    assert imported_names(PROTOCOL / "native.py").count("imu_gateway.model") == 1
 
 
 @pytest.mark.parametrize("path", MODULES, ids=lambda p: p.name)
@@ -80,7 +81,7 @@ FRONTEND_MODULES = ("modbus_tcp", "mqtt", "rest")
 
 
 def frontend_imports(path: Path) -> list[str]:
-    """Like ``imported_names``, for a module of ``gateway.frontends`` (or of a package
+    """Like ``imported_names``, for a module of ``imu_gateway.frontends`` (or of a package
     in it, such as ``rest``)."""
     return package_imports(path, ".".join(path.parent.relative_to(GATEWAY.parent).parts))
 
@@ -92,35 +93,35 @@ def test_front_ends_use_neither_protocol_nor_bus_nor_each_other(path: Path) -> N
     gateway; it never touches the wire's code, and a change to one front end cannot
     break another."""
     for name in frontend_imports(path):
-        assert not _within(name, "gateway.protocol"), f"{path.name} imports {name}"
-        assert not _within(name, "gateway.bus"), f"{path.name} imports {name}"
+        assert not _within(name, "imu_gateway.protocol"), f"{path.name} imports {name}"
+        assert not _within(name, "imu_gateway.bus"), f"{path.name} imports {name}"
         for other in FRONTEND_MODULES:
             if other not in (path.stem, path.parent.name):
-                assert not _within(name, f"gateway.frontends.{other}"), \
+                assert not _within(name, f"imu_gateway.frontends.{other}"), \
                     f"{path.name} imports {name}"
 
 
 def test_frontend_resolver() -> None:
     names = frontend_imports(FRONTENDS / "mqtt_states.py")
-    assert "gateway.cache" in names and "gateway.frontends.common" in names
+    assert "imu_gateway.cache" in names and "imu_gateway.frontends.common" in names
     names = frontend_imports(FRONTENDS / "rest" / "server.py")
-    assert "gateway.config" in names and "gateway.frontends.common" in names
-    assert "gateway.frontends.rest.routes" in names
+    assert "imu_gateway.config" in names and "imu_gateway.frontends.common" in names
+    assert "imu_gateway.frontends.rest.routes" in names
 
 
 def test_the_cache_is_a_passive_store() -> None:
     """The cache knows readings and states, not commands nor buses: nothing calls
     from it into a bus (on-demand reads go through the gateway object)."""
-    for name in package_imports(PROTOCOL.parent / "cache.py", "gateway"):
-        assert not _within(name, "gateway.commands"), name
-        assert not _within(name, "gateway.bus"), name
-        assert not _within(name, "gateway.frontends"), name
+    for name in package_imports(PROTOCOL.parent / "cache.py", "imu_gateway"):
+        assert not _within(name, "imu_gateway.commands"), name
+        assert not _within(name, "imu_gateway.bus"), name
+        assert not _within(name, "imu_gateway.frontends"), name
 
 
 @pytest.mark.parametrize("path", sorted(FRONTENDS.rglob("*.py")), ids=lambda p: p.name)
 def test_front_ends_never_reach_into_a_bus_master(path: Path) -> None:
     """A bus master's state changes on its own thread: a front end reads the frozen
-    snapshots it publishes through the cache (``gateway.stats()``,
+    snapshots it publishes through the cache (``imu_gateway.stats()``,
     ``gateway.sensor_stats()``), never the master itself."""
     text = path.read_text(encoding="utf-8")
     assert not re.search(r"\.(master|masters|runners|_runner_of)\b", text), path.name
@@ -129,15 +130,15 @@ def test_front_ends_never_reach_into_a_bus_master(path: Path) -> None:
 @pytest.mark.parametrize("path", sorted((PROTOCOL.parent / "bus").glob("*.py")),
                          ids=lambda p: p.name)
 def test_a_bus_imports_no_front_end(path: Path) -> None:
-    for name in package_imports(path, "gateway.bus"):
-        assert not _within(name, "gateway.frontends"), f"{path.name} imports {name}"
-        assert not _within(name, "gateway.app"), f"{path.name} imports {name}"
+    for name in package_imports(path, "imu_gateway.bus"):
+        assert not _within(name, "imu_gateway.frontends"), f"{path.name} imports {name}"
+        assert not _within(name, "imu_gateway.app"), f"{path.name} imports {name}"
 
 
 def test_package_resolver() -> None:
-    assert "gateway.errors" in package_imports(PROTOCOL.parent / "cache.py", "gateway")
-    assert "gateway.errors" in package_imports(PROTOCOL.parent / "bus" / "master.py",
-                                               "gateway.bus")
+    assert "imu_gateway.errors" in package_imports(PROTOCOL.parent / "cache.py", "imu_gateway")
+    assert "imu_gateway.errors" in package_imports(PROTOCOL.parent / "bus" / "master.py",
+                                               "imu_gateway.bus")
 
 
 def test_the_gateway_imports_none_of_the_tools() -> None:
@@ -147,4 +148,4 @@ def test_the_gateway_imports_none_of_the_tools() -> None:
             continue
         package = ".".join(path.parent.relative_to(GATEWAY.parent).parts)
         for name in package_imports(path, package):
-            assert not _within(name, "gateway.tools"), f"{path} imports {name}"
+            assert not _within(name, "imu_gateway.tools"), f"{path} imports {name}"

@@ -23,9 +23,9 @@ import yaml
 from harness import free_port, interrupt
 from pymodbus.client import ModbusTcpClient
 
-from gateway.commands import CATALOGUE
-from gateway.model import Series, WireProtocol
-from gateway.simulator import make_sensor, simulated
+from imu_gateway.commands import CATALOGUE
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.simulator import make_sensor, simulated
 
 FAST = 115200
 MBAP = struct.Struct(">HHHB")
@@ -49,7 +49,7 @@ class Process:
         self.log = tmp_path / "gateway.log"
         with self.log.open("wb") as out:
             self.process = subprocess.Popen(
-                [sys.executable, "-m", "gateway", "run", "-c", str(path)],
+                [sys.executable, "-m", "imu_gateway", "run", "-c", str(path)],
                 stdout=out, stderr=subprocess.STDOUT)
 
     def client(self) -> ModbusTcpClient:

@@ -1,4 +1,4 @@
-"""The sensors' Modbus RTU protocol (``gateway.protocol.modbus_rtu``).
+"""The sensors' Modbus RTU protocol (``imu_gateway.protocol.modbus_rtu``).
 
 Every example frame of the Modbus document (``vectors.MODBUS_VECTORS``) must decode
 (answers read in the light of their request's start) and re-encode byte for byte.  The
@@ -29,11 +29,11 @@ from vectors import (
     ids,
 )
 
-from gateway.modbus_codes import READ_HOLDING, READ_INPUT
-from gateway.model import Series
-from gateway.protocol import modbus_rtu as rtu
-from gateway.protocol.errors import BadChecksum, BadLength, UnknownFrame, UsageError
-from gateway.protocol.exchanges import NO_EFFECT, Answer, ModbusAdapter
+from imu_gateway.modbus_codes import READ_HOLDING, READ_INPUT
+from imu_gateway.model import Series
+from imu_gateway.protocol import modbus_rtu as rtu
+from imu_gateway.protocol.errors import BadChecksum, BadLength, UnknownFrame, UsageError
+from imu_gateway.protocol.exchanges import NO_EFFECT, Answer, ModbusAdapter
 
 VECTOR_IDS = ids(MODBUS_VECTORS)
 REQUESTS = [v for v in MODBUS_VECTORS if v.direction == REQUEST]

@@ -26,10 +26,10 @@ from harness import FIELDS, GROUP_OF, expected, running, tolerance, until
 from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
-from gateway.app import Gateway
-from gateway.model import Series, WireProtocol
-from gateway.simulator import Faults, ModbusSensor, SimSensor, hold, make_sensor, simulated
-from gateway.simulator.motion import Motion
+from imu_gateway.app import Gateway
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.simulator import Faults, ModbusSensor, SimSensor, hold, make_sensor, simulated
+from imu_gateway.simulator.motion import Motion
 
 FAST = 115200
 PATIENT_MS = 300
@@ -1013,7 +1013,7 @@ async def fuzzer(port: int, seed: int, frames: int) -> dict[str, int]:
 @pytest.mark.anyio
 async def test_fuzzed_frames_leave_a_well_behaved_client_served(
         caplog: pytest.LogCaptureFixture) -> None:
-    with caplog.at_level(logging.WARNING, logger="gateway.modbus"):
+    with caplog.at_level(logging.WARNING, logger="imu_gateway.modbus"):
         async with two_protocols() as (gw, ah, vg), pymodbus_client(port_of(gw)) as client:
             port = port_of(gw)
             stop = asyncio.Event()
@@ -1035,5 +1035,5 @@ async def test_fuzzed_frames_leave_a_well_behaved_client_served(
                 assert values[0] == pytest.approx(expected(vg)["pitch"], abs=1e-4)
             assert ah.settings.zero_type == "absolute"  # writes were refused throughout
     errors = [r.getMessage() for r in caplog.records
-              if r.name.startswith("gateway.modbus") and r.levelno >= logging.ERROR]
+              if r.name.startswith("imu_gateway.modbus") and r.levelno >= logging.ERROR]
     assert not errors, errors

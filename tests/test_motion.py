@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from gateway.model import Quaternion, Reading, Vector3
-from gateway.simulator.motion import Fixed, Motion, Source, hold
+from imu_gateway.model import Quaternion, Reading, Vector3
+from imu_gateway.simulator.motion import Fixed, Motion, Source, hold
 
 Q = tuple[float, float, float, float]
 times = st.floats(min_value=0.0, max_value=600.0)

@@ -36,12 +36,12 @@ from harness import (
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
-from gateway.app import Gateway
-from gateway.frontends.mqtt_states import StateDesk
-from gateway.frontends.mqtt_topics import Message
-from gateway.model import Angles, Series, WireProtocol
-from gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
-from gateway.simulator.motion import Motion
+from imu_gateway.app import Gateway
+from imu_gateway.frontends.mqtt_states import StateDesk
+from imu_gateway.frontends.mqtt_topics import Message
+from imu_gateway.model import Angles, Series, WireProtocol
+from imu_gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
+from imu_gateway.simulator.motion import Motion
 
 FAST = 115200
 READING = Motion.from_seed(3).sample(10.0)
@@ -383,7 +383,7 @@ async def test_broker_restart_reconnects_and_republishes_and_queue_stays_bounded
 @pytest.mark.anyio
 async def test_no_broker_the_gateway_runs_and_connects_when_one_appears(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    caplog.set_level(logging.INFO, "gateway.mqtt")
+    caplog.set_level(logging.INFO, "imu_gateway.mqtt")
     ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     broker = Mosquitto(tmp_path)  # not started yet
     with simulated([ah]) as line:
@@ -411,7 +411,7 @@ def _run_gateway(tmp_path: Path, cfg: dict[str, Any]) -> subprocess.Popen[bytes]
     path = tmp_path / "gateway.yaml"
     path.write_text(yaml.safe_dump(cfg))
     with (tmp_path / "gateway.log").open("wb") as log:
-        return subprocess.Popen([sys.executable, "-m", "gateway", "run", "-c", str(path)],
+        return subprocess.Popen([sys.executable, "-m", "imu_gateway", "run", "-c", str(path)],
                                 stdout=log, stderr=subprocess.STDOUT)
 
 
@@ -550,7 +550,7 @@ USERS = {"gateway": "s3cret", "dashboard": "look"}
 @pytest.mark.anyio
 async def test_tls_with_a_test_ca_client_certificate_and_password(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    caplog.set_level(logging.WARNING, "gateway.mqtt")
+    caplog.set_level(logging.WARNING, "imu_gateway.mqtt")
     tls = make_tls(tmp_path / "pki")
     ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     with Mosquitto(tmp_path, tls=tls, users=USERS) as broker, simulated([ah]) as line, \
@@ -578,7 +578,7 @@ async def test_tls_with_a_test_ca_client_certificate_and_password(
 @pytest.mark.anyio
 async def test_tls_with_a_ca_that_did_not_sign_the_broker_says_why(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    caplog.set_level(logging.WARNING, "gateway.mqtt")
+    caplog.set_level(logging.WARNING, "imu_gateway.mqtt")
     tls, other = make_tls(tmp_path / "pki"), make_tls(tmp_path / "other-pki")
     ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     with Mosquitto(tmp_path, tls=tls, users=USERS) as broker, simulated([ah]) as line:
@@ -661,7 +661,7 @@ async def test_plain_mqtt_to_a_tls_port_says_so(tmp_path: Path,
                                           caplog: pytest.LogCaptureFixture) -> None:
     """A TLS listener closes a plain connection (or, elsewhere, waits for a TLS hello
     and says nothing): the gateway says so once, and why it might be."""
-    caplog.set_level(logging.WARNING, "gateway.mqtt")
+    caplog.set_level(logging.WARNING, "imu_gateway.mqtt")
     tls = make_tls(tmp_path / "pki")
     ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     with Mosquitto(tmp_path, tls=tls) as broker, simulated([ah]) as line:
@@ -685,7 +685,7 @@ async def test_a_server_that_never_answers_connect_is_given_up_on(
         caplog: pytest.LogCaptureFixture) -> None:
     """Not a broker at all (or a TLS port that waits for a hello): a TCP server that
     accepts and says nothing.  Each attempt ends after CONNACK_TIMEOUT, said once."""
-    caplog.set_level(logging.WARNING, "gateway.mqtt")
+    caplog.set_level(logging.WARNING, "imu_gateway.mqtt")
     ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
     with simulated([ah]) as line:
         accepted: list[asyncio.StreamWriter] = []

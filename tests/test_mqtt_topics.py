@@ -3,14 +3,14 @@ discovery configs, the deadband and the minimum interval.  On values alone."""
 
 from __future__ import annotations
 
-from gateway.config import SensorConfig
-from gateway.frontends.mqtt_topics import (
+from imu_gateway.config import SensorConfig
+from imu_gateway.frontends.mqtt_topics import (
     Topics,
     discovery_configs,
     send_delay,
     within_deadband,
 )
-from gateway.model import Series
+from imu_gateway.model import Series
 
 TOPICS = Topics("imu", "plant.1", "homeassistant")
 

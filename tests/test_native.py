@@ -1,4 +1,4 @@
-"""The native protocol (``gateway.protocol.native``): frames, command table, framer.
+"""The native protocol (``imu_gateway.protocol.native``): frames, command table, framer.
 
 Every example frame of the native document (``vectors.NATIVE_VECTORS``) must decode to
 the values the document prints and re-encode byte for byte.  Decoded BCD values are
@@ -23,9 +23,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from vectors import ANSWER, NATIVE_VECTORS, REQUEST, Vector, ids
 
-from gateway.model import Series
-from gateway.protocol import bcd, native
-from gateway.protocol.errors import (
+from imu_gateway.model import Series
+from imu_gateway.protocol import bcd, native
+from imu_gateway.protocol.errors import (
     BadBcd,
     BadChecksum,
     BadLength,
@@ -33,7 +33,7 @@ from gateway.protocol.errors import (
     UnknownFrame,
     UsageError,
 )
-from gateway.protocol.exchanges import NativeAdapter
+from imu_gateway.protocol.exchanges import NativeAdapter
 
 VECTOR_IDS = ids(NATIVE_VECTORS)
 REQUESTS = [v for v in NATIVE_VECTORS if v.direction == REQUEST]

@@ -1,4 +1,4 @@
-"""Decoded values to the normalised ``Reading`` (``gateway.normalise``).
+"""Decoded values to the normalised ``Reading`` (``imu_gateway.normalise``).
 
 A reading carries exactly the groups the series measures (``model.CAPABILITIES``),
 whichever protocol the values came from; partial groups are left out; the AH
@@ -11,10 +11,10 @@ from __future__ import annotations
 import pytest
 from vectors import ANSWER, NATIVE_VECTORS, Vector
 
-from gateway.model import CAPABILITIES, Angles, Group, Quaternion, Reading, Series, Vector3
-from gateway.normalise import FIELD_NAMES, group_values, to_reading
-from gateway.protocol import modbus_rtu as rtu
-from gateway.protocol import native
+from imu_gateway.model import CAPABILITIES, Angles, Group, Quaternion, Reading, Series, Vector3
+from imu_gateway.normalise import FIELD_NAMES, group_values, to_reading
+from imu_gateway.protocol import modbus_rtu as rtu
+from imu_gateway.protocol import native
 
 # The reading JSON's value groups of the AH example of native 2.15 (as in docs/mqtt.md).
 SPEC_JSON_GROUPS = {

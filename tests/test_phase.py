@@ -9,7 +9,7 @@ import random
 
 import pytest
 
-from gateway.bus.phase import EARLY, WINDOW, StreamPhase
+from imu_gateway.bus.phase import EARLY, WINDOW, StreamPhase
 
 PERIOD = 0.01  # 100 Hz, as the busy-machine benchmark's MINS
 

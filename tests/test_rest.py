@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import socket
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -19,11 +20,12 @@ import pytest
 from harness import expected, fields_of, running, tolerance, until
 from prometheus_client.parser import text_string_to_metric_families
 
-from gateway.app import Gateway, openapi_json
-from gateway.errors import StartupError
-from gateway.model import Series, WireProtocol
-from gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
-from gateway.simulator.motion import Motion
+from imu_gateway import __version__
+from imu_gateway.app import Gateway, openapi_json
+from imu_gateway.errors import StartupError
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
+from imu_gateway.simulator.motion import Motion
 
 FAST = 115200
 READING = Motion.from_seed(3).sample(10.0)
@@ -74,6 +76,29 @@ def two_lines() -> Any:
 
 
 @pytest.mark.anyio
+async def test_the_api_reference_and_index_are_served_from_the_gateway(two_lines: Any) -> None:
+    """/docs is Swagger UI with every file from this server (no CDN: plant networks
+    have no internet); /api/v1 lists the endpoints and points at both."""
+    _, _, buses = two_lines
+    async with running(config(buses)) as gateway, client(gateway) as http:
+        docs = await http.get("/docs")
+        assert docs.status_code == 200 and "text/html" in docs.headers["content-type"]
+        assets = re.findall(r'(?:src|href)="([^"]+)"', docs.text)
+        assert assets and all(a.startswith("/") for a in assets), assets  # nothing remote
+        for asset in assets:
+            fetched = await http.get(asset)
+            assert fetched.status_code == 200 and fetched.content, asset
+        index = (await http.get(API)).json()
+        assert index["docs"] == "/docs" and index["version"] == __version__
+        endpoints = {(e["method"], e["path"]) for e in index["endpoints"]}
+        assert ("GET", f"{API}/health") in endpoints
+        assert ("POST", f"{API}/sensors/{{name}}/commands/save") in endpoints
+        assert (await http.get(index["openapi"])).json()["info"]["title"] == "imu-gateway"
+        dashboard = (await http.get("/")).text
+        assert 'href="docs"' in dashboard
+
+
+@pytest.mark.anyio
 async def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
     ah, vg, buses = two_lines
 
@@ -83,6 +108,7 @@ async def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
         await until(lambda: all(b.transactions >= 2 for b in gateway.stats()))
         health = (await http.get(f"{API}/health")).json()
         assert health["status"] == "ok" and health["gateway_id"] == "test"
+        assert health["version"] == __version__
         assert health["buses"] == {"a": True, "b": True}
         assert health["sensors"] == {"ok": 2, "stale": 0, "offline": 0}
         assert health["interfaces"] == ["http"]
@@ -256,6 +282,12 @@ async def test_commands_status_codes(two_lines: Any) -> None:
                               content=b"{not json", headers={
                                   **AUTH, "Content-Type": "application/json"})
         assert_error(raw, 422, "bad_arguments")
+        # JSON sent as another type is refused with the fix, not a riddle
+        plain = await http.post(f"{API}/sensors/boom/commands/set_zero_type",
+                                content=b'{"type": "relative"}', headers={
+                                    **AUTH, "Content-Type": "text/plain"})
+        assert_error(plain, 422, "bad_arguments")
+        assert "Content-Type: application/json" in plain.json()["error"]
         # the series or protocol lacks it
         lacks = await post(http, "arm/commands/set_declination", {"degrees": 3})
         assert_error(lacks, 422, "unsupported")
@@ -388,6 +420,8 @@ async def test_metrics(two_lines: Any) -> None:
         samples = {(s.name, tuple(sorted(s.labels.items()))): s.value
                    for family in text_string_to_metric_families(response.text)
                    for s in family.samples}
+        # the version, from the one place it is written (the package)
+        assert samples[("imu_gateway_build_info", (("version", __version__),))] == 1
         tx = samples[("imu_gateway_bus_transactions_total", (("bus", "a"),))]
         assert buses_out["a"]["transactions"] <= tx <= buses_out["a"]["transactions"] + 100
         assert samples[("imu_gateway_bus_port_open", (("bus", "b"),))] == 1
@@ -440,8 +474,8 @@ async def test_a_taken_port_is_a_clear_startup_error(two_lines: Any) -> None:
 def test_busy_with_is_shown_only_while_the_sensor_is_busy() -> None:
     """settings.busy_with names the save or calibration under way, and goes once the
     busy period ended, whichever came first: the end, or the command's answer noted."""
-    from gateway.cache import Cache
-    from gateway.model import KnownSettings
+    from imu_gateway.cache import Cache
+    from imu_gateway.model import KnownSettings
 
     cache = Cache([("boom", 1000)])
     cache.set_state("boom", online=True, busy=True)
@@ -470,7 +504,7 @@ async def test_a_value_that_is_not_a_number_is_null_not_broken_json() -> None:
     """A Modbus float register can hold NaN; JSON cannot."""
     from dataclasses import replace
 
-    from gateway.model import Vector3
+    from imu_gateway.model import Vector3
 
     assert READING.accel is not None
     odd = replace(READING, accel=Vector3(float("nan"), READING.accel.y, float("inf")))

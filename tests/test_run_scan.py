@@ -14,13 +14,13 @@ import pytest
 import serial
 from harness import run, running, until
 
-from gateway.model import Series, WireProtocol
-from gateway.protocol import modbus_rtu as rtu
-from gateway.simulator import Faults, make_sensor, simulated
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.protocol import modbus_rtu as rtu
+from imu_gateway.simulator import Faults, make_sensor, simulated
 
 
 def gateway_cli(*args: str) -> list[str]:
-    return [sys.executable, "-m", "gateway", *args]
+    return [sys.executable, "-m", "imu_gateway", *args]
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])

@@ -13,19 +13,19 @@ from typing import Any
 import pytest
 from virtual_line import VirtualLine, bus, jittery, sim
 
-from gateway.bus.events import Job
-from gateway.bus.line import stream_wait
-from gateway.bus.schedule import Schedule
-from gateway.bus.sensor_state import (
+from imu_gateway.bus.events import Job
+from imu_gateway.bus.line import stream_wait
+from imu_gateway.bus.schedule import Schedule
+from imu_gateway.bus.sensor_state import (
     BACKOFF_MAX,
     EVIDENCE_SPAN,
     SensorState,
 )
-from gateway.bus.timing import RTO_INITIAL, RTO_MAX, RTO_MIN, AnswerTimer
-from gateway.config import SensorConfig
-from gateway.errors import ErrorKind
-from gateway.model import Series
-from gateway.protocol.exchanges import NativeAdapter, adapter_for, char_time
+from imu_gateway.bus.timing import RTO_INITIAL, RTO_MAX, RTO_MIN, AnswerTimer
+from imu_gateway.config import SensorConfig
+from imu_gateway.errors import ErrorKind
+from imu_gateway.model import Series
+from imu_gateway.protocol.exchanges import NativeAdapter, adapter_for, char_time
 
 BAUD = 115200
 
@@ -314,7 +314,7 @@ def test_a_read_of_a_streaming_sensor_waits_for_its_next_frame_without_spinning(
 
 
 def test_stopping_during_a_stream_set_up_still_leaves_the_line_quiet() -> None:
-    from gateway.bus.events import Kind
+    from imu_gateway.bus.events import Kind
 
     sensor = sim("native", "AH", 0)
     line = VirtualLine(bus("native", [{"name": "st", "series": "AH", "address": 0,
@@ -458,14 +458,14 @@ def test_the_schedule_has_no_clock() -> None:
     import ast
     import inspect
 
-    import gateway.bus.events as events
-    import gateway.bus.jobs as jobs
-    import gateway.bus.line as line
-    import gateway.bus.outcomes as outcomes
-    import gateway.bus.phase as phase
-    import gateway.bus.schedule as schedule
-    import gateway.bus.sensor_state as sensor_state
-    import gateway.bus.timing as timing
+    import imu_gateway.bus.events as events
+    import imu_gateway.bus.jobs as jobs
+    import imu_gateway.bus.line as line
+    import imu_gateway.bus.outcomes as outcomes
+    import imu_gateway.bus.phase as phase
+    import imu_gateway.bus.schedule as schedule
+    import imu_gateway.bus.sensor_state as sensor_state
+    import imu_gateway.bus.timing as timing
     for module in (events, jobs, line, outcomes, phase, schedule, sensor_state, timing):
         tree = ast.parse(inspect.getsource(module))
         names = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import)

@@ -20,8 +20,8 @@ import httpx
 import yaml
 from harness import free_port
 
-from gateway.model import Series, WireProtocol
-from gateway.simulator import make_sensor, simulated
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.simulator import make_sensor, simulated
 
 ROOT = Path(__file__).resolve().parents[1]
 FAST = 115200
@@ -44,8 +44,9 @@ def test_schemathesis_finds_no_server_errors_or_schema_violations(tmp_path: Path
         path = tmp_path / "gateway.yaml"
         path.write_text(yaml.safe_dump(config))
         with (tmp_path / "gateway.log").open("wb") as log:
-            gateway = subprocess.Popen([sys.executable, "-m", "gateway", "run", "-c", str(path)],
-                                       stdout=log, stderr=subprocess.STDOUT)
+            gateway = subprocess.Popen(
+                [sys.executable, "-m", "imu_gateway", "run", "-c", str(path)],
+                stdout=log, stderr=subprocess.STDOUT)
         try:
             deadline = time.monotonic() + 30
             while True:

@@ -20,13 +20,13 @@ from typing import Any
 import pytest
 import serial
 
-from gateway.model import Angles, Quaternion, Reading, Series, Vector3, WireProtocol
-from gateway.protocol import modbus_rtu as rtu
-from gateway.protocol import native
-from gateway.protocol.exchanges import char_time, rtu_silence
-from gateway.simulator import Faults, SimSensor, SimulatorThread, hold, make_sensor, simulated
-from gateway.simulator.bus import BusStats
-from gateway.tools.cli import build_parser, main
+from imu_gateway.model import Angles, Quaternion, Reading, Series, Vector3, WireProtocol
+from imu_gateway.protocol import modbus_rtu as rtu
+from imu_gateway.protocol import native
+from imu_gateway.protocol.exchanges import char_time, rtu_silence
+from imu_gateway.simulator import Faults, SimSensor, SimulatorThread, hold, make_sensor, simulated
+from imu_gateway.simulator.bus import BusStats
+from imu_gateway.tools.cli import build_parser, main
 
 ZERO = Reading(
     Angles(0, 0, 0), Vector3(0, 0, 1), Vector3(0, 0, 0), Vector3(0, 0, 0), Quaternion(1, 0, 0, 0)
@@ -35,7 +35,7 @@ ZERO = Reading(
 
 def reading_with(values: dict[str, float]) -> Reading:
     """A complete reading holding ``values`` (per-field names), zeros elsewhere."""
-    from gateway.normalise import field_values, to_reading
+    from imu_gateway.normalise import field_values, to_reading
 
     return to_reading({**field_values(ZERO), **values}, Series.AH) or ZERO
 
@@ -445,7 +445,7 @@ def test_cli_simulate_gives_every_sensor_the_delay_and_jitter(
         async def serve(self, stop: Any) -> None:
             return None
 
-    monkeypatch.setattr("gateway.simulator.PtyBus", Bus)
+    monkeypatch.setattr("imu_gateway.simulator.PtyBus", Bus)
     assert main(["simulate", "--protocol", "native", "--series", "AH", "--sensor",
                  "modbus:VG:3", "--answer-delay-ms", "5", "--jitter-ms", "35"]) == 0
     assert [(s.answer_delay, s.jitter) for s in built] == [(0.005, 0.035)] * 2
@@ -610,7 +610,7 @@ def test_the_simulator_says_when_the_machine_held_it() -> None:
     """Stopped (SIGSTOP) for a moment, as a virtual machine's host stops its CPUs: the
     simulator's summary counts the hold, so that what follows is not blamed on the
     master."""
-    with subprocess.Popen([sys.executable, "-m", "gateway", "simulate", "--sensor",
+    with subprocess.Popen([sys.executable, "-m", "imu_gateway", "simulate", "--sensor",
                            "native:AH:1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                           text=True) as proc:
         try:

@@ -6,9 +6,9 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-import gateway
+import imu_gateway
 
-ROOT = Path(gateway.__file__).parent
+ROOT = Path(imu_gateway.__file__).parent
 FUNCTION_LINES, CLASS_LINES = 80, 300
 
 

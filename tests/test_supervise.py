@@ -8,8 +8,8 @@ import logging
 import pytest
 from harness import until
 
-from gateway import supervise
-from gateway.supervise import Frontend, PeerLog, RepeatFilter, Supervisor
+from imu_gateway import supervise
+from imu_gateway.supervise import Frontend, PeerLog, RepeatFilter, Supervisor
 
 
 class Flaky(Frontend):

@@ -26,7 +26,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from gateway.model import Series
+from imu_gateway.model import Series
 
 NATIVE = "native"
 MODBUS = "modbus"

@@ -1,6 +1,6 @@
 """The bus schedule against simulated sensors in virtual time: no pty, no clock.
 
-``VirtualLine`` drives ``gateway.bus.schedule.Schedule`` exactly as the bus master
+``VirtualLine`` drives ``imu_gateway.bus.schedule.Schedule`` exactly as the bus master
 does (``next_request`` / ``receive`` / ``handle_timer`` / ``next_wake``), with the
 simulator's sans-IO sensors (``SimSensor.hear`` / ``due``) on a modelled wire: each
 byte takes 10 bits at the line's rate, a sensor's answer starts after its own
@@ -21,14 +21,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from gateway.bus.events import Event, Finished, Job, Note, Publish, StateChange
-from gateway.bus.schedule import Schedule
-from gateway.commands import Command
-from gateway.config import BusConfig, config_from_dict
-from gateway.model import WireProtocol
-from gateway.protocol.exchanges import adapter_for, char_time
-from gateway.simulator import SimSensor, make_sensor
-from gateway.simulator.sensor import Outgoing
+from imu_gateway.bus.events import Event, Finished, Job, Note, Publish, StateChange
+from imu_gateway.bus.schedule import Schedule
+from imu_gateway.commands import Command
+from imu_gateway.config import BusConfig, config_from_dict
+from imu_gateway.model import WireProtocol
+from imu_gateway.protocol.exchanges import adapter_for, char_time
+from imu_gateway.simulator import SimSensor, make_sensor
+from imu_gateway.simulator.sensor import Outgoing
 
 
 def bus(protocol: str, sensors: list[dict[str, Any]], baudrate: int = 115200,
@@ -40,7 +40,7 @@ def bus(protocol: str, sensors: list[dict[str, Any]], baudrate: int = 115200,
 
 def sim(protocol: str, series: str, address: int, *, delay: float = 0.002,
         jitter: float = 0.0, seed: int = 0, baud: int = 115200) -> SimSensor:
-    from gateway.model import Series
+    from imu_gateway.model import Series
     return make_sensor(WireProtocol[protocol.upper()], Series[series], address, baud=baud,
                        answer_delay=delay, jitter=jitter, seed=seed)
 

@@ -1,7 +1,0 @@
-"""``python -m gateway`` is ``imu-gateway``."""
-
-import sys
-
-from .tools.cli import main
-
-sys.exit(main())

@@ -1,0 +1,207 @@
+"""The gateway process: one bus master per bus, the cache between them and the front
+ends, and the lifecycle (the gateway, not a web server, owns signals and shutdown).
+
+Only this module imports everything.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import signal
+import sys
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from .bus.runner import BusRunner
+from .cache import Cache, Snapshot
+from .capacity import line_loads
+from .commands import CATALOGUE, CommandResult, validate
+from .config import GatewayConfig, HttpConfig, SensorConfig, config_from_dict
+from .errors import RequestFailed, StartupError, unknown_sensor
+from .frontends.modbus_tcp import ModbusTcpServer
+from .frontends.mqtt import MqttClient
+from .frontends.rest import HttpServer, openapi_document
+from .stats import BusStats, FrontendCounts, SensorStats
+from .supervise import Frontend, Supervisor
+
+log = logging.getLogger("imu_gateway")
+
+STALENESS_TICK = 0.1  # seconds between checks that turn "too old" into status events
+SHUTDOWN_GRACE = 10.0  # seconds the bus masters get to finish the exchange in flight
+# A bus thread woken by its serial port waits for the GIL until the thread holding it
+# (busy with front-end clients) lets go: by default up to 5 ms, longer than a whole
+# exchange at 115200 baud.  A shorter interval keeps the line's timing (see
+# docs/benchmarks.md for the measurement).
+GIL_SWITCH_INTERVAL = 0.0005
+
+
+class Gateway:
+    """The running gateway as the front ends see it: the cache, and commands."""
+
+    def __init__(self, config: GatewayConfig) -> None:
+        self.config = config
+        self.cache = Cache([(s.name, s.stale_after_ms) for _, s in config.iter_sensors()])
+        self.runners = {bus.name: BusRunner(bus, self.cache) for bus in config.buses}
+        self.masters = {name: runner.master for name, runner in self.runners.items()}
+        self._runner_of = {s.name: self.runners[b.name] for b, s in config.iter_sensors()}
+        self.sensors: dict[str, SensorConfig] = {s.name: s for _, s in config.iter_sensors()}
+        self.modbus = ModbusTcpServer(self, config.modbus) if config.modbus else None
+        self.mqtt = MqttClient(self, config.mqtt) if config.mqtt else None
+        self.http = HttpServer(self, config.http) if config.http else None
+        # the supervised front ends
+        self.frontends: list[Frontend] = [f for f in (self.modbus, self.http, self.mqtt) if f]
+        self.supervisor = Supervisor()
+        self.started = time.monotonic()
+
+    async def command(self, sensor: str, name: str,
+                      args: Mapping[str, Any] | None = None) -> CommandResult:
+        """Validate and carry out a command; returns after the sensor's answer."""
+        config = self.sensors.get(sensor)
+        if config is None:
+            return CommandResult.failed(sensor, name, unknown_sensor(sensor))
+        runner = self._runner_of[sensor]
+        try:
+            command = validate(name, args, config.series, runner.master.config.protocol)
+            result = await runner.call(runner.master.submit(sensor, command))
+        except RequestFailed as exc:
+            return CommandResult.failed(sensor, name, exc)
+        if result.ok:  # what the answer shows of the settings, for the front ends
+            self.cache.learn(sensor, CATALOGUE[name].learns(command.args, result.answer))
+        return result
+
+    async def start_frontends(self) -> None:
+        """Open the listening sockets (once); raises ``StartupError`` when one cannot be
+        bound."""
+        for frontend in self.frontends:
+            frontend.arm()
+        for name, server in (("modbus", self.modbus), ("http", self.http)):
+            if server is not None and not server.listening:
+                try:
+                    await server.start()
+                except OSError as exc:
+                    # asyncio's bind error has the errno but a long sentence of its own
+                    reason = os.strerror(exc.errno) if exc.errno else str(exc)
+                    raise StartupError(f"{name}.listen {server.config.listen}: {reason}") \
+                        from None
+
+    async def run(self, stop: asyncio.Event) -> None:
+        """Run until ``stop`` is set, then stop: the front ends first (MQTT says
+        "offline" while the buses still run; HTTP and Modbus TCP finish the requests
+        they have, which may need a bus), then every bus after its exchange in flight.
+        Each step runs even if one before it failed.  A front end that fails on the
+        way is restarted by the supervisor; nothing a peer does ends this."""
+        await self.start_frontends()
+        async with contextlib.AsyncExitStack() as stopping:  # unwinds last in, first out
+            stopping.push_async_callback(self._stop_buses)
+            for runner in self.runners.values():
+                runner.start()
+            for frontend in (self.modbus, self.http, self.mqtt):
+                if frontend is not None:
+                    stopping.push_async_callback(frontend.stop)
+            if self.mqtt is not None:  # connects in the background, retrying: never fails
+                await self.mqtt.start()
+            watchers = [asyncio.create_task(self.supervisor.watch(f), name=f"watch {f.name}")
+                        for f in self.frontends]
+            try:
+                await self._watch_staleness(stop)
+            finally:
+                for watcher in watchers:
+                    watcher.cancel()
+                await asyncio.gather(*watchers, return_exceptions=True)
+            log.info("stopping")
+
+    async def _stop_buses(self) -> None:
+        for runner in self.runners.values():
+            runner.stop()
+        await asyncio.gather(*(r.join(SHUTDOWN_GRACE) for r in self.runners.values()))
+
+    async def _watch_staleness(self, stop: asyncio.Event) -> None:
+        while not stop.is_set():
+            self.cache.check_staleness()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), STALENESS_TICK)
+
+    async def read(self, sensor: str, max_age_ms: float) -> Snapshot:
+        """The sensor's snapshot with a reading at most ``max_age_ms`` old: the bus is
+        read first when the cached one is older (a streaming sensor's next frame
+        serves).  Raises ``RequestFailed`` (``unknown_sensor``, ``offline``, …)."""
+        snap = self.cache.snapshot(sensor)
+        if snap.age_ms is not None and snap.age_ms <= max_age_ms:
+            return snap
+        runner = self._runner_of[sensor]
+        await runner.call(runner.master.read_now(sensor))
+        return self.cache.snapshot(sensor)
+
+    async def passthrough(self, sensor: str, pdu: bytes) -> bytes:
+        """A Modbus PDU to a Modbus sensor's own registers (``raw_unit_id``).  A setting
+        the exchange shows (a zero type written or read, a relative heading written) is
+        noted as a command's would be: the map's registers 1000-1008 read it back
+        whichever way it was set."""
+        # a local import keeps this pass-through concern inside the method
+        from .protocol.modbus_rtu import settings_shown
+
+        runner = self._runner_of[sensor]
+        answer = await runner.call(runner.master.passthrough(sensor, pdu))
+        self.cache.learn(sensor, settings_shown(pdu, answer))
+        return answer
+
+    def stats(self) -> list[BusStats]:
+        return self.cache.bus_stats()
+
+    def sensor_stats(self, name: str) -> SensorStats:
+        return self.cache.sensor_stats(name)
+
+    def frontend_stats(self) -> dict[str, FrontendCounts]:
+        running = {"modbus": self.modbus, "mqtt": self.mqtt, "http": self.http}
+        return {name: {**f.stats(), "restarts": self.supervisor.restarts[name]}
+                for name, f in running.items() if f is not None}
+
+
+async def run_until_signalled(config: GatewayConfig, stats_interval: float = 0.0,
+                              on_started: Callable[[Gateway], None] | None = None) -> None:
+    """``imu-gateway run``: the gateway until SIGINT or SIGTERM.  ``on_started`` is
+    called once every listening socket is open."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL)
+    gateway = Gateway(config)
+    log.info("%s", config.summary())
+    for load in line_loads(config.buses):
+        log.info("%s", load.describe())
+        if load.over:
+            log.warning("%s", load.advice())
+    await gateway.start_frontends()  # before the task group: a StartupError stays plain
+    if on_started is not None:
+        on_started(gateway)
+    async with asyncio.TaskGroup() as tasks:
+        if stats_interval > 0:
+            tasks.create_task(_log_stats(gateway, stop, stats_interval))
+        await gateway.run(stop)
+    log.info("stopped")
+
+
+async def _log_stats(gateway: Gateway, stop: asyncio.Event, interval: float) -> None:
+    while not stop.is_set():
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(stop.wait(), interval)
+        for bus in gateway.stats():
+            log.info("bus %s: %.1f transactions/s, utilisation %.2f, errors %s", bus.name,
+                     bus.transactions_per_s, bus.utilisation, dict(bus.errors) or "none")
+
+
+def openapi_json() -> str:
+    """The REST API's OpenAPI document as committed at ``openapi/openapi.json``
+    (``scripts/openapi`` writes it).  The routes do not depend on the config; a
+    one-sensor gateway stands in for any."""
+    config = config_from_dict({"gateway_id": "openapi", "buses": [{
+        "name": "line", "port": "/dev/null", "protocol": "native",
+        "sensors": [{"name": "sensor", "series": "AH"}]}]}, env={})
+    document = openapi_document(Gateway(config), HttpConfig())
+    return json.dumps(document, indent=2, ensure_ascii=False) + "\n"

@@ -1,0 +1,235 @@
+"""The latest reading of every sensor, and how fresh it is.
+
+The bus masters write here; the front ends only read here and listen for changes,
+so a hundred clients cost the serial bus nothing.  The cache is passive: it never
+calls a bus.  A front end that wants a reading no older than N ms asks the gateway
+(``Gateway.read``), which asks the sensor's bus master.
+
+Status, as clients see it:
+
+* ``offline`` - the bus master cannot reach the sensor (or has not yet);
+* ``stale``   - it is online but its latest reading is older than ``stale_after_ms``;
+* ``ok``      - otherwise.
+
+Staleness changes with time alone, so ``check_staleness()`` is called periodically
+(the app does it) to turn that into status events.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field, replace
+from datetime import UTC, datetime
+from typing import Any
+
+from .errors import unknown_sensor
+from .model import KnownSettings, Reading
+from .stats import BusStats, SensorStats
+
+log = logging.getLogger("imu_gateway.cache")
+
+
+class Status(enum.Enum):
+    OK = "ok"
+    STALE = "stale"
+    OFFLINE = "offline"
+
+
+@dataclass(frozen=True, slots=True)
+class Snapshot:
+    """One sensor as a client sees it at one moment."""
+
+    name: str
+    reading: Reading | None
+    seq: int
+    timestamp: datetime | None  # wall-clock time of the sample
+    age_ms: float | None
+    status: Status
+    online: bool
+    busy: bool  # a save or calibration is running
+    streaming: bool  # the sensor's own auto-output feeds this reading
+    errors: int  # timeouts, bad checksums, bad frames
+
+    @property
+    def has_reading(self) -> bool:
+        return self.reading is not None
+
+    def to_json(self) -> dict[str, Any]:
+        """The reading JSON (docs/mqtt.md; MQTT state and REST use the same)."""
+        out: dict[str, Any] = {"sensor": self.name, "ts": iso_time(self.timestamp),
+                               "seq": self.seq, "status": self.status.value}
+        if self.reading is not None:
+            out.update(self.reading.to_json_groups())
+        return out
+
+
+def iso_time(moment: datetime | None) -> str | None:
+    """``2026-11-22T03:40:00.123Z``: UTC, milliseconds."""
+    if moment is None:
+        return None
+    return moment.astimezone(UTC).strftime("%Y-%m-%dT%H:%M:%S.") + \
+        f"{moment.microsecond // 1000:03d}Z"
+
+
+class EventKind(enum.Enum):
+    READING = "reading"  # a new sample
+    STATUS = "status"  # status, busy or streaming changed
+
+
+Listener = Callable[[EventKind, Snapshot], None]
+ErrorHook = Callable[[BaseException], None]
+
+
+@dataclass(slots=True)
+class _Entry:
+    stale_after: float  # seconds
+    reading: Reading | None = None
+    seq: int = 0
+    received: float = 0.0  # monotonic
+    timestamp: datetime | None = None
+    online: bool = False
+    busy: bool = False
+    streaming: bool = False
+    errors: int = 0
+    reported: tuple[Status, bool, bool] | None = None  # last status event sent
+    settings: KnownSettings = field(default_factory=KnownSettings)
+
+
+class Cache:
+    def __init__(
+        self,
+        sensors: Iterable[tuple[str, float]],
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        """``sensors``: (name, stale_after_ms) pairs.  ``clock`` must be the clock the
+        bus masters time their readings with (the event loop's, by default monotonic)."""
+        self._entries = {name: _Entry(stale_ms / 1000) for name, stale_ms in sensors}
+        self._clock = clock
+        self._listeners: list[tuple[Listener, ErrorHook | None]] = []
+        self._buses: dict[str, BusStats] = {}
+        self._sensor_stats: dict[str, SensorStats] = {}
+
+    @property
+    def names(self) -> list[str]:
+        return list(self._entries)
+
+    def _entry(self, name: str) -> _Entry:
+        try:
+            return self._entries[name]
+        except KeyError:
+            raise unknown_sensor(name) from None
+
+    # ------------------------------------------------------------ reading
+
+    def snapshot(self, name: str) -> Snapshot:
+        e = self._entry(name)
+        now = self._clock()
+        age = (now - e.received) * 1000 if e.reading is not None else None
+        if not e.online:
+            status = Status.OFFLINE
+        elif e.reading is None or now - e.received > e.stale_after:
+            status = Status.STALE
+        else:
+            status = Status.OK
+        return Snapshot(name, e.reading, e.seq, e.timestamp, age, status, e.online, e.busy,
+                        e.streaming, e.errors)
+
+    def snapshots(self) -> list[Snapshot]:
+        return [self.snapshot(name) for name in self._entries]
+
+    def subscribe(self, listener: Listener,
+                  on_error: ErrorHook | None = None) -> Callable[[], None]:
+        """Call ``listener(kind, snapshot)`` on every change; returns the unsubscriber.
+        Listeners run in the event loop and must not block.  An exception in one goes
+        to its ``on_error`` (its front end's supervisor), or is logged: it never
+        reaches the bus that published, nor the other listeners."""
+        entry = (listener, on_error)
+        self._listeners.append(entry)
+        return lambda: self._listeners.remove(entry) if entry in self._listeners else None
+
+    # ------------------------------------------------------------ writing (bus masters)
+
+    def publish(self, name: str, reading: Reading, at: float | None = None) -> int:
+        """A new sample, received at monotonic time ``at``; returns its sequence number."""
+        e = self._entry(name)
+        e.reading = reading
+        e.seq += 1
+        e.received = self._clock() if at is None else at
+        e.timestamp = datetime.now(UTC)
+        e.online = True
+        self._emit(EventKind.READING, name)
+        self._check(name)
+        return e.seq
+
+    def set_state(self, name: str, *, online: bool | None = None, busy: bool | None = None,
+                  streaming: bool | None = None) -> None:
+        e = self._entry(name)
+        if online is not None:
+            e.online = online
+        if busy is not None:
+            e.busy = busy
+            if not busy:  # what it was busy with is over
+                e.settings = replace(e.settings, busy_with=None)
+        if streaming is not None:
+            e.streaming = streaming
+        self._check(name)
+
+    def count_error(self, name: str) -> None:
+        self._entry(name).errors += 1
+
+    def note_stats(self, bus: BusStats, sensors: Mapping[str, SensorStats]) -> None:
+        """A bus master's counters, as it published them (frozen, made on its thread)."""
+        self._buses[bus.name] = bus
+        self._sensor_stats.update(sensors)
+
+    def bus_stats(self) -> list[BusStats]:
+        """Every bus's latest published counters, in the order they first came."""
+        return list(self._buses.values())
+
+    def sensor_stats(self, name: str) -> SensorStats:
+        """The sensor's latest published counters (its bus publishes before it runs)."""
+        self._entry(name)  # an unknown sensor is refused as one
+        return self._sensor_stats[name]
+
+    def learn(self, name: str, shown: KnownSettings) -> None:
+        """Settings an answer showed (zero type, declination, …).  ``busy_with`` is
+        kept only while the sensor is busy: the busy period starts before the command's
+        answer is noted, and may be over (or never have begun: a calibration answered
+        "complete") by then."""
+        e = self._entry(name)
+        if not e.busy:
+            shown = replace(shown, busy_with=None)
+        e.settings = e.settings.updated(shown)
+
+    def settings(self, name: str) -> KnownSettings:
+        """The sensor's settings as far as the gateway knows them."""
+        return self._entry(name).settings
+
+    def check_staleness(self) -> None:
+        for name in self._entries:
+            self._check(name)
+
+    def _check(self, name: str) -> None:
+        snap = self.snapshot(name)
+        state = (snap.status, snap.busy, snap.streaming)
+        e = self._entries[name]
+        if state != e.reported:
+            e.reported = state
+            self._notify(EventKind.STATUS, snap)
+
+    def _emit(self, kind: EventKind, name: str) -> None:
+        self._notify(kind, self.snapshot(name))
+
+    def _notify(self, kind: EventKind, snap: Snapshot) -> None:
+        for listener, on_error in list(self._listeners):
+            try:
+                listener(kind, snap)
+            except Exception as exc:  # one listener's fault stays its own
+                if on_error is None:
+                    log.exception("a cache listener failed")
+                else:
+                    on_error(exc)
+

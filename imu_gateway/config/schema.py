@@ -1,0 +1,428 @@
+"""The config's sections as pydantic models, and the defaults they take from their
+context (a bus's protocol gives its sensors' timeouts)."""
+
+from __future__ import annotations
+
+import ipaddress
+import socket
+from collections.abc import Iterable, Iterator, Mapping
+from typing import Annotated, Any, Literal, Self
+from urllib.parse import urlsplit
+
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    PlainValidator,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError
+
+from ..errors import ConfigError
+from ..model import VALUE_GROUPS, Group, Series, WireProtocol
+from ..normalise import FIELD_NAMES
+from .fields import (
+    ADDRESS_RANGE,
+    BAUD_RATES,
+    DEFAULT_ADDRESS,
+    MODBUS_STREAM_INTERVAL_MS,
+    NATIVE_STREAM_HZ,
+    PYSERIAL_SCHEMES,
+    UNIT_ID_RANGE,
+    ExistingFile,
+    Listen,
+    ListenAddress,
+    Name,
+    Network,
+    NonEmpty,
+    NonNegative,
+    NonNegativeInt,
+    PositiveInt,
+    ProtocolField,
+    SeriesField,
+    UnitId,
+    _base_topic,
+    _baudrate,
+    _between,
+    _fail,
+    _gateway_id,
+    _mqtt_protocol,
+    _mqtt_url,
+    _protocol,
+    _serial_port,
+    _show,
+)
+
+# ------------------------------------------------------------------------ the models
+
+# Each field's ``description`` is its rule as the user reads it: docs/config-reference.md
+# is generated from these (imu_gateway/config_reference.py).  Where the default shown by
+# pydantic would mislead (it depends on context), ``json_schema_extra`` says what to show.
+_SHOWN_DEFAULT = "shown_default"
+_SHOWN_TYPE = "shown_type"
+
+
+def _span(bounds: tuple[int, int]) -> str:
+    return f"{bounds[0]}-{bounds[1]}"
+
+
+def _or_list(items: Iterable[str]) -> str:
+    """``a, b, c or d``."""
+    *rest, last = list(items)
+    return f"{', '.join(rest)} or {last}" if rest else last
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(
+        extra="forbid", frozen=True, allow_inf_nan=False, coerce_numbers_to_str=True
+    )
+
+
+class SensorConfig(_Model):
+    """One sensor.  ``address`` and ``unit_id`` hold their final values once the sensor
+    is part of a :class:`GatewayConfig` (a lone ``SensorConfig`` has ``unit_id`` 0)."""
+
+    name: Name = Field(description=(
+        "`[a-z0-9_-]+`, unique in the whole gateway: it is the sensor's name in MQTT "
+        "topics and REST paths"))
+    series: SeriesField = Field(description=(
+        f"{_or_list(f'`{s.name}`' for s in Series)} (any case)"))
+    address: int = Field(default=0, description=(
+        f"the sensor's bus address: native {_span(ADDRESS_RANGE[WireProtocol.NATIVE])}, "
+        f"modbus {_span(ADDRESS_RANGE[WireProtocol.MODBUS])}; unique on its bus"),
+        json_schema_extra={_SHOWN_DEFAULT: "0 on a native bus, 1 on a modbus bus"})
+    unit_id: UnitId = Field(default=0, description=(
+        f"{_span(UNIT_ID_RANGE)}, unique; the Modbus TCP unit id of the sensor's register "
+        "map. Sensors without one are numbered 1, 2, … in file order across all buses, "
+        "skipping every `unit_id` and `raw_unit_id` given explicitly"),
+        json_schema_extra={_SHOWN_DEFAULT: "1, 2, … in file order"})
+    poll_hz: NonNegative = Field(default=10.0, description=(
+        ">= 0; polls per second. 0: as fast as the bus allows, shared fairly with the "
+        "other sensors"))
+    stream_hz: NonNegative = Field(default=0.0, description=(
+        ">= 0; > 0 turns on the sensor's own auto-output at that rate instead of polling. "
+        f"Native: {_or_list(map(str, NATIVE_STREAM_HZ))}. Modbus: the interval "
+        f"`round(1000 / stream_hz)` ms must be {_span(MODBUS_STREAM_INTERVAL_MS)} (about "
+        "0.016-100 Hz). At most one streaming sensor per bus"))
+    stale_after_ms: PositiveInt = Field(default=1000, description=(
+        "> 0; a reading older than this is `stale`"))
+    raw_unit_id: UnitId | None = Field(default=None, description=(
+        f"{_span(UNIT_ID_RANGE)}; only for sensors on a modbus bus: a Modbus TCP unit id "
+        "whose requests pass through to the sensor unchanged. Unique, and different from "
+        "every `unit_id`"))
+
+
+class BusConfig(_Model):
+    """One serial line and the sensors on it; the bus master owns it alone."""
+
+    name: Name = Field(description="`[a-z0-9_-]+`, unique among buses")
+    port: Annotated[str, AfterValidator(_serial_port)] = Field(description=(
+        "a device path (`/dev/ttyUSB0`, `/dev/serial/by-id/…`) or a pyserial URL: "
+        "`socket://host:port`, `rfc2217://host:port`, `loop://` (also "
+        f"{', '.join(f'`{s}://`' for s in PYSERIAL_SCHEMES[3:])}). Unique among buses"))
+    baudrate: Annotated[int, AfterValidator(_baudrate)] = Field(default=9600, description=(
+        f"{_or_list(map(str, BAUD_RATES))}: the rates the sensors have a code for. 9600 is "
+        "the sensors' factory rate"))
+    protocol: ProtocolField = Field(description="`native` or `modbus` (any case)")
+    timeout_ms: PositiveInt | None = Field(default=None, description=(
+        "> 0; how long to wait for an answer per attempt, on top of the wire time of the "
+        "request and the answer, for every sensor of the bus. Leave it out: each "
+        "sensor's timeout is then learned from its answers"),
+        json_schema_extra={_SHOWN_DEFAULT: "null: learned per sensor (below)"})
+    retries: Annotated[int, _between(0, 10)] = Field(default=1, description=(
+        "0-10; attempts after the first before an exchange counts as failed"))
+    trace: bool = Field(default=False, description=(
+        "log one line per exchange on this bus (the bytes out and in, the time, the "
+        "outcome), at most 50 a second; also `run --trace BUS`, and on every bus with "
+        "`--log-level debug`"))
+    rs485: bool = Field(default=False, description=(
+        "put the port into the kernel's RS-485 mode (the driver switches the transmitter)"))
+    sensors: Annotated[list[SensorConfig], Field(min_length=1)] = Field(description=(
+        "the sensors on this line, at least one (`buses[].sensors[]`)"))
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_addresses(cls, data: Any) -> Any:
+        return _fill_bus_defaults(data)
+
+
+class ModbusConfig(_Model):
+    """The Modbus TCP server."""
+
+    listen: Listen = Field(default=ListenAddress("0.0.0.0", 502), description=(
+        "`host:port`, port 0-65535; an IPv6 host in brackets: `[::]:502`"))
+    allow_writes: bool = Field(default=False, description=(
+        "writes (FC06/FC16) are refused with exception 01 unless true"))
+    allow_from: Annotated[list[Network], Field(min_length=1)] = Field(
+        default_factory=lambda: [
+            ipaddress.ip_network("0.0.0.0/0"), ipaddress.ip_network("::/0")
+        ],
+        description=(
+            "at least one IPv4 or IPv6 network; host bits are allowed (`192.168.1.5/24` "
+            "means `192.168.1.0/24`); a bare address is a single host. Clients from "
+            "elsewhere are disconnected at once"),
+    )
+    max_connections: PositiveInt = Field(default=100, description=(
+        "> 0; a client beyond this takes the place of the longest-idle connection, "
+        "which is closed"))
+    max_connections_per_address: PositiveInt = Field(default=20, description=(
+        "> 0; a client address beyond this many connections takes the place of its own "
+        "longest-idle one"))
+    idle_timeout_s: NonNegative = Field(default=60.0, description=(
+        ">= 0; a client connection idle this long is closed; 0: never"))
+
+    def allows(self, client: str) -> bool:
+        """Whether a client address (IPv4, IPv6, or IPv4-mapped IPv6) is in ``allow_from``."""
+        try:
+            ip = ipaddress.ip_address(client.split("%", 1)[0])
+        except ValueError:
+            return False
+        if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:
+            ip = ip.ipv4_mapped
+        return any(ip in net for net in self.allow_from if net.version == ip.version)
+
+
+class MqttConfig(_Model):
+    """The MQTT client."""
+
+    url: Annotated[str, AfterValidator(_mqtt_url)] = Field(
+        default="mqtt://localhost:1883", description=(
+            "`mqtt://host[:port]` (default port 1883) or `mqtts://host[:port]` for TLS "
+            "(default 8883); no credentials, path or query in it"))
+    username: NonEmpty | None = Field(default=None, description="not empty")
+    password: str | None = Field(default=None, description=(
+        "needs `username`; write `${VAR}` to take it from the environment"))
+    ca_file: ExistingFile | None = Field(default=None, description=(
+        "the CA that signed the broker's certificate; an existing file; needs `mqtts://`"),
+        json_schema_extra={_SHOWN_DEFAULT: "null: the system's CAs"})
+    certfile: ExistingFile | None = Field(default=None, description=(
+        "client certificate; an existing file; needs `mqtts://`"))
+    keyfile: ExistingFile | None = Field(default=None, description=(
+        "client key; an existing file; needs `mqtts://` and `certfile`"))
+    base_topic: Annotated[str, AfterValidator(_base_topic)] = Field(default="imu", description=(
+        "first level of every topic; not empty, no `+` or `#`, no leading or trailing `/`"))
+    qos: Annotated[int, _between(0, 2)] = Field(default=0, description=(
+        "0-2; QoS of state and per-field messages"))
+    retain: bool = Field(default=True, description="retain state and per-field messages")
+    per_field_topics: bool = Field(default=False, description=(
+        "also publish every value on its own topic (`{base}/{gateway_id}/{sensor}/{field}`)"))
+    min_interval_ms: NonNegativeInt = Field(default=0, description=(
+        ">= 0; at most one state message per sensor per interval (the latest is sent when "
+        "it ends)"))
+    homeassistant_discovery: bool = Field(default=False, description=(
+        "publish Home Assistant discovery configs"))
+    allow_commands: bool = Field(default=False, description=(
+        "accept commands on `{base}/{gateway_id}/{sensor}/cmd/{command}`"))
+    protocol: Annotated[Literal["3.1.1", "5"], PlainValidator(_mqtt_protocol)] = Field(
+        default="3.1.1", description='`"3.1.1"` or `5` (MQTT 5)',
+        json_schema_extra={_SHOWN_TYPE: "string or number", _SHOWN_DEFAULT: '`"3.1.1"`'})
+    client_id: NonEmpty | None = Field(default=None, description="not empty", json_schema_extra={
+        _SHOWN_DEFAULT: "null: `imu-gateway-{gateway_id}`"})
+    #: a state message is sent only when a field moved by more than its deadband
+    deadband: dict[str, Annotated[float, Field(ge=0, allow_inf_nan=False)]] = Field(
+        default_factory=dict, description=(
+            f"field (`{FIELD_NAMES[0]}` … `{FIELD_NAMES[-1]}`) or group "
+            f"({', '.join(f'`{g.value}`' for g in Group)}) → band >= 0; a state message is sent "
+            "only when a listed field moved more than its band ([mqtt.md](mqtt.md))"))
+    #: messages kept while the broker is away; the oldest are dropped (and counted)
+    queue_size: Annotated[int, Field(gt=0)] = Field(default=1000, description=(
+        "> 0; messages kept while the broker is away, the oldest dropped first"))
+    discovery_prefix: Annotated[str, AfterValidator(_base_topic)] = Field(
+        default="homeassistant", description=(
+            "Home Assistant's discovery prefix; rules as for `base_topic`"))
+
+    @field_validator("deadband")
+    @classmethod
+    def _deadband_fields(cls, value: dict[str, float]) -> dict[str, float]:
+        known = {*FIELD_NAMES, *(g.value for g in Group)}
+        unknown = sorted(set(value) - known)
+        if unknown:
+            raise _fail(f"unknown field {', '.join(map(_show, unknown))} (fields: "
+                        f"{' '.join(FIELD_NAMES)}; or a group: {' '.join(g.value for g in Group)})")
+        return value
+
+    def field_deadbands(self) -> dict[str, float]:
+        """The deadband of each field, a group's applied to its members (a field's own
+        value wins)."""
+        out: dict[str, float] = {}
+        for group, spec in VALUE_GROUPS.items():
+            if group.value in self.deadband:
+                out.update(dict.fromkeys(spec.fields, self.deadband[group.value]))
+        out.update({k: v for k, v in self.deadband.items() if k in FIELD_NAMES})
+        return out
+
+    @field_validator("password")
+    @classmethod
+    def _password_needs_username(cls, value: str | None, info: ValidationInfo) -> str | None:
+        if value is not None and info.data.get("username", "") is None:
+            raise _fail("needs a username")
+        return value
+
+    @field_validator("ca_file", "certfile", "keyfile")
+    @classmethod
+    def _tls_only(cls, value: str | None, info: ValidationInfo) -> str | None:
+        url = info.data.get("url")
+        if value is not None and url is not None and not url.startswith("mqtts://"):
+            raise _fail("needs an mqtts:// url (TLS)")
+        if info.field_name == "keyfile" and value is not None and \
+                info.data.get("certfile", "") is None:
+            raise _fail("needs a certfile")
+        return value
+
+    @property
+    def tls(self) -> bool:
+        return self.url.startswith("mqtts://")
+
+    @property
+    def host(self) -> str:
+        return urlsplit(self.url).hostname or "localhost"
+
+    @property
+    def port(self) -> int:
+        return urlsplit(self.url).port or (8883 if self.tls else 1883)
+
+
+class HttpConfig(_Model):
+    """The REST API and dashboard."""
+
+    listen: Listen = Field(default=ListenAddress("0.0.0.0", 8080), description=(
+        "`host:port` as for `modbus.listen`"))
+    token: NonEmpty | None = Field(default=None, description=(
+        "not empty; the bearer token (`Authorization: Bearer …`); write `${VAR}` to take "
+        "it from the environment"))
+    allow_commands: bool = Field(default=False, description=(
+        "accept `POST /api/v1/sensors/{name}/commands/{command}`; needs `token`"))
+    read_token_required: bool = Field(default=False, description=(
+        "reads need the token too; needs `token`"))
+
+    @field_validator("allow_commands", "read_token_required")
+    @classmethod
+    def _needs_token(cls, value: bool, info: ValidationInfo) -> bool:
+        if value and info.data.get("token", "") is None:
+            raise _fail("needs http.token (the bearer token clients must send)")
+        return value
+
+
+class GatewayConfig(_Model):
+    """The whole file.  A section left out (``None``) is an interface turned off."""
+
+    gateway_id: Annotated[str, AfterValidator(_gateway_id)] = Field(
+        default_factory=socket.gethostname,
+        description="`[A-Za-z0-9_.-]+`; part of every MQTT topic",
+        json_schema_extra={_SHOWN_DEFAULT: "the host name"},
+    )
+    buses: Annotated[list[BusConfig], Field(min_length=1)] = Field(description=(
+        "the serial lines, at least one (`buses[]`)"))
+    modbus: ModbusConfig | None = Field(default=None, description=(
+        "the Modbus TCP server (`modbus`); left out: off"))
+    mqtt: MqttConfig | None = Field(default=None, description=(
+        "the MQTT client (`mqtt`); left out: off"))
+    http: HttpConfig | None = Field(default=None, description=(
+        "the REST API and dashboard (`http`); left out: off"))
+
+    @model_validator(mode="before")
+    @classmethod
+    def _context_defaults(cls, data: Any) -> Any:
+        return _fill_defaults(data)
+
+    @model_validator(mode="after")
+    def _cross_check(self) -> Self:
+        # Not a ValueError on purpose: it carries several problems, each with its path.
+        from .problems import _cross_problems, _views  # (problems reads these models)
+
+        problems = _cross_problems(_views(self))
+        if problems:
+            raise ConfigError(problems)
+        return self
+
+    def iter_sensors(self) -> Iterator[tuple[BusConfig, SensorConfig]]:
+        """Every sensor with its bus, in file order."""
+        for bus in self.buses:
+            for sensor in bus.sensors:
+                yield bus, sensor
+
+    def interfaces(self) -> list[str]:
+        """The interfaces turned on: ``modbus``, ``mqtt``, ``http``, in that order."""
+        return [n for n in ("modbus", "mqtt", "http") if getattr(self, n) is not None]
+
+    def summary(self) -> str:
+        """``gateway lab-1, 2 buses, 3 sensors; interfaces: modbus, http``."""
+        buses = len(self.buses)
+        sensors = sum(len(bus.sensors) for bus in self.buses)
+        return (
+            f"gateway {self.gateway_id}, {buses} bus{'es' if buses != 1 else ''}, "
+            f"{sensors} sensor{'s' if sensors != 1 else ''}; "
+            f"interfaces: {', '.join(self.interfaces()) or 'none'}"
+        )
+
+
+# ------------------------------------------------------------ defaults from context
+
+
+def _plain(item: Any) -> Any:
+    """A model instance as the dict of what was given, so its defaults are filled again."""
+    if isinstance(item, BaseModel):
+        return item.model_dump(exclude_unset=True)
+    if isinstance(item, Mapping):
+        return dict(item)
+    return item
+
+
+def _protocol_or_none(value: object) -> WireProtocol | None:
+    try:
+        return _protocol(value)
+    except PydanticCustomError:
+        return None
+
+
+def _int_or_none(value: object) -> int | None:
+    if isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if isinstance(value, str) and value.strip().isdigit():
+        return int(value)
+    return None
+
+
+def _fill_bus_defaults(data: Any) -> Any:
+    """A bus mapping with each sensor's missing ``address`` set from the bus protocol."""
+    if not isinstance(data, Mapping):
+        return data
+    bus = dict(data)
+    protocol = _protocol_or_none(bus.get("protocol"))
+    sensors = bus.get("sensors")
+    if isinstance(sensors, list | tuple):
+        filled = []
+        for item in sensors:
+            sensor = _plain(item)
+            if isinstance(sensor, dict) and sensor.get("address") is None and protocol is not None:
+                sensor["address"] = DEFAULT_ADDRESS[protocol]
+            filled.append(sensor)
+        bus["sensors"] = filled
+    return bus
+
+
+def _fill_defaults(data: Any) -> Any:
+    """The gateway mapping with addresses and unit ids filled in where not given."""
+    if not isinstance(data, Mapping) or not isinstance(data.get("buses"), list | tuple):
+        return data
+    buses = [_fill_bus_defaults(_plain(bus)) for bus in data["buses"]]
+    sensors = [
+        sensor
+        for bus in buses if isinstance(bus, dict) and isinstance(bus.get("sensors"), list)
+        for sensor in bus["sensors"] if isinstance(sensor, dict)
+    ]
+    taken = {
+        n for sensor in sensors for key in ("unit_id", "raw_unit_id")
+        if (n := _int_or_none(sensor.get(key))) is not None
+    }
+    next_id = 1
+    for sensor in sensors:
+        if sensor.get("unit_id") is None:
+            while next_id in taken:
+                next_id += 1
+            sensor["unit_id"] = next_id
+            taken.add(next_id)
+    return {**data, "buses": buses}

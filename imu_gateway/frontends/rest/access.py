@@ -1,0 +1,108 @@
+"""Who may do what, and how a refusal or an error is answered: the bearer token,
+the command guard, the one error body, and the request counter."""
+
+from __future__ import annotations
+
+import hmac
+from typing import Annotated, Any
+
+from fastapi import Depends
+from fastapi.responses import JSONResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from ...config import HttpConfig
+from ...errors import ErrorKind, RequestFailed
+from .limits import API, MAX_BODY
+
+# Module level: FastAPI resolves the (string) annotations of endpoints here.
+_bearer = HTTPBearer(auto_error=False, description="the gateway's http.token")
+Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
+
+
+class CommandGuard:
+    """ASGI middleware in front of the command routes.  FastAPI reads and parses a
+    body before it runs the route's dependencies, so without this an unauthorised
+    client could make the gateway read a body of any size.  Here the access rules
+    come first, then at most ``MAX_BODY`` bytes are read (413 beyond), and the body
+    is handed on as it came."""
+
+    def __init__(self, app: Any, config: HttpConfig) -> None:
+        self.app, self.config = app, config
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] != "http" or scope["method"] not in ("POST", "PUT", "PATCH"):
+            await self.app(scope, receive, send)
+            return
+        refusal = self._refusal(scope)
+        if refusal is not None:
+            await error_response(refusal)(scope, receive, send)
+            return
+        body = bytearray()
+        more = True
+        while more:
+            message = await receive()
+            if message["type"] != "http.request":
+                return  # the client went away
+            body += message.get("body", b"")
+            more = message.get("more_body", False)
+            if len(body) > MAX_BODY:
+                too_large = RequestFailed(ErrorKind.TOO_LARGE, f"the body is over {MAX_BODY} bytes")
+                await error_response(too_large)(scope, receive, send)
+                return
+        replayed = False
+
+        async def replay() -> Any:
+            nonlocal replayed
+            if not replayed:
+                replayed = True
+                return {"type": "http.request", "body": bytes(body), "more_body": False}
+            return await receive()
+
+        await self.app(scope, replay, send)
+
+    def _refusal(self, scope: Any) -> RequestFailed | None:
+        if not scope["path"].startswith(f"{API}/sensors/") or "/commands/" not in scope["path"]:
+            return None
+        headers = dict(scope["headers"])
+        scheme, _, token = headers.get(b"authorization", b"").decode("latin-1").partition(" ")
+        return command_refusal(self.config, token if scheme.lower() == "bearer" else None)
+
+
+def token_matches(given: str, token: str | None) -> bool:
+    """Constant time: how much of a token matched must not show in the answer's time."""
+    return token is not None and hmac.compare_digest(given.encode(), token.encode())
+
+
+def command_refusal(config: HttpConfig, token: str | None) -> RequestFailed | None:
+    """Why a command with this bearer token is refused, if it is (the one rule, for
+    the guard in front of the body and the routes' dependency alike)."""
+    if not config.allow_commands:
+        return RequestFailed(ErrorKind.FORBIDDEN, "commands are turned off (http.allow_commands)")
+    if token is None or not token_matches(token, config.token):
+        return RequestFailed(ErrorKind.UNAUTHORISED, "a valid bearer token is required")
+    return None
+
+
+def error_response(exc: RequestFailed) -> JSONResponse:
+    """Every failed request's answer: ``{"error", "kind"}`` with the kind's status
+    (``imu_gateway.errors.KINDS``), and the challenge with a 401."""
+    return json_error(exc.status, exc.kind.value, str(exc))
+
+
+def json_error(status: int, kind: str, message: str) -> JSONResponse:
+    """An error answer of any status, the HTTP layer's own (404 of a path, 405) too."""
+    headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
+    return JSONResponse({"error": message, "kind": kind}, status, headers)
+
+
+class CountRequests:
+    """ASGI middleware counting HTTP requests (a plain one: Starlette's
+    ``BaseHTTPMiddleware`` costs a task and a stream per request)."""
+
+    def __init__(self, app: Any, counts: dict[str, int]) -> None:
+        self.app, self.counts = app, counts
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] == "http":
+            self.counts["requests"] += 1
+        await self.app(scope, receive, send)

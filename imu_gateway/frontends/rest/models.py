@@ -1,0 +1,176 @@
+"""The REST API's response models (they make the OpenAPI document)."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from ...model import VALUE_GROUPS, Group
+
+# ------------------------------------------------------------------ response models
+
+
+class _Out(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ErrorOut(BaseModel):
+    """Every error: what went wrong and its kind.  A command's failure also carries the
+    command result's other fields (``ok``, ``sensor``, ``command``, ``answer``)."""
+
+    model_config = ConfigDict(extra="allow")
+    error: str
+    kind: str
+
+
+class AnglesOut(_Out):
+    # None: the sensor sent something that is not a number (a Modbus float can be NaN)
+    pitch: float | None
+    roll: float | None
+    yaw: float | None
+
+
+class VectorOut(_Out):
+    x: float | None
+    y: float | None
+    z: float | None
+
+
+class QuaternionOut(_Out):
+    q0: float | None
+    q1: float | None
+    q2: float | None
+    q3: float | None
+
+
+_GROUPS = ("angles", "accel", "gyro", "mag", "quaternion")
+
+
+def _groups_never_null(schema: dict[str, Any]) -> None:
+    """A value group is absent when not measured, never null: say so in the schema
+    (the Python type keeps ``None`` as the default for "absent", which is never sent)."""
+    for name in _GROUPS:
+        prop = schema["properties"][name]
+        prop.pop("default", None)
+        choices = prop.pop("anyOf")
+        prop.update(next(c for c in choices if c.get("type") != "null"))
+
+
+class ReadingOut(_Out):
+    """The reading JSON (as on MQTT); groups the series does not measure are absent."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_groups_never_null)
+    sensor: str
+    ts: str | None = Field(description="when the sample arrived, UTC")
+    seq: int
+    status: Literal["ok", "stale", "offline"]
+    angles: AnglesOut | None = Field(None, description=VALUE_GROUPS[Group.ANGLES].name)
+    accel: VectorOut | None = Field(None, description=VALUE_GROUPS[Group.ACCEL].name)
+    gyro: VectorOut | None = Field(None, description=VALUE_GROUPS[Group.GYRO].name)
+    mag: VectorOut | None = Field(None, description=VALUE_GROUPS[Group.MAG].name)
+    quaternion: QuaternionOut | None = Field(
+        None, description=VALUE_GROUPS[Group.QUATERNION].name)
+
+
+class GroupOut(_Out):
+    """A value group of the reading JSON: its fields and how its values are told."""
+
+    group: str = Field(description="the group's key in the reading JSON")
+    fields: list[str] = Field(description="its fields, as in per-field topics and registers")
+    unit: str = Field(description="the unit's symbol (empty: none)")
+    unit_name: str = Field(description="the unit in words")
+    digits: int = Field(description="decimals of the sensors' resolution")
+
+
+class SensorOut(_Out):
+    name: str
+    bus: str
+    series: str
+    protocol: str
+    address: int
+    unit_id: int
+    status: Literal["ok", "stale", "offline"]
+    online: bool
+    busy: bool
+    streaming: bool
+    seq: int
+    age_ms: float | None
+    achieved_hz: float
+    errors: int
+
+
+class SensorDetailOut(SensorOut):
+    config: dict[str, Any]
+    settings: dict[str, Any] = Field(description=(
+        "what the gateway learnt from commands (and Modbus pass-through); busy_with only "
+        "while a save or calibration runs"))
+    stats: dict[str, Any]
+    reading: ReadingOut | None
+
+
+class TimingOut(_Out):
+    latency_ms: float | None = Field(description="smoothed answer latency: the sensor's "
+                                     "turnaround plus the adapter's; null before an answer")
+    latency_dev_ms: float | None = Field(description="its mean deviation")
+    timeout_ms: float = Field(description="what the next attempt waits beyond the wire time")
+    late_answers: int
+    requested_hz: float = Field(description="the configured rate: stream_hz while it "
+                                "streams, else poll_hz (0: polled flat out)")
+    achieved_hz: float = Field(description="readings a second, lately")
+
+
+class BusOut(_Out):
+    name: str
+    port: str
+    baudrate: int
+    protocol: str
+    port_open: bool
+    transactions: int
+    errors: dict[str, int]
+    transactions_per_s: float
+    utilisation: float = Field(description="time in exchanges ÷ elapsed time")
+    wire_utilisation: float
+    busy_ms: int
+    queue_depth: int
+    late_answers: int = Field(description="answers that came after their timeout, and "
+                              "were used")
+    sensors: list[str]
+    timing: dict[str, TimingOut] = Field(description="each sensor's learned answer timing")
+
+
+class HealthOut(_Out):
+    status: Literal["ok", "degraded"] = Field(
+        description="degraded: a port is closed or a sensor is offline")
+    gateway_id: str
+    version: str
+    uptime_s: float
+    buses: dict[str, bool] = Field(description="bus name -> port open")
+    sensors: dict[str, int] = Field(description="how many sensors are ok, stale, offline")
+    interfaces: list[str]
+    frontends: dict[str, dict[str, float]] = Field(description=(
+        "front end -> its counters: clients, requests, restarts (after a failure) and "
+        "those of docs/reliability.md"))
+
+
+class CommandOut(_Out):
+    ok: bool
+    sensor: str
+    command: str
+    answer: dict[str, Any]
+    error: str | None
+    kind: str | None
+
+
+class EndpointOut(_Out):
+    method: str
+    path: str
+    summary: str
+
+
+class ApiIndexOut(_Out):
+    name: str
+    version: str
+    docs: str = Field(description="the interactive API reference (Swagger UI)")
+    openapi: str = Field(description="the OpenAPI document")
+    endpoints: list[EndpointOut]

@@ -1,0 +1,409 @@
+"""The FastAPI app: every route, made from the cache, the gateway object and the
+command catalogue."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from importlib import resources
+from typing import Annotated, Any
+
+from fastapi import Depends, FastAPI, Query, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.docs import get_swagger_ui_html
+from fastapi.openapi.utils import get_openapi
+from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
+from fastapi.routing import APIRoute
+from fastapi.security import HTTPAuthorizationCredentials
+from fastapi.staticfiles import StaticFiles
+from prometheus_client import CollectorRegistry, generate_latest
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from ... import __version__
+from ...cache import Snapshot, Status
+from ...commands import CATALOGUE, CommandSpec, unknown_command
+from ...config import HttpConfig
+from ...errors import KINDS, ErrorKind, RequestFailed
+from ...model import VALUE_GROUPS
+from ...stats import SensorStats
+from ..common import GatewayLike, json_bytes
+from .access import (
+    CommandGuard,
+    CountRequests,
+    Credentials,
+    command_refusal,
+    error_response,
+    json_error,
+    token_matches,
+)
+from .limits import API, MAX_STREAMS
+from .metrics import GatewayCollector
+from .models import (
+    ApiIndexOut,
+    BusOut,
+    CommandOut,
+    ErrorOut,
+    GroupOut,
+    HealthOut,
+    ReadingOut,
+    SensorDetailOut,
+    SensorOut,
+)
+from .streams import StreamHub, stream_peer
+
+#: Each error status's body, for the OpenAPI document.
+ERRORS: dict[int | str, dict[str, Any]] = {
+    code: {"model": ErrorOut} for code in (401, 403, 404, 409, 413, 422, 502, 503, 504)}
+
+
+def _errors(*codes: int) -> dict[int | str, dict[str, Any]]:
+    return {code: ERRORS[code] for code in codes}
+
+
+@dataclass(frozen=True)
+class _Routes:
+    """What the route groups share: the gateway, who may read, stream and command,
+    and the one way an unknown sensor is refused."""
+
+    gateway: GatewayLike
+    reads: list[Any]  # the dependencies of a read
+    streams: list[Any]  # of a stream (the token may come in the query)
+    commands: Callable[..., Awaitable[None]]  # the dependency of a command
+
+    def sensor_or_404(self, name: str) -> Snapshot:
+        """(The cache refuses a sensor it does not know: ``unknown_sensor``, 404.)"""
+        return self.gateway.cache.snapshot(name)
+
+
+def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None = None,
+               counters: dict[str, int] | None = None) -> FastAPI:
+    """The FastAPI app.  ``hub`` and ``counters`` belong to the running server; without
+    them (as for the OpenAPI document) the stream has a hub of its own."""
+    app = FastAPI(
+        title="imu-gateway",
+        version=__version__,
+        description="Readings, commands, live streams and metrics of IMU/VG/AH/MINS "
+                    "attitude sensors behind one gateway.",
+        docs_url=None,  # Swagger UI loads from a CDN: not on a plant network
+        redoc_url=None,
+    )
+    _error_handlers(app)
+    routes = _access(gateway, config)
+    _status_routes(app, routes)
+    _sensor_routes(app, routes)
+    _stream_routes(app, routes, hub if hub is not None else StreamHub(gateway))
+    for spec in CATALOGUE.values():
+        _command_route(app, routes, spec)
+    _metrics_route(app, routes)
+    app.add_middleware(CommandGuard, config=config)
+    counts = counters if counters is not None else {"requests": 0}
+    app.add_middleware(CountRequests, counts=counts)  # outermost: counts every request
+    app.openapi = _openapi_of(app)  # type: ignore[method-assign]
+    static = resources.files("imu_gateway") / "static"
+
+    @app.get("/", response_class=HTMLResponse, include_in_schema=False)
+    async def dashboard() -> HTMLResponse:
+        return HTMLResponse((static / "index.html").read_text(encoding="utf-8"))
+
+    app.mount("/static", StaticFiles(packages=[("imu_gateway", "static")]), name="static")
+    _docs_routes(app)
+    return app
+
+
+#: Where /docs loads Swagger UI's script and style from: this server (fastapi-offline
+#: ships them in its wheel), never a CDN a plant network cannot reach.
+DOCS_ASSETS = "/docs/assets"
+
+
+def _docs_routes(app: FastAPI) -> None:
+    """The interactive API reference at ``/docs``, and ``/api/v1`` listing the
+    endpoints (a client that starts at the API's root finds its way)."""
+    app.mount(DOCS_ASSETS, StaticFiles(packages=[("fastapi_offline", "static")]),
+              name="docs-assets")
+
+    @app.get("/docs", response_class=HTMLResponse, include_in_schema=False)
+    async def docs() -> HTMLResponse:
+        return get_swagger_ui_html(
+            openapi_url=app.openapi_url or "/openapi.json", title="imu-gateway API",
+            swagger_js_url=f"{DOCS_ASSETS}/swagger-ui-bundle.js",
+            swagger_css_url=f"{DOCS_ASSETS}/swagger-ui.css",
+            swagger_favicon_url=f"{DOCS_ASSETS}/favicon.png")
+
+    @app.get(API, response_model=ApiIndexOut, summary="the endpoints of this API")
+    async def index() -> dict[str, Any]:
+        endpoints = [{"method": method, "path": route.path, "summary": route.summary or ""}
+                     for route in app.routes if isinstance(route, APIRoute)
+                     and route.include_in_schema and route.path.startswith(API)
+                     for method in sorted(route.methods or ())]
+        return {"name": "imu-gateway", "version": __version__, "docs": "/docs",
+                "openapi": app.openapi_url, "endpoints": endpoints}
+
+
+def _error_handlers(app: FastAPI) -> None:
+    """Every error answers ``{"error", "kind"}`` (``access.error_response``)."""
+
+    @app.exception_handler(RequestFailed)
+    async def _failed(request: Request, exc: RequestFailed) -> JSONResponse:
+        return error_response(exc)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+        parts = []
+        for err in exc.errors():
+            where = ".".join(str(p) for p in err["loc"] if p != "body") or "body"
+            parts.append(f"{where}: {err['msg'].removeprefix('Value error, ')}")
+        return error_response(RequestFailed(ErrorKind.BAD_ARGUMENTS, "; ".join(parts)))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        if exc.status_code == 400:  # a body that is not even text: bad arguments too
+            return error_response(RequestFailed(ErrorKind.BAD_ARGUMENTS, str(exc.detail)))
+        kind = {404: ErrorKind.NOT_FOUND, 405: ErrorKind.METHOD_NOT_ALLOWED}.get(exc.status_code)
+        response = json_error(exc.status_code, kind.value if kind else "http", str(exc.detail))
+        response.headers.update(exc.headers or {})  # 405's Allow
+        return response
+
+
+def _access(gateway: GatewayLike, config: HttpConfig) -> _Routes:
+    """The dependencies that check a request's token, per kind of request."""
+
+    def authorised(credentials: HTTPAuthorizationCredentials | None) -> None:
+        if credentials is None or not token_matches(credentials.credentials, config.token):
+            raise RequestFailed(ErrorKind.UNAUTHORISED, "a valid bearer token is required")
+
+    # async, like every dependency here: FastAPI runs a plain def in a worker thread,
+    # a thread hop per request (measured: it halved the readings/s).
+    async def read_access(credentials: Credentials) -> None:
+        if config.read_token_required:
+            authorised(credentials)
+
+    async def command_access(credentials: Credentials) -> None:
+        refusal = command_refusal(config, credentials.credentials if credentials else None)
+        if refusal is not None:
+            raise refusal
+
+    async def stream_access(credentials: Credentials, access_token: Annotated[
+            str | None, Query(description="the token, for clients that cannot send "
+                              "headers (a browser's EventSource; RFC 6750 §2.3)")] = None,
+                            ) -> None:
+        if config.read_token_required and not (
+                access_token is not None and token_matches(access_token, config.token)):
+            authorised(credentials)
+
+    return _Routes(gateway, [Depends(read_access)], [Depends(stream_access)], command_access)
+
+
+def _status_routes(app: FastAPI, routes: _Routes) -> None:
+    """The gateway as a whole: health, buses, value groups."""
+    gateway = routes.gateway
+
+    @app.get(f"{API}/groups", response_model=list[GroupOut], dependencies=routes.reads,
+             responses=_errors(401), summary="the value groups and their units")
+    async def groups() -> list[dict[str, Any]]:
+        return [{"group": group.value, "fields": list(spec.fields), "unit": spec.symbol,
+                 "unit_name": spec.name, "digits": spec.digits}
+                for group, spec in VALUE_GROUPS.items()]
+
+    @app.get(f"{API}/health", response_model=HealthOut, dependencies=routes.reads,
+             responses=_errors(401), summary="gateway and bus status")
+    async def health() -> dict[str, Any]:
+        buses = {b.name: b.port_open for b in gateway.stats()}
+        counted = {s.value: 0 for s in Status}
+        for snap in gateway.cache.snapshots():
+            counted[snap.status.value] += 1
+        degraded = not all(buses.values()) or counted["offline"] > 0
+        return {"status": "degraded" if degraded else "ok",
+                "gateway_id": gateway.config.gateway_id, "version": __version__,
+                "uptime_s": round(time.monotonic() - gateway.started, 1),
+                "buses": buses, "sensors": counted, "interfaces": gateway.config.interfaces(),
+                "frontends": gateway.frontend_stats()}
+
+    @app.get(f"{API}/buses", response_model=list[BusOut], dependencies=routes.reads,
+             responses=_errors(401), summary="every bus and its stats")
+    async def buses() -> list[dict[str, Any]]:
+        names = {b.name: [s.name for s in b.sensors] for b in gateway.config.buses}
+
+        def timing(name: str) -> dict[str, Any]:
+            stats = gateway.sensor_stats(name)
+            return {"latency_ms": stats.latency_ms, "latency_dev_ms": stats.latency_dev_ms,
+                    "timeout_ms": stats.timeout_ms, "late_answers": stats.late_answers,
+                    "requested_hz": stats.requested_hz, "achieved_hz": stats.achieved_hz}
+
+        return [{**{k: v for k, v in b.as_dict().items() if k in BusOut.model_fields},
+                 "sensors": names[b.name], "timing": {n: timing(n) for n in names[b.name]}}
+                for b in gateway.stats()]
+
+
+def _sensor_routes(app: FastAPI, routes: _Routes) -> None:
+    """The sensors: the list, one sensor, its latest reading."""
+    gateway = routes.gateway
+    bus_of = {s.name: b for b, s in gateway.config.iter_sensors()}
+    bodies: dict[str, tuple[tuple[int, Status], bytes]] = {}  # the latest reading's JSON
+
+    def sensor_out(snap: Snapshot, stats: SensorStats) -> dict[str, Any]:
+        sensor, bus = gateway.sensors[snap.name], bus_of[snap.name]
+        return {"name": snap.name, "bus": bus.name, "series": sensor.series.name,
+                "protocol": bus.protocol.name.lower(),
+                "address": stats.address,  # the live one, after a set_address too
+                "unit_id": sensor.unit_id, "status": snap.status.value, "online": snap.online,
+                "busy": snap.busy, "streaming": snap.streaming, "seq": snap.seq,
+                "age_ms": None if snap.age_ms is None else round(snap.age_ms, 1),
+                "achieved_hz": stats.achieved_hz, "errors": snap.errors}
+
+    @app.get(f"{API}/sensors", response_model=list[SensorOut], dependencies=routes.reads,
+             responses=_errors(401), summary="every sensor with its status")
+    async def sensors() -> list[dict[str, Any]]:
+        return [sensor_out(snap, gateway.sensor_stats(snap.name))
+                for snap in gateway.cache.snapshots()]
+
+    # exclude_unset: the reading's groups a series does not measure stay absent (as in
+    # the reading JSON itself), while the nulls the route sets (age_ms …) stay null.
+    @app.get(f"{API}/sensors/{{name}}", response_model=SensorDetailOut,
+             response_model_exclude_unset=True, dependencies=routes.reads,
+             responses=_errors(401, 404), summary="a sensor's config, status and latest reading")
+    async def sensor(name: str) -> dict[str, Any]:
+        snap = routes.sensor_or_404(name)
+        stats = gateway.sensor_stats(name)
+        return {**sensor_out(snap, stats),
+                "config": gateway.sensors[name].model_dump(mode="json"),
+                "settings": gateway.cache.settings(name).to_json(),
+                "stats": stats.as_dict(),
+                "reading": snap.to_json() if snap.has_reading else None}
+
+    @app.get(f"{API}/sensors/{{name}}/reading", response_model=ReadingOut,
+             response_model_exclude_none=True, dependencies=routes.reads,
+             responses=_errors(401, 404, 409, 503, 504),
+             summary="the latest reading; older than max_age_ms: a fresh bus read first")
+    async def reading(name: str, max_age_ms: Annotated[float | None, Query(
+            ge=0, le=3_600_000, description="the oldest reading acceptable, ms")] = None,
+                      ) -> Response:
+        snap = routes.sensor_or_404(name)
+        if max_age_ms is not None:  # (a RequestFailed answers with its kind's status)
+            snap = await gateway.read(name, max_age_ms)
+        if not snap.has_reading:
+            raise RequestFailed(ErrorKind.NO_READING, f"{name} has not been read yet")
+        # The hot path: serialised once per sample and status however many clients
+        # ask, and not validated against ReadingOut again (which only documents it).
+        key = (snap.seq, snap.status)
+        cached = bodies.get(name)
+        if cached is None or cached[0] != key:
+            cached = bodies[name] = (key, json_bytes(snap.to_json()))
+        return Response(cached[1], media_type="application/json")
+
+
+def _stream_routes(app: FastAPI, routes: _Routes, hub: StreamHub) -> None:
+    """Server-Sent Events, of one sensor or of all."""
+
+    def stream_response(sensor: str | None, request: Request) -> StreamingResponse:
+        if hub.open >= MAX_STREAMS:
+            raise RequestFailed(ErrorKind.TOO_MANY_STREAMS, f"{MAX_STREAMS} streams are open")
+        return StreamingResponse(hub.stream(sensor, stream_peer(request)),
+                                 media_type="text/event-stream",
+                                 headers={"Cache-Control": "no-cache",
+                                          "X-Accel-Buffering": "no"})
+
+    sse = {"content": {"text/event-stream": {}},
+           "description": "`event: reading` (or `status`), `id: seq`, `data:` the "
+                          "reading JSON; a `: keep-alive` comment when idle"}
+
+    @app.get(f"{API}/sensors/{{name}}/stream", dependencies=routes.streams,
+             response_class=StreamingResponse, responses={200: sse, **_errors(401, 404, 503)},
+             summary="Server-Sent Events: one reading per event")
+    async def stream(name: str, request: Request) -> StreamingResponse:
+        routes.sensor_or_404(name)
+        return stream_response(name, request)
+
+    @app.get(f"{API}/stream", dependencies=routes.streams, response_class=StreamingResponse,
+             responses={200: sse, **_errors(401, 503)},
+             summary="Server-Sent Events of every sensor")
+    async def stream_all(request: Request) -> StreamingResponse:
+        return stream_response(None, request)
+
+
+def _metrics_route(app: FastAPI, routes: _Routes) -> None:
+    """Prometheus's scrape, and the catch-all for commands nobody knows."""
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(GatewayCollector(routes.gateway))
+
+    @app.post(f"{API}/sensors/{{name}}/commands/{{command}}", include_in_schema=False)
+    async def other_command(name: str, command: str) -> None:
+        routes.sensor_or_404(name)
+        raise unknown_command(command)
+
+    @app.get("/metrics", response_class=Response, dependencies=routes.reads,
+             responses={200: {"content": {"text/plain": {}}}, **_errors(401)},
+             summary="Prometheus text format")
+    async def metrics() -> Response:
+        return Response(generate_latest(registry),
+                        media_type="text/plain; version=0.0.4; charset=utf-8")
+
+
+def _openapi_of(app: FastAPI) -> Callable[[], dict[str, Any]]:
+    def openapi() -> dict[str, Any]:
+        """FastAPI's document, with one correction and one addition: a read's bearer
+        token is optional (required only with ``http.read_token_required``), which
+        OpenAPI says with an empty alternative; and the command bodies' models."""
+        if app.openapi_schema is None:
+            document = get_openapi(title=app.title, version=app.version,
+                                   description=app.description, routes=app.routes)
+            for path in document["paths"].values():
+                operation = path.get("get")
+                if operation is not None and "security" in operation:
+                    operation["security"] = [{}, *operation["security"]]
+            schemas = document.setdefault("components", {}).setdefault("schemas", {})
+            for spec in CATALOGUE.values():  # the command bodies (``_command_route``)
+                schemas[spec.args.__name__] = spec.args.model_json_schema(
+                    ref_template="#/components/schemas/{model}")
+            app.openapi_schema = document
+        return app.openapi_schema
+
+    return openapi
+
+
+async def command_arguments(request: Request) -> Any:
+    """A command's arguments: its JSON body (no body: none).  The catalogue checks them
+    (``Gateway.command``), as it checks MQTT's and Modbus TCP's, so every front end
+    refuses the same mistakes in the same words."""
+    raw = await request.body()
+    if not raw.strip():
+        return None
+    media = request.headers.get("content-type", "application/json").split(";")[0]
+    media = media.strip().lower()
+    if media != "application/json" and not media.endswith("+json"):
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS,
+                            f"body: {media} is not JSON (send Content-Type: application/json)")
+    try:
+        return json.loads(raw)
+    except (ValueError, RecursionError) as exc:  # bad UTF-8 is a ValueError too
+        reason = str(exc) if isinstance(exc, ValueError) else "nested too deep"
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"body: not JSON ({reason})") from None
+
+
+def _command_route(app: FastAPI, routes: _Routes, spec: CommandSpec) -> None:
+    """``POST …/commands/{command}``, its body the command's own argument model (a
+    command without arguments takes no body, or an empty object).  The OpenAPI
+    document names that model (``_openapi_of`` adds it to the components)."""
+
+    async def endpoint(name: str,
+                       args: Annotated[Any, Depends(command_arguments)]) -> JSONResponse:
+        routes.sensor_or_404(name)
+        result = await routes.gateway.command(name, spec.name, args)
+        status = 200 if result.ok else KINDS[result.kind or ErrorKind.FAILURE].status
+        return JSONResponse(result.to_json(), status)
+
+    schema: dict[str, Any] = {"$ref": f"#/components/schemas/{spec.args.__name__}"}
+    if not spec.args.model_fields:  # no arguments: no body, ``{}`` or ``null``
+        schema = {"anyOf": [schema, {"type": "null"}], "title": "Body"}
+    app.add_api_route(
+        f"{API}/sensors/{{name}}/commands/{spec.name}", endpoint, methods=["POST"],
+        response_model=CommandOut, summary=spec.summary, name=f"command_{spec.name}",
+        dependencies=[Depends(routes.commands)], tags=["commands"],
+        responses=_errors(401, 403, 404, 409, 413, 422, 502, 504),
+        openapi_extra={"requestBody": {"required": bool(spec.args.model_fields),
+                                       "content": {"application/json": {"schema": schema}}}})
+
+
+def openapi_document(gateway: GatewayLike, config: HttpConfig) -> dict[str, Any]:
+    return create_app(gateway, config).openapi()

@@ -1,0 +1,249 @@
+"""The HTTP server: uvicorn in the gateway's loop, with connections that must keep
+their deadlines (``_GuardedProtocol``)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import socket
+from typing import Any, ClassVar
+
+import uvicorn
+from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+
+from ...config import HttpConfig
+from ...errors import ErrorKind
+from ...stats import FrontendCounts
+from ...supervise import Frontend, RepeatFilter
+from ..common import GatewayLike, json_bytes
+from .limits import (
+    API,
+    BODY_DEADLINE_S,
+    HEADER_DEADLINE_S,
+    IDLE_S,
+    MAX_STREAMS,
+    SEND_BUFFER,
+    STALL_S,
+)
+from .routes import create_app
+from .streams import PEER, StreamHub
+
+log = logging.getLogger("imu_gateway.http")
+
+
+# ------------------------------------------------------------------ the server
+
+
+def _cancel(timer: asyncio.TimerHandle | None) -> None:
+    if timer is not None:
+        timer.cancel()
+
+
+class _GuardedProtocol(HttpToolsProtocol):
+    """uvicorn's HTTP/1.1 protocol with the deadlines uvicorn lacks.  (httptools, named
+    rather than uvicorn's "auto", so the behaviour does not depend on what is installed.)
+
+    uvicorn waits for ever for a request's headers and body, so a client that sends
+    part of a request, or nothing, holds its connection, and a few hundred such hold
+    the connection cap (``limit_concurrency``).  Here:
+
+    - a connection that sends nothing is closed after ``IDLE_S``, as a kept-alive one
+      is (uvicorn arms that timer only after an answer);
+    - a request's headers must be complete ``HEADER_DEADLINE_S`` after connecting, or
+      after the previous answer on a kept-alive connection (a trickle of bytes does
+      not extend it);
+    - its body ``BODY_DEADLINE_S`` after its headers.
+
+    A late request is answered 408 if no answer is under way, and its connection closed.
+
+    For the stream hub, ``write_stalled`` says the client's socket has been full, with
+    nothing taken from it, for ``STALL_S``."""
+
+    counters: ClassVar[dict[str, int]] = {}  # the server's (``_protocol_for``)
+    write_stalled = False
+    _header_timer: asyncio.TimerHandle | None = None
+    _body_timer: asyncio.TimerHandle | None = None
+    _stall_timer: asyncio.TimerHandle | None = None
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self.timeout_keep_alive_task = self.loop.call_later(
+            self.timeout_keep_alive, self.timeout_keep_alive_handler)
+        self._await_headers()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        for timer in (self._header_timer, self._body_timer, self._stall_timer):
+            _cancel(timer)
+        super().connection_lost(exc)
+
+    def on_message_begin(self) -> None:
+        super().on_message_begin()
+        self.scope["extensions"] = {PEER: {"connection": self}}  # for stream_peer
+
+    def on_headers_complete(self) -> None:
+        _cancel(self._header_timer)
+        super().on_headers_complete()
+        # Disarmed by on_message_complete, which comes at once when there is no body.
+        self._body_timer = self.loop.call_later(BODY_DEADLINE_S, self._late, "body",
+                                                BODY_DEADLINE_S)
+
+    def on_message_complete(self) -> None:
+        _cancel(self._body_timer)
+        super().on_message_complete()
+
+    def on_response_complete(self) -> None:
+        pipelined = bool(self.pipeline)  # a request whose headers are in starts now
+        super().on_response_complete()
+        if not pipelined and not self.transport.is_closing():
+            self._await_headers()
+
+    def _await_headers(self) -> None:
+        _cancel(self._header_timer)
+        self._header_timer = self.loop.call_later(HEADER_DEADLINE_S, self._late, "headers",
+                                                  HEADER_DEADLINE_S)
+
+    def _late(self, part: str, seconds: float) -> None:
+        if self.transport.is_closing():
+            return
+        self.counters["request_timeouts"] += 1
+        log.debug("http: %s: the request's %s did not come within %g s", self.client,
+                  part, seconds)
+        if self.cycle is None or self.cycle.response_complete or not self.cycle.response_started:
+            body = json_bytes({"error": f"the request's {part} did not come within "
+                                        f"{seconds:g} s", "kind": ErrorKind.REQUEST_TIMEOUT.value})
+            head = [b"HTTP/1.1 408 Request Timeout\r\n",
+                    *(b"%s: %s\r\n" % h for h in self.server_state.default_headers),
+                    b"content-type: application/json\r\n",
+                    b"content-length: %d\r\n" % len(body), b"connection: close\r\n\r\n"]
+            self.transport.write(b"".join(head) + body)
+        # close() waits until what is buffered is sent: for a client that does not
+        # read, for ever.
+        if self.transport.get_write_buffer_size():
+            self.transport.abort()
+        else:
+            self.transport.close()
+
+    # The client's socket: asyncio pauses writing when the bytes the kernel would not
+    # take pass the high-water mark, and resumes once most are sent.
+    def pause_writing(self) -> None:
+        super().pause_writing()
+        if self._stall_timer is None:
+            self._stall_timer = self.loop.call_later(STALL_S, self._stalled)
+
+    def resume_writing(self) -> None:
+        super().resume_writing()
+        _cancel(self._stall_timer)
+        self._stall_timer = None
+        self.write_stalled = False
+
+    def _stalled(self) -> None:
+        # A timer rather than comparing clocks at the next event: a turn of the loop
+        # runs the I/O callbacks before the due timers, so after the loop was merely
+        # behind, the socket has been written to (and writing resumed) before this.
+        self._stall_timer = None
+        self.write_stalled = True
+
+    def abort(self) -> None:
+        self.transport.abort()
+
+
+def _protocol_for(server_counters: dict[str, int]) -> type[_GuardedProtocol]:
+    """The protocol class for one server, counting into its counters (uvicorn makes
+    each connection's protocol itself, from the class)."""
+
+    class Protocol(_GuardedProtocol):
+        counters = server_counters
+
+    return Protocol
+
+
+class _Server(uvicorn.Server):
+    """uvicorn without its signal handlers: the gateway owns SIGINT and SIGTERM."""
+
+    @contextlib.contextmanager
+    def capture_signals(self) -> Any:
+        yield
+
+
+class HttpServer(Frontend):
+    name = "http"
+
+    def __init__(self, gateway: GatewayLike, config: HttpConfig) -> None:
+        super().__init__()
+        self.gateway = gateway
+        self.config = config
+        self.counters = {"requests": 0, "request_timeouts": 0}
+        self.hub: StreamHub | None = None
+        self._socket: socket.socket | None = None
+        self._server: _Server | None = None
+        self._task: asyncio.Task[None] | None = None
+
+    async def start(self) -> None:
+        """Listen; raises ``OSError`` when the address cannot be bound."""
+        listen = self.config.listen
+        family = socket.AF_INET6 if ":" in listen.host else socket.AF_INET
+        # proto given: asyncio sets TCP_NODELAY only on sockets that say they are TCP,
+        # and without it each keep-alive answer waits 40 ms for a delayed ACK.
+        sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            # Accepted connections inherit this: the kernel's buffer for a client that
+            # stops reading stays small (it may otherwise grow to megabytes), so a
+            # stalled stream client is noticed, and dropped, within seconds.
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
+            sock.bind((listen.host, listen.port))
+            sock.listen(512)
+        except OSError:
+            sock.close()
+            raise
+        sock.setblocking(False)
+        self._socket = sock
+        self.hub = StreamHub(self.gateway, on_error=self.fail)
+        uvicorn_log = logging.getLogger("uvicorn.error")
+        if not any(isinstance(f, RepeatFilter) for f in uvicorn_log.filters):
+            uvicorn_log.addFilter(RepeatFilter())  # it warns once per odd request
+        app = create_app(self.gateway, self.config, self.hub, self.counters)
+        self._server = _Server(uvicorn.Config(
+            app, log_config=None, log_level="warning", access_log=False, lifespan="off",
+            timeout_graceful_shutdown=2, server_header=False,
+            http=_protocol_for(self.counters), ws="none", timeout_keep_alive=IDLE_S,
+            # every connection and request at once, stalled ones included: 503 beyond
+            limit_concurrency=MAX_STREAMS + 100))
+        self._task = asyncio.create_task(self._server.serve(sockets=[sock]), name="http")
+        self._task.add_done_callback(self._ended)
+        log.info("HTTP on http://%s:%d/ (API %s)", listen.host, self.port, API)
+
+    def _ended(self, task: asyncio.Task[None]) -> None:
+        """uvicorn's server ends only when told to: otherwise it failed."""
+        if task.cancelled() or (self._server is not None and self._server.should_exit):
+            return
+        self.fail(task.exception() or RuntimeError("the HTTP server stopped"))
+
+    @property
+    def listening(self) -> bool:
+        return self._socket is not None
+
+    @property
+    def port(self) -> int:
+        assert self._socket is not None
+        return int(self._socket.getsockname()[1])
+
+    def stats(self) -> FrontendCounts:
+        streams = self.hub.open if self.hub is not None else 0
+        connections = len(self._server.server_state.connections) if self._server else 0
+        return {"clients": connections, "streams": streams,
+                "requests": self.counters["requests"],
+                "request_timeouts": self.counters["request_timeouts"],
+                "dropped_streams": self.hub.dropped if self.hub is not None else 0,
+                "skipped_events": self.hub.skipped if self.hub is not None else 0}
+
+    async def stop(self) -> None:
+        if self.hub is not None:
+            self.hub.close()  # streams end, so their connections can close
+        if self._server is not None and self._task is not None:
+            self._server.should_exit = True
+            await self._task
+        if self._socket is not None:
+            self._socket.close()
+            self._socket = None  # a restart listens anew

@@ -1,0 +1,129 @@
+"""The simulated sensor's motion: a smooth, deterministic trajectory and the readings it gives.
+
+A sensor on a slowly moving machine (think crane boom): roll and pitch sway sinusoidally, yaw
+turns at a constant rate.  Every group of a reading is derived from the same three Euler angles
+(aerospace ZYX: yaw ψ, then pitch θ, then roll φ; body axes x forward, y right, z down; the
+world frame is north-east-down), so accel, gyro, mag and quaternion agree with each other.
+Pure functions of ``t``: no clock, no global state.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from dataclasses import dataclass
+from typing import Protocol
+
+from imu_gateway.model import Angles, Quaternion, Reading, Vector3
+
+TAU = 2.0 * math.pi
+
+
+class Source(Protocol):
+    """Anything the simulator can ask for the reading at time ``t`` (seconds)."""
+
+    def sample(self, t: float) -> Reading: ...
+
+
+def _to_body(v: tuple[float, float, float], roll: float, pitch: float, yaw: float) -> Vector3:
+    """A north-east-down vector expressed in body axes: Rx(φ)ᵀ·Ry(θ)ᵀ·Rz(ψ)ᵀ·v (radians)."""
+    cf, sf = math.cos(roll), math.sin(roll)
+    ct, st = math.cos(pitch), math.sin(pitch)
+    cp, sp = math.cos(yaw), math.sin(yaw)
+    x1, y1, z1 = cp * v[0] + sp * v[1], -sp * v[0] + cp * v[1], v[2]
+    x2, z2 = ct * x1 - st * z1, st * x1 + ct * z1
+    return Vector3(x2, cf * y1 + sf * z2, -sf * y1 + cf * z2)
+
+
+@dataclass(frozen=True, slots=True)
+class Motion:
+    """roll = A·sin(2π f t + φ), pitch likewise, yaw = yaw0 + rate·t wrapped to [0, 360).
+
+    Amplitudes and angles in degrees, frequencies in Hz, phases in radians.  The Earth field
+    (gauss) points north and dips down, as in mid-northern latitudes.
+    """
+
+    roll_amp: float = 20.0
+    pitch_amp: float = 12.0
+    roll_freq: float = 0.1
+    pitch_freq: float = 0.07
+    roll_phase: float = 0.0
+    pitch_phase: float = 0.0
+    yaw0: float = 0.0
+    yaw_rate: float = 6.0
+    mag_north: float = 0.2
+    mag_down: float = 0.42
+
+    @classmethod
+    def from_seed(cls, seed: int) -> Motion:
+        """Varied but deterministic parameters, so several simulated sensors differ."""
+        rng = random.Random(seed)
+        return cls(
+            roll_amp=rng.uniform(5.0, 30.0),
+            pitch_amp=rng.uniform(3.0, 20.0),  # well clear of the ±90° gimbal lock
+            roll_freq=rng.uniform(0.05, 0.2),
+            pitch_freq=rng.uniform(0.05, 0.2),
+            roll_phase=rng.uniform(0.0, TAU),
+            pitch_phase=rng.uniform(0.0, TAU),
+            yaw0=rng.uniform(0.0, 360.0),
+            yaw_rate=rng.choice((-1.0, 1.0)) * rng.uniform(2.0, 10.0),
+        )
+
+    def sample(self, t: float) -> Reading:
+        wr, wp = TAU * self.roll_freq, TAU * self.pitch_freq
+        roll = self.roll_amp * math.sin(wr * t + self.roll_phase)
+        pitch = self.pitch_amp * math.sin(wp * t + self.pitch_phase)
+        yaw = (self.yaw0 + self.yaw_rate * t) % 360.0
+        if yaw >= 360.0:  # a tiny negative value rounds up to 360.0 under %
+            yaw = 0.0
+        # Analytic Euler-angle rates (deg/s); the trigonometry below works in radians.
+        droll = self.roll_amp * wr * math.cos(wr * t + self.roll_phase)
+        dpitch = self.pitch_amp * wp * math.cos(wp * t + self.pitch_phase)
+        dyaw = self.yaw_rate
+        f, th, ps = math.radians(roll), math.radians(pitch), math.radians(yaw)
+        cf, sf, ct, st = math.cos(f), math.sin(f), math.cos(th), math.sin(th)
+        gyro = Vector3(  # body rates p, q, r from the ZYX kinematic equations
+            droll - dyaw * st,
+            dpitch * cf + dyaw * ct * sf,
+            -dpitch * sf + dyaw * ct * cf,
+        )
+        # The sensors report gravity's direction in their own frame, +1 g on z when level
+        # (the documents' examples), i.e. the NED "down" unit vector in body axes.
+        accel = _to_body((0.0, 0.0, 1.0), f, th, ps)
+        mag = _to_body((self.mag_north, 0.0, self.mag_down), f, th, ps)
+        return Reading(
+            angles=Angles(pitch=pitch, roll=roll, yaw=yaw),
+            accel=accel,
+            gyro=gyro,
+            mag=mag,
+            quaternion=_quaternion(f, th, ps),
+        )
+
+
+def _quaternion(roll: float, pitch: float, yaw: float) -> Quaternion:
+    """Body-to-NED rotation q = qz(ψ)⊗qy(θ)⊗qx(φ), unit length, sign chosen so q0 ≥ 0."""
+    cf, sf = math.cos(roll / 2), math.sin(roll / 2)
+    ct, st = math.cos(pitch / 2), math.sin(pitch / 2)
+    cp, sp = math.cos(yaw / 2), math.sin(yaw / 2)
+    q = (
+        cf * ct * cp + sf * st * sp,
+        sf * ct * cp - cf * st * sp,
+        cf * st * cp + sf * ct * sp,
+        cf * ct * sp - sf * st * cp,
+    )
+    n = math.copysign(math.sqrt(sum(c * c for c in q)), q[0])  # q and -q are the same rotation
+    return Quaternion(q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+
+
+@dataclass(frozen=True, slots=True)
+class Fixed:
+    """A source that always gives the same reading (e.g. a document's example values)."""
+
+    reading: Reading
+
+    def sample(self, t: float) -> Reading:
+        return self.reading
+
+
+def hold(reading: Reading) -> Fixed:
+    return Fixed(reading)
