@@ -102,6 +102,12 @@ def test_demo_serves_every_interface_and_stops_on_ctrl_c(tmp_path: Path) -> None
             states = {m.group(1) for m in re.finditer(r"^imu/demo/([a-z0-9_-]+)/state ", out,
                                                       re.M)}
             assert len(states) >= 2, out
+            # and a command over MQTT 5 with the printed mosquitto_rr line
+            rr = next(shlex.split(line.strip()) for line in lines
+                      if line.strip().startswith("mosquitto_rr "))
+            answer = subprocess.run([*rr, "-W", "15"], capture_output=True, text=True,
+                                    timeout=30)
+            assert json.loads(answer.stdout)["ok"] is True, (answer.stdout, answer.stderr)
 
             demo.send_signal(signal.SIGINT)
             code = demo.wait(30)

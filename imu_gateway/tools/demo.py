@@ -81,7 +81,9 @@ def demo_config(ports: dict[str, str], options: DemoOptions, token: str) -> Gate
                         for s, address in _addresses(line)],
         } for line in LINES],
         "modbus": {"listen": f"{options.host}:{options.modbus_port}", "allow_writes": True},
-        "mqtt": {"url": options.mqtt_url, "allow_commands": True},
+        # MQTT 5: a request's response topic and correlation data are honoured, so
+        # mosquitto_rr (which speaks 5 only) gets its answer
+        "mqtt": {"url": options.mqtt_url, "allow_commands": True, "protocol": "5"},
         "http": {"listen": f"{options.host}:{options.http_port}", "token": token,
                  "allow_commands": True},
     }, env={})
@@ -112,6 +114,8 @@ def banner(gateway: Gateway, token: str) -> str:
         f"imu-gateway demo: {len(gateway.sensors)} simulated sensors on "
         f"{len(config.buses)} simulated serial lines at {BAUD} baud (no hardware)",
         *rows,
+        f"These are simulated sensors; each line counts its timeouts and bad frames at "
+        f"{base}/api/v1/buses",
         "",
         f"Dashboard   {base}/",
         f"REST        curl {base}/api/v1/sensors/{first}/reading",
@@ -122,9 +126,12 @@ def banner(gateway: Gateway, token: str) -> str:
     ]
     if config.mqtt is not None:
         mqtt = config.mqtt
+        prefix = f"{mqtt.base_topic}/{config.gateway_id}"
         lines.append(f"MQTT        mosquitto_sub -h {mqtt.host} -p {mqtt.port} -v "
-                     f"-t '{mqtt.base_topic}/{config.gateway_id}/#'   (broker {mqtt.url}, "
+                     f"-t '{prefix}/#'   (MQTT 5, broker {mqtt.url}, "
                      "retried in the background while it is not there)")
+        lines.append(f"            mosquitto_rr -h {mqtt.host} -p {mqtt.port} "
+                     f"-t {prefix}/{first}/cmd/read_settings -e {prefix}/replies -m '{{}}'")
     lines += [f"Token       {token}   (for commands over REST)", "", "Stop with Ctrl-C."]
     return "\n".join(lines)
 
