@@ -202,6 +202,14 @@ def test_unit_command_line_is_what_the_cli_accepts() -> None:
     assert (args.command, args.config) == ("run", "/etc/imu-gateway/gateway.yaml")
 
 
+def test_unit_and_deployment_guide_name_one_install_path() -> None:
+    """The unit's own comment and docs/deployment.md install to the same place."""
+    pattern = r"/opt/imu-gateway/[\w/]*bin/imu-gateway\b"
+    in_unit = set(re.findall(pattern, UNIT.read_text()))
+    in_guide = set(re.findall(pattern, (ROOT / "docs" / "deployment.md").read_text()))
+    assert in_unit and in_unit <= in_guide, (in_unit, in_guide)
+
+
 def test_unit_documents_port_502() -> None:
     text = UNIT.read_text()
     assert "AmbientCapabilities=CAP_NET_BIND_SERVICE" in text
