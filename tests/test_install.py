@@ -10,6 +10,7 @@ with the new environment's own Python, so a file missing from the wheel fails he
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
@@ -69,6 +70,25 @@ def test_the_installed_command_runs_outside_the_checkout(installed: Path,
     module = subprocess.run([str(installed / "python"), "-m", "imu_gateway", "--version"],
                             cwd=tmp_path, capture_output=True, text=True, timeout=60)
     assert module.stdout == version.stdout
+
+
+def test_pip_and_pipx_install_from_a_checkout(tmp_path: Path) -> None:
+    """``pip install .`` into a venv, and ``pipx install .``: each gives a working
+    ``imu-gateway`` on its PATH."""
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=120)
+    subprocess.run([str(venv / "bin" / "pip"), "install", "--quiet",
+                    "--disable-pip-version-check", "."], cwd=ROOT, check=True,
+                   capture_output=True, timeout=600)
+    pipx_bin = tmp_path / "pipx-bin"
+    env = {**os.environ, "PIPX_HOME": str(tmp_path / "pipx"), "PIPX_BIN_DIR": str(pipx_bin),
+           "PIPX_MAN_DIR": str(tmp_path / "man")}
+    subprocess.run([sys.executable, "-m", "pipx", "install", "."], cwd=ROOT, env=env,
+                   check=True, capture_output=True, timeout=600)
+    for command in (venv / "bin" / "imu-gateway", pipx_bin / "imu-gateway"):
+        done = subprocess.run([str(command), "--version"], cwd=tmp_path, capture_output=True,
+                              text=True, timeout=60)
+        assert done.stdout.strip() == f"imu-gateway {__version__}", (command, done)
 
 
 @pytest.fixture

@@ -1,7 +1,8 @@
 """Every example frame printed in the two protocol documents, as one declarative table.
 
-Native: the vendor's native protocol document (sections 2.1-2.26).
-Modbus RTU: the vendor's Modbus document (sections 2.1-2.13).
+Native: Analog Technologies, "IMU/VG/AH/MINS Digital Protocol", V3.0, sections
+2.1-2.26.
+Modbus RTU: "IMU VG AH MINS Series Modbus Protocol", sections 2.1-2.13.
 
 Each row holds the hex string exactly as printed and what it must decode to:
 
