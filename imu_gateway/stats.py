@@ -15,6 +15,11 @@ from typing import Any
 
 RATE_WINDOW = 5.0  # seconds over which achieved rates are measured
 
+#: The kinds of failed exchange a bus counts (``Counters.errors``' keys; what
+#: docs/troubleshooting.md explains).  Metrics show each from 0, so that a rate sees
+#: the first one.
+ERROR_KINDS = ("timeout", "bad_frame", "unexpected_frame", "refused", "port_lost")
+
 
 @dataclass(slots=True)
 class RateMeter:
@@ -106,4 +111,5 @@ def share(part: float, elapsed: float) -> float:
     return round(part / elapsed, 4) if elapsed > 0 else 0.0
 
 
-__all__ = ["BusStats", "Counters", "FrontendCounts", "RateMeter", "SensorStats", "ms", "share"]
+__all__ = ["ERROR_KINDS", "BusStats", "Counters", "FrontendCounts", "RateMeter", "SensorStats",
+           "ms", "share"]

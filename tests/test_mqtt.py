@@ -12,6 +12,7 @@ import asyncio
 import itertools
 import json
 import logging
+import re
 import signal
 import subprocess
 import sys
@@ -35,10 +36,12 @@ from harness import (
 )
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
+from prometheus_client import CollectorRegistry, generate_latest
 
 from imu_gateway.app import Gateway
 from imu_gateway.frontends.mqtt_states import StateDesk
 from imu_gateway.frontends.mqtt_topics import Message
+from imu_gateway.frontends.rest.metrics import GatewayCollector
 from imu_gateway.model import Angles, Series, WireProtocol
 from imu_gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
 from imu_gateway.simulator.motion import Motion
@@ -184,6 +187,12 @@ async def test_availability_follows_a_sensor_that_stops_and_comes_back(tmp_path:
 # ------------------------------------------------------------------ commands
 
 
+def _registry(collector: GatewayCollector) -> CollectorRegistry:
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(collector)
+    return registry
+
+
 @pytest.mark.anyio
 @pytest.mark.parametrize("version", ["3.1.1", "5"])
 async def test_command_round_trip(tmp_path: Path, version: str,
@@ -236,6 +245,21 @@ async def test_command_round_trip(tmp_path: Path, version: str,
             assert bad["kind"] == "bad_arguments"
             bad = await ask(f"{cmd}/set_zero_type", "[" * 100_000)  # too deep to parse
             assert bad["kind"] == "bad_arguments"
+            # in-band correlation, for clients without MQTT 5 properties
+            tagged = await ask(f"{cmd}/set_zero_type",
+                               '{"type": "relative", "request_id": "req-7"}')
+            assert tagged["ok"] is True and tagged["request_id"] == "req-7"
+            tagged = await ask(f"{cmd}/set_zero_type", '{"type": 5, "request_id": 42}')
+            assert tagged["kind"] == "bad_arguments" and tagged["request_id"] == 42
+            tagged = await ask(f"{cmd}/read_settings", '{"request_id": [1]}')
+            assert tagged["kind"] == "bad_arguments" and "request_id" in tagged["error"]
+            # what the client counted, on /metrics
+            metrics = generate_latest(_registry(GatewayCollector(gateway))).decode()
+            assert re.search(r"^imu_gateway_mqtt_commands_total (\d+)", metrics, re.M)
+            errors = re.search(r"^imu_gateway_mqtt_command_errors_total (\d+)", metrics, re.M)
+            assert errors and float(errors.group(1)) >= 9
+            assert re.search(r"^imu_gateway_mqtt_connects_total 1", metrics, re.M)
+            assert re.search(r"^imu_gateway_mqtt_queue_depth \d", metrics, re.M)
 
             await _retained_commands(broker, rec, cmd, version, ah, ask)
 

@@ -10,7 +10,9 @@ from __future__ import annotations
 import asyncio
 import json
 import re
+import shutil
 import socket
+import subprocess
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -26,6 +28,7 @@ from imu_gateway.errors import StartupError
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
 from imu_gateway.simulator.motion import Motion
+from imu_gateway.stats import ERROR_KINDS
 
 FAST = 115200
 READING = Motion.from_seed(3).sample(10.0)
@@ -422,6 +425,16 @@ async def test_metrics(two_lines: Any) -> None:
                    for s in family.samples}
         # the version, from the one place it is written (the package)
         assert samples[("imu_gateway_build_info", (("version", __version__),))] == 1
+        # every error kind from 0, so that rate() sees the first; the process's own
+        for kind in ERROR_KINDS:
+            assert ("imu_gateway_bus_errors_total", (("bus", "a"), ("kind", kind))) in samples
+        assert samples[("process_resident_memory_bytes", ())] > 0
+        # and Prometheus's own linter finds nothing to say
+        promtool = shutil.which("promtool")
+        assert promtool, "promtool is not installed (scripts/bootstrap --test installs it)"
+        lint = subprocess.run([promtool, "check", "metrics"], input=response.text,
+                              capture_output=True, text=True, timeout=60)
+        assert lint.returncode == 0 and not lint.stdout.strip(), lint
         tx = samples[("imu_gateway_bus_transactions_total", (("bus", "a"),))]
         assert buses_out["a"]["transactions"] <= tx <= buses_out["a"]["transactions"] + 100
         assert samples[("imu_gateway_bus_port_open", (("bus", "b"),))] == 1

@@ -3,8 +3,9 @@
 A message on ``{prefix}/{sensor}/cmd/{command}`` with a JSON object is a command: it
 goes to the gateway (which validates it and puts it in the bus master's queue) and its
 result is published, to the MQTT 5 response topic when one is given, else to the
-command's topic with ``/result`` appended.  Retained and empty messages are never run
-(docs/mqtt.md).
+command's topic with ``/result`` appended.  A ``request_id`` in the payload (how an
+MQTT 3.1.1 client correlates: it has no properties) is echoed in the result.  Retained
+and empty messages are never run (docs/mqtt.md).
 """
 
 from __future__ import annotations
@@ -29,6 +30,11 @@ MAX_COMMANDS = 16  # commands carried out at once; more are answered "busy"
 MAX_COMMAND_PAYLOAD = 64 * 1024  # bytes; the largest command's arguments are a few dozen
 MAX_TOPIC_BYTES = 1024  # a response topic longer than this is not a mistake worth keeping
 MAX_CORRELATION_BYTES = 1024
+#: The in-band correlation an MQTT 3.1.1 client may send (it has no properties): a
+#: short string or an integer, echoed in the result, never passed to the command.
+REQUEST_ID = "request_id"
+MAX_REQUEST_ID = 128
+RequestId = str | int | None
 
 
 class CommandDesk:
@@ -60,17 +66,21 @@ class CommandDesk:
         if not self._runnable(message):
             return
         self.counters.commands += 1
+        request_id: RequestId = None
         try:
             args = _command_args(bytes(message.payload))
+            request_id = _request_id(args)
             _check_properties(message.properties)
         except RequestFailed as exc:
-            self._answer(message, CommandResult.failed(sensor, command, exc))
+            self._answer(message, CommandResult.failed(sensor, command, exc), request_id)
             return
         if len(self.tasks) >= MAX_COMMANDS:
             self._answer(message, CommandResult.failed(sensor, command, RequestFailed(
-                ErrorKind.BUSY, f"{MAX_COMMANDS} commands are already being carried out")))
+                ErrorKind.BUSY, f"{MAX_COMMANDS} commands are already being carried out")),
+                request_id)
             return
-        task = asyncio.create_task(self._carry_out(message, sensor, command, args))
+        task = asyncio.create_task(self._carry_out(message, sensor, command, args,
+                                                   request_id))
         self.tasks.add(task)
         task.add_done_callback(self.tasks.discard)
 
@@ -101,11 +111,12 @@ class CommandDesk:
         return True
 
     async def _carry_out(self, message: paho.MQTTMessage, sensor: str, command: str,
-                         args: Mapping[str, Any]) -> None:
+                         args: Mapping[str, Any], request_id: RequestId) -> None:
         result = await self.gateway.command(sensor, command, args)
-        self._answer(message, result)
+        self._answer(message, result, request_id)
 
-    def _answer(self, request: paho.MQTTMessage, result: CommandResult) -> None:
+    def _answer(self, request: paho.MQTTMessage, result: CommandResult,
+                request_id: RequestId = None) -> None:
         if not result.ok:
             self.counters.command_errors += 1
         # MQTT 5: the asker's response topic and correlation data win, where usable
@@ -117,8 +128,11 @@ class CommandDesk:
             if correlation is not None:
                 properties = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
                 properties.CorrelationData = correlation
+        body = result.to_json()
+        if request_id is not None:
+            body[REQUEST_ID] = request_id
         self._results += 1
-        self.send_control(Message(topic, json_bytes(result.to_json()),
+        self.send_control(Message(topic, json_bytes(body),
                                   max(self.config.qos, 1), False, properties),
                           f"result {self._results}")
 
@@ -137,6 +151,19 @@ def _command_args(payload: bytes) -> dict[str, Any]:
     if not isinstance(args, dict):
         raise RequestFailed(ErrorKind.BAD_ARGUMENTS, "the payload must be a JSON object")
     return args
+
+
+def _request_id(args: dict[str, Any]) -> RequestId:
+    """Takes the in-band ``request_id`` out of the arguments (``RequestFailed`` when it
+    is neither a short string nor an integer)."""
+    if REQUEST_ID not in args:
+        return None
+    value = args.pop(REQUEST_ID)
+    if isinstance(value, bool) or not isinstance(value, str | int) or \
+            (isinstance(value, str) and len(value) > MAX_REQUEST_ID):
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"{REQUEST_ID} must be a string of at "
+                            f"most {MAX_REQUEST_ID} characters, or an integer")
+    return value
 
 
 def topic_problem(topic: str) -> str | None:

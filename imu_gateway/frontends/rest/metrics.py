@@ -9,11 +9,17 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 
 from ... import __version__
 from ...cache import Status
+from ...stats import ERROR_KINDS
 from ..common import GatewayLike
 
 # ------------------------------------------------------------------ metrics
 
 
+MQTT_COUNTERS = (  # the MQTT client's own: metric, its key in MqttClient.stats(), help
+    ("mqtt_connects", "connects", "connections made to the broker"),
+    ("mqtt_commands", "commands", "command messages received"),
+    ("mqtt_command_errors", "command_errors", "commands that ended in an error result"),
+)
 HTTP_COUNTERS = (  # the HTTP server's own: metric, its key in HttpServer.stats(), help
     ("http_request_timeouts", "request_timeouts",
      "connections closed: a request's headers or body did not come in time"),
@@ -62,8 +68,8 @@ class GatewayCollector:
         port = family(GaugeMetricFamily, "bus_port_open", "1 when the port is open", ["bus"])
         for bus in self.gateway.stats():
             tx.add_metric([bus.name], bus.transactions)
-            for kind, count in bus.errors.items():
-                errors.add_metric([bus.name, kind], count)
+            for kind in dict.fromkeys([*ERROR_KINDS, *bus.errors]):  # every kind, from 0
+                errors.add_metric([bus.name, kind], bus.errors.get(kind, 0))
             util.add_metric([bus.name], bus.utilisation)
             queue.add_metric([bus.name], bus.queue_depth)
             port.add_metric([bus.name], 1.0 if bus.port_open else 0.0)
@@ -125,3 +131,7 @@ class GatewayCollector:
                    []).add_metric([], mqtt["published"])
             family(CounterMetricFamily, "mqtt_dropped", "messages dropped while the broker "
                    "was away", []).add_metric([], mqtt["dropped"])
+            for name, key, doc in MQTT_COUNTERS:
+                family(CounterMetricFamily, name, doc, []).add_metric([], mqtt[key])
+            family(GaugeMetricFamily, "mqtt_queue_depth", "messages waiting for the broker",
+                   []).add_metric([], mqtt["queued"])

@@ -18,7 +18,7 @@ from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingRes
 from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials
 from fastapi.staticfiles import StaticFiles
-from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client import CollectorRegistry, ProcessCollector, generate_latest
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from ... import __version__
@@ -326,6 +326,7 @@ def _metrics_route(app: FastAPI, routes: _Routes) -> None:
     """Prometheus's scrape, and the catch-all for commands nobody knows."""
     registry = CollectorRegistry(auto_describe=False)
     registry.register(GatewayCollector(routes.gateway))
+    ProcessCollector(registry=registry)  # process_*: CPU, memory, open files
 
     @app.post(f"{API}/sensors/{{name}}/commands/{{command}}", include_in_schema=False)
     async def other_command(name: str, command: str) -> None:
