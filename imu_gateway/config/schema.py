@@ -227,9 +227,16 @@ class MqttConfig(_Model):
             f"field (`{FIELD_NAMES[0]}` … `{FIELD_NAMES[-1]}`) or group "
             f"({', '.join(f'`{g.value}`' for g in Group)}) → band >= 0; a state message is sent "
             "only when a listed field moved more than its band ([mqtt.md](mqtt.md))"))
-    #: messages kept while the broker is away; the oldest are dropped (and counted)
+    #: messages waiting for the broker; with backfill, the states kept while it is away
     queue_size: Annotated[int, Field(gt=0)] = Field(default=1000, description=(
-        "> 0; messages kept while the broker is away, the oldest dropped first"))
+        "> 0; messages waiting to be sent, and with `backfill` the states kept while the "
+        "broker is away; the oldest dropped first (and counted)"))
+    backfill: bool = Field(default=False, description=(
+        "send the states missed while the broker was away, after the reconnect, on "
+        "`{base}/{gateway_id}/{sensor}/history` with their own `ts` (never on the state "
+        "topic, which gets the latest once); off: they are dropped and counted"))
+    backfill_per_s: Annotated[float, Field(gt=0, allow_inf_nan=False)] = Field(
+        default=50.0, description="> 0; the most backfilled messages sent a second")
     discovery_prefix: Annotated[str, AfterValidator(_base_topic)] = Field(
         default="homeassistant", description=(
             "Home Assistant's discovery prefix; rules as for `base_topic`"))

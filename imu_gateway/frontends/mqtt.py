@@ -126,6 +126,7 @@ class Pipe:
         # counters has one writer (this loop, paho's thread), so no lock is needed.
         self._handed = 0
         self.waiting_for_window = False
+        self._stale: list[Message] = []  # states of before the last connect
 
     def written_one(self) -> bool:
         """paho wrote (or had acknowledged) a message; on paho's thread.  True when the
@@ -135,12 +136,21 @@ class Pipe:
 
     def connected_anew(self) -> None:
         """What paho held when the last connection went is lost with it (each
-        connection has a fresh client): counted, then the window starts empty."""
+        connection has a fresh client): counted, then the window starts empty.  The
+        states still waiting are old news by now: set aside, before anything drains
+        (the state desk takes them: ``waiting``)."""
         self.counters.lost_in_flight += self.in_window()
         self._handed = self.counters.written
+        while self.outbox:
+            self._stale.append(self.outbox.take())
 
     def empty(self) -> bool:
         return not (self.control or self.outbox or self.in_window())
+
+    def waiting(self) -> list[Message]:
+        """Takes the states set aside at the connect."""
+        messages, self._stale = self._stale, []
+        return messages
 
     def queued(self) -> int:
         return len(self.outbox) + len(self.control)
@@ -240,7 +250,7 @@ class MqttClient(Frontend):
         self.discovery = discovery_configs(self.topics, gateway.sensors) \
             if config.homeassistant_discovery else {}
         self.states = StateDesk(gateway, config, self.topics, self.pipe.send,
-                                self._send_control, lambda: self.connected)
+                                self._send_control, lambda: self.connected, self.pipe.waiting)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._lost = asyncio.Event()
         self._answered = asyncio.Event()  # the broker answered CONNECT (either way)
@@ -508,7 +518,8 @@ class MqttClient(Frontend):
     def stats(self) -> FrontendCounts:
         return {"connected": self.publishing, "published": self.counters.published,
                 "queued": self.pipe.queued(),
-                "dropped": self.outbox.dropped + self.counters.lost_in_flight,
+                "dropped": self.outbox.dropped + self.counters.lost_in_flight
+                + self.states.missed,
                 "in_flight": self.pipe.in_window(), "connects": self.counters.connects,
                 "commands": self.counters.commands,
                 "command_errors": self.counters.command_errors,

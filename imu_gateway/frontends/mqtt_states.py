@@ -1,12 +1,21 @@
 """States out over MQTT: each sensor's reading JSON on its state topic (held to
 ``min_interval_ms``, held back within the deadbands), its per-field topics, and its
-availability."""
+availability.
+
+State topics are last-value topics.  While the broker is away no state is queued: a
+subscriber (Home Assistant) stamps a message with the time it arrives, so a replayed
+burst of old states would write a false history, and the latest would come twice.
+After a connect each sensor's latest state goes out once.  What was missed is dropped
+and counted, or, with ``mqtt.backfill``, sent afterwards on the sensor's history topic
+with its own ``ts``, at most ``backfill_per_s`` a second (``Backfill``).
+"""
 
 from __future__ import annotations
 
 import asyncio
 import json
 import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -36,37 +45,117 @@ class _SensorOut:
     trailing: asyncio.TimerHandle | None = None  # min_interval's deferred send
 
 
+class Backfill:
+    """The state messages a sensor missed while the broker was away, oldest first, at
+    most ``size`` (the oldest dropped first): sent after a connect on the sensor's
+    ``history`` topic, never retained, at most ``per_s`` a second."""
+
+    def __init__(self, size: int, per_s: float, topics: Topics,
+                 send: Callable[[Message], None], connected: Callable[[], bool]) -> None:
+        self.kept: deque[Message] = deque(maxlen=size)
+        self.per_s = per_s
+        self.topics = topics
+        self.send = send
+        self.connected = connected
+        self.dropped = 0
+        self.sent = 0
+        self._timer: asyncio.TimerHandle | None = None
+
+    def keep(self, state: Message, sensor: str, older: bool = False) -> None:
+        """Keeps a missed state; ``older``: older than every one kept (a state that
+        waited in the queue when the connection went), so it goes first, or, when
+        the backfill is full, is the one dropped."""
+        message = Message(self.topics.sensor(sensor, "history"), state.payload, state.qos,
+                          False)
+        if len(self.kept) == self.kept.maxlen:
+            self.dropped += 1
+            if older:
+                return
+        if older:
+            self.kept.appendleft(message)
+        else:
+            self.kept.append(message)
+
+    def sent_live(self, state: Message, sensor: str) -> None:
+        """``state`` went out on the state topic after all (the latest, at a connect):
+        it is not missed."""
+        history = self.topics.sensor(sensor, "history")
+        for kept in reversed(self.kept):
+            if kept.topic == history:
+                if kept.payload == state.payload:
+                    self.kept.remove(kept)
+                return
+
+    def resume(self) -> None:
+        """(After a connect) send what was kept, paced."""
+        if self._timer is None and self.kept:
+            self._timer = asyncio.get_running_loop().call_later(1 / self.per_s, self._next)
+
+    def _next(self) -> None:
+        self._timer = None
+        if self.connected() and self.kept:
+            self.send(self.kept.popleft())
+            self.sent += 1
+            self.resume()
+
+    def cancel(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+
+
 class StateDesk:
     """Sends what the cache says of the sensors, as the MQTT client's config asks.
 
-    ``send`` queues a state (dropped first when the broker is away), ``send_control``
-    a message that must not be dropped (availability); ``connected`` says whether the
-    client is connected now."""
+    ``send`` queues a state, ``send_control`` a message that must not be dropped
+    (availability); ``connected`` says whether the client is connected now, and
+    ``take_waiting`` takes the states queued and not yet handed over."""
 
     def __init__(self, gateway: GatewayLike, config: MqttConfig, topics: Topics,
                  send: Callable[[Message], None],
                  send_control: Callable[[Message], None],
-                 connected: Callable[[], bool]) -> None:
+                 connected: Callable[[], bool],
+                 take_waiting: Callable[[], list[Message]]) -> None:
         self.gateway = gateway
         self.config = config
         self.topics = topics
         self.send = send
         self.send_control = send_control
         self.connected = connected
+        self.take_waiting = take_waiting
         self._deadbands = config.field_deadbands()
         self._sensors = {name: _SensorOut() for name in gateway.sensors}
+        self.missed = 0  # state and per-field messages not sent: the broker was away
+        self.backfill = Backfill(config.queue_size, config.backfill_per_s, topics, send,
+                                 connected) if config.backfill else None
 
     def announce(self) -> None:
-        """Every sensor's availability and latest state, anew (after a connect)."""
+        """Every sensor's availability and latest state, anew (after a connect).  The
+        states still queued from before are old news: to the backfill, or dropped."""
+        for message in reversed(self.take_waiting()):  # the newest first, each in front
+            self._miss(message, older=True)
         for snap in self.gateway.cache.snapshots():
             self._sensors[snap.name].availability = None
             self._publish_availability(snap)
         for snap in self.gateway.cache.snapshots():
             if snap.has_reading:
-                self._publish_state(snap)
+                state = self._publish_state(snap)
+                if state is not None and self.backfill is not None:
+                    self.backfill.sent_live(state, snap.name)
+        if self.backfill is not None:
+            self.backfill.resume()
+
+    def _miss(self, message: Message, older: bool = False) -> None:
+        sensor, _, leaf = message.topic.removeprefix(self.topics.prefix + "/").rpartition("/")
+        if self.backfill is not None and leaf == "state":
+            self.backfill.keep(message, sensor, older)
+        else:
+            self.missed += 1
 
     def cancel(self) -> None:
         """Drop the deferred sends (the client is stopping)."""
+        if self.backfill is not None:
+            self.backfill.cancel()
         for out in self._sensors.values():
             if out.trailing is not None:
                 out.trailing.cancel()
@@ -115,17 +204,26 @@ class StateDesk:
         return snap.reading is not None and within_deadband(
             field_values(snap.reading), out.values, self._deadbands)
 
-    def _publish_state(self, snap: Snapshot) -> None:
+    def _publish_state(self, snap: Snapshot) -> Message | None:
+        """Sends the state (and the per-field values); returns the state message, or
+        ``None`` when it was missed."""
         assert snap.reading is not None
+        c = self.config
+        state = Message(self.topics.sensor(snap.name, "state"), json_bytes(snap.to_json()),
+                        c.qos, c.retain)
+        values = field_values(snap.reading)
+        fields = [Message(self.topics.sensor(snap.name, name), json.dumps(value).encode(),
+                          c.qos, c.retain)
+                  for name, value in values.items() if math.isfinite(value)] \
+            if c.per_field_topics else []  # (a plain number or nothing)
+        if not self.connected():  # not queued: the next connect sends the latest
+            for message in (state, *fields):
+                self._miss(message)
+            return None
         out = self._sensors[snap.name]
         out.sent_at = asyncio.get_running_loop().time()
-        out.values = field_values(snap.reading)
+        out.values = values
         out.status = snap.status
-        c = self.config
-        self.send(Message(self.topics.sensor(snap.name, "state"), json_bytes(snap.to_json()),
-                          c.qos, c.retain))
-        if c.per_field_topics:
-            for name, value in out.values.items():
-                if math.isfinite(value):  # a plain number or nothing
-                    self.send(Message(self.topics.sensor(snap.name, name),
-                                      json.dumps(value).encode(), c.qos, c.retain))
+        for message in (state, *fields):
+            self.send(message)
+        return state
