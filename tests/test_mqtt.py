@@ -323,7 +323,7 @@ async def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
         both: list[dict[str, Any]] = [{"name": "boom", "series": "AH"},
                                       {"name": "arm", "series": "VG", "address": 1}]
         cfg = config([bus("a", line.path, "native", both)], broker,
-                     homeassistant_discovery=True)
+                     homeassistant_discovery=True, per_field_topics=True)
 
         async with running(cfg) as gateway:
             await until(lambda: all(gateway.cache.snapshot(n).seq >= 1
@@ -357,17 +357,24 @@ async def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
             assert unit == {"angles": "°", "accel": "g", "gyro": "°/s", "mag": "G",
                             "quaternion": None}[GROUP_OF[field_name]]
 
-        # Restart with the AH sensor gone: its entities are removed, the VG's stay.
+        # Restart with the AH sensor gone and per-field topics off: the AH's entities,
+        # state, availability and values are removed, and the VG's values; the VG's
+        # entities, state and availability stay.
         cfg["buses"][0]["sensors"] = [both[1]]
+        cfg["mqtt"]["per_field_topics"] = False
+        gone = {t for t in want if "_boom_" in t} | \
+            {m.topic for m in kept if m.topic.startswith(f"{BASE}/boom/")} | \
+            {f"{BASE}/arm/{f}" for f in fields["arm"]}
         async with running(cfg) as gateway:
-            await until(lambda: gateway.cache.snapshot("arm").seq >= 1)
-            # the old configs come back within the sweep, and are answered
-            await asyncio.sleep(1.0)
+            mqtt = gateway.mqtt
+            assert mqtt is not None
+            await until(lambda: mqtt.sweep.cleared >= len(gone), timeout=20)
             await until(lambda: written(gateway))
-            kept = await asyncio.to_thread(retained, broker, "homeassistant/#")
+            assert mqtt.sweep.cleared == len(gone)
+            kept = await asyncio.to_thread(retained, broker, "#")
         left = {m.topic for m in kept if m.payload}
-        assert left == {t for t in want if "_arm_" in t}
-
+        assert left == {t for t in want if "_arm_" in t} | {
+            f"{BASE}/status", f"{BASE}/arm/state", f"{BASE}/arm/availability"}
 
 
 # ------------------------------------------------------------------ the broker away

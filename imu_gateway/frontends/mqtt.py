@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 from collections import deque
 from collections.abc import Callable
@@ -52,6 +51,7 @@ from ..supervise import Frontend, PeerLog
 from .common import GatewayLike, json_bytes
 from .mqtt_commands import CommandDesk
 from .mqtt_states import StateDesk
+from .mqtt_sweep import SWEEP_S, RetainedSweep
 from .mqtt_topics import (
     CONTROL_QOS,
     OFFLINE,
@@ -60,6 +60,7 @@ from .mqtt_topics import (
     Message,
     Topics,
     discovery_configs,
+    retained_leaves,
 )
 
 log = logging.getLogger("imu_gateway.mqtt")
@@ -68,7 +69,6 @@ KEEPALIVE_S = 30
 CONNACK_TIMEOUT = 5.0  # a broker that says nothing after CONNECT (a TLS port, say)
 RECONNECT_MIN, RECONNECT_MAX = 0.5, 30.0  # seconds between connection attempts
 WINDOW = 100  # messages handed to paho and not yet written or acknowledged
-DISCOVERY_SWEEP_S = 5.0  # how long after connecting old discovery configs are looked for
 #: messages handed to paho and none written for this long: publishing does not work
 STALLED_S = 2 * KEEPALIVE_S
 
@@ -256,7 +256,9 @@ class MqttClient(Frontend):
         self._answered = asyncio.Event()  # the broker answered CONNECT (either way)
         self._runner: asyncio.Task[None] | None = None
         self._unsubscribe: Any = None
-        self._sweep_until = 0.0
+        self.sweep = RetainedSweep(
+            self.topics, config.discovery_prefix if config.homeassistant_discovery else None,
+            self.discovery, retained_leaves(config, gateway.sensors), self._send_control)
         self._sweep_timer: asyncio.TimerHandle | None = None
         self._stopping = False
         self._last_problem: str | None = None
@@ -457,17 +459,15 @@ class MqttClient(Frontend):
                     qos=1, retainAsPublished=True))
             else:
                 self._client.subscribe(topic, qos=1)
-        if self.config.homeassistant_discovery:
-            assert self._loop is not None
-            self._sweep_until = self._loop.time() + DISCOVERY_SWEEP_S
-            self._client.subscribe(f"{self.config.discovery_prefix}/sensor/+/config", qos=1)
-            if self._sweep_timer is not None:  # an earlier connection's
-                self._sweep_timer.cancel()
-            self._sweep_timer = self._loop.call_later(DISCOVERY_SWEEP_S, self._end_sweep)
+        assert self._loop is not None
+        self.sweep.start(self._client, self._loop.time())
+        if self._sweep_timer is not None:  # an earlier connection's
+            self._sweep_timer.cancel()
+        self._sweep_timer = self._loop.call_later(SWEEP_S, self._end_sweep)
 
     def _end_sweep(self) -> None:
         if self._client is not None and self.connected:
-            self._client.unsubscribe(f"{self.config.discovery_prefix}/sensor/+/config")
+            self.sweep.end(self._client)
 
     def _announce(self) -> None:
         """Everything retained, anew: after every connect.  The control messages go
@@ -484,27 +484,8 @@ class MqttClient(Frontend):
         parts = topic.removeprefix(f"{self.prefix}/").split("/")
         if topic.startswith(self.prefix + "/") and len(parts) == 3 and parts[1] == "cmd":
             self.desk.take(message, parts[0], parts[2])
-        elif topic.startswith(f"{self.config.discovery_prefix}/"):
-            self._sweep(message)
-
-    # ------------------------------------------------------------ Home Assistant
-
-    def _sweep(self, message: paho.MQTTMessage) -> None:
-        """A retained discovery config of this gateway that it no longer publishes (a
-        sensor left the config, or changed series) is removed: an empty retained
-        message is how Home Assistant is told."""
-        assert self._loop is not None
-        if not message.retain or not message.payload or self._loop.time() > self._sweep_until:
-            return
-        try:
-            state_topic = json.loads(message.payload).get("state_topic", "")
-        except (ValueError, AttributeError, RecursionError):
-            return
-        if not isinstance(state_topic, str) or not state_topic.startswith(self.prefix + "/"):
-            return  # another gateway's, or not a gateway's at all
-        if message.topic not in self.discovery:
-            log.info("mqtt: removing the discovery config %s", message.topic)
-            self._send_control(Message(message.topic, b"", CONTROL_QOS, True))
+        elif self._loop is not None:
+            self.sweep.take(message, self._loop.time())
 
     # ------------------------------------------------------------ stats
 

@@ -111,6 +111,22 @@ def discovery_configs(topics: Topics,
     return out
 
 
+def retained_leaves(config: MqttConfig,
+                    sensors: Mapping[str, SensorConfig]) -> dict[str, frozenset[str]]:
+    """Per sensor, the leaves of ``{prefix}/{sensor}/…`` the gateway retains: the
+    availability, and the state and per-field values when ``retain`` is on."""
+    out = {}
+    for name, sensor in sensors.items():
+        leaves = {"availability"}
+        if config.retain:
+            leaves.add("state")
+            if config.per_field_topics:
+                leaves.update(n for g in CAPABILITIES[sensor.series].groups
+                              for n in VALUE_GROUPS[g].fields)
+        out[name] = frozenset(leaves)
+    return out
+
+
 def within_deadband(values: Mapping[str, float], sent: Mapping[str, float] | None,
                     deadbands: Mapping[str, float]) -> bool:
     """Is a reading with field ``values`` too close to the one last ``sent`` to send?
