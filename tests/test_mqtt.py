@@ -377,6 +377,30 @@ async def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
             f"{BASE}/status", f"{BASE}/arm/state", f"{BASE}/arm/availability"}
 
 
+@pytest.mark.anyio
+async def test_mqtt5_json_messages_say_what_they_are(tmp_path: Path) -> None:
+    """Under MQTT 5, state, discovery and results say application/json and UTF-8, and
+    states carry the configured expiry (the broker passes on what is left of it)."""
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
+    with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
+            recording(broker, f"{BASE}/+/state", f"{BASE}/+/cmd/+/result",
+                      "homeassistant/#", version=paho.MQTTv5) as rec:
+        cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])],
+                     broker, protocol="5", state_expiry_s=30, homeassistant_discovery=True,
+                     allow_commands=True)
+        async with running(cfg):
+            await until(lambda: bool(rec.on(f"{BASE}/boom/state")))
+            rec.client.publish(f"{BASE}/boom/cmd/read_settings", "{}", qos=1)
+            await until(lambda: bool(rec.on(f"{BASE}/boom/cmd/read_settings/result")))
+        discovery = next(m for m in rec.messages if m.topic.startswith("homeassistant/"))
+        for message in (rec.on(f"{BASE}/boom/state")[0], discovery,
+                        rec.on(f"{BASE}/boom/cmd/read_settings/result")[0]):
+            assert message.properties.ContentType == "application/json", message.topic
+            assert message.properties.PayloadFormatIndicator == 1, message.topic
+        expiry = rec.on(f"{BASE}/boom/state")[0].properties.MessageExpiryInterval
+        assert 0 < expiry <= 30
+
+
 # ------------------------------------------------------------------ the broker away
 
 

@@ -237,6 +237,9 @@ class MqttConfig(_Model):
         "topic, which gets the latest once); off: they are dropped and counted"))
     backfill_per_s: Annotated[float, Field(gt=0, allow_inf_nan=False)] = Field(
         default=50.0, description="> 0; the most backfilled messages sent a second")
+    state_expiry_s: Annotated[int, Field(gt=0)] | None = Field(default=None, description=(
+        "> 0; MQTT 5: the message expiry of state and per-field messages, so that a broker "
+        "stops serving a retained state this old; null: none"))
     discovery_prefix: Annotated[str, AfterValidator(_base_topic)] = Field(
         default="homeassistant", description=(
             "Home Assistant's discovery prefix; rules as for `base_topic`"))
@@ -266,6 +269,13 @@ class MqttConfig(_Model):
     def _password_needs_username(cls, value: str | None, info: ValidationInfo) -> str | None:
         if value is not None and info.data.get("username", "") is None:
             raise _fail("needs a username")
+        return value
+
+    @field_validator("state_expiry_s")
+    @classmethod
+    def _needs_mqtt5(cls, value: int | None, info: ValidationInfo) -> int | None:
+        if value is not None and info.data.get("protocol") == "3.1.1":
+            raise _fail("needs protocol: 5 (MQTT 3.1.1 has no message expiry)")
         return value
 
     @field_validator("ca_file", "certfile", "keyfile")

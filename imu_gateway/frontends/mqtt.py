@@ -60,6 +60,7 @@ from .mqtt_topics import (
     Message,
     Topics,
     discovery_configs,
+    json_properties,
     retained_leaves,
 )
 
@@ -474,7 +475,8 @@ class MqttClient(Frontend):
         before what waited in the outbox; the latest states after it."""
         self._send_control(Message(self.status_topic, ONLINE, CONTROL_QOS, True))
         for topic, payload in self.discovery.items():
-            self._send_control(Message(topic, json_bytes(payload), CONTROL_QOS, True))
+            self._send_control(Message(topic, json_bytes(payload), CONTROL_QOS, True,
+                                       json_properties(self.config)))
         self.states.announce()
 
     # ------------------------------------------------------------ incoming

@@ -16,7 +16,6 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 import paho.mqtt.client as paho
-from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from ..commands import CommandResult
@@ -24,7 +23,7 @@ from ..config import MqttConfig
 from ..errors import ErrorKind, RequestFailed
 from ..supervise import PeerLog
 from .common import GatewayLike, json_bytes
-from .mqtt_topics import CONTROL_QOS, Counters, Message
+from .mqtt_topics import CONTROL_QOS, Counters, Message, json_properties
 
 MAX_COMMANDS = 16  # commands carried out at once; more are answered "busy"
 MAX_COMMAND_PAYLOAD = 64 * 1024  # bytes; the largest command's arguments are a few dozen
@@ -121,12 +120,12 @@ class CommandDesk:
             self.counters.command_errors += 1
         # MQTT 5: the asker's response topic and correlation data win, where usable
         # (_check_properties refused the request otherwise, answered here).
-        topic, properties = f"{request.topic}/result", None
+        topic, properties = f"{request.topic}/result", json_properties(self.config)
         if _properties_problem(request.properties) is None:
             topic = getattr(request.properties, "ResponseTopic", None) or topic
             correlation = getattr(request.properties, "CorrelationData", None)
-            if correlation is not None:
-                properties = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
+            if correlation is not None:  # (only MQTT 5 carries it: properties exist)
+                assert properties is not None
                 properties.CorrelationData = correlation
         body = result.to_json()
         if request_id is not None:

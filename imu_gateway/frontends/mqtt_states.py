@@ -29,6 +29,7 @@ from .mqtt_topics import (
     ONLINE,
     Message,
     Topics,
+    json_properties,
     send_delay,
     within_deadband,
 )
@@ -66,7 +67,7 @@ class Backfill:
         waited in the queue when the connection went), so it goes first, or, when
         the backfill is full, is the one dropped."""
         message = Message(self.topics.sensor(sensor, "history"), state.payload, state.qos,
-                          False)
+                          False, state.properties)
         if len(self.kept) == self.kept.maxlen:
             self.dropped += 1
             if older:
@@ -126,6 +127,7 @@ class StateDesk:
         self._deadbands = config.field_deadbands()
         self._sensors = {name: _SensorOut() for name in gateway.sensors}
         self.missed = 0  # state and per-field messages not sent: the broker was away
+        self._json = json_properties(config, config.state_expiry_s)
         self.backfill = Backfill(config.queue_size, config.backfill_per_s, topics, send,
                                  connected) if config.backfill else None
 
@@ -210,10 +212,10 @@ class StateDesk:
         assert snap.reading is not None
         c = self.config
         state = Message(self.topics.sensor(snap.name, "state"), json_bytes(snap.to_json()),
-                        c.qos, c.retain)
+                        c.qos, c.retain, self._json)
         values = field_values(snap.reading)
         fields = [Message(self.topics.sensor(snap.name, name), json.dumps(value).encode(),
-                          c.qos, c.retain)
+                          c.qos, c.retain, self._json)
                   for name, value in values.items() if math.isfinite(value)] \
             if c.per_field_topics else []  # (a plain number or nothing)
         if not self.connected():  # not queued: the next connect sends the latest

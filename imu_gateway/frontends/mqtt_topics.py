@@ -12,6 +12,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
+from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from .. import __version__
@@ -31,6 +32,20 @@ class Message(NamedTuple):
     qos: int
     retain: bool
     properties: Properties | None = None
+
+
+def json_properties(config: MqttConfig, expiry_s: int | None = None) -> Properties | None:
+    """MQTT 5's description of a JSON message: its content type, UTF-8 (payload format
+    indicator 1), and how long the broker may keep it for a subscriber (``None``
+    under 3.1.1, which has no properties)."""
+    if config.protocol != "5":
+        return None
+    properties = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
+    properties.ContentType = "application/json"
+    properties.PayloadFormatIndicator = 1
+    if expiry_s is not None:
+        properties.MessageExpiryInterval = expiry_s
+    return properties
 
 
 @dataclass(slots=True)
