@@ -128,14 +128,16 @@ def _nothing(args: Args, answer: Args) -> KnownSettings:
 class TcpRegister:
     """The command's holding register in the Modbus TCP map (docs/register-map.md).
     Writing it runs the command: 1 for a command without arguments, ``codes`` for a
-    choice, a float32 for degrees.  Reading it gives ``shows`` of the known settings:
-    a choice as its code (``unknown`` when not known), a flag as 0/1, a float (NaN
-    when not known).  The address is part of the public map: never move one."""
+    choice, a float32 for degrees.  Reading it gives the known ``setting`` (a field of
+    ``KnownSettings``; Home Assistant's select and number entities show the same): a
+    choice as its code (``unknown`` when not known), a float (NaN when not known).
+    Without a setting, a command that keeps the sensor busy reads 1 while it runs,
+    any other 0.  The address is part of the public map: never move one."""
 
     address: int
     name: str
     description: str
-    shows: Callable[[KnownSettings], str | float | bool | None] = lambda known: False
+    setting: str | None = None
     codes: Mapping[str, int] = field(default_factory=dict)
     unknown: int = 0xFFFF
 
@@ -166,20 +168,18 @@ CATALOGUE: Mapping[str, CommandSpec] = MappingProxyType({
             "set_zero_type", ZeroTypeArgs, "absolute or relative zero point", ALL,
             learns=lambda args, answer: KnownSettings(zero_type=args["type"]),
             register=TcpRegister(1000, "zero_type", "zero type: write 0 absolute, 1 relative; "
-                                 "reads the last known (0xFFFF unknown)",
-                                 lambda known: known.zero_type,
+                                 "reads the last known (0xFFFF unknown)", "zero_type",
                                  {"absolute": 0, "relative": 1}),
             example={"type": "relative"}),
         CommandSpec(
             "save", NoArgs, "save the settings (3-5 s, the sensor does not answer)", ALL,
             BusEffect.BUSY, lambda args, answer: KnownSettings(busy_with="save"),
-            TcpRegister(1001, "save", "write 1: save settings; reads 1 while saving",
-                        lambda known: known.busy_with == "save")),
+            TcpRegister(1001, "save", "write 1: save settings; reads 1 while saving")),
         CommandSpec(
             "calibrate_gyro", NoArgs, "gyro zero-offset calibration (keep still)", ALL,
             BusEffect.BUSY, lambda args, answer: KnownSettings(busy_with="calibrate_gyro"),
             TcpRegister(1002, "gyro_calibration", "write 1: gyro calibration; reads 1 while "
-                        "it runs", lambda known: known.busy_with == "calibrate_gyro")),
+                        "it runs")),
         CommandSpec(
             "clear_heading", NoArgs, "clear the heading angle (MINS)", MINS,
             register=TcpRegister(1003, "clear_heading", "write 1: clear heading (MINS); "
@@ -191,8 +191,7 @@ CATALOGUE: Mapping[str, CommandSpec] = MappingProxyType({
                 relative_heading=answer.get("degrees", args["degrees"])),
             register=TcpRegister(1004, "relative_heading", "relative heading start point, "
                                  "degrees (MINS), rounded to 0.01 half away from zero; reads "
-                                 "the last written (NaN unknown)",
-                                 lambda known: known.relative_heading),
+                                 "the last written (NaN unknown)", "relative_heading"),
             example={"degrees": 90.0}),
         CommandSpec(
             "set_declination", DeclinationArgs, "magnetic declination (AH)", AH,
@@ -201,8 +200,7 @@ CATALOGUE: Mapping[str, CommandSpec] = MappingProxyType({
                 declination=answer.get("degrees", args["degrees"])),
             register=TcpRegister(1006, "declination", "magnetic declination, degrees (AH), "
                                  "-99.9 to 99.9, rounded to 0.1 half away from zero; reads "
-                                 "the last known (NaN unknown)",
-                                 lambda known: known.declination),
+                                 "the last known (NaN unknown)", "declination"),
             example={"degrees": -3.5}),
         CommandSpec(
             "mag_calibration", MagCalibrationArgs,
@@ -210,7 +208,7 @@ CATALOGUE: Mapping[str, CommandSpec] = MappingProxyType({
             learns=lambda args, answer: KnownSettings(mag_calibration=args["action"]),
             register=TcpRegister(1008, "mag_calibration", "magnetic calibration: write 1 "
                                  "start, 2 finish, 3 clear (AH); reads the last action "
-                                 "(0 none)", lambda known: known.mag_calibration,
+                                 "(0 none)", "mag_calibration",
                                  {"start": 1, "finish": 2, "clear": 3}, unknown=0),
             example={"action": "start"}),
         CommandSpec("set_address", AddressArgs, "a new bus address", ALL,

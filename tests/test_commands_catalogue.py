@@ -9,6 +9,7 @@ another fails here, by name.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -154,6 +155,8 @@ def test_each_register_command_round_trips_through_its_modbus_tcp_register(name:
     assert spec.register is not None
     reg = mm.BY_ADDRESS[spec.register.address]
     assert reg.command == name and reg.series == spec.series
+    setting = spec.register.setting
+    assert setting is None or setting in {f.name for f in dataclasses.fields(KnownSettings)}
     for args in _choices(spec):
         series = next(iter(spec.series))
         command = validate(name, args, series, WireProtocol.NATIVE)

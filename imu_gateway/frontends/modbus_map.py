@@ -218,7 +218,8 @@ class SensorImage:
         for address, spec in COMMANDS.items():
             reg, row = BY_ADDRESS[address], spec.register
             assert row is not None
-            shown = row.shows(known)
+            shown: str | float | bool | None = getattr(known, row.setting) if row.setting \
+                else known.busy_with == spec.name  # (1 while it runs, or 0)
             if isinstance(shown, str) or (shown is None and reg.type is Type.U16):
                 shown = row.codes.get(shown or "", row.unknown)
             self.words[2 * address: 2 * (address + reg.type.words)] = _pack(reg, shown)
