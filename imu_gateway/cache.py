@@ -77,6 +77,7 @@ def iso_time(moment: datetime | None) -> str | None:
 class EventKind(enum.Enum):
     READING = "reading"  # a new sample
     STATUS = "status"  # status, busy or streaming changed
+    SETTINGS = "settings"  # the known settings changed (``Cache.settings``)
 
 
 Listener = Callable[[EventKind, Snapshot], None]
@@ -171,8 +172,9 @@ class Cache:
             e.online = online
         if busy is not None:
             e.busy = busy
-            if not busy:  # what it was busy with is over
+            if not busy and e.settings.busy_with is not None:  # what it was busy with is over
                 e.settings = replace(e.settings, busy_with=None)
+                self._emit(EventKind.SETTINGS, name)
         if streaming is not None:
             e.streaming = streaming
         self._check(name)
@@ -202,7 +204,9 @@ class Cache:
         e = self._entry(name)
         if not e.busy:
             shown = replace(shown, busy_with=None)
-        e.settings = e.settings.updated(shown)
+        settings, e.settings = e.settings, e.settings.updated(shown)
+        if e.settings != settings:
+            self._emit(EventKind.SETTINGS, name)
 
     def settings(self, name: str) -> KnownSettings:
         """The sensor's settings as far as the gateway knows them."""

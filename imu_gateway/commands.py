@@ -223,6 +223,12 @@ CATALOGUE: Mapping[str, CommandSpec] = MappingProxyType({
 })
 
 
+def resolution(spec: CommandSpec) -> float | None:
+    """The step of a command's angle argument (0.01° heading, 0.1° declination), if
+    it has one."""
+    return spec.args._format.resolution if issubclass(spec.args, _DegreesArgs) else None
+
+
 def commands_for(series: Series, protocol: WireProtocol) -> frozenset[str]:
     """The commands a sensor of this series, speaking this protocol, can carry out: the
     series has it (the catalogue) and the protocol can carry it (its rows)."""

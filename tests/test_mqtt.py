@@ -330,9 +330,15 @@ async def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
                                     for n in ("boom", "arm")))
             await until(lambda: written(gateway))
             kept = await asyncio.to_thread(retained, broker, "#")
-        configs = {m.topic: json.loads(m.payload) for m in kept
-                   if m.topic.startswith("homeassistant/")}
+        every = {m.topic: json.loads(m.payload) for m in kept
+                 if m.topic.startswith("homeassistant/")}
+        # the measured fields' entities (the others: the gateway's and diagnostics)
+        configs = {t: c for t, c in every.items() if c.get("state_class") == "measurement"
+                   and c["state_topic"].endswith("/ha")}
         others = {m.topic: m for m in kept}
+        # every entity's template reads a topic the gateway really publishes
+        for topic, c in every.items():
+            assert c["state_topic"] in others, topic
         # One entity per measured field: AH all 16, VG all but the magnetometer.
         fields = {"boom": set(FIELDS),
                   "arm": {f for f in FIELDS if GROUP_OF[f] != "mag"}}
@@ -351,7 +357,10 @@ async def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
             published = state(others[c["state_topic"]])
             assert isinstance(published[group][member], float)
             for a in c["availability"]:
-                assert others[a["topic"]].text in ("online", "offline")
+                if "value_template" in a:  # the reading's status: a JSON topic
+                    assert state(others[a["topic"]])["status"] == "ok"
+                else:
+                    assert others[a["topic"]].text in ("online", "offline")
             unit = c.get("unit_of_measurement")
             field_name = topic.split("/")[2].split("_", 2)[2]
             assert unit == {"angles": "°", "accel": "g", "gyro": "°/s", "mag": "G",
@@ -362,7 +371,7 @@ async def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
         # entities, state and availability stay.
         cfg["buses"][0]["sensors"] = [both[1]]
         cfg["mqtt"]["per_field_topics"] = False
-        gone = {t for t in want if "_boom_" in t} | \
+        gone = {t for t in every if "_boom_" in t} | \
             {m.topic for m in kept if m.topic.startswith(f"{BASE}/boom/")} | \
             {f"{BASE}/arm/{f}" for f in fields["arm"]}
         async with running(cfg) as gateway:
@@ -373,32 +382,9 @@ async def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
             assert mqtt.sweep.cleared == len(gone)
             kept = await asyncio.to_thread(retained, broker, "#")
         left = {m.topic for m in kept if m.payload}
-        assert left == {t for t in want if "_arm_" in t} | {
-            f"{BASE}/status", f"{BASE}/arm/state", f"{BASE}/arm/availability"}
-
-
-@pytest.mark.anyio
-async def test_mqtt5_json_messages_say_what_they_are(tmp_path: Path) -> None:
-    """Under MQTT 5, state, discovery and results say application/json and UTF-8, and
-    states carry the configured expiry (the broker passes on what is left of it)."""
-    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(READING))
-    with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
-            recording(broker, f"{BASE}/+/state", f"{BASE}/+/cmd/+/result",
-                      "homeassistant/#", version=paho.MQTTv5) as rec:
-        cfg = config([bus("a", line.path, "native", [{"name": "boom", "series": "AH"}])],
-                     broker, protocol="5", state_expiry_s=30, homeassistant_discovery=True,
-                     allow_commands=True)
-        async with running(cfg):
-            await until(lambda: bool(rec.on(f"{BASE}/boom/state")))
-            rec.client.publish(f"{BASE}/boom/cmd/read_settings", "{}", qos=1)
-            await until(lambda: bool(rec.on(f"{BASE}/boom/cmd/read_settings/result")))
-        discovery = next(m for m in rec.messages if m.topic.startswith("homeassistant/"))
-        for message in (rec.on(f"{BASE}/boom/state")[0], discovery,
-                        rec.on(f"{BASE}/boom/cmd/read_settings/result")[0]):
-            assert message.properties.ContentType == "application/json", message.topic
-            assert message.properties.PayloadFormatIndicator == 1, message.topic
-        expiry = rec.on(f"{BASE}/boom/state")[0].properties.MessageExpiryInterval
-        assert 0 < expiry <= 30
+        assert left == {t for t in every if "_boom_" not in t} | {
+            f"{BASE}/status", f"{BASE}/diagnostics",
+            *(f"{BASE}/arm/{leaf}" for leaf in ("state", "availability", "settings", "ha"))}
 
 
 # ------------------------------------------------------------------ the broker away
@@ -765,7 +751,7 @@ async def test_a_server_that_never_answers_connect_is_given_up_on(
 @pytest.mark.anyio
 async def test_twenty_sensors_all_discovery_configs_and_availabilities_arrive(
         tmp_path: Path) -> None:
-    """320 discovery configs and 20 availabilities at one connect: more than paho's
+    """384 discovery configs and 20 availabilities at one connect: more than paho's
     own queue would take at once; none may be lost."""
     sims = [sensor(WireProtocol.NATIVE, Series.AH, address=a, source=hold(READING))
             for a in range(20)]
@@ -779,8 +765,11 @@ async def test_twenty_sensors_all_discovery_configs_and_availabilities_arrive(
                         timeout=30)
             await until(lambda: written(gateway))
             kept = await asyncio.to_thread(retained, broker, "#")
+            made = set(gateway.mqtt.discovery) if gateway.mqtt else set()
         topics = {m.topic for m in kept}
-        assert len([t for t in topics if t.startswith("homeassistant/")]) == 20 * 16
+        # every config made arrives: 16 fields and 3 diagnostics a sensor, the gateway's
+        assert {t for t in topics if t.startswith("homeassistant/")} == made
+        assert len([t for t in made if "/diag_" not in t and "_s" in t]) >= 20 * 16
         assert {f"{BASE}/s{a}/availability" for a in range(20)} <= topics
 
 

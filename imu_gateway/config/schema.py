@@ -214,6 +214,13 @@ class MqttConfig(_Model):
         "it ends)"))
     homeassistant_discovery: bool = Field(default=False, description=(
         "publish Home Assistant discovery configs"))
+    homeassistant_min_interval_ms: NonNegativeInt = Field(default=1000, description=(
+        ">= 0; with discovery, at most one state per sensor per interval for Home "
+        "Assistant's entities (their own topic, `…/{sensor}/ha`); a status change goes at "
+        "once"))
+    homeassistant_url: str | None = Field(default=None, description=(
+        "the dashboard's address in Home Assistant's device page (`configuration_url`)"),
+        json_schema_extra={_SHOWN_DEFAULT: "null: from `http.listen` and the host name"})
     allow_commands: bool = Field(default=False, description=(
         "accept commands on `{base}/{gateway_id}/{sensor}/cmd/{command}`"))
     protocol: Annotated[Literal["3.1.1", "5"], PlainValidator(_mqtt_protocol)] = Field(

@@ -50,6 +50,7 @@ from ..stats import FrontendCounts
 from ..supervise import Frontend, PeerLog
 from .common import GatewayLike, json_bytes
 from .mqtt_commands import CommandDesk
+from .mqtt_discovery import discovery_configs, setup_of
 from .mqtt_states import StateDesk
 from .mqtt_sweep import SWEEP_S, RetainedSweep
 from .mqtt_topics import (
@@ -59,7 +60,6 @@ from .mqtt_topics import (
     Counters,
     Message,
     Topics,
-    discovery_configs,
     json_properties,
     retained_leaves,
 )
@@ -248,7 +248,7 @@ class MqttClient(Frontend):
                          lambda: self._client, lambda: self.connected)
         self.outbox = self.pipe.outbox
         # The sensors are fixed for the process's life, so their discovery configs are.
-        self.discovery = discovery_configs(self.topics, gateway.sensors) \
+        self.discovery = discovery_configs(setup_of(gateway.config, self.topics)) \
             if config.homeassistant_discovery else {}
         self.states = StateDesk(gateway, config, self.topics, self.pipe.send,
                                 self._send_control, lambda: self.connected, self.pipe.waiting)

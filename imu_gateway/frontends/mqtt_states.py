@@ -23,6 +23,7 @@ from ..cache import EventKind, Snapshot, Status
 from ..config import MqttConfig
 from ..normalise import field_values
 from .common import GatewayLike, json_bytes
+from .mqtt_side import SideTopics
 from .mqtt_topics import (
     CONTROL_QOS,
     OFFLINE,
@@ -130,6 +131,7 @@ class StateDesk:
         self._json = json_properties(config, config.state_expiry_s)
         self.backfill = Backfill(config.queue_size, config.backfill_per_s, topics, send,
                                  connected) if config.backfill else None
+        self.side = SideTopics(gateway, config, topics, send, send_control, connected)
 
     def announce(self) -> None:
         """Every sensor's availability and latest state, anew (after a connect).  The
@@ -146,6 +148,7 @@ class StateDesk:
                     self.backfill.sent_live(state, snap.name)
         if self.backfill is not None:
             self.backfill.resume()
+        self.side.announce()
 
     def _miss(self, message: Message, older: bool = False) -> None:
         sensor, _, leaf = message.topic.removeprefix(self.topics.prefix + "/").rpartition("/")
@@ -156,6 +159,7 @@ class StateDesk:
 
     def cancel(self) -> None:
         """Drop the deferred sends (the client is stopping)."""
+        self.side.cancel()
         if self.backfill is not None:
             self.backfill.cancel()
         for out in self._sensors.values():
@@ -171,6 +175,7 @@ class StateDesk:
                 self._publish_state(snap)
         elif kind is EventKind.READING:
             self._consider(snap)
+        self.side.on_cache_event(kind, snap)
 
     def _publish_availability(self, snap: Snapshot) -> None:
         if not self.connected():

@@ -10,15 +10,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
-from .. import __version__
 from ..config import MqttConfig, SensorConfig
 from ..model import CAPABILITIES, VALUE_GROUPS
-from ..normalise import member_name
 
 CONTROL_QOS = 1  # status, availability, discovery, results: small and must arrive
 ONLINE, OFFLINE = b"online", b"offline"  # the status and availability payloads
@@ -93,46 +91,16 @@ class Topics:
         return f"{self.discovery_prefix}/sensor/{self.object_id(sensor, field_name)}/config"
 
 
-def discovery_configs(topics: Topics,
-                      sensors: Mapping[str, SensorConfig]) -> dict[str, dict[str, Any]]:
-    """Topic -> discovery payload: one entity per measured field of every sensor."""
-    availability = [{"topic": topics.status}]
-    out: dict[str, dict[str, Any]] = {}
-    for name, sensor in sensors.items():
-        device = {"identifiers": [f"{topics.gateway_id}_{name}".replace(".", "_")],
-                  "name": f"{name} ({sensor.series.name})",
-                  "model": f"{sensor.series.name} series",
-                  "manufacturer": "imu-gateway", "sw_version": __version__}
-        for group, spec in VALUE_GROUPS.items():
-            if group not in CAPABILITIES[sensor.series].groups:
-                continue
-            for field_name in spec.fields:
-                payload: dict[str, Any] = {
-                    "name": field_name.replace("_", " "),
-                    "unique_id": topics.object_id(name, field_name),
-                    "state_topic": topics.sensor(name, "state"),
-                    "value_template": "{{ value_json." + group.value + "."
-                                      + member_name(group, field_name) + " }}",
-                    "state_class": "measurement",
-                    "availability": [*availability,
-                                     {"topic": topics.sensor(name, "availability")}],
-                    "availability_mode": "all",
-                    "device": device,
-                    "origin": {"name": "imu-gateway", "sw_version": __version__},
-                }
-                if spec.symbol:
-                    payload["unit_of_measurement"] = spec.symbol
-                out[topics.discovery(name, field_name)] = payload
-    return out
-
-
 def retained_leaves(config: MqttConfig,
                     sensors: Mapping[str, SensorConfig]) -> dict[str, frozenset[str]]:
     """Per sensor, the leaves of ``{prefix}/{sensor}/…`` the gateway retains: the
-    availability, and the state and per-field values when ``retain`` is on."""
+    availability and the known settings, Home Assistant's state with discovery, and
+    the state and per-field values when ``retain`` is on."""
     out = {}
     for name, sensor in sensors.items():
-        leaves = {"availability"}
+        leaves = {"availability", "settings"}
+        if config.homeassistant_discovery:
+            leaves.add("ha")
         if config.retain:
             leaves.add("state")
             if config.per_field_topics:

@@ -68,7 +68,7 @@ class StreamHub:
         self._unsubscribe = gateway.cache.subscribe(self._on_cache_event, on_error)
 
     def _on_cache_event(self, kind: EventKind, snap: Snapshot) -> None:
-        if not self.subscribers:
+        if not self.subscribers or kind is EventKind.SETTINGS:  # (not in the stream)
             return
         event = _event("reading" if kind is EventKind.READING else "status", snap)
         for sub in list(self.subscribers):
