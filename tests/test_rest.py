@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import re
 import shutil
 import socket
 import subprocess
 from collections.abc import AsyncIterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import httpx
@@ -24,6 +26,7 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from imu_gateway import __version__
 from imu_gateway.app import Gateway, openapi_json
+from imu_gateway.config import SensorConfig
 from imu_gateway.errors import StartupError
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
@@ -78,6 +81,32 @@ def two_lines() -> Any:
 # ------------------------------------------------------------------ reads
 
 
+def test_history_keeps_each_seconds_lowest_highest_and_last() -> None:
+    """A pure check of the ring: buckets by the sample's own second, NaN is no value,
+    a step back of the clock is ignored, and a query takes the last N seconds."""
+    from imu_gateway.frontends.rest.history import KEEP_S, History
+
+    gateway = SimpleNamespace(sensors={"s": SensorConfig(name="s", series=Series.IMU,
+                                                          address=0)})
+    history = History(gateway)
+    n = len(history.fields["s"])  # an IMU: accel and gyro, 6 fields
+    assert n == 6
+    for at, v in ((100.1, 1.0), (100.5, -2.0), (100.9, 0.5), (101.2, math.nan),
+                  (99.0, 7.0), (102.0, 3.0)):
+        history.add("s", at, [v] * n)
+    got = history.query("s", 10, now=102.5)
+    assert got["t"] == [100, 101, 102]
+    accel_x = got["fields"]["accel_x"]
+    assert accel_x == {"min": [-2.0, None, 3.0], "max": [1.0, None, 3.0],
+                       "last": [0.5, None, 3.0]}
+    # the buckets that overlap the last second
+    assert history.query("s", 1, now=102.5)["t"] == [101, 102]
+    for second in range(KEEP_S + 50):  # a ring: the oldest go
+        history.add("s", 200.0 + second, [1.0] * n)
+    assert len(history.query("s", KEEP_S, now=200.0 + KEEP_S + 50)["t"]) <= KEEP_S
+
+
+
 @pytest.mark.anyio
 async def test_the_api_reference_and_index_are_served_from_the_gateway(two_lines: Any) -> None:
     """/docs is Swagger UI with every file from this server (no CDN: plant networks
@@ -115,6 +144,18 @@ async def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
         assert health["buses"] == {"a": True, "b": True}
         assert health["sensors"] == {"ok": 2, "stale": 0, "offline": 0}
         assert health["interfaces"] == ["http"]
+
+        # the recent past, a bucket a second
+        history = (await http.get(f"{API}/sensors/boom/history", params={"seconds": 60}))
+        assert history.status_code == 200
+        past = history.json()
+        assert past["t"] and len(past["fields"]) == 16  # an AH measures 16 fields
+        pitch = past["fields"]["pitch"]
+        assert all(lo <= last <= hi for lo, last, hi in
+                   zip(pitch["min"], pitch["last"], pitch["max"], strict=True))
+        assert_error(await http.get(f"{API}/sensors/boom/history",
+                                    params={"seconds": 10_000}), 422, "bad_arguments")
+        assert_error(await http.get(f"{API}/sensors/nobody/history"), 404, "unknown_sensor")
 
         # the value groups and their units, from the gateway's one table (the
         # dashboard labels its values with these)

@@ -174,3 +174,19 @@ class ApiIndexOut(_Out):
     docs: str = Field(description="the interactive API reference (Swagger UI)")
     openapi: str = Field(description="the OpenAPI document")
     endpoints: list[EndpointOut]
+
+
+class ColumnsOut(_Out):
+    min: list[float | None]
+    max: list[float | None]
+    last: list[float | None]
+
+
+class HistoryOut(_Out):
+    sensor: str
+    seconds: float
+    bucket_s: int = Field(description="the width of a bucket, seconds")
+    t: list[int] = Field(description="each bucket's start, Unix seconds, oldest first")
+    fields: dict[str, ColumnsOut] = Field(description=(
+        "per measured field, its lowest, highest and last value in each bucket (null: "
+        "no finite value in that second)"))

@@ -38,6 +38,7 @@ from .access import (
     json_error,
     token_matches,
 )
+from .history import KEEP_S
 from .limits import API, MAX_STREAMS
 from .metrics import GatewayCollector
 from .models import (
@@ -47,6 +48,7 @@ from .models import (
     ErrorOut,
     GroupOut,
     HealthOut,
+    HistoryOut,
     ReadingOut,
     SensorDetailOut,
     SensorOut,
@@ -314,6 +316,15 @@ def _stream_routes(app: FastAPI, routes: _Routes, hub: StreamHub) -> None:
     async def stream(name: str, request: Request) -> StreamingResponse:
         routes.sensor_or_404(name)
         return stream_response(name, request)
+
+    @app.get(f"{API}/sensors/{{name}}/history", response_model=HistoryOut,
+             dependencies=routes.reads, responses=_errors(401, 404, 422),
+             summary="the last minutes: per second, each field's lowest, highest and last")
+    async def history(name: str, seconds: Annotated[float, Query(
+            gt=0, le=KEEP_S, description=f"how far back, at most {KEEP_S} s")] = KEEP_S,
+                      ) -> dict[str, Any]:
+        routes.sensor_or_404(name)
+        return hub.history.query(name, seconds, time.time())
 
     @app.get(f"{API}/stream", dependencies=routes.streams, response_class=StreamingResponse,
              responses={200: sse, **_errors(401, 503)},
