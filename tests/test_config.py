@@ -374,8 +374,9 @@ RULES: list[tuple[str, dict[str, Any], str]] = [
     ("mqtt unknown key", base(mqtt={"topic": "x"}),
      "mqtt.topic: unknown key (allowed: url, username, password, ca_file, certfile, keyfile, "
      "base_topic, qos, retain, per_field_topics, min_interval_ms, homeassistant_discovery, "
-     "allow_commands, protocol, client_id, deadband, queue_size, discovery_prefix); "
-     "did you mean base_topic?"),
+     "homeassistant_min_interval_ms, homeassistant_url, allow_commands, protocol, "
+     "client_id, deadband, queue_size, backfill, backfill_per_s, state_expiry_s, "
+     "discovery_prefix); did you mean base_topic?"),
     ("mqtt deadband of an unknown field", base(mqtt={"deadband": {"pich": 0.1}}),
      'mqtt.deadband: unknown field "pich" (fields: pitch roll yaw accel_x accel_y accel_z '
      "gyro_x gyro_y gyro_z mag_x mag_y mag_z q0 q1 q2 q3; or a group: angles accel gyro mag "

@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
+import json
 import selectors
 import socket
 import subprocess
@@ -275,13 +276,13 @@ def _http_of(gateway: Gateway) -> tuple[HttpServer, StreamHub]:
 
 
 async def _reading_seqs(response: httpx.Response) -> AsyncIterator[int]:
-    """The ``id`` (the sequence number) of each ``reading`` event of a stream."""
+    """The sequence number of each ``reading`` event of a stream (its data's ``seq``)."""
     name = ""
     async for line in response.aiter_lines():
         if line.startswith("event: "):
             name = line.removeprefix("event: ")
-        elif line.startswith("id: ") and name == "reading":
-            yield int(line.removeprefix("id: "))
+        elif line.startswith("data: ") and name == "reading":
+            yield int(json.loads(line.removeprefix("data: "))["seq"])
         elif not line:
             name = ""
 

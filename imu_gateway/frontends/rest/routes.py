@@ -307,7 +307,7 @@ def _stream_routes(app: FastAPI, routes: _Routes, hub: StreamHub) -> None:
                                           "X-Accel-Buffering": "no"})
 
     sse = {"content": {"text/event-stream": {}},
-           "description": "`event: reading` (or `status`), `id: seq`, `data:` the "
+           "description": "`event: reading` (or `status`) and `data:` the "
                           "reading JSON; a `: keep-alive` comment when idle"}
 
     @app.get(f"{API}/sensors/{{name}}/stream", dependencies=routes.streams,

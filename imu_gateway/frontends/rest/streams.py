@@ -129,8 +129,11 @@ class StreamHub:
 
 
 def _event(name: str, snap: Snapshot) -> bytes:
-    return b"event: %s\nid: %d\ndata: %s\n\n" % (name.encode(), snap.seq,
-                                                json_bytes(snap.to_json()))
+    """One event.  No ``id:``: a stream is not resumable (a reconnecting client gets
+    each sensor's current state first, and the past from ``…/history``), and the
+    combined stream's readings have no common order an id could name; the reading's
+    own ``seq`` is in its data."""
+    return b"event: %s\ndata: %s\n\n" % (name.encode(), json_bytes(snap.to_json()))
 
 
 PEER = "imu_gateway.peer"  # the ASGI scope extension that carries a request's connection
