@@ -301,3 +301,82 @@ def test_with_a_read_token_the_dashboard_streams_with_it(tmp_path: Path) -> None
             assert "live (token)" in driver.find_element("id", "mode").text
             assert not driver.find_element("id", "banner").is_displayed()
             assert console_errors(driver) == []
+
+
+CARD_JS = """
+const card = document.querySelector(`[data-sensor="${arguments[0]}"]`);
+if (!card) return null;
+const trends = {};
+for (const c of card.querySelectorAll("canvas.trend"))
+  trends[c.dataset.group] = {points: Number(c.dataset.points || 0),
+                             seconds: Number(c.dataset.seconds || 0)};
+const filter = getComputedStyle(card.querySelector("canvas.horizon")).filter;
+return {classes: [...card.classList], reason: card.querySelector(".reason").textContent,
+        filter, trends, rate: card.querySelector('[data-field="rate"]').textContent,
+        errors: card.querySelector('[data-field="errors"]').textContent,
+        buttons: [...card.querySelectorAll(".commands button")].map((b) => b.dataset.command),
+        result: card.querySelector(".command-result").textContent,
+        units: [...card.querySelectorAll(".gname small")].map((u) => u.textContent)};
+"""
+
+
+def card(driver: Any, sensor: str) -> dict[str, Any] | None:
+    value = driver.execute_script(CARD_JS, sensor)
+    assert value is None or isinstance(value, dict)
+    return value
+
+
+def card_when(driver: Any, sensor: str, ok: Callable[[dict[str, Any]], bool],
+              what: str) -> dict[str, Any]:
+    def check() -> dict[str, Any] | None:
+        c = card(driver, sensor)
+        return c if c is not None and ok(c) else None
+
+    return wait(check, what)
+
+
+def test_the_dashboard_is_honest_keeps_trends_and_runs_commands(tmp_path: Path) -> None:
+    """Stale, offline and waiting cards look unlike a fresh one and say why; the trend
+    starts with the gateway's history; a command button reaches the sensor."""
+    token = "dash-token"
+    boom_faults, mute_faults = Faults(), Faults(stalled=True)
+    boom = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST, source=Motion.from_seed(5),
+                       faults=boom_faults)
+    mute = make_sensor(WireProtocol.NATIVE, Series.VG, 1, baud=FAST, faults=mute_faults)
+    with simulated([boom, mute]) as line:
+        cfg = {"gateway_id": "dash", "buses": [bus("a", line.path, "native", [
+            {"name": "boom", "series": "AH", "poll_hz": 20, "stale_after_ms": 1500},
+            {"name": "mute", "series": "VG", "address": 1, "poll_hz": 5}])],
+            "http": {"token": token, "allow_commands": True}}
+        with gateway(tmp_path, cfg, token) as base, chromium(tmp_path) as driver:
+            # Some seconds of history before the page opens: the trend starts with them.
+            wait(lambda: get_json(f"{base}/api/v1/sensors/boom", token)["seq"] > 60,
+                 "three seconds of readings", timeout=30)
+            driver.get(f"{base}/?token={token}")
+            fresh = card_when(driver, "boom", lambda c: "is-ok" in c["classes"] and
+                              c["trends"].get("angles", {}).get("seconds", 0) >= 2,
+                              "boom ok, with its past")
+            assert fresh["filter"] == "none" and not fresh["reason"]
+            assert "gauss" in fresh["units"] and "G" not in fresh["units"]
+            assert "/" in fresh["rate"] and "/min" in fresh["errors"]
+            # the sensor that never answers: offline, and it says so (after its tries)
+            silent = card_when(driver, "mute", lambda c: "is-offline" in c["classes"],
+                               "mute offline")
+            assert "never answered" in silent["reason"] and silent["filter"] != "none"
+            # a command button, from the catalogue, reaching the sensor
+            assert "calibrate_gyro" in fresh["buttons"] and "set_zero_type" not in fresh["buttons"]
+            before = boom.writes_heard["calibrate_gyro"]
+            driver.find_element("css selector",
+                                '[data-sensor="boom"] [data-command="calibrate_gyro"]').click()
+            done = card_when(driver, "boom", lambda c: "ok" in c["result"],
+                             "the command's result")
+            assert done["result"].startswith("calibrate_gyro: ok")
+            assert boom.writes_heard["calibrate_gyro"] == before + 1
+            screenshot(driver, tmp_path, "dashboard-ok-offline-command.png")
+            # stale: greyed, with the time of its last reading
+            boom_faults.stalled = True
+            stale = card_when(driver, "boom", lambda c: "is-stale" in c["classes"] or
+                              "is-offline" in c["classes"], "boom stale")
+            assert stale["filter"] != "none" and "last reading" in stale["reason"]
+            screenshot(driver, tmp_path, "dashboard-stale.png")
+            assert not console_errors(driver)

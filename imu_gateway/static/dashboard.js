@@ -26,12 +26,17 @@
   // resolution: filled from GET /api/v1/groups at the start (the gateway's one table).
   const GROUPS = [];
   const LABELS = { quaternion: "quat" }; // shorter than the key where space is short
+  // "G" beside "g" is misread at a glance: the long name where the symbol is ambiguous
+  const UNIT_SHOWN = { G: "gauss" };
+  const TREND_S = 600; // the trends' window (the gateway keeps as much)
+  const ERROR_WINDOW_MS = 60000; // errors are shown as a rate over the last minute
 
   function learnGroups(groups) {
     GROUPS.length = 0;
     for (const g of groups) {
       GROUPS.push({
-        key: g.group, label: LABELS[g.group] || g.group, unit: g.unit, digits: g.digits,
+        key: g.group, label: LABELS[g.group] || g.group, unit: UNIT_SHOWN[g.unit] || g.unit,
+        digits: g.digits,
         // a field's member in the group: accel_x -> x, pitch -> pitch, q0 -> q0
         members: g.fields.map((f) => [f.includes("_") ? f.split("_").pop() : f, f]),
       });
@@ -75,7 +80,9 @@
       banner.textContent = "disconnected: reconnecting…";
     }
     banner.hidden = down.size === 0 && !unauthorised;
+    const wasDown = document.body.classList.contains("is-down");
     document.body.classList.toggle("is-down", !banner.hidden);
+    if (wasDown !== !banner.hidden) for (const s of sensors.values()) markDirty(s);
   }
 
   const sleep = (ms) => new Promise((resolve) => setTimeout(resolve, ms));
@@ -106,6 +113,9 @@
       heading: node.querySelector("canvas.heading"),
       noAttitude: node.querySelector(".no-attitude"),
       values: node.querySelector(".values"),
+      trends: node.querySelector(".trends"),
+      trend: { t: [], fields: {} }, // one-second buckets: t, and per field min/max/last
+      errorSamples: [], // [time, errors] of the last minute's polls
     };
   }
 
@@ -177,6 +187,7 @@
         s.ageAt = performance.now();
       }
       s.reading = data;
+      addToTrend(s, data);
     }
     s.status = data.status;
     s.seq = data.seq;
@@ -189,6 +200,11 @@
     if (!s) return;
     s.info = info;
     s.status = info.status;
+    const now = performance.now();
+    s.errorSamples.push([now, info.errors]);
+    while (s.errorSamples.length > 2 && now - s.errorSamples[0][0] > ERROR_WINDOW_MS) {
+      s.errorSamples.shift();
+    }
     if (info.seq >= s.seq) s.seq = info.seq;
     if (info.age_ms !== null) {
       s.ageMs = info.age_ms;
@@ -223,16 +239,12 @@
         }
       }
     }
-    // Status and flags.
-    const status = s.status || "offline";
-    s.card.classList.remove("is-ok", "is-stale", "is-offline");
-    s.card.classList.add("is-" + status);
-    s.cells.status.textContent = status;
+    showStatus(s);
     s.cells.busy.hidden = !s.info.busy;
     s.cells.streaming.hidden = !s.info.streaming;
     s.cells.seq.textContent = String(s.seq);
-    s.cells.rate.textContent = s.info.achieved_hz.toFixed(1) + " Hz";
-    s.cells.errors.textContent = String(s.info.errors);
+    showRate(s);
+    showErrors(s);
     showAge(s, now);
     // Instruments: the series without angles (IMU) has none.
     const attitude = r ? Boolean(r.angles) : s.series !== "IMU";
@@ -244,6 +256,52 @@
       drawHorizon(s.horizon, a);
       drawHeading(s.heading, a ? a.yaw : null);
     }
+  }
+
+  function clock(ts) {
+    return ts ? new Date(ts).toLocaleTimeString() : null;
+  }
+
+  /** The status, honestly: a card never looks fresh when it is not. Without a
+   *  connection nothing is known (grey, "unknown"); before the first reading the card
+   *  says so; stale and offline say since when. */
+  function showStatus(s) {
+    const status = s.status || "offline";
+    const unknown = document.body.classList.contains("is-down");
+    // nothing yet, and nothing failed yet: the first answer is still to come
+    const waiting = !s.reading && !s.info.ts && s.info.errors === 0;
+    s.card.classList.remove("is-ok", "is-stale", "is-offline", "is-waiting", "is-unknown");
+    s.card.classList.add(unknown ? "is-unknown" : waiting ? "is-waiting" : "is-" + status);
+    s.cells.status.textContent = status;
+    const last = clock((s.reading && s.reading.ts) || s.info.ts);
+    let reason = "";
+    if (unknown) reason = "no connection to the gateway: what is shown may be old";
+    else if (waiting) reason = "waiting for the first reading";
+    else if (status === "offline") reason = last ? `offline · last reading ${last}`
+      : "offline · never answered";
+    else if (status === "stale") reason = `stale · last reading ${last || "–"}`;
+    s.cells.reason.textContent = reason;
+    s.cells.reason.hidden = !reason;
+  }
+
+  /** Achieved against requested, flagged when short by more than a tenth. */
+  function showRate(s) {
+    const achieved = s.info.achieved_hz;
+    const requested = s.info.requested_hz;
+    s.cells.rate.textContent = requested > 0
+      ? `${achieved.toFixed(1)} / ${requested.toFixed(1)} Hz` : `${achieved.toFixed(1)} Hz`;
+    s.cells.rate.classList.toggle("short", requested > 0 && achieved < 0.9 * requested);
+  }
+
+  /** Errors as a rate over the last minute, with the lifetime total beside it. */
+  function showErrors(s) {
+    const first = s.errorSamples[0];
+    const last = s.errorSamples[s.errorSamples.length - 1];
+    const span = first && last ? last[0] - first[0] : 0;
+    const perMin = span >= 5000 ? ((last[1] - first[1]) * 60000) / span : null;
+    s.cells.errors.textContent = (perMin === null ? "–" : perMin.toFixed(1)) +
+      `/min · ${s.info.errors}`;
+    s.cells.errors.classList.toggle("short", perMin !== null && perMin > 0);
   }
 
   // ------------------------------------------------------------------ drawing
@@ -429,6 +487,161 @@
     ctx.fillText(text, cx, 4);
   }
 
+  // ------------------------------------------------------------------ trends
+
+  /** A reading into its second's bucket (lowest, highest, last of each field). */
+  function addToTrend(s, data) {
+    const second = Math.floor(Date.parse(data.ts) / 1000);
+    if (!Number.isFinite(second)) return;
+    const trend = s.trend;
+    const n = trend.t.length;
+    if (n && second < trend.t[n - 1]) return; // older than what we have
+    const fresh = !n || second > trend.t[n - 1];
+    if (fresh) trend.t.push(second);
+    for (const group of GROUPS) {
+      const values = data[group.key];
+      if (!values) continue;
+      for (const [member, field] of group.members) {
+        const v = values[member];
+        const f = trend.fields[field] || (trend.fields[field] = { min: [], max: [], last: [] });
+        while (f.last.length < trend.t.length - 1) { // a gap: this field had no value
+          f.min.push(null); f.max.push(null); f.last.push(null);
+        }
+        if (f.last.length < trend.t.length) { f.min.push(v); f.max.push(v); f.last.push(v); continue; }
+        const i = f.last.length - 1;
+        if (v !== null) {
+          f.min[i] = f.min[i] === null ? v : Math.min(f.min[i], v);
+          f.max[i] = f.max[i] === null ? v : Math.max(f.max[i], v);
+          f.last[i] = v;
+        }
+      }
+    }
+    const cut = trend.t.findIndex((t) => t > second - TREND_S);
+    if (cut > 0) {
+      trend.t.splice(0, cut);
+      for (const f of Object.values(trend.fields)) {
+        f.min.splice(0, cut); f.max.splice(0, cut); f.last.splice(0, cut);
+      }
+    }
+  }
+
+  /** The gateway's record of the last minutes, then kept live from the stream. */
+  async function loadTrend(s) {
+    try {
+      const past = await api(`/sensors/${encodeURIComponent(s.name)}/history?seconds=${TREND_S}`);
+      s.trend = { t: past.t, fields: past.fields };
+    } catch (error) { /* the stream fills it from now on */ }
+  }
+
+  const COLOURS = ["#2f7fd1", "#d1462f", "#2f9d5a", "#8a5a2b"];
+
+  /** One small chart per value group: each field's band (lowest to highest of each
+   *  second) and its line (the last value), over the last TREND_S seconds. */
+  function drawTrends(s) {
+    const trend = s.trend;
+    const present = GROUPS.filter((g) => g.members.some(([, f]) => trend.fields[f]));
+    if (s.trends.dataset.groups !== present.map((g) => g.key).join(",")) {
+      s.trends.replaceChildren(...present.map((g) => {
+        const canvas = document.createElement("canvas");
+        canvas.className = "trend";
+        canvas.dataset.group = g.key;
+        canvas.setAttribute("aria-label", `${g.label} over the last ${TREND_S / 60} minutes`);
+        return canvas;
+      }));
+      s.trends.dataset.groups = present.map((g) => g.key).join(",");
+    }
+    const now = Date.now() / 1000;
+    for (const canvas of s.trends.querySelectorAll("canvas")) {
+      const group = GROUPS.find((g) => g.key === canvas.dataset.group);
+      drawTrend(canvas, group, trend, now);
+    }
+  }
+
+  function drawTrend(canvas, group, trend, now) {
+    const { ctx, w, h } = prepare(canvas);
+    const fields = group.members.map(([, f]) => trend.fields[f]).filter(Boolean);
+    let lo = Infinity;
+    let hi = -Infinity;
+    for (const f of fields) {
+      for (const v of f.min) if (v !== null) lo = Math.min(lo, v);
+      for (const v of f.max) if (v !== null) hi = Math.max(hi, v);
+    }
+    ctx.clearRect(0, 0, w, h);
+    canvas.dataset.points = String(trend.t.length);
+    canvas.dataset.seconds = String(trend.t.length ? trend.t[trend.t.length - 1] - trend.t[0] : 0);
+    if (!Number.isFinite(lo)) return;
+    if (hi - lo < 1e-9) { hi += 0.5; lo -= 0.5; }
+    const x = (t) => ((t - (now - TREND_S)) / TREND_S) * w;
+    const y = (v) => h - 2 - ((v - lo) / (hi - lo)) * (h - 4);
+    fields.forEach((f, k) => {
+      ctx.fillStyle = COLOURS[k % COLOURS.length] + "33";
+      ctx.strokeStyle = COLOURS[k % COLOURS.length];
+      for (let i = 0; i < trend.t.length; i++) {
+        if (f.min[i] === null) continue;
+        ctx.fillRect(x(trend.t[i]), y(f.max[i]), Math.max(1, w / TREND_S), y(f.min[i]) - y(f.max[i]) + 1);
+      }
+      ctx.beginPath();
+      let pen = false;
+      for (let i = 0; i < trend.t.length; i++) {
+        if (f.last[i] === null) { pen = false; continue; }
+        if (pen) ctx.lineTo(x(trend.t[i]), y(f.last[i])); else ctx.moveTo(x(trend.t[i]), y(f.last[i]));
+        pen = true;
+      }
+      ctx.stroke();
+    });
+    ctx.fillStyle = "#888";
+    ctx.font = "10px sans-serif";
+    ctx.fillText(`${group.label} ${hi.toFixed(group.digits)}`, 2, 10);
+    ctx.fillText(lo.toFixed(group.digits), 2, h - 3);
+  }
+
+  // ------------------------------------------------------------------ commands
+
+  /** With a token, a button for each of the sensor's commands that takes no
+   *  arguments (the OpenAPI document says which); the result is shown inline. */
+  function showCommands(s, noArguments) {
+    if (!token) return;
+    const names = s.info.commands.filter((c) => noArguments.has(c));
+    s.card.querySelector(".commands").replaceChildren(...names.map((name) => {
+      const button = document.createElement("button");
+      button.type = "button";
+      button.dataset.command = name;
+      button.textContent = name.replace(/_/g, " ");
+      button.addEventListener("click", () => runCommand(s, name, button));
+      return button;
+    }));
+    s.card.querySelector(".commands").hidden = names.length === 0;
+  }
+
+  async function runCommand(s, name, button) {
+    const out = s.cells.command_result;
+    button.disabled = true;
+    out.textContent = `${name}…`;
+    try {
+      const response = await fetch(`${API}/sensors/${encodeURIComponent(s.name)}/commands/${name}`,
+        { method: "POST", headers: { ...headers, "Content-Type": "application/json" }, body: "{}" });
+      const result = await response.json();
+      out.textContent = result.ok ? `${name}: ok ${JSON.stringify(result.answer)}`
+        : `${name}: ${result.kind || response.status}: ${result.error}`;
+      out.dataset.ok = String(Boolean(result.ok));
+    } catch (error) {
+      out.textContent = `${name}: ${error.message}`;
+      out.dataset.ok = "false";
+    } finally {
+      button.disabled = false;
+    }
+  }
+
+  async function commandsWithoutArguments() {
+    const document_ = await (await fetch("openapi.json", { cache: "no-store" })).json();
+    const names = new Set();
+    for (const [path, item] of Object.entries(document_.paths)) {
+      const match = path.match(/\/commands\/([a-z_]+)$/);
+      if (match && item.post && !(item.post.requestBody || {}).required) names.add(match[1]);
+    }
+    return names;
+  }
+
   // ------------------------------------------------------------------ buses
 
   function busCard(bus) {
@@ -533,6 +746,12 @@
       sensors.set(info.name, s);
       container.append(s.card);
       markDirty(s);
+      loadTrend(s);
+    }
+    if (token) {
+      commandsWithoutArguments().then((names) => {
+        for (const s of sensors.values()) showCommands(s, names);
+      }, () => { /* no buttons: the API answers commands all the same */ });
     }
     api("/health").then((health) => {
       $("mode").textContent = `${health.gateway_id} · v${health.version} · ` +
@@ -545,6 +764,8 @@
       const now = performance.now();
       for (const s of sensors.values()) showAge(s, now);
     }, 250);
+    // The trends move once a second (their buckets are seconds).
+    setInterval(() => { for (const s of sensors.values()) drawTrends(s); }, 1000);
     // The canvases follow the layout (rotation of a phone, a resized window).
     window.addEventListener("resize", () => { for (const s of sensors.values()) markDirty(s); });
   }

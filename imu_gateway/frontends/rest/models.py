@@ -95,9 +95,13 @@ class SensorOut(_Out):
     busy: bool
     streaming: bool
     seq: int
+    ts: str | None = Field(description="the wall time of the latest reading (null: none yet)")
     age_ms: float | None
     achieved_hz: float
+    requested_hz: float = Field(description="what the config asks: stream_hz or poll_hz")
     errors: int
+    commands: list[str] = Field(description=(
+        "the catalogue's commands this sensor has (its series and protocol)"))
 
 
 class SensorDetailOut(SensorOut):

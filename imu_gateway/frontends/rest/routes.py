@@ -22,8 +22,8 @@ from prometheus_client import CollectorRegistry, ProcessCollector, generate_late
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from ... import __version__
-from ...cache import Snapshot, Status
-from ...commands import CATALOGUE, CommandSpec, unknown_command
+from ...cache import Snapshot, Status, iso_time
+from ...commands import CATALOGUE, CommandSpec, commands_for, unknown_command
 from ...config import HttpConfig
 from ...errors import KINDS, ErrorKind, RequestFailed
 from ...model import VALUE_GROUPS
@@ -251,8 +251,12 @@ def _sensor_routes(app: FastAPI, routes: _Routes) -> None:
                 "address": stats.address,  # the live one, after a set_address too
                 "unit_id": sensor.unit_id, "status": snap.status.value, "online": snap.online,
                 "busy": snap.busy, "streaming": snap.streaming, "seq": snap.seq,
+                "ts": iso_time(snap.timestamp),
                 "age_ms": None if snap.age_ms is None else round(snap.age_ms, 1),
-                "achieved_hz": stats.achieved_hz, "errors": snap.errors}
+                "achieved_hz": stats.achieved_hz, "requested_hz": stats.requested_hz,
+                "errors": snap.errors,
+                "commands": sorted(commands_for(sensor.series, bus.protocol),
+                                   key=list(CATALOGUE).index)}
 
     @app.get(f"{API}/sensors", response_model=list[SensorOut], dependencies=routes.reads,
              responses=_errors(401), summary="every sensor with its status")
