@@ -454,6 +454,7 @@
     ctx.textAlign = "center";
     ctx.textBaseline = "top";
     const font = Math.max(9, Math.round(h / 4));
+    const labelY = font + 8; // under the readout, so no label hides behind it
     for (let d = Math.ceil((y - 55) / 5) * 5; d <= y + 55; d += 5) {
       const x = cx + (d - y) * ppd;
       const deg = ((d % 360) + 360) % 360;
@@ -462,10 +463,11 @@
       ctx.moveTo(x, h);
       ctx.lineTo(x, h - (major ? h * 0.28 : h * 0.15));
       ctx.stroke();
-      if (deg % 30 === 0 && Math.abs(x - cx) > h * 0.9) { // clear of the readout
+      if (deg % 30 === 0) {
         const label = CARDINAL[deg] || String(deg / 10);
         ctx.font = `${CARDINAL[deg] ? 700 : 500} ${font}px system-ui, sans-serif`;
-        ctx.fillText(label, x, h * 0.32);
+        const half = ctx.measureText(label).width / 2;
+        if (x - half >= 0 && x + half <= w) ctx.fillText(label, x, labelY); // whole, or not
       }
     }
     // The lubber line and the readout.
