@@ -157,6 +157,14 @@ class CommandSpec:
     #: arguments to show in examples (the dashboard's, the demo's, the docs')
     example: Args = field(default_factory=dict)
 
+    @property
+    def argument(self) -> str | None:
+        """The name of its one argument (no command takes more), or ``None``: what a
+        Modbus TCP register or a Home Assistant entity carries."""
+        names = list(self.args.model_fields)
+        assert len(names) <= 1, f"{self.name}: one argument at most"
+        return names[0] if names else None
+
 
 ALL, AH, MINS = frozenset(Series), frozenset({Series.AH}), frozenset({Series.MINS})
 

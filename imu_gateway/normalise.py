@@ -45,6 +45,13 @@ _MEASURED: dict[Series, tuple[tuple[str, type, tuple[str, ...]], ...]] = {
 }
 
 
+#: series -> the per-field names it measures, in the reading JSON's order.
+MEASURED_FIELDS: dict[Series, tuple[str, ...]] = {
+    series: tuple(n for _, _, names in groups for n in names)
+    for series, groups in _MEASURED.items()
+}
+
+
 def to_reading(values: Mapping[str, Any], series: Series) -> Reading | None:
     """A ``Reading`` from decoded values, or ``None`` if they measure nothing.
 

@@ -16,7 +16,7 @@ from typing import Any
 
 import pytest
 
-from imu_gateway.commands import CATALOGUE, BusEffect, CommandSpec, commands_for, validate
+from imu_gateway.commands import CATALOGUE, BusEffect, commands_for, validate
 from imu_gateway.frontends import modbus_map as mm
 from imu_gateway.model import KnownSettings, Series, WireProtocol
 from imu_gateway.protocol.exchanges import (
@@ -34,17 +34,10 @@ DOC = Path(__file__).parent.parent / "docs" / "commands.md"
 WIRES = tuple(WireProtocol)
 
 
-def _choices(spec: CommandSpec) -> list[dict[str, Any]]:
-    """Every value of a choice argument, else the row's example."""
-    for name, prop in spec.args.model_json_schema().get("properties", {}).items():
-        if "enum" in prop:
-            return [{name: value} for value in prop["enum"]]
-    return [dict(spec.example)]
-
-
 CASES = [(spec.name, series, wire, args)
          for spec in CATALOGUE.values() for series in Series if series in spec.series
-         for wire in WIRES if adapter_for(wire).carries(spec.name) for args in _choices(spec)]
+         for wire in WIRES if adapter_for(wire).carries(spec.name)
+         for args in command_reference.choices(spec)]
 
 
 def test_commands_md_is_up_to_date() -> None:
@@ -157,7 +150,7 @@ def test_each_register_command_round_trips_through_its_modbus_tcp_register(name:
     assert reg.command == name and reg.series == spec.series
     setting = spec.register.setting
     assert setting is None or setting in {f.name for f in dataclasses.fields(KnownSettings)}
-    for args in _choices(spec):
+    for args in command_reference.choices(spec):
         series = next(iter(spec.series))
         command = validate(name, args, series, WireProtocol.NATIVE)
         image = mm.SensorImage(series, WireProtocol.NATIVE, 0, 1000)

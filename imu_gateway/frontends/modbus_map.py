@@ -62,17 +62,9 @@ class Register:
 
 STATUS_BITS = {"online": 0, "stale": 1, "busy": 2, "streaming": 3, "no_reading": 4}
 
-def _argument(spec: CommandSpec) -> str | None:
-    """The one argument a command register carries (the catalogue's commands with a
-    register have at most one), or ``None``."""
-    names = list(spec.args.model_fields)
-    assert len(names) <= 1, f"{spec.name}: a register carries one argument"
-    return names[0] if names else None
-
-
 def _command_type(spec: CommandSpec) -> Type:
     """A float32 for an angle, else one word (a flag, or a choice's code)."""
-    name = _argument(spec)
+    name = spec.argument
     return Type.F32 if name and spec.args.model_fields[name].annotation is float else Type.U16
 
 
@@ -119,7 +111,7 @@ def command_args(spec: CommandSpec, words: Sequence[int]) -> dict[str, Any] | No
     value: 1 runs a command without arguments, a choice is its code, an angle a
     float32."""
     assert spec.register is not None
-    name = _argument(spec)
+    name = spec.argument
     if name is None:
         return {} if words[0] == 1 else None
     if _command_type(spec) is Type.F32:

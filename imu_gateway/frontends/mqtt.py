@@ -472,11 +472,13 @@ class MqttClient(Frontend):
 
     def _announce(self) -> None:
         """Everything retained, anew: after every connect.  The control messages go
-        before what waited in the outbox; the latest states after it."""
+        first; then each sensor's latest state (the states that waited are old news by
+        now: ``Pipe.connected_anew``)."""
         self._send_control(Message(self.status_topic, ONLINE, CONTROL_QOS, True))
+        described = json_properties(self.config)  # one for all (paho packs it per send)
         for topic, payload in self.discovery.items():
             self._send_control(Message(topic, json_bytes(payload), CONTROL_QOS, True,
-                                       json_properties(self.config)))
+                                       described))
         self.states.announce()
 
     # ------------------------------------------------------------ incoming

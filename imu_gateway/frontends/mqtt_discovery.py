@@ -32,13 +32,10 @@ from ..commands import CATALOGUE, CommandSpec, commands_for, resolution
 from ..config import GatewayConfig, SensorConfig
 from ..model import CAPABILITIES, VALUE_GROUPS, Group, WireProtocol
 from ..normalise import member_name
-from .mqtt_topics import Topics
+from .mqtt_topics import HA_LEAF, SETTINGS_LEAF, Topics
 
 Config = dict[str, Any]
 ORIGIN = {"name": "imu-gateway", "sw_version": __version__}
-HA_LEAF = "ha"  # the sensor's Home Assistant state topic
-SETTINGS_LEAF = "settings"  # the sensor's known settings (retained JSON)
-DIAGNOSTICS_LEAF = "diagnostics"  # the gateway's counters ({prefix}/diagnostics)
 
 
 @dataclass(frozen=True, slots=True)
@@ -119,7 +116,7 @@ def _gateway_entities(setup: Setup) -> Iterator[tuple[str, Config]]:
         "state_topic": setup.topics.status, "payload_on": "online", "payload_off": "offline",
         "device_class": "connectivity", "entity_category": "diagnostic",
         "device": device, "origin": ORIGIN}
-    diagnostics = f"{setup.topics.prefix}/{DIAGNOSTICS_LEAF}"
+    diagnostics = setup.topics.diagnostics
     for bus in setup.buses:
         for key, label, extra in _BUS_DIAGNOSTICS:
             oid = _oid(setup, "bus", bus, key)
@@ -149,13 +146,18 @@ _SENSOR_DIAGNOSTICS: tuple[tuple[str, str, Config], ...] = (
 )
 
 
+def _online(setup: Setup, name: str) -> list[Config]:
+    """The gateway's status and the sensor's availability: both ``online``."""
+    return [{"topic": setup.topics.status},
+            {"topic": setup.topics.sensor(name, "availability")}]
+
+
 def _availability(setup: Setup, name: str) -> Config:
     """Available while the gateway and the sensor are online and its reading is ``ok``
     (stale or offline: unavailable), with its status, ts and seq as attributes."""
     ha = setup.topics.sensor(name, HA_LEAF)
     return {
-        "availability": [{"topic": setup.topics.status},
-                         {"topic": setup.topics.sensor(name, "availability")},
+        "availability": [*_online(setup, name),
                          {"topic": ha, "value_template":
                           "{{ 'online' if value_json.status == 'ok' else 'offline' }}"}],
         "availability_mode": "all",
@@ -191,7 +193,7 @@ def _measured(setup: Setup, name: str, sensor: SensorConfig,
 
 def _sensor_diagnostics(setup: Setup, name: str,
                         device: Config) -> Iterator[tuple[str, Config]]:
-    diagnostics = f"{setup.topics.prefix}/{DIAGNOSTICS_LEAF}"
+    diagnostics = setup.topics.diagnostics
     for key, label, extra in _SENSOR_DIAGNOSTICS:
         oid = _oid(setup, name, "diag", key)
         yield _topic(setup, "sensor", oid), {
@@ -213,8 +215,7 @@ def _command_entities(setup: Setup, name: str, sensor: SensorConfig, protocol: W
             "name": spec.name.replace("_", " "), "unique_id": oid,
             "command_topic": setup.topics.sensor(name, f"cmd/{spec.name}"),
             "entity_category": "config",
-            "availability": [{"topic": setup.topics.status},
-                             {"topic": setup.topics.sensor(name, "availability")}],
+            "availability": _online(setup, name),
             "availability_mode": "all", "device": device, "origin": ORIGIN}
         component, specific = _command_entity(setup, name, spec)
         yield _topic(setup, component, oid), {**common, **specific}
@@ -223,10 +224,9 @@ def _command_entities(setup: Setup, name: str, sensor: SensorConfig, protocol: W
 def _command_entity(setup: Setup, name: str, spec: CommandSpec) -> tuple[str, Config]:
     """A button, a select or a number, by the command's argument."""
     assert spec.register is not None
-    fields = list(spec.args.model_fields)
-    if not fields:
+    argument = spec.argument
+    if argument is None:
         return "button", {"payload_press": "{}"}
-    argument = fields[0]
     shown: Config = {}
     if spec.register.setting:
         shown = {"state_topic": setup.topics.sensor(name, SETTINGS_LEAF),

@@ -20,8 +20,15 @@ from typing import Any
 from ..cache import EventKind, Snapshot, Status
 from ..config import MqttConfig
 from .common import GatewayLike, json_bytes
-from .mqtt_discovery import DIAGNOSTICS_LEAF, HA_LEAF, SETTINGS_LEAF
-from .mqtt_topics import CONTROL_QOS, Message, Topics, json_properties, send_delay
+from .mqtt_topics import (
+    CONTROL_QOS,
+    HA_LEAF,
+    SETTINGS_LEAF,
+    Message,
+    Topics,
+    json_properties,
+    send_delay,
+)
 
 DIAGNOSTICS_S = 10.0
 
@@ -111,7 +118,7 @@ class SideTopics:
             self._diagnostics.cancel()
         self._diagnostics = loop.call_later(DIAGNOSTICS_S, self._send_diagnostics)
         if self.connected():
-            self.send_control(Message(f"{self.topics.prefix}/{DIAGNOSTICS_LEAF}",
+            self.send_control(Message(self.topics.diagnostics,
                                       json_bytes(self.diagnostics()), CONTROL_QOS, True,
                                       self._json))
 

@@ -58,21 +58,21 @@ class RetainedSweep:
         for topic in self.subscriptions():
             client.unsubscribe(topic)
 
-    def take(self, message: paho.MQTTMessage, now: float) -> bool:
-        """A message of the sweep's subscriptions; False when it is none of its business
-        (a live message, or the sweep is over)."""
+    def take(self, message: paho.MQTTMessage, now: float) -> None:
+        """A message of the sweep's subscriptions: a retained one, while the sweep
+        lasts, is cleared when this gateway no longer publishes it (a live one, or one
+        after the sweep, is none of its business)."""
         if not message.retain or not message.payload or now > self.until:
-            return False
+            return
         topic = message.topic
         if self.discovery_prefix is not None and \
                 topic.startswith(f"{self.discovery_prefix}/"):
             if topic not in self.discovery and _ours(bytes(message.payload), self.topics.prefix):
                 self._clear(topic, "the discovery config")
-            return True
+            return
         sensor, _, leaf = topic.removeprefix(f"{self.topics.prefix}/").partition("/")
         if leaf not in self.leaves.get(sensor, ()):
             self._clear(topic, "the retained")
-        return True
 
     def _clear(self, topic: str, what: str) -> None:
         log.info("mqtt: removing %s %s: this gateway no longer publishes it", what, topic)

@@ -16,8 +16,11 @@ from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from ..config import MqttConfig, SensorConfig
-from ..model import CAPABILITIES, VALUE_GROUPS
+from ..normalise import MEASURED_FIELDS
 
+# A sensor's topics beside its state: what the gateway knows of its settings, and the
+# state again for Home Assistant (throttled apart); the gateway's counters.
+SETTINGS_LEAF, HA_LEAF, DIAGNOSTICS_LEAF = "settings", "ha", "diagnostics"
 CONTROL_QOS = 1  # status, availability, discovery, results: small and must arrive
 ONLINE, OFFLINE = b"online", b"offline"  # the status and availability payloads
 
@@ -80,6 +83,10 @@ class Topics:
     def status(self) -> str:
         return f"{self.prefix}/status"
 
+    @property
+    def diagnostics(self) -> str:
+        return f"{self.prefix}/{DIAGNOSTICS_LEAF}"
+
     def sensor(self, sensor: str, leaf: str) -> str:
         return f"{self.prefix}/{sensor}/{leaf}"
 
@@ -98,14 +105,13 @@ def retained_leaves(config: MqttConfig,
     the state and per-field values when ``retain`` is on."""
     out = {}
     for name, sensor in sensors.items():
-        leaves = {"availability", "settings"}
+        leaves = {"availability", SETTINGS_LEAF}
         if config.homeassistant_discovery:
-            leaves.add("ha")
+            leaves.add(HA_LEAF)
         if config.retain:
             leaves.add("state")
             if config.per_field_topics:
-                leaves.update(n for g in CAPABILITIES[sensor.series].groups
-                              for n in VALUE_GROUPS[g].fields)
+                leaves.update(MEASURED_FIELDS[sensor.series])
         out[name] = frozenset(leaves)
     return out
 

@@ -29,7 +29,7 @@ DOC = Path("docs/commands.md")
 _SECTION = re.compile(r"(<!-- generated: (\w+) -->\n).*?(<!-- end generated -->)", re.S)
 
 
-def _choices(spec: CommandSpec) -> Iterator[dict[str, Any]]:
+def choices(spec: CommandSpec) -> Iterator[dict[str, Any]]:
     """Arguments that together reach every request the command can make: each value
     of a choice, else the row's example (or none)."""
     for name, prop in spec.args.model_json_schema().get("properties", {}).items():
@@ -62,7 +62,7 @@ def _wire(spec: CommandSpec, protocol: WireProtocol, show: Callable[[bytes], str
     texts: dict[Series, str] = {}
     for series in (s for s in Series if s in spec.series):
         sequences = []
-        for args in _choices(spec):
+        for args in choices(spec):
             command = validate(spec.name, args, series, protocol)
             exchanges = adapter.command(series, 1, spec.name, command.args)
             sequences.append(" then ".join(show(e.request) for e in exchanges))
@@ -116,13 +116,12 @@ def registers() -> list[str]:
         reg = spec.register
         if reg is None:
             continue
-        fields = list(spec.args.model_fields)
-        if not fields:
+        if spec.argument is None:
             kind, write = "u16", "1"
         elif reg.codes:
             kind, write = "u16", ", ".join(f"{code} {choice}" for choice, code in reg.codes.items())
         else:
-            kind, write = "f32", f"{fields[0]}, FC16 of both registers"
+            kind, write = "f32", f"{spec.argument}, FC16 of both registers"
         span = f"{reg.address}" if kind == "u16" else f"{reg.address}–{reg.address + 1}"
         reads = reg.description.split("; ", 1)[-1] if "; " in reg.description else ""
         lines.append(f"| {span} | {kind} | `{spec.name}`{_series(spec)} | {write} | {reads} |")

@@ -18,8 +18,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ...cache import EventKind, Snapshot
-from ...model import CAPABILITIES, VALUE_GROUPS
-from ...normalise import field_values
+from ...normalise import MEASURED_FIELDS, field_values
 from ..common import GatewayLike
 
 BUCKET_S = 1
@@ -37,9 +36,7 @@ class History:
     """Every sensor's last ``KEEP_S`` seconds, a bucket a second."""
 
     def __init__(self, gateway: GatewayLike) -> None:
-        self.fields = {name: tuple(f for g in VALUE_GROUPS
-                                   if g in CAPABILITIES[sensor.series].groups
-                                   for f in VALUE_GROUPS[g].fields)
+        self.fields = {name: MEASURED_FIELDS[sensor.series]
                        for name, sensor in gateway.sensors.items()}
         self._rings: dict[str, deque[_Bucket]] = {
             name: deque(maxlen=KEEP_S // BUCKET_S) for name in gateway.sensors}
