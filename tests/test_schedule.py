@@ -260,6 +260,18 @@ def test_offline_sensors_are_refused_at_once_and_the_port_loss_fails_everything(
     assert line.schedule.refusal("s0") is not None
 
 
+def test_a_sensor_away_for_days_is_still_tried_every_back_off() -> None:
+    """Failures go on counting while a sensor is away: thousands of them must not
+    overflow the back-off's doubling (2 ** 1024 is past a float)."""
+    s = SensorState(SensorConfig(name="vg", series=Series.VG, poll_hz=10), 0)
+    now = 0.0
+    for _ in range(5000):  # 10 s apart: 14 hours away
+        s.failed()
+        s.schedule_next_poll(now)
+        assert s.next_due == now + BACKOFF_MAX or s.failures < 10
+        now = s.next_due
+
+
 # ------------------------------------------------------------------ streams
 
 

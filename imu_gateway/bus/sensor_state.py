@@ -106,7 +106,10 @@ class SensorState:
         Polls that fell more than a period behind are counted as missed, not fired
         later as a burst of catch-up reads."""
         if self.failures:
-            self.next_due = now + min(BACKOFF_MAX, BACKOFF_MIN * 2 ** (self.failures - 1))
+            # (the exponent is capped: a sensor away for days fails without end, and
+            # 2 ** 1024 is past a float)
+            doubled = BACKOFF_MIN * 2 ** min(self.failures - 1, 32)
+            self.next_due = now + min(BACKOFF_MAX, doubled)
         elif self.period == 0:
             self.next_due = now
         else:
