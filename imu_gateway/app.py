@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from .bus.runner import BusRunner
+from .bus.runner import BusThread
 from .cache import Cache, Snapshot
 from .capacity import line_loads
 from .commands import CATALOGUE, CommandResult, validate
@@ -46,7 +46,8 @@ class Gateway:
     def __init__(self, config: GatewayConfig) -> None:
         self.config = config
         self.cache = Cache([(s.name, s.stale_after_ms) for _, s in config.iter_sensors()])
-        self.runners = {bus.name: BusRunner(bus, self.cache) for bus in config.buses}
+        self.buses = BusThread(list(config.buses), self.cache)
+        self.runners = self.buses.runners
         self.masters = {name: runner.master for name, runner in self.runners.items()}
         self._runner_of = {s.name: self.runners[b.name] for b, s in config.iter_sensors()}
         self.sensors: dict[str, SensorConfig] = {s.name: s for _, s in config.iter_sensors()}
@@ -67,7 +68,7 @@ class Gateway:
         runner = self._runner_of[sensor]
         try:
             command = validate(name, args, config.series, runner.master.config.protocol)
-            result = await runner.call(runner.master.submit(sensor, command))
+            result = await runner.submit(sensor, command)
         except RequestFailed as exc:
             return CommandResult.failed(sensor, name, exc)
         if result.ok:  # what the answer shows of the settings, for the front ends
@@ -98,8 +99,7 @@ class Gateway:
         await self.start_frontends()
         async with contextlib.AsyncExitStack() as stopping:  # unwinds last in, first out
             stopping.push_async_callback(self._stop_buses)
-            for runner in self.runners.values():
-                runner.start()
+            self.buses.start()
             for frontend in (self.modbus, self.http, self.mqtt):
                 if frontend is not None:
                     stopping.push_async_callback(frontend.stop)
@@ -116,9 +116,7 @@ class Gateway:
             log.info("stopping")
 
     async def _stop_buses(self) -> None:
-        for runner in self.runners.values():
-            runner.stop()
-        await asyncio.gather(*(r.join(SHUTDOWN_GRACE) for r in self.runners.values()))
+        await self.buses.stop(SHUTDOWN_GRACE)
 
     async def _watch_staleness(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
@@ -134,7 +132,7 @@ class Gateway:
         if snap.age_ms is not None and snap.age_ms <= max_age_ms:
             return snap
         runner = self._runner_of[sensor]
-        await runner.call(runner.master.read_now(sensor))
+        await runner.read_now(sensor)
         return self.cache.snapshot(sensor)
 
     async def passthrough(self, sensor: str, pdu: bytes) -> bytes:
@@ -146,7 +144,7 @@ class Gateway:
         from .protocol.modbus_rtu import settings_shown
 
         runner = self._runner_of[sensor]
-        answer = await runner.call(runner.master.passthrough(sensor, pdu))
+        answer = await runner.passthrough(sensor, pdu)
         self.cache.learn(sensor, settings_shown(pdu, answer))
         return answer
 

@@ -9,17 +9,27 @@ shared), never about how fast this machine happens to be.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import os
+import re
+import time
+import tty
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future
 from typing import Any
 
 import pytest
 from harness import running, until
 
 from imu_gateway.app import Gateway
+from imu_gateway.bus import link as link_module
+from imu_gateway.bus.link import SerialLink
 from imu_gateway.bus.master import OFFLINE_AFTER, BusMaster
+from imu_gateway.bus.reactor import Reactor
 from imu_gateway.cache import EventKind, Snapshot, Status
 from imu_gateway.commands import Command, CommandResult
 from imu_gateway.config import config_from_dict
-from imu_gateway.errors import ErrorKind, RequestFailed
+from imu_gateway.errors import ErrorKind, LinkError, RequestFailed
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import Faults, SimSensor, SimulatorThread, hold, make_sensor, simulated
 from imu_gateway.simulator.motion import Motion
@@ -124,17 +134,28 @@ async def test_concurrent_commands_and_polling_never_overlap_and_commands_go_fir
             async def on_the_bus(sensor: str) -> tuple[CommandResult, int]:
                 """The command, and the readings the bus took meanwhile, counted on
                 the bus's own thread (the cache hears of them later)."""
+                loop = asyncio.get_running_loop()
+                future: asyncio.Future[tuple[CommandResult, int]] = loop.create_future()
+
                 def readings() -> int:
                     return sum(s.stats.readings for s in m.sensors.values())
 
-                before = readings()
-                result = await m.submit(sensor, Command("read_settings"))
-                return result, readings() - before
+                def start() -> None:
+                    before = readings()
+
+                    def done(result: Any, error: Exception | None) -> None:
+                        loop.call_soon_threadsafe(future.set_result,
+                                                  (result, readings() - before))
+
+                    m.submit(sensor, Command("read_settings"), done)
+
+                await runner.call(start)
+                return await future
 
             async def submitter(sensor: str, n: int) -> list[bool]:
                 oks = []
                 for _ in range(n):
-                    result, polled = await runner.call(on_the_bus(sensor))
+                    result, polled = await on_the_bus(sensor)
                     # Commands go before polls: at most the poll in flight when it was
                     # submitted finishes first (other commands may, in order).
                     assert polled <= 1
@@ -526,54 +547,76 @@ async def test_a_stream_that_comes_back_by_itself_is_no_longer_polled() -> None:
             assert sim.bus.stats.masters_overlaps == overlaps
 
 
-@pytest.mark.parametrize("port", ["pty", "socket://127.0.0.1:9"])
-@pytest.mark.anyio
-async def test_kernel_rs485_mode_where_it_cannot_work_is_a_clear_error(port: str) -> None:
-    from imu_gateway.bus.link import SerialLink
-    from imu_gateway.errors import LinkError
+@contextlib.contextmanager
+def bus_thread() -> Iterator[Reactor]:
+    reactor = Reactor("test bus")
+    reactor.start()
+    try:
+        yield reactor
+    finally:
+        reactor.end()
+        assert reactor.join(5)
+        reactor.close()
 
-    async def refused(path: str) -> None:
+
+def open_link(reactor: Reactor, link: SerialLink, on_bytes: Callable[[bytes, float], None],
+              ) -> LinkError | None:
+    """Open ``link`` on the bus thread; the error, if it failed."""
+    opened: Future[LinkError | None] = Future()
+    reactor.post(lambda: link.open(reactor, on_bytes, lambda exc: None, opened.set_result))
+    return opened.result(10)
+
+
+@pytest.mark.parametrize("port", ["pty", "socket://127.0.0.1:9"])
+def test_kernel_rs485_mode_where_it_cannot_work_is_a_clear_error(port: str) -> None:
+    def refused(path: str) -> None:
         link = SerialLink(path, 9600, rs485=True)
-        with pytest.raises(LinkError, match=r"RS-?485"):
-            await link.open(lambda data, at: None, lambda exc: None)
+        with bus_thread() as reactor:
+            error = open_link(reactor, link, lambda data, at: None)
+        assert isinstance(error, LinkError) and re.search(r"RS-?485", str(error))
         assert not link.is_open
 
     if port == "pty":
         with simulated([native(Series.AH, 0)]) as sim:
-            await refused(sim.path)
+            refused(sim.path)
     else:
-        await refused(port)
+        refused(port)
 
 
-@pytest.mark.anyio
-async def test_bytes_on_their_way_count_as_pending_until_the_master_has_them() -> None:
-    """A busy machine's timer can run before the reader's bytes, already handed to the
-    loop: ``pending`` must still count them, or an answer that came is called missing."""
-    import os
-    import time
-    import tty
-
-    from imu_gateway.bus.link import SerialLink
-
+@pytest.mark.parametrize("watched", [True, False], ids=["bus loop reads", "reader thread"])
+def test_bytes_on_their_way_count_as_pending_until_the_master_has_them(
+        watched: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A busy machine's timer can run before bytes that came: ``pending`` must count
+    them (in the port, or read by a reader thread and posted to the held loop), or an
+    answer that came is called missing."""
+    if not watched:
+        monkeypatch.setattr(link_module, "watchable", lambda ser: False)
     master, slave = os.openpty()
     tty.setraw(slave)
     got: list[bytes] = []
     try:
         link = SerialLink(os.ttyname(slave), 115200)
-        await link.open(lambda data, at: got.append(data), lambda exc: None)
-        try:
-            os.write(master, b"\x77\x04\x00\x04\x08")
+        with bus_thread() as reactor:
+            assert open_link(reactor, link, lambda data, at: got.append(data)) is None
+            assert link.watched is watched
+
+            def held() -> int:
+                """On the bus thread, which is held here: nothing reaches on_bytes."""
+                os.write(master, b"\x77\x04\x00\x04\x08")
+                deadline = time.monotonic() + 10
+                while link.pending() < 5:
+                    assert time.monotonic() < deadline
+                    time.sleep(0.001)
+                return len(got)
+
+            assert reactor.call(held).result(15) == 0
             deadline = time.monotonic() + 10
-            # The loop is held here (no await): the reader reads and hands the bytes
-            # over, but they cannot reach on_bytes yet.
-            while link._flow.handed < 5:
+            while not got:
                 assert time.monotonic() < deadline
                 time.sleep(0.001)
-            assert link.pending() == 5 and not got
-            await until(lambda: bool(got))
-            assert b"".join(got) == b"\x77\x04\x00\x04\x08" and link.pending() == 0
-        finally:
-            link.close()
+            assert b"".join(got) == b"\x77\x04\x00\x04\x08"
+            assert reactor.call(link.pending).result(5) == 0
+            reactor.post(link.close)
     finally:
         os.close(master)
         os.close(slave)

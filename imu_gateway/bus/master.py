@@ -6,16 +6,23 @@ port and reopens it with back-off, writes the requests the schedule hands it, fe
 it the bytes that come in and the timer when it is due, and turns its events into
 cache updates, log lines and the answers of whoever asked.
 
-An answer's last byte is handed to the schedule the moment the serial reader has it,
-and the next request is written right there, before the answer is normalised and
-published: the time between an answer and the next request is the line's.
+It runs on the bus thread as a client of its loop (``reactor``): the loop asks it
+when it next needs a turn (``next_at``) and gives it one (``on_timer``); its port's
+bytes come straight from the loop.  Everything here runs on that thread.  Whoever
+asks for something (a command, a read, a pass-through) passes a ``Done`` callback,
+called on the bus thread with the outcome or the error.
+
+An answer's last byte is handed to the schedule the moment the loop has it, and the
+next request is written right there, before the answer is normalised and published:
+the time between an answer and the next request is the line's.
 """
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import logging
+import math
+import time
 import typing
 from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
@@ -29,6 +36,7 @@ from ..protocol.exchanges import ModbusAdapter, adapter_for
 from ..stats import BusStats, Counters, SensorStats, ms, share
 from .events import ErrorCounted, Event, Finished, Job, Note, Publish, StateChange, Trace
 from .link import SerialLink
+from .reactor import Reactor
 from .schedule import Schedule
 from .sensor_state import OFFLINE_AFTER, SensorState
 from .trace import TraceLog
@@ -45,6 +53,8 @@ BUG_PAUSE = 0.1
 #: change is passed on, they are published too: a client never sees the old address.)
 STATS_EVERY = 0.25
 T = TypeVar("T")
+#: Told on the bus thread how a job ended: its outcome, or the error.
+Done = Callable[[Any, RequestFailed | None], None]
 
 
 class BusToCache(typing.Protocol):
@@ -70,11 +80,13 @@ class BusMaster:
         self.schedule = Schedule(config, self.adapter)
         self.link = link or SerialLink(config.port, config.baudrate, rs485=config.rs485)
         self.cache = cache
-        self._futures: dict[Job, asyncio.Future[Any]] = {}
-        self._waiter: asyncio.Future[None] | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
+        self.reactor: Reactor | None = None
+        self._waiters: dict[Job, list[Done]] = {}
+        # the turns it asks the loop for: the schedule's, the counters', the reopening's
+        self._wake = self._stats_at = self._reopen_at = math.inf
         self._reopen_delay = REOPEN_MIN
         self._port_problem_logged = False
+        self._finished = False
         self.trace_log = TraceLog(self.name)
         if logging.getLogger("imu_gateway").isEnabledFor(logging.DEBUG):
             self.schedule.outcomes.tracing = True  # --log-level debug: every bus
@@ -91,43 +103,48 @@ class BusMaster:
     def port_open(self) -> bool:
         return self.schedule.port_open
 
+    @property
+    def done(self) -> bool:
+        """Stopped for good: the port closed, every job answered."""
+        return self._finished
+
     # ------------------------------------------------------------ public interface
+    # (on the bus thread; ``done`` is called there, once)
 
-    async def submit(self, sensor: str, command: Command) -> CommandResult:
-        """Carry out a validated command; returns after the sensor's answer."""
+    def submit(self, sensor: str, command: Command, done: Done) -> None:
+        """Carry out a validated command; ``done`` gets its ``CommandResult``."""
         if (refusal := self.schedule.refusal(sensor)) is not None:
-            return CommandResult.failed(sensor, command.name, refusal)
-        result: CommandResult = await self._wait_for(self.schedule.command(sensor, command))
-        return result
+            done(CommandResult.failed(sensor, command.name, refusal), None)
+            return
+        self._wait_for(self.schedule.command(sensor, command), done)
 
-    async def passthrough(self, sensor: str, pdu: bytes) -> bytes:
-        """A Modbus request PDU to the sensor unchanged, queued like a command; returns
-        the sensor's answer PDU (its exceptions included).  Raises ``RequestFailed``
+    def passthrough(self, sensor: str, pdu: bytes, done: Done) -> None:
+        """A Modbus request PDU to the sensor unchanged, queued like a command; ``done``
+        gets the sensor's answer PDU (its exceptions included), or ``RequestFailed``
         when it does not answer."""
         if (refusal := self.schedule.refusal(sensor)) is not None:
-            raise refusal
-        if not isinstance(self.adapter, ModbusAdapter):
-            raise RequestFailed(ErrorKind.UNSUPPORTED, f"{sensor} does not speak Modbus")
-        exchange = self.adapter.raw(self.sensors[sensor].address, pdu)
-        answer: bytes = await self._wait_for(self.schedule.passthrough(sensor, exchange))
-        return answer
+            done(None, refusal)
+        elif not isinstance(self.adapter, ModbusAdapter):
+            done(None, RequestFailed(ErrorKind.UNSUPPORTED, f"{sensor} does not speak Modbus"))
+        else:
+            exchange = self.adapter.raw(self.sensors[sensor].address, pdu)
+            self._wait_for(self.schedule.passthrough(sensor, exchange), done)
 
-    async def read_now(self, sensor: str) -> None:
+    def read_now(self, sensor: str, done: Done) -> None:
         """Read the sensor now (behind commands).  Concurrent calls share one exchange;
-        a streaming sensor's next frame serves them.  Raises ``RequestFailed``."""
+        a streaming sensor's next frame serves them.  ``done`` gets None, or
+        ``RequestFailed``."""
         if (refusal := self.schedule.refusal(sensor, queued=False)) is not None:
-            raise refusal
+            done(None, refusal)
+            return
         job, new = self.schedule.read(sensor)
+        self._waiters.setdefault(job, []).append(done)
         if new:
-            self._futures[job] = asyncio.get_running_loop().create_future()
             self._poke()
-        await asyncio.shield(self._futures[job])
 
-    async def _wait_for(self, job: Job) -> Any:
-        future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
-        self._futures[job] = future
+    def _wait_for(self, job: Job, done: Done) -> None:
+        self._waiters[job] = [done]
         self._poke()
-        return await future
 
     def stop(self) -> None:
         """Finish the exchange in flight, stop the streams, then stop."""
@@ -135,45 +152,73 @@ class BusMaster:
         self._dispatch()
         self._poke()
 
-    def queue_depth(self) -> int:
-        return self.schedule.queue_depth()
+    # ------------------------------------------------------------ the loop's client
 
-    # ------------------------------------------------------------ the loop
-
-    async def run(self) -> None:
-        self._loop = loop = asyncio.get_running_loop()
-        started = loop.time()
-        self.schedule.started = self.stats.rate.started = started
+    def start(self, reactor: Reactor) -> None:
+        """Join the bus thread's loop (called on that thread)."""
+        self.reactor = reactor
+        now = self._now()
+        self.schedule.started = self.stats.rate.started = now
         for s in self.sensors.values():
-            s.stats.rate.started = started
-        ticker = _Ticker(loop, STATS_EVERY, self._publish_stats)
-        try:
-            while not self.schedule.finished:
-                if not self.port_open and not self.schedule.stopping:
-                    await self._open_port()
-                    continue
-                wake = self._guarded(self._step)
-                await self._sleep_until(wake if wake is not None else loop.time() + BUG_PAUSE)
-        finally:
-            ticker.cancel()
-            self.link.close()
-            self.schedule.port_open = False
-            self.schedule.abort(self._now(), "the gateway is stopping")
-            self.schedule.fail_pending(ErrorKind.OFFLINE, "the gateway is stopping")
-            self._dispatch()
-            self._publish_stats()
+            s.stats.rate.started = now
+        self._stats_at = now + STATS_EVERY
+        self._reopen_at = now
+        reactor.clients.append(self)
 
-    def _step(self) -> float:
+    def next_at(self) -> float:
+        return min(self._wake, self._stats_at, self._reopen_at, self.link.rest_at)
+
+    def on_timer(self, now: float) -> None:
+        if self.link.rest_at <= now:
+            self.link.on_timer(now)  # the rest of an answer: on to _on_bytes
+        if self._stats_at <= now:
+            self._stats_at = now + STATS_EVERY
+            self._publish_stats()
+        if self._reopen_at <= now:
+            self._reopen_at = math.inf
+            self._open_port()
+        if self._wake <= now:
+            self._turn()
+
+    def _turn(self, drained: bool = False) -> None:
+        """Deadlines, the next request, the events; then when the next turn is due.
+        ``drained``: the port was read empty just now (no need to ask it)."""
+        self._wake = math.inf
+        if self._finished or not (self.port_open or self.schedule.stopping):
+            return  # the port is (re)opening: its end gives the next turn
+        wake = self._guarded(lambda: self._step(drained))
+        if self.schedule.finished:
+            self.finish()
+            return
+        now = self._now()
+        self._wake = max(wake if wake is not None else now + BUG_PAUSE, now + MIN_WAIT)
+
+    def _step(self, drained: bool = False) -> float:
         """The timer's turn: deadlines, the next request, the events; when to wake."""
-        assert self._loop is not None
-        now = self._loop.time()
-        # (asked once: the bytes reach the schedule only through _on_bytes, after this)
-        pending = self.link.pending()
+        now = self._now()
+        # (asked once: the bytes reach the schedule only through _on_bytes, after this;
+        # not asked right after a read took all there was: an ioctl is a tenth of the
+        # CPU an exchange costs)
+        pending = 0 if drained else self.link.pending()
         self.schedule.handle_timer(now, pending)
         self._send(now, pending)
-        wake = self.schedule.next_wake(self._loop.time(), pending)
+        wake = self.schedule.next_wake(self._now(), pending)
         self._dispatch()  # (next_wake may have flushed a half frame: its events too)
         return wake
+
+    def finish(self) -> None:
+        """Stop for good now, whatever is in flight (the end of a stop, or past its
+        grace)."""
+        if self._finished:
+            return
+        self._finished = True
+        self._wake = self._stats_at = self._reopen_at = math.inf
+        self.link.close()
+        self.schedule.port_open = False
+        self.schedule.abort(self._now(), "the gateway is stopping")
+        self.schedule.fail_pending(ErrorKind.OFFLINE, "the gateway is stopping")
+        self._dispatch()
+        self._publish_stats()
 
     def _guarded(self, step: Callable[[], T]) -> T | None:
         """A bug must cost one request, not the bus: logged, the job in flight answered
@@ -188,39 +233,39 @@ class BusMaster:
                 self._dispatch()
             return None
 
-    def _now(self) -> float:
-        return self._loop.time() if self._loop is not None else 0.0
-
-    async def _sleep_until(self, when: float) -> None:
-        """Until ``when``, or until bytes, a request or a stop wake us (``_poke``)."""
-        assert self._loop is not None
-        waiter = self._waiter = self._loop.create_future()
-        timer = self._loop.call_at(max(when, self._loop.time() + MIN_WAIT), _wake, waiter)
-        try:
-            await waiter
-        finally:
-            timer.cancel()
-            self._waiter = None
+    @staticmethod
+    def _now() -> float:
+        return time.monotonic()
 
     def _poke(self) -> None:
-        if self._waiter is not None:
-            _wake(self._waiter)
+        """Something changed (a job queued, a stop, the port lost): a turn at once."""
+        self._wake = 0.0
 
     # ------------------------------------------------------------ the port
 
-    async def _open_port(self) -> None:
-        try:
-            await self.link.open(self._on_bytes, self._on_lost)
-            self.link.set_baudrate(self.schedule.baud)
-        except LinkError as exc:
+    def _open_port(self) -> None:
+        assert self.reactor is not None
+        self.link.open(self.reactor, self._on_bytes, self._on_lost, self._opened)
+
+    def _opened(self, error: LinkError | None) -> None:
+        if self._finished:
             self.link.close()
+            return
+        if error is None:
+            try:
+                self.link.set_baudrate(self.schedule.baud)
+            except LinkError as exc:
+                self.link.close()
+                error = exc
+        if error is not None:
             if not self._port_problem_logged:
-                log.warning("bus %s: %s; retrying", self.name, exc)
+                log.warning("bus %s: %s; retrying", self.name, error)
                 self._port_problem_logged = True
-            self.schedule.lost(self._now(), str(exc))
+            self.schedule.lost(self._now(), str(error))
             self._dispatch()
-            await self._sleep_until(self._now() + self._reopen_delay)
+            self._reopen_at = self._now() + self._reopen_delay
             self._reopen_delay = min(self._reopen_delay * 2, REOPEN_MAX)
+            self._poke()  # a stop that came meanwhile finishes now
             return
         if self._port_problem_logged:
             log.warning("bus %s: port %s is back", self.name, self.config.port)
@@ -230,6 +275,7 @@ class BusMaster:
         self._port_problem_logged = False
         self._reopen_delay = REOPEN_MIN
         self.schedule.open(self._now())
+        self._turn()
 
     def _on_lost(self, exc: Exception) -> None:
         """The port is gone (reported by the reader or by a failed write): once."""
@@ -240,19 +286,16 @@ class BusMaster:
         self._port_problem_logged = True
         self.schedule.lost(self._now(), str(exc))
         self._dispatch()
+        self._reopen_at = self._now()
         self._poke()
 
     # ------------------------------------------------------------ bytes in, bytes out
 
     def _on_bytes(self, data: bytes, at: float) -> None:
-        """From the serial reader, in this loop; ``at``: when the bytes came in."""
-        self._guarded(lambda: self._received(data, at))
-        self._poke()  # the timer to wait for has changed
-
-    def _received(self, data: bytes, at: float) -> None:
-        self.schedule.receive(data, at)
-        self._send(self._now(), self.link.pending())  # the next request first: publishing can wait
-        self._dispatch()
+        """From the link, on the bus thread; ``at``: when the bytes came in.  The turn
+        that follows sends the next request before the answer is published."""
+        self._guarded(lambda: self.schedule.receive(data, at))
+        self._turn(drained=self.link.watched)
 
     def _send(self, now: float, pending: int) -> None:
         request = self.schedule.next_request(now, pending)
@@ -305,14 +348,9 @@ class BusMaster:
                 self.trace_log.write(event, self._now())
 
     def _resolve(self, job: Job, outcome: Any, error: RequestFailed | None) -> None:
-        future = self._futures.pop(job, None)
-        if future is None or future.done():
-            return
-        if error is None:
-            future.set_result(outcome)
-            return
-        future.set_exception(error)  # (each job's error is its own: made when it ended)
-        future.exception()  # retrieved here: a read nobody awaits any more is not an error
+        # (each job's error is its own: made when it ended)
+        for done in self._waiters.pop(job, ()):
+            done(outcome, error)
 
     # ------------------------------------------------------------ views
 
@@ -327,51 +365,41 @@ class BusMaster:
         return self.bus_stats(), {name: self.sensor_stats(name) for name in self.sensors}
 
     def sensor_stats(self, name: str) -> SensorStats:
-        s, now = self.sensors[name], self._now()
-        timer = s.timer
-        return SensorStats(
-            address=s.address, online=bool(s.online), streaming=s.streaming,
-            transactions=s.stats.transactions, readings=s.stats.readings,
-            errors=dict(s.stats.errors), missed_polls=s.stats.missed_polls,
-            late_answers=s.stats.late_answers, stream_stops=s.stats.stream_stops,
-            bus_share=share(s.stats.busy_time, now - self.schedule.started),
-            requested_hz=s.config.stream_hz if s.streaming else s.config.poll_hz,
-            achieved_hz=round(s.stats.rate.per_second(now), 2),
-            latency_ms=ms(timer.srtt), latency_dev_ms=ms(timer.rttvar if timer.samples else None),
-            timeout_ms=ms(timer.rto) or 0.0)
+        return sensor_stats_of(self, name, self._now())
 
     def bus_stats(self) -> BusStats:
-        now, stats = self._now(), self.stats
-        elapsed = now - self.schedule.started
-        return BusStats(
-            name=self.name, port=self.config.port, baudrate=self.schedule.baud,
-            protocol=self.config.protocol.name.lower(), port_open=self.port_open,
-            transactions=stats.transactions, errors=dict(stats.errors),
-            late_answers=stats.late_answers,
-            transactions_per_s=round(stats.rate.per_second(now), 2),
-            utilisation=share(stats.busy_time, elapsed), busy_ms=round(stats.busy_time * 1000),
-            wire_utilisation=share(stats.wire_time, elapsed), queue_depth=self.queue_depth())
+        return bus_stats_of(self, self._now())
 
 
-class _Ticker:
-    """``callback`` every ``interval`` seconds on ``loop``, until cancelled."""
-
-    def __init__(self, loop: asyncio.AbstractEventLoop, interval: float,
-                 callback: Callable[[], None]) -> None:
-        self.loop, self.interval, self.callback = loop, interval, callback
-        self.handle = loop.call_later(interval, self._tick)
-
-    def _tick(self) -> None:
-        self.callback()
-        self.handle = self.loop.call_later(self.interval, self._tick)
-
-    def cancel(self) -> None:
-        self.handle.cancel()
-
-
-def _wake(future: asyncio.Future[None]) -> None:
-    if not future.done():
-        future.set_result(None)
+def sensor_stats_of(master: BusMaster, name: str, now: float) -> SensorStats:
+    """A sensor's counters, frozen (on the bus's thread)."""
+    s = master.sensors[name]
+    timer = s.timer
+    return SensorStats(
+        address=s.address, online=bool(s.online), streaming=s.streaming,
+        transactions=s.stats.transactions, readings=s.stats.readings,
+        errors=dict(s.stats.errors), missed_polls=s.stats.missed_polls,
+        late_answers=s.stats.late_answers, stream_stops=s.stats.stream_stops,
+        bus_share=share(s.stats.busy_time, now - master.schedule.started),
+        requested_hz=s.config.stream_hz if s.streaming else s.config.poll_hz,
+        achieved_hz=round(s.stats.rate.per_second(now), 2),
+        latency_ms=ms(timer.srtt), latency_dev_ms=ms(timer.rttvar if timer.samples else None),
+        timeout_ms=ms(timer.rto) or 0.0)
 
 
-__all__ = ["OFFLINE_AFTER", "BusMaster"]
+def bus_stats_of(master: BusMaster, now: float) -> BusStats:
+    """The bus's counters, frozen (on the bus's thread)."""
+    stats = master.stats
+    elapsed = now - master.schedule.started
+    return BusStats(
+        name=master.name, port=master.config.port, baudrate=master.schedule.baud,
+        protocol=master.config.protocol.name.lower(), port_open=master.port_open,
+        transactions=stats.transactions, errors=dict(stats.errors),
+        late_answers=stats.late_answers,
+        transactions_per_s=round(stats.rate.per_second(now), 2),
+        utilisation=share(stats.busy_time, elapsed), busy_ms=round(stats.busy_time * 1000),
+        wire_utilisation=share(stats.wire_time, elapsed),
+        queue_depth=master.schedule.queue_depth())
+
+
+__all__ = ["OFFLINE_AFTER", "BusMaster", "Done"]

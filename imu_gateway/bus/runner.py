@@ -1,136 +1,175 @@
-"""A bus master on a thread of its own.
+"""The bus masters' side of the main loop: the bus thread, and a handle per bus.
 
-The line's timing must not depend on what the front ends are doing: with a hundred
+The lines' timing must not depend on what the front ends are doing: with a hundred
 Modbus TCP clients on the main event loop, each turn of that loop runs a long burst of
 their callbacks, and a bus master sharing the loop would send each next request that
-much later (measured: the bus rate fell by a third, ``docs/benchmarks.md``).  So each
-bus master runs its own event loop on its own thread.
+much later (measured: the bus rate fell by a third, ``docs/benchmarks.md``).  So the
+bus masters run on a thread of their own, in one ``select()`` loop (``reactor``): one
+thread carries every line of the process (8 lines at 115200 baud on a 2-core machine,
+measured in ``bench/lines.py``).
 
-The master writes to the cache through ``CacheWriter``, which hands every write to the
-loop that owns the cache, in order, so cache listeners (the front ends) always run
-there.  Its counters travel the same way, as frozen snapshots made on the bus thread
-(``BusMaster.stats_snapshot``): the front ends never touch the master's state.
-Calls into the master (commands, on-demand reads, pass-through) go through
-``BusRunner.call``.
+The masters write to the cache through a ``CacheWriter`` each, which gathers what one
+turn of the bus loop wrote and hands it to the loop that owns the cache in one piece,
+in order, so cache listeners (the front ends) always run there, and the main loop is
+woken once per turn, not once per reading.  Counters travel the same way, as frozen
+snapshots made on the bus thread (``BusMaster.stats_snapshot``), and so do the answers
+of whoever asked (after the counters they may read).  The front ends never touch a
+master's state.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 import logging
-import selectors
-import threading
-from collections.abc import Awaitable, Callable, Coroutine, Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
 
 from ..cache import Cache
+from ..commands import Command, CommandResult
 from ..config import BusConfig
 from ..errors import ErrorKind, RequestFailed
 from ..model import Reading
 from ..stats import BusStats, SensorStats
-from ..threads import tighten_timers
-from .link import BUS_NICE
-from .master import BusMaster
+from .master import BusMaster, Done
+from .reactor import Reactor
 
 log = logging.getLogger("imu_gateway.bus")
 T = TypeVar("T")
 
 
-def _precise_loop() -> asyncio.AbstractEventLoop:
-    return asyncio.SelectorEventLoop(selectors.SelectSelector())
-
-
 class CacheWriter:
-    """The cache's write side, used from a bus thread."""
+    """The cache's write side, used from the bus thread: the writes of one turn of the
+    bus loop go to the cache's loop together, in order (``flush``)."""
 
-    def __init__(self, cache: Cache, runner: BusRunner) -> None:
+    def __init__(self, cache: Cache) -> None:
         self.cache = cache
-        self.runner = runner
         self.loop: asyncio.AbstractEventLoop | None = None  # the cache's loop, set at start
+        self._batch: list[Callable[[], None]] = []
 
-    def _hand_over(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
-        assert self.loop is not None
-        self.loop.call_soon_threadsafe(functools.partial(fn, *args, **kwargs))
+    def hand(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
+        """Run ``fn`` on the cache's loop, after everything handed before it."""
+        self._batch.append(functools.partial(fn, *args, **kwargs))
+
+    def flush(self) -> None:
+        """Hand the turn's writes over (the bus loop calls this after each turn)."""
+        if not self._batch or self.loop is None:
+            return
+        batch, self._batch = self._batch, []
+        with contextlib.suppress(RuntimeError):  # the main loop closed: the process ends
+            self.loop.call_soon_threadsafe(_run_all, batch)
 
     def publish(self, name: str, reading: Reading, at: float | None = None) -> None:
-        self._hand_over(self.cache.publish, name, reading, at)
+        self.hand(self.cache.publish, name, reading, at)
 
     def set_state(self, name: str, *, online: bool | None = None, busy: bool | None = None,
                   streaming: bool | None = None) -> None:
-        self._hand_over(self.cache.set_state, name, online=online, busy=busy,
-                        streaming=streaming)
+        self.hand(self.cache.set_state, name, online=online, busy=busy, streaming=streaming)
 
     def count_error(self, name: str) -> None:
-        self._hand_over(self.cache.count_error, name)
+        self.hand(self.cache.count_error, name)
 
     def note_stats(self, bus: BusStats, sensors: Mapping[str, SensorStats]) -> None:
-        self._hand_over(self.cache.note_stats, bus, sensors)
+        self.hand(self.cache.note_stats, bus, sensors)
+
+
+def _run_all(batch: list[Callable[[], None]]) -> None:
+    for fn in batch:
+        try:
+            fn()
+        except Exception:  # one listener's failure must not lose the rest of the turn
+            log.exception("internal error handing a bus's update to the cache")
+
+
+def _settle(future: asyncio.Future[Any], outcome: Any, error: RequestFailed | None) -> None:
+    if future.done():
+        return  # the asker has gone (cancelled)
+    if error is None:
+        future.set_result(outcome)
+    else:
+        future.set_exception(error)
 
 
 class BusRunner:
-    def __init__(self, config: BusConfig, cache: Cache) -> None:
-        self.writer = CacheWriter(cache, self)
+    """One bus master, as the main loop sees it: its calls go to the bus thread, and
+    their answers come back to the caller's loop."""
+
+    def __init__(self, config: BusConfig, cache: Cache, reactor: Reactor) -> None:
+        self.reactor = reactor
+        self.writer = CacheWriter(cache)
+        reactor.after_each_turn(self.writer.flush)
         self.master = BusMaster(config, self.writer)
         # the counters as they are before the thread runs (read here, while no other
         # thread touches them): the front ends never see a bus without any
         cache.note_stats(*self.master.stats_snapshot())
-        self._thread = threading.Thread(target=self._main, name=f"bus {config.name}",
-                                        daemon=True)
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._task: asyncio.Task[None] | None = None
-        self._ready = threading.Event()
 
     def start(self) -> None:
-        """Start the thread; the cache's loop is the running one."""
+        """Join the bus thread (started by the caller); the cache's loop is the running
+        one."""
         self.writer.loop = asyncio.get_running_loop()
-        self._thread.start()
-        self._ready.wait()
+        self.reactor.post(functools.partial(self.master.start, self.reactor))
 
-    def _main(self) -> None:
-        async def run() -> None:
-            self._loop = asyncio.get_running_loop()
-            self._task = asyncio.current_task()
-            self._ready.set()
-            await self.master.run()
+    def _not_running(self) -> RequestFailed:
+        return RequestFailed(ErrorKind.OFFLINE, f"bus {self.master.name} is not running")
 
-        tighten_timers(BUS_NICE)
-        try:
-            # select() rather than epoll: epoll's timeouts are whole milliseconds, and
-            # the waits here (a Modbus silent interval is 1.75 ms) are not.  The loop
-            # watches one descriptor, its own wake-up pipe (bytes come from the link's
-            # reader thread).
-            with asyncio.Runner(loop_factory=_precise_loop) as runner:
-                runner.run(run())
-        except asyncio.CancelledError:
-            pass
-        except Exception:
-            log.exception("bus %s: the bus master failed", self.master.name)
+    async def call(self, fn: Callable[[], T]) -> T:
+        """``fn()`` on the bus thread.  Raises ``RequestFailed`` when the bus thread is
+        not running (not started, or stopped)."""
+        if not self.reactor.running:
+            raise self._not_running()
+        return await asyncio.wrap_future(self.reactor.call(fn))
 
-    def call(self, coro: Coroutine[Any, Any, T]) -> Awaitable[T]:
-        """Run ``coro`` on the bus's loop; await the result on the caller's.  Raises
-        ``RequestFailed`` when the bus is not running (not started, or stopped)."""
-        loop = self._loop
-        try:
-            if loop is None or loop.is_closed():
-                raise RuntimeError("not running")
-            return asyncio.wrap_future(asyncio.run_coroutine_threadsafe(coro, loop))
-        except RuntimeError:  # the loop closed under us: the bus has stopped
-            coro.close()
-            raise RequestFailed(ErrorKind.OFFLINE,
-                                f"bus {self.master.name} is not running") from None
+    async def _job(self, start: Callable[[Done], None]) -> Any:
+        """Start a job on the bus thread; its outcome, after the cache writes before it."""
+        if not self.reactor.running:
+            raise self._not_running()
+        future = asyncio.get_running_loop().create_future()
+
+        def done(outcome: Any, error: RequestFailed | None) -> None:
+            self.writer.hand(_settle, future, outcome, error)
+
+        self.reactor.post(functools.partial(start, done))
+        return await future
+
+    async def submit(self, sensor: str, command: Command) -> CommandResult:
+        result: CommandResult = await self._job(
+            functools.partial(self.master.submit, sensor, command))
+        return result
+
+    async def read_now(self, sensor: str) -> None:
+        await self._job(functools.partial(self.master.read_now, sensor))
+
+    async def passthrough(self, sensor: str, pdu: bytes) -> bytes:
+        answer: bytes = await self._job(functools.partial(self.master.passthrough, sensor, pdu))
+        return answer
 
     def stop(self) -> None:
         """Ask the master to finish its exchange in flight and stop."""
-        if self._loop is not None:
-            self._loop.call_soon_threadsafe(self.master.stop)
+        self.reactor.post(self.master.stop)
 
-    async def join(self, timeout: float) -> None:
-        """Wait for the thread; past ``timeout`` the master is cancelled."""
-        if self._thread.ident is None:
-            return  # never started
-        await asyncio.to_thread(self._thread.join, timeout)
-        if self._thread.is_alive() and self._loop is not None and self._task is not None:
-            log.warning("bus %s: not stopped after %.0f s; cancelling", self.master.name, timeout)
-            self._loop.call_soon_threadsafe(self._task.cancel)
-            await asyncio.to_thread(self._thread.join, 5.0)
+
+class BusThread:
+    """The bus thread and its runners."""
+
+    def __init__(self, buses: list[BusConfig], cache: Cache) -> None:
+        self.reactor = Reactor("bus")
+        self.runners = {bus.name: BusRunner(bus, cache, self.reactor) for bus in buses}
+
+    def start(self) -> None:
+        for runner in self.runners.values():
+            runner.start()
+        if self.runners:
+            self.reactor.start()
+
+    async def stop(self, grace: float) -> None:
+        """Stop every bus after its exchange in flight; past ``grace``, at once."""
+        for runner in self.runners.values():
+            runner.stop()
+        if not await asyncio.to_thread(self.reactor.join, grace):
+            log.warning("buses not stopped after %.0f s; stopping them now", grace)
+            for runner in self.runners.values():
+                self.reactor.post(runner.master.finish)
+            if not await asyncio.to_thread(self.reactor.join, 5.0):
+                return  # (its pipe stays open: the thread may still post to it)
+        self.reactor.close()

@@ -1,0 +1,180 @@
+"""Many lines in one gateway: 1, 2, 4 and 8 lines at 115200 baud, flat out.
+
+Each line has one simulated AH (``poll_hz: 0``) in a simulator process of its own (as
+real sensors, they share no interpreter with the gateway; on a 2-core machine the
+eight simulators compete with the gateway for the CPU, as a plant's other work would).
+One gateway carries all the lines.  Printed per protocol and line count:
+
+* each line's utilisation (time in an exchange ÷ elapsed), the lowest and highest;
+* the lowest against the single-line utilisation measured in the same run (the goal:
+  ≥ 0.9);
+* the gateway's CPU per exchange (the process's CPU time ÷ exchanges, every thread);
+* a bare reference measured in the same run against the same simulators: one thread,
+  one ``select()`` over every line, each request written when the answer before it is
+  in, a half-in answer left alone until its rest could be in, as the gateway does (no
+  schedule, no decoding, no cache, no checks): its exchanges per second per line and its
+  CPU per exchange.  It shows what the simulators allow and what Python's least work
+  per exchange costs on this machine.
+
+Run: ``.venv/bin/python bench/lines.py [--seconds 5] [--lines 1 --lines 8]
+[--protocol native]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import os
+import select
+import statistics
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import serial
+from bus import Case, start_simulator
+
+from imu_gateway.app import GIL_SWITCH_INTERVAL, Gateway
+from imu_gateway.config import config_from_dict
+from imu_gateway.model import Series
+from imu_gateway.protocol.exchanges import ModbusAdapter, NativeAdapter, rtu_silence
+
+BAUD = 115200
+DELAY = 0.002  # the simulated sensors' answer delay, s
+
+
+@dataclass(frozen=True)
+class Figures:
+    per_line_tps: list[float]
+    utilisation: list[float]
+    cpu_per_exchange: float  # s
+
+
+@contextlib.contextmanager
+def simulators(protocol: str, lines: int) -> Iterator[list[str]]:
+    procs, ports = [], []
+    try:
+        for _ in range(lines):
+            proc, port = start_simulator(Case(protocol, BAUD, 1, DELAY))
+            procs.append(proc)
+            ports.append(port)
+        yield ports
+    finally:
+        for proc in procs:
+            proc.terminate()
+            proc.wait(10)
+
+
+def first_address(protocol: str) -> int:
+    return 0 if protocol == "native" else 1
+
+
+async def gateway(protocol: str, ports: list[str], seconds: float) -> Figures:
+    config = config_from_dict({"buses": [{
+        "name": f"line{i}", "port": port, "baudrate": BAUD, "protocol": protocol,
+        "sensors": [{"name": f"s{i}", "series": "AH", "address": first_address(protocol),
+                     "poll_hz": 0}]} for i, port in enumerate(ports)]}, env={})
+    gw = Gateway(config)
+    stop = asyncio.Event()
+    task = asyncio.create_task(gw.run(stop))
+    masters = list(gw.masters.values())
+    while not all(gw.cache.snapshot(f"s{i}").seq for i in range(len(ports))):
+        await asyncio.sleep(0.01)
+    t0, c0 = time.monotonic(), time.process_time()
+    n0 = [m.stats.transactions for m in masters]
+    b0 = [m.stats.busy_time for m in masters]
+    await asyncio.sleep(seconds)
+    t1, c1 = time.monotonic(), time.process_time()
+    n1 = [m.stats.transactions for m in masters]
+    b1 = [m.stats.busy_time for m in masters]
+    stop.set()
+    await task
+    elapsed = t1 - t0
+    done = sum(n1) - sum(n0)
+    return Figures([(b - a) / elapsed for a, b in zip(n0, n1, strict=True)],
+                   [(b - a) / elapsed for a, b in zip(b0, b1, strict=True)],
+                   (c1 - c0) / max(done, 1))
+
+
+def bare(protocol: str, ports: list[str], seconds: float) -> Figures:
+    """One thread, one select() over every line, a request as soon as the answer
+    before it is in (and, for Modbus, the silent interval has passed).  Like the
+    gateway, a line whose answer is half in is not watched until the rest could be."""
+    adapter = NativeAdapter() if protocol == "native" else ModbusAdapter()
+    exchange = adapter.poll(Series.AH, first_address(protocol))
+    gap = 0.0 if protocol == "native" else rtu_silence(BAUD)
+    ports_open = [serial.Serial(p, BAUD, timeout=0) for p in ports]
+    fds = [s.fileno() for s in ports_open]
+    got = {fd: 0 for fd in fds}
+    done = {fd: 0 for fd in fds}
+    # when each line next needs the loop: to send (after the gap), or to read the
+    # rest of an answer; 0: waiting for bytes
+    send_at = {fd: 0.0 for fd in fds}
+    rest_at = {fd: 0.0 for fd in fds}
+    try:
+        t0, c0 = time.monotonic(), time.process_time()
+        end = t0 + seconds
+        for fd in fds:
+            os.write(fd, exchange.request)
+        while (now := time.monotonic()) < end:
+            due = [t for t in (*send_at.values(), *rest_at.values()) if t]
+            timeout = max(0.0, min(due) - now) if due else 0.5
+            watched = [fd for fd in fds if not send_at[fd] and not rest_at[fd]]
+            ready, _, _ = select.select(watched, [], [], min(timeout, end - now))
+            now = time.monotonic()
+            for fd in fds:
+                if fd in ready or (rest_at[fd] and rest_at[fd] <= now):
+                    rest_at[fd] = 0.0
+                    with contextlib.suppress(BlockingIOError):
+                        got[fd] += len(os.read(fd, 4096))
+                    if got[fd] >= exchange.answer_bytes:
+                        got[fd], done[fd] = 0, done[fd] + 1
+                        send_at[fd] = now + gap
+                    else:
+                        rest_at[fd] = now + (exchange.answer_bytes - got[fd]) * 10 / BAUD
+                if send_at[fd] and send_at[fd] <= now:
+                    send_at[fd] = 0.0
+                    os.write(fd, exchange.request)
+        elapsed, cpu = time.monotonic() - t0, time.process_time() - c0
+    finally:
+        for s in ports_open:
+            s.close()
+    return Figures([done[fd] / elapsed for fd in fds], [], cpu / max(sum(done.values()), 1))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--seconds", type=float, default=5.0)
+    parser.add_argument("--lines", type=int, action="append",
+                        help="run only this line count (repeatable; default 1, 2, 4, 8)")
+    parser.add_argument("--protocol", choices=("native", "modbus"), action="append",
+                        help="run only this protocol (repeatable; default: both)")
+    args = parser.parse_args()
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL)  # as `imu-gateway run` does
+    counts = sorted(set(args.lines or (1, 2, 4, 8)) | {1})  # 1: the reference
+    print(f"lines at {BAUD} baud, one AH each, poll_hz 0, answer delay "
+          f"{DELAY * 1000:g} ms, {args.seconds} s per run, {os.cpu_count()} CPUs")
+    print(f"{'protocol':8} {'lines':>5} {'tx/s/line':>13} {'utilisation':>13} "
+          f"{'lowest/single':>13} {'cpu ms/exch':>11} {'bare tx/s/line':>14} "
+          f"{'bare cpu ms/exch':>16} {'gw/bare tx':>10}")
+    for protocol in args.protocol or ("native", "modbus"):
+        single = 0.0
+        for lines in counts:
+            with simulators(protocol, lines) as ports:
+                ref = bare(protocol, ports, args.seconds)
+                got = asyncio.run(gateway(protocol, ports, args.seconds))
+            if lines == 1:
+                single = got.utilisation[0]
+            low = min(got.utilisation)
+            print(f"{protocol:8} {lines:5} {min(got.per_line_tps):6.1f}-"
+                  f"{max(got.per_line_tps):<6.1f} {low:6.3f}-{max(got.utilisation):<6.3f} "
+                  f"{low / single:13.3f} {got.cpu_per_exchange * 1000:11.3f} "
+                  f"{statistics.mean(ref.per_line_tps):14.1f} "
+                  f"{ref.cpu_per_exchange * 1000:16.3f} "
+                  f"{sum(got.per_line_tps) / sum(ref.per_line_tps):10.3f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
