@@ -314,6 +314,39 @@ async def test_port_removed_and_restored_readings_resume(tmp_path: Any) -> None:
 
 
 @pytest.mark.anyio
+async def test_lines_share_the_bus_thread_but_not_their_troubles(
+        tmp_path: Any, caplog: pytest.LogCaptureFixture) -> None:
+    """Every line runs in one loop on the bus thread: a line whose port is pulled, or
+    whose master hits a bug, costs the other line nothing."""
+    link = str(tmp_path / "ttyUSB-a")
+    with simulated([native(Series.AH, 0)], link=link) as sim_a, \
+            simulated([modbus(Series.VG, 1)]) as sim_b:
+        config = {"gateway_id": "test", "buses": [
+            {"name": "a", "port": link, "baudrate": FAST, "protocol": "native",
+             "sensors": [{"name": "ah", "series": "AH", "address": 0, "poll_hz": 0}]},
+            {"name": "b", "port": sim_b.path, "baudrate": FAST, "protocol": "modbus",
+             "sensors": [{"name": "vg", "series": "VG", "address": 1, "poll_hz": 0}]}]}
+        async with running(config) as gw:
+            await until(lambda: gw.cache.snapshot("ah").seq >= 3 and
+                        gw.cache.snapshot("vg").seq >= 3)
+            sim_a.call(sim_a.bus.unplug)
+            await until(lambda: gw.cache.snapshot("ah").status is Status.OFFLINE)
+            seq = gw.cache.snapshot("vg").seq
+            await until(lambda: gw.cache.snapshot("vg").seq >= seq + 20)
+
+            def broken(now: float, pending: int = 0) -> None:
+                raise RuntimeError("a bug in line a's schedule")
+
+            gw.masters["a"].schedule.handle_timer = broken  # type: ignore[method-assign]
+            sim_a.call(sim_a.bus.replug)  # line a reopens into its bug, again and again
+            seq = gw.cache.snapshot("vg").seq
+            await until(lambda: gw.cache.snapshot("vg").seq >= seq + 20)
+            assert gw.cache.snapshot("vg").status is Status.OK
+            await until(lambda: "bus a: internal error" in caplog.text)
+        no_overlap(sim_b)
+
+
+@pytest.mark.anyio
 async def test_missing_port_at_start_is_retried_without_exiting(tmp_path: Any) -> None:
     async with running(bus_config(str(tmp_path / "nothing"), "native", [
         {"name": "ah", "series": "AH", "address": 0}])) as gw:
