@@ -9,6 +9,7 @@ retained afterwards was published again by the gateway.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import getpass
 import shutil
@@ -221,3 +222,49 @@ def recording(broker: Mosquitto, *topics: str, **options: Any) -> Iterator[Recor
         yield recorder
     finally:
         recorder.close()
+
+
+class Gate:
+    """A TCP relay to the broker that the test opens and shuts."""
+
+    def __init__(self, target_port: int) -> None:
+        self.target_port = target_port
+        self.port = free_port()
+        self.shut = False
+        self._pipes: set[asyncio.StreamWriter] = set()
+        self._server: asyncio.Server | None = None
+
+    async def __aenter__(self) -> Gate:
+        self._server = await asyncio.start_server(self._relay, "127.0.0.1", self.port)
+        return self
+
+    async def __aexit__(self, *_: object) -> None:
+        self.cut()
+        assert self._server is not None
+        self._server.close()
+
+    def cut(self) -> None:
+        """Shut: every relayed connection is closed, and new ones are refused."""
+        self.shut = True
+        for writer in list(self._pipes):
+            writer.close()
+
+    async def _relay(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if self.shut:
+            writer.close()
+            return
+        try:
+            up_reader, up_writer = await asyncio.open_connection("127.0.0.1", self.target_port)
+        except OSError:
+            writer.close()
+            return
+        self._pipes |= {writer, up_writer}
+        await asyncio.gather(self._copy(reader, up_writer), self._copy(up_reader, writer))
+        self._pipes -= {writer, up_writer}
+
+    async def _copy(self, source: asyncio.StreamReader, sink: asyncio.StreamWriter) -> None:
+        with contextlib.suppress(OSError, asyncio.IncompleteReadError):
+            while data := await source.read(65536):
+                sink.write(data)
+                await sink.drain()
+        sink.close()

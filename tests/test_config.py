@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import ipaddress
+import re
 import socket
 import subprocess
 import sys
@@ -107,7 +108,7 @@ def test_spec_example_verbatim_loads() -> None:
     assert config.modbus.listen == ListenAddress("0.0.0.0", 502)
     assert config.modbus.allow_from == [ipaddress.ip_network("0.0.0.0/0")]
     assert config.modbus.allow_writes is False
-    assert (config.mqtt.host, config.mqtt.port, config.mqtt.tls) == ("localhost", 1883, False)
+    assert (str(config.mqtt.brokers[0]), config.mqtt.tls) == ("localhost:1883", False)
     assert config.mqtt.retain is True and config.mqtt.protocol == "3.1.1"
     assert config.http.listen == ListenAddress("0.0.0.0", 8080) and config.http.token is None
 
@@ -221,10 +222,27 @@ def test_allow_from_is_not_strict_and_allows() -> None:
 
 
 def test_mqtt_url_forms() -> None:
-    assert MqttConfig(url="mqtts://broker").port == 8883
+    assert MqttConfig(url="mqtts://broker").brokers[0].port == 8883
     assert MqttConfig(url="mqtts://broker").tls
-    assert MqttConfig(url="mqtt://broker:1999").port == 1999
+    assert MqttConfig(url="mqtt://broker:1999").brokers[0].port == 1999
     assert MqttConfig(protocol=5).protocol == "5"  # type: ignore[arg-type]
+
+
+def test_mqtt_url_may_list_a_clusters_nodes() -> None:
+    mqtt = MqttConfig(url=["mqtts://n1", "mqtts://n2:8884", "mqtts://n3"])
+    assert [str(b) for b in mqtt.brokers] == ["n1:8883", "n2:8884", "n3:8883"]
+    assert mqtt.tls
+
+
+@pytest.mark.parametrize(("urls", "problem"), [
+    ([], "at least one broker"),
+    (["mqtt://a", "mqtts://b"], "one scheme for every broker"),
+    (["mqtt://a", "mqtt://a"], "names a broker twice"),
+    (["mqtt://a", "http://b"], 'not "http://b"'),
+])
+def test_a_bad_broker_list_is_refused_with_its_reason(urls: list[str], problem: str) -> None:
+    with pytest.raises(ConfigError, match=re.escape(problem)):
+        config_from_dict(base(mqtt={"url": urls}), env={})
 
 
 def test_ca_file_with_mqtts(tmp_path: Path) -> None:

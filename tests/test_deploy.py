@@ -367,7 +367,7 @@ def test_compose_services_fit_the_image_and_the_config() -> None:
     assert (COMPOSE.parent / mounts[config_path]).resolve() == COMPOSE_CONFIG
 
     config = load(COMPOSE_CONFIG)
-    assert config.mqtt is not None and config.mqtt.host == "mosquitto"
+    assert config.mqtt is not None and config.mqtt.brokers[0].host == "mosquitto"
     assert config.gateway_id != socket.gethostname()  # set: a container's name is random
     # the devices it passes in are the config's bus ports
     devices = {d.split(":")[1] for d in gateway["devices"]}

@@ -23,6 +23,7 @@ from __future__ import annotations
 from .fields import ListenAddress
 from .loading import config_from_dict, load_config, load_config_text
 from .schema import (
+    Broker,
     BusConfig,
     GatewayConfig,
     HttpConfig,
@@ -32,6 +33,7 @@ from .schema import (
 )
 
 __all__ = [
+    "Broker",
     "BusConfig",
     "GatewayConfig",
     "HttpConfig",

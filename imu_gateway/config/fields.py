@@ -250,6 +250,23 @@ def _mqtt_url(value: str) -> str:
     return value
 
 
+def _mqtt_urls(value: str | list[str]) -> str | list[str]:
+    """One broker, or the nodes of a cluster: each as ``_mqtt_url``, one scheme for all
+    (the TLS settings are shared), none twice."""
+    if isinstance(value, str):
+        return _mqtt_url(value)
+    if not value:
+        raise _fail("must name at least one broker")
+    for url in value:
+        _mqtt_url(url)
+    if len({urlsplit(url).scheme for url in value}) > 1:
+        raise _fail("must use one scheme for every broker, all mqtt:// or all mqtts:// "
+                    "(they share the TLS settings)")
+    if len(set(value)) < len(value):
+        raise _fail("names a broker twice")
+    return value
+
+
 def _mqtt_protocol(value: object) -> str:
     if isinstance(value, int | float) and not isinstance(value, bool) and value == 5:
         return "5"

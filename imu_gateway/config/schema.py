@@ -6,6 +6,7 @@ from __future__ import annotations
 import ipaddress
 import socket
 from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
 from typing import Annotated, Any, Literal, Self
 from urllib.parse import urlsplit
 
@@ -50,7 +51,7 @@ from .fields import (
     _fail,
     _gateway_id,
     _mqtt_protocol,
-    _mqtt_url,
+    _mqtt_urls,
     _protocol,
     _serial_port,
     _show,
@@ -185,13 +186,32 @@ class ModbusConfig(_Model):
         return any(ip in net for net in self.allow_from if net.version == ip.version)
 
 
+@dataclass(frozen=True, slots=True)
+class Broker:
+    """One broker of ``mqtt.url``."""
+
+    host: str
+    port: int
+
+    @classmethod
+    def of(cls, url: str) -> Broker:
+        parts = urlsplit(url)
+        return cls(parts.hostname or "localhost",
+                   parts.port or (8883 if parts.scheme == "mqtts" else 1883))
+
+    def __str__(self) -> str:
+        return f"{self.host}:{self.port}"
+
+
 class MqttConfig(_Model):
     """The MQTT client."""
 
-    url: Annotated[str, AfterValidator(_mqtt_url)] = Field(
+    url: Annotated[str | list[str], AfterValidator(_mqtt_urls)] = Field(
         default="mqtt://localhost:1883", description=(
             "`mqtt://host[:port]` (default port 1883) or `mqtts://host[:port]` for TLS "
-            "(default 8883); no credentials, path or query in it"))
+            "(default 8883); no credentials, path or query in it. Or a list of them, the "
+            "nodes of a cluster, one scheme for all: the gateway moves to the next when "
+            "one is lost"))
     username: NonEmpty | None = Field(default=None, description="not empty")
     password: str | None = Field(default=None, description=(
         "needs `username`; write `${VAR}` to take it from the environment"))
@@ -289,7 +309,8 @@ class MqttConfig(_Model):
     @classmethod
     def _tls_only(cls, value: str | None, info: ValidationInfo) -> str | None:
         url = info.data.get("url")
-        if value is not None and url is not None and not url.startswith("mqtts://"):
+        first = url if isinstance(url, str) else (url or [None])[0]
+        if value is not None and first is not None and not first.startswith("mqtts://"):
             raise _fail("needs an mqtts:// url (TLS)")
         if info.field_name == "keyfile" and value is not None and \
                 info.data.get("certfile", "") is None:
@@ -297,16 +318,16 @@ class MqttConfig(_Model):
         return value
 
     @property
+    def urls(self) -> tuple[str, ...]:
+        return (self.url,) if isinstance(self.url, str) else tuple(self.url)
+
+    @property
     def tls(self) -> bool:
-        return self.url.startswith("mqtts://")
+        return self.urls[0].startswith("mqtts://")
 
     @property
-    def host(self) -> str:
-        return urlsplit(self.url).hostname or "localhost"
-
-    @property
-    def port(self) -> int:
-        return urlsplit(self.url).port or (8883 if self.tls else 1883)
+    def brokers(self) -> tuple[Broker, ...]:
+        return tuple(Broker.of(url) for url in self.urls)
 
 
 class HttpConfig(_Model):

@@ -7,10 +7,10 @@ callbacks only hand their event over (``call_soon_threadsafe``), so no state of 
 module is written from two threads: paho's thread increments one counter (``written``)
 and reads one flag (``Pipe.waiting_for_window``).
 
-Connecting.  The connect itself (TCP, TLS, CONNECT) is ours, in an executor, with a
-back-off from ``RECONNECT_MIN`` to ``RECONNECT_MAX`` seconds: paho's own automatic
-reconnect swallows the reason a connection failed, and a user looking at a TLS or
-password problem needs that reason.  Each distinct failure is logged once; the retries
+Connecting.  The connect itself (TCP, TLS, CONNECT) is ours, in an executor, to the
+brokers of ``mqtt.url`` in turn with a back-off (``mqtt_failover``): paho's own
+automatic reconnect swallows the reason a connection failed, and a user looking at a
+TLS or password problem needs that reason.  Each distinct failure is logged once; the retries
 after it are quiet, and "connected" is logged on the way back.
 
 Nothing grows while the broker is away.  States wait in ``Outbox``, a bounded queue
@@ -45,12 +45,13 @@ from paho.mqtt.properties import Properties
 from paho.mqtt.reasoncodes import ReasonCode
 from paho.mqtt.subscribeoptions import SubscribeOptions
 
-from ..config import MqttConfig
+from ..config import Broker, MqttConfig
 from ..stats import FrontendCounts
 from ..supervise import Frontend, PeerLog
 from .common import GatewayLike, json_bytes
 from .mqtt_commands import CommandDesk
 from .mqtt_discovery import discovery_configs, setup_of
+from .mqtt_failover import Failover
 from .mqtt_states import StateDesk
 from .mqtt_sweep import SWEEP_S, RetainedSweep
 from .mqtt_topics import (
@@ -68,7 +69,6 @@ log = logging.getLogger("imu_gateway.mqtt")
 
 KEEPALIVE_S = 30
 CONNACK_TIMEOUT = 5.0  # a broker that says nothing after CONNECT (a TLS port, say)
-RECONNECT_MIN, RECONNECT_MAX = 0.5, 30.0  # seconds between connection attempts
 WINDOW = 100  # messages handed to paho and not yet written or acknowledged
 #: messages handed to paho and none written for this long: publishing does not work
 STALLED_S = 2 * KEEPALIVE_S
@@ -263,6 +263,7 @@ class MqttClient(Frontend):
         self._sweep_timer: asyncio.TimerHandle | None = None
         self._stopping = False
         self._last_problem: str | None = None
+        self.failover = Failover(config.brokers)
         self.desk = CommandDesk(gateway, config, self._send_control, self.counters,
                                 self._peers)
 
@@ -346,39 +347,42 @@ class MqttClient(Frontend):
         return False
 
     async def _keep_connected(self) -> None:
-        c = self.config
-        delay = RECONNECT_MIN
+        """Connect, and again whenever the connection is lost or fails: to the next
+        broker of the list, after the wait ``Failover`` says."""
         while True:
-            self._lost.clear()
-            connects = self.counters.connects
-            # A new paho client for every connection (the session is clean anyway):
-            # paho's loop_start() makes a new wake-up socket pair each time without
-            # closing the last; each client's sockets are closed when it is done.
-            self._client = client = self._make_client()
-            try:
-                await asyncio.to_thread(client.connect, c.host, c.port, KEEPALIVE_S)
-            except (OSError, ValueError) as exc:
-                self._problem(f"cannot connect to {c.host}:{c.port}: {_reason(exc)}")
-                _close_sockets(client)
-                await asyncio.sleep(delay)
-                delay = min(delay * 2, RECONNECT_MAX)
-                continue
-            self._answered.clear()
-            client.loop_start()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._answered.wait(), CONNACK_TIMEOUT)
-            if self._answered.is_set():
-                await self._lost.wait()
-            else:
-                self._problem(f"no answer from {c.host}:{c.port} within "
-                              f"{CONNACK_TIMEOUT:g} s of connecting{self._tls_hint()}")
-            await asyncio.to_thread(client.loop_stop)
-            _close_sockets(client)
-            if self.counters.connects > connects:  # it worked: start the back-off again
-                delay = RECONNECT_MIN
+            worked = await self._connection(self.failover.current)
             self.connected = False
-            await asyncio.sleep(delay)
-            delay = min(delay * 2, RECONNECT_MAX)
+            wait = self.failover.ended(worked)
+            if wait:
+                await asyncio.sleep(wait)
+
+    async def _connection(self, broker: Broker) -> bool:
+        """One connection to ``broker``, until it is lost; True when it worked."""
+        self._lost.clear()
+        connects = self.counters.connects
+        # A new paho client for every connection (the session is clean anyway, and the
+        # last will is set on each, so it works on whichever broker this is): paho's
+        # loop_start() makes a new wake-up socket pair each time without closing the
+        # last; each client's sockets are closed when it is done.
+        self._client = client = self._make_client()
+        try:
+            await asyncio.to_thread(client.connect, broker.host, broker.port, KEEPALIVE_S)
+        except (OSError, ValueError) as exc:
+            self._problem(f"cannot connect to {broker}: {_reason(exc)}")
+            _close_sockets(client)
+            return False
+        self._answered.clear()
+        client.loop_start()
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._answered.wait(), CONNACK_TIMEOUT)
+        if self._answered.is_set():
+            await self._lost.wait()
+        else:
+            self._problem(f"no answer from {broker} within {CONNACK_TIMEOUT:g} s of "
+                          f"connecting{self._tls_hint()}")
+        await asyncio.to_thread(client.loop_stop)
+        _close_sockets(client)
+        return self.counters.connects > connects
 
     def _problem(self, text: str) -> None:
         """Log a connection problem once, until it changes or a connection works."""
@@ -422,25 +426,24 @@ class MqttClient(Frontend):
     def _on_connect(self, reason: ReasonCode) -> None:
         self._answered.set()
         if reason.is_failure:
-            self._problem(f"the broker at {self.config.host}:{self.config.port} refused "
-                          f"the connection: {reason}")
+            self._problem(f"the broker at {self.failover.current} refused the connection: "
+                          f"{reason}")
             self._lost.set()
             return
         self.connected = True
         self.counters.connects += 1
         self._last_problem = None
         self.pipe.connected_anew()
-        log.info("mqtt: connected to %s:%s (MQTT %s)", self.config.host, self.config.port,
-                 self.config.protocol)
+        log.info("mqtt: connected to %s (MQTT %s)", self.failover.current, self.config.protocol)
         self._subscribe()
         self._announce()
 
     def _on_disconnect(self, reason: ReasonCode) -> None:
         if self.connected and not self._stopping:
-            log.warning("mqtt: connection to %s:%s lost (%s); reconnecting",
-                        self.config.host, self.config.port, reason)
+            log.warning("mqtt: connection to %s lost (%s); reconnecting",
+                        self.failover.current, reason)
         elif not self._answered.is_set() and not self._stopping:
-            self._problem(f"{self.config.host}:{self.config.port} closed the connection "
+            self._problem(f"{self.failover.current} closed the connection "
                           f"without answering{self._tls_hint()}")
         self._answered.set()
         self.connected = False

@@ -127,10 +127,11 @@ def banner(gateway: Gateway, token: str) -> str:
     if config.mqtt is not None:
         mqtt = config.mqtt
         prefix = f"{mqtt.base_topic}/{config.gateway_id}"
-        lines.append(f"MQTT        mosquitto_sub -h {mqtt.host} -p {mqtt.port} -v "
+        broker = mqtt.brokers[0]
+        lines.append(f"MQTT        mosquitto_sub -h {broker.host} -p {broker.port} -v "
                      f"-t '{prefix}/#'   (MQTT 5, broker {mqtt.url}, "
                      "retried in the background while it is not there)")
-        lines.append(f"            mosquitto_rr -h {mqtt.host} -p {mqtt.port} "
+        lines.append(f"            mosquitto_rr -h {broker.host} -p {broker.port} "
                      f"-t {prefix}/{first}/cmd/read_settings -e {prefix}/replies -m '{{}}'")
     lines += [f"Token       {token}   (for commands over REST)", "", "Stop with Ctrl-C."]
     return "\n".join(lines)

@@ -1,0 +1,95 @@
+"""Broker failover: ``mqtt.url`` lists a cluster's nodes.  When the node the gateway is
+on goes, it moves to the next and republishes everything retained there; its last
+will works on whichever node it is on.  The order and waits (``Failover``) are sans-IO
+and tested in plain time; the moves against two real mosquitto brokers."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from broker import Gate, Mosquitto, recording
+from harness import running, until
+
+from imu_gateway.config import Broker
+from imu_gateway.frontends.mqtt_failover import RECONNECT_MAX, RECONNECT_MIN, Failover
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.simulator import make_sensor, simulated
+
+GID = "gw"
+BASE = f"imu/{GID}"
+NODES = (Broker("n1", 1883), Broker("n2", 1883), Broker("n3", 1883))
+
+
+def test_a_failed_try_goes_on_to_the_next_node_at_once_and_waits_after_a_round() -> None:
+    f = Failover(NODES)
+    waits = []
+    for _ in range(9):  # three whole rounds fail
+        waits.append((str(f.current), f.ended(worked=False)))
+    assert waits == [("n1:1883", 0.0), ("n2:1883", 0.0), ("n3:1883", RECONNECT_MIN),
+                     ("n1:1883", 0.0), ("n2:1883", 0.0), ("n3:1883", 2 * RECONNECT_MIN),
+                     ("n1:1883", 0.0), ("n2:1883", 0.0), ("n3:1883", 4 * RECONNECT_MIN)]
+
+
+def test_a_lost_connection_moves_to_the_next_node_and_starts_the_back_off_again() -> None:
+    f = Failover(NODES)
+    for _ in range(30):
+        f.ended(worked=False)
+    assert f.delay == RECONNECT_MAX
+    at = f.current
+    assert f.ended(worked=True) == RECONNECT_MIN  # the one it was on may be the one down
+    assert f.current != at and f.delay == RECONNECT_MIN and f.failures == 0
+
+
+def test_one_broker_is_the_plain_back_off() -> None:
+    f = Failover(NODES[:1])
+    assert [f.ended(worked=False) for _ in range(4)] == \
+        [RECONNECT_MIN, 2 * RECONNECT_MIN, 4 * RECONNECT_MIN, 8 * RECONNECT_MIN]
+    assert f.current == NODES[0]
+
+
+def _config(line: str, urls: list[str]) -> dict[str, Any]:
+    return {"gateway_id": GID,
+            "buses": [{"name": "a", "port": line, "baudrate": 115200, "protocol": "native",
+                       "sensors": [{"name": "ah", "series": "AH", "poll_hz": 20}]}],
+            "mqtt": {"url": urls, "homeassistant_discovery": True}}
+
+
+@pytest.mark.anyio
+async def test_the_gateway_moves_to_the_next_node_and_republishes_there(
+        tmp_path: Path) -> None:
+    (tmp_path / "n1").mkdir()
+    (tmp_path / "n2").mkdir()
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200)
+    with Mosquitto(tmp_path / "n1") as n1, Mosquitto(tmp_path / "n2") as n2, \
+            simulated([ah]) as line:
+        async with Gate(n2.port) as gate:
+            # n2 through a gate the test can cut: the broker then sees the gateway's
+            # connection drop, as when the gateway's machine loses its network
+            urls = [n1.url, f"mqtt://127.0.0.1:{gate.port}"]
+            with recording(n1, f"{BASE}/status") as on_n1, recording(n2, "#") as on_n2:
+                async with running(_config(line.path, urls)) as gw:
+                    await until(lambda: [m.text for m in on_n1.on(f"{BASE}/status")]
+                                == ["online"])
+                    lost_at = time.monotonic()
+                    n1.stop()
+                    # on n2: the gateway's status, availability, discovery and state
+                    await until(lambda: bool(on_n2.on(f"{BASE}/ah/state")), 15)
+                    moved = on_n2.on(f"{BASE}/status")[0]
+                    assert moved.text == "online" and moved.at - lost_at < 10
+                    availability = on_n2.last(f"{BASE}/ah/availability")
+                    assert availability is not None and availability.text == "online"
+                    assert any(m.topic.startswith("homeassistant/") for m in list(on_n2.messages))
+                    assert gw.mqtt is not None and gw.mqtt.counters.connects == 2
+                    # a subscriber that comes now gets the retained status from n2
+                    with recording(n2, f"{BASE}/status") as late:
+                        await until(lambda: bool(late.on(f"{BASE}/status")))
+                        assert late.on(f"{BASE}/status")[0].retain
+                        assert late.on(f"{BASE}/status")[0].text == "online"
+                    # the will, on n2: the connection drops without a DISCONNECT
+                    on_n2.clear()
+                    gate.cut()
+                    await until(lambda: [m.text for m in on_n2.on(f"{BASE}/status")]
+                                == ["offline"], 15)
