@@ -48,10 +48,12 @@ from paho.mqtt.subscribeoptions import SubscribeOptions
 from ..config import Broker, MqttConfig
 from ..stats import FrontendCounts
 from ..supervise import Frontend, PeerLog
+from . import mqtt_identity
 from .common import GatewayLike, json_bytes
 from .mqtt_commands import CommandDesk
 from .mqtt_discovery import discovery_configs, setup_of
 from .mqtt_failover import Failover
+from .mqtt_identity import Identity
 from .mqtt_states import StateDesk
 from .mqtt_sweep import SWEEP_S, RetainedSweep
 from .mqtt_topics import (
@@ -264,6 +266,7 @@ class MqttClient(Frontend):
         self._stopping = False
         self._last_problem: str | None = None
         self.failover = Failover(config.brokers)
+        self.identity = Identity(self.topics, self.client_id, self._send_control)
         self.desk = CommandDesk(gateway, config, self._send_control, self.counters,
                                 self._peers)
 
@@ -285,12 +288,16 @@ class MqttClient(Frontend):
         self._runner = asyncio.create_task(self._keep_connected(), name="mqtt")
         self.guarded(self._runner)
 
-    def _make_client(self) -> paho.Client:
+    @property
+    def client_id(self) -> str:
+        return self.config.client_id or f"imu-gateway-{self.gateway.config.gateway_id}"
+
+    def _make_client(self, client_id: str | None = None) -> paho.Client:
         c = self.config
         v5 = c.protocol == "5"
         client = paho.Client(
             CallbackAPIVersion.VERSION2,
-            client_id=c.client_id or f"imu-gateway-{self.gateway.config.gateway_id}",
+            client_id=client_id or self.client_id,
             protocol=paho.MQTTv5 if v5 else paho.MQTTv311,
             clean_session=None if v5 else True,
             reconnect_on_failure=False,  # the reconnect is ours (see the module docstring)
@@ -353,6 +360,8 @@ class MqttClient(Frontend):
             worked = await self._connection(self.failover.current)
             self.connected = False
             wait = self.failover.ended(worked)
+            if self.identity.held_off:  # another gateway holds this id: look again later
+                self.identity.held_off, wait = False, max(wait, mqtt_identity.RIVAL_WAIT)
             if wait:
                 await asyncio.sleep(wait)
 
@@ -360,6 +369,8 @@ class MqttClient(Frontend):
         """One connection to ``broker``, until it is lost; True when it worked."""
         self._lost.clear()
         connects = self.counters.connects
+        if await self.identity.rival(broker, self._make_client) is not None:
+            return False
         # A new paho client for every connection (the session is clean anyway, and the
         # last will is set on each, so it works on whichever broker this is): paho's
         # loop_start() makes a new wake-up socket pair each time without closing the
@@ -454,6 +465,8 @@ class MqttClient(Frontend):
 
     def _subscribe(self) -> None:
         assert self._client is not None
+        for topic in self.identity.claim_topics:  # a rival's claim, live
+            self._client.subscribe(topic, qos=1)
         if self.config.allow_commands:
             # MQTT 5: the retain flag as published, so that a retained command is
             # known as one even when it arrives live (3.1.1 brokers clear the flag).
@@ -477,6 +490,7 @@ class MqttClient(Frontend):
         """Everything retained, anew: after every connect.  The control messages go
         first; then each sensor's latest state (the states that waited are old news by
         now: ``Pipe.connected_anew``)."""
+        self.identity.claim_it()
         self._send_control(Message(self.status_topic, ONLINE, CONTROL_QOS, True))
         described = json_properties(self.config)  # one for all (paho packs it per send)
         for topic, payload in self.discovery.items():
@@ -491,6 +505,9 @@ class MqttClient(Frontend):
         parts = topic.removeprefix(f"{self.prefix}/").split("/")
         if topic.startswith(self.prefix + "/") and len(parts) == 3 and parts[1] == "cmd":
             self.desk.take(message, parts[0], parts[2])
+        elif topic in self.identity.claim_topics:
+            if self.identity.seen(message) and self._client is not None:
+                self._client.disconnect()  # cleanly: no will, the status stays theirs
         elif self._loop is not None:
             self.sweep.take(message, self._loop.time())
 

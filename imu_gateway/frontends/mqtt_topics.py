@@ -84,6 +84,20 @@ class Topics:
         return f"{self.prefix}/status"
 
     @property
+    def instance(self) -> str:
+        """The claim of the gateway process holding this id (``mqtt_identity``)."""
+        return f"{self.prefix}/instance"
+
+    def client(self, client_id: str) -> str:
+        """The claim of the gateway process using an MQTT client id (``mqtt_identity``);
+        the client id's ``/ + #`` become ``_``."""
+        safe = client_id.replace("/", "_").replace("+", "_").replace("#", "_")
+        return f"{self.base}/_clients/{safe}"
+
+    def of_gateway(self, gateway_id: str) -> Topics:
+        return Topics(self.base, gateway_id, self.discovery_prefix)
+
+    @property
     def diagnostics(self) -> str:
         return f"{self.prefix}/{DIAGNOSTICS_LEAF}"
 

@@ -1,0 +1,243 @@
+"""One gateway per ``gateway_id`` on a broker: the second says so and stays away.
+
+Two gateways with one ``gateway_id`` would overwrite each other's retained messages,
+and with one client id the broker would hand the session from one to the other at
+every reconnect.  So each gateway process claims its id: a retained message on
+``{base}/{gw}/instance`` names the process (a random instance id, host, pid, start
+time), published before its status.
+
+* **Before connecting** (with its real client id, which would take over a running
+  gateway's session), the gateway connects a probe with a client id of its own, reads
+  the retained status and claim, and sends itself an echo to know it has them.  A
+  claim by another instance while the status is ``online`` is a live gateway of that
+  id: this one logs who it is and does not connect; it looks again later (the other
+  may go, and its will then says ``offline``).  Its own predecessor (same host, its
+  pid gone: a crash and a restart faster than the broker's keep-alive notices) is
+  not a rival.
+* **While connected,** it listens to its claim topic: another instance's claim means
+  two came up at once.  The earlier start keeps the id; the later one says so and
+  disconnects cleanly (no will: the status stays the other's ``online``).
+* **The client id** is claimed the same way, on ``{base}/_clients/{client_id}``: a
+  gateway of another ``gateway_id`` set to the same ``client_id`` is found by the probe
+  (the claim names its gateway, whose status and claim the probe then reads).
+  (mosquitto 2.0 closes a taken-over connection without saying why, so the probe is
+  the only reliable signal.)
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import socket
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+
+import paho.mqtt.client as paho
+from paho.mqtt.reasoncodes import ReasonCode
+
+from ..config import Broker
+from .mqtt_topics import CONTROL_QOS, Message, Topics
+
+log = logging.getLogger("imu_gateway.mqtt")
+
+#: How long a gateway that found its id (or client id) in use waits before it looks again.
+RIVAL_WAIT = 30.0
+#: How long the probe waits for the broker (connect, retained messages, its echo).
+PROBE_TIMEOUT = 5.0
+
+
+@dataclass(frozen=True, slots=True)
+class Claim:
+    """Who holds a ``gateway_id``: one gateway process."""
+
+    instance: str
+    host: str
+    pid: int
+    started: float  # Unix time
+    gateway_id: str
+    client_id: str
+
+    @classmethod
+    def mine(cls, gateway_id: str, client_id: str) -> Claim:
+        return cls(uuid.uuid4().hex, socket.gethostname(), os.getpid(), round(time.time(), 3),
+                   gateway_id, client_id)
+
+    def payload(self) -> bytes:
+        return json.dumps(asdict(self)).encode()
+
+    @classmethod
+    def parse(cls, payload: bytes) -> Claim | None:
+        """A claim from its payload; None for anything else (an empty retained message
+        clears the topic; a malformed one is nobody's)."""
+        try:
+            data = json.loads(payload)
+            return cls(str(data["instance"]), str(data["host"]), int(data["pid"]),
+                       float(data["started"]), str(data["gateway_id"]), str(data["client_id"]))
+        except (ValueError, KeyError, TypeError):
+            return None
+
+    def describe(self) -> str:
+        since = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(self.started))
+        return f"host {self.host}, pid {self.pid}, since {since}"
+
+    def first(self, other: Claim) -> bool:
+        """Whether this claim came before ``other`` (the earlier start keeps the id)."""
+        return (self.started, self.instance) < (other.started, other.instance)
+
+
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # someone else's process
+    return True
+
+
+def live_rival(mine: Claim, status: str | None, theirs: Claim | None,
+               alive: Callable[[int], bool] = pid_alive) -> Claim | None:
+    """The other gateway holding this id now, if there is one."""
+    if theirs is None or theirs.instance == mine.instance or status != "online":
+        return None
+    if theirs.host == mine.host and not alive(theirs.pid):
+        return None  # this machine's gateway before a restart; its will is late
+    return theirs
+
+
+async def read_retained(make: Callable[[str], paho.Client], broker: Broker, client_id: str,
+                        topics: list[str]) -> dict[str, bytes]:
+    """The retained message of each of ``topics`` on ``broker`` (those that have one),
+    read by a connection of its own: ``make(client_id)`` gives a client set up as the
+    gateway's (TLS, credentials).  An echo sent after the subscription tells when the
+    retained messages are all in.  Raises ``OSError`` or ``TimeoutError`` when the
+    broker cannot be asked."""
+    loop = asyncio.get_running_loop()
+    echo = f"{topics[0]}/probe/{uuid.uuid4().hex}"
+    seen: dict[str, bytes] = {}
+    done: asyncio.Future[object] = loop.create_future()
+    client = make(client_id)
+
+    def settle(result: object) -> None:
+        if not done.done():
+            done.set_result(result)
+
+    def on_connect(c: paho.Client, u: object, f: object, reason: ReasonCode,
+                   p: object) -> None:
+        if reason.is_failure:
+            loop.call_soon_threadsafe(settle, ConnectionRefusedError(str(reason)))
+        else:
+            c.subscribe([(topic, 1) for topic in (*topics, echo)])
+
+    def on_message(c: paho.Client, u: object, message: paho.MQTTMessage) -> None:
+        if message.topic == echo:  # after the retained ones: all are in
+            loop.call_soon_threadsafe(settle, None)
+        elif message.retain:
+            seen[message.topic] = bytes(message.payload)
+
+    # (the gateway's own callbacks, which ``make`` set, are not the probe's)
+    client.on_connect, client.on_message = on_connect, on_message
+    client.on_subscribe = lambda c, *_: c.publish(echo, b"", qos=1)
+    client.on_disconnect = client.on_publish = None
+    client.will_clear()  # the gateway's will is not the probe's to leave
+    try:
+        await asyncio.to_thread(client.connect, broker.host, broker.port, 10)
+        client.loop_start()
+        result = await asyncio.wait_for(done, PROBE_TIMEOUT)
+        if isinstance(result, Exception):
+            raise result
+        return seen
+    finally:
+        with contextlib.suppress(Exception):
+            client.disconnect()
+        await asyncio.to_thread(client.loop_stop)
+        with contextlib.suppress(OSError):
+            client._reset_sockets()
+
+
+class Identity:
+    """This gateway's claim on its ``gateway_id``, and what it does about rivals."""
+
+    def __init__(self, topics: Topics, client_id: str,
+                 send_control: Callable[[Message], None]) -> None:
+        self.topics, self.client_id, self.send_control = topics, client_id, send_control
+        self.claim = Claim.mine(topics.gateway_id, client_id)
+        self.held_off = False  # a rival was found: the next connect waits RIVAL_WAIT
+        self._reported: str | None = None
+
+    def _report(self, text: str) -> None:
+        """An error once per rival (the retries after it are quiet)."""
+        if text != self._reported:
+            log.error("mqtt: %s", text)
+            self._reported = text
+
+    async def rival(self, broker: Broker, make: Callable[[str], paho.Client]) -> Claim | None:
+        """A live gateway holding this ``gateway_id`` or client id on ``broker``, asked
+        before connecting."""
+        probe_id = f"{self.client_id}-probe-{self.claim.instance[:8]}"
+        t = self.topics
+        try:
+            found = await read_retained(make, broker, probe_id,
+                                        [t.status, t.instance, t.client(self.client_id)])
+            rival = live_rival(self.claim, _text(found.get(t.status)),
+                               Claim.parse(found.get(t.instance, b"")))
+            what = f"gateway_id {t.gateway_id!r}"
+            other = Claim.parse(found.get(t.client(self.client_id), b""))
+            if rival is None and other is not None and other.gateway_id != t.gateway_id:
+                # the client id is claimed by a gateway of another id: is it running?
+                theirs = t.of_gateway(other.gateway_id)
+                found = await read_retained(make, broker, probe_id,
+                                            [theirs.status, theirs.instance])
+                live = live_rival(self.claim, _text(found.get(theirs.status)),
+                                  Claim.parse(found.get(theirs.instance, b"")))
+                rival = live if live == other else None
+                what = f"the client id {self.client_id!r}"
+        except (OSError, TimeoutError, ValueError):
+            return None  # the real connect tries, and reports why it cannot
+        if rival is not None:
+            self.held_off = True
+            self._report(
+                f"{what} is in use on {broker} by another gateway ({rival.describe()}); "
+                f"this one stays away so as not to take its session or overwrite its "
+                f"retained messages, and looks again every {RIVAL_WAIT:g} s. Give each "
+                f"gateway its own gateway_id and client_id (docs/scaling.md)")
+        return rival
+
+    @property
+    def claim_topics(self) -> tuple[str, str]:
+        return self.topics.instance, self.topics.client(self.client_id)
+
+    def claim_it(self) -> None:
+        for topic in self.claim_topics:
+            self.send_control(Message(topic, self.claim.payload(), CONTROL_QOS, True))
+
+    def seen(self, message: paho.MQTTMessage) -> bool:
+        """A claim on this id came in while connected; True when this gateway must
+        give way (another instance that started first)."""
+        if message.retain:
+            return False  # stored before this connection: the probe has judged it
+        theirs = Claim.parse(bytes(message.payload))
+        if theirs is None or theirs.instance == self.claim.instance:
+            return False
+        if self.claim.first(theirs):
+            log.warning("mqtt: another gateway (%s) claimed gateway_id %r or client id %r "
+                        "after this one; this one keeps them and publishes its claim again",
+                        theirs.describe(), self.topics.gateway_id, self.client_id)
+            self.claim_it()
+            return False
+        self.held_off = True
+        self._report(f"gateway_id {self.topics.gateway_id!r} or client id {self.client_id!r} "
+                     f"was claimed by another gateway that started first "
+                     f"({theirs.describe()}); this one disconnects and looks again every "
+                     f"{RIVAL_WAIT:g} s. Give each gateway its own gateway_id and client_id "
+                     f"(docs/scaling.md)")
+        return True
+
+
+def _text(payload: bytes | None) -> str | None:
+    return None if payload is None else payload.decode(errors="replace")
