@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import paho.mqtt.client as paho
 from harness import free_port
@@ -67,6 +67,16 @@ def make_tls(folder: Path) -> Tls:
                 "-out", f"{name}.crt")
     return Tls(folder / "ca.crt", folder / "server.crt", folder / "server.key",
                folder / "client.crt", folder / "client.key")
+
+
+class BrokerLike(Protocol):
+    """A broker the recorder can reach: mosquitto, or a NATS node's MQTT listener."""
+
+    @property
+    def port(self) -> int: ...
+
+    @property
+    def tls(self) -> Tls | None: ...
 
 
 class Mosquitto:
@@ -157,10 +167,12 @@ class Received:
 class Recorder:
     """A paho client that records every message of its subscriptions."""
 
-    def __init__(self, broker: Mosquitto, *topics: str,
+    def __init__(self, broker: BrokerLike, *topics: str,
                  version: MQTTProtocolVersion = paho.MQTTv311,
-                 username: str | None = None, password: str | None = None) -> None:
+                 username: str | None = None, password: str | None = None,
+                 qos: int = 1) -> None:
         self.client = paho.Client(CallbackAPIVersion.VERSION2, protocol=version)
+        self.qos = qos
         if username is not None:
             self.client.username_pw_set(username, password)
         if broker.tls is not None:
@@ -181,7 +193,7 @@ class Recorder:
 
     def _on_connect(self, client: paho.Client, *_: Any) -> None:
         for topic in self.topics:
-            client.subscribe(topic, qos=1)
+            client.subscribe(topic, qos=self.qos)
 
     def _on_message(self, client: paho.Client, userdata: Any,
                     message: paho.MQTTMessage) -> None:
@@ -216,7 +228,7 @@ class Recorder:
 
 
 @contextlib.contextmanager
-def recording(broker: Mosquitto, *topics: str, **options: Any) -> Iterator[Recorder]:
+def recording(broker: BrokerLike, *topics: str, **options: Any) -> Iterator[Recorder]:
     recorder = Recorder(broker, *topics, **options)
     try:
         yield recorder

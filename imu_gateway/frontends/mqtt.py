@@ -465,8 +465,8 @@ class MqttClient(Frontend):
 
     def _subscribe(self) -> None:
         assert self._client is not None
-        for topic in self.identity.claim_topics:  # a rival's claim, live
-            self._client.subscribe(topic, qos=1)
+        for topic in self.identity.claim_topics:  # a rival's claim, live (QoS 0: as probe)
+            self._client.subscribe(topic, qos=0)
         if self.config.allow_commands:
             # MQTT 5: the retain flag as published, so that a retained command is
             # known as one even when it arrives live (3.1.1 brokers clear the flag).

@@ -132,7 +132,9 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
         if reason.is_failure:
             loop.call_soon_threadsafe(settle, ConnectionRefusedError(str(reason)))
         else:
-            c.subscribe([(topic, 1) for topic in (*topics, echo)])
+            # QoS 0: a read of retained messages needs no more, and NATS's MQTT makes a
+            # JetStream consumer for every QoS 1 subscription (slow while a node is down)
+            c.subscribe([(topic, 0) for topic in (*topics, echo)])
 
     def on_message(c: paho.Client, u: object, message: paho.MQTTMessage) -> None:
         if message.topic == echo:  # after the retained ones: all are in
@@ -142,7 +144,7 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
 
     # (the gateway's own callbacks, which ``make`` set, are not the probe's)
     client.on_connect, client.on_message = on_connect, on_message
-    client.on_subscribe = lambda c, *_: c.publish(echo, b"", qos=1)
+    client.on_subscribe = lambda c, *_: c.publish(echo, b"", qos=0)
     client.on_disconnect = client.on_publish = None
     client.will_clear()  # the gateway's will is not the probe's to leave
     try:
