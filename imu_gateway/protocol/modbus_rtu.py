@@ -28,6 +28,7 @@ Library errors are converted to ``errors.FrameError``/``UsageError`` here and no
 from __future__ import annotations
 
 import enum
+import functools
 import math
 import struct
 from collections.abc import Mapping, Sequence
@@ -227,15 +228,21 @@ def read_values(start: int, registers: Sequence[int]) -> dict[str, Any]:
     """The values of every readable register wholly inside a read of ``registers``
     starting at ``start`` ("the answer in the light of its request")."""
     values: dict[str, Any] = {}
-    end = start + len(registers)
-    for reg in READABLE:
-        if start <= reg.address and reg.address + reg.count <= end:
-            offset = reg.address - start
-            if reg.kind is Kind.FLOAT_DCBA:
-                values[reg.name] = float_from_registers(*registers[offset : offset + 2])
-            else:
-                values[reg.name] = decode_value(reg, registers[offset])
+    for reg, offset in _read_plan(start, len(registers)):
+        if reg.kind is Kind.FLOAT_DCBA:
+            values[reg.name] = float_from_registers(*registers[offset : offset + 2])
+        else:
+            values[reg.name] = decode_value(reg, registers[offset])
     return values
+
+
+@functools.lru_cache(maxsize=256)
+def _read_plan(start: int, count: int) -> tuple[tuple[SensorRegister, int], ...]:
+    """The registers wholly inside a read, with their offsets: worked out once per
+    span (a poll reads the same span every time; it was a walk of the whole table per
+    answer)."""
+    return tuple((reg, reg.address - start) for reg in READABLE
+                 if start <= reg.address and reg.address + reg.count <= start + count)
 
 
 def register_image(values: Mapping[str, Any]) -> dict[int, int]:
@@ -293,6 +300,7 @@ def _settings_shown(request: bytes, answer: bytes) -> dict[str, Any]:
     return out
 
 
+@functools.lru_cache(maxsize=1024)
 def is_readable_span(start: int, count: int) -> bool:
     """Whether a read covers only registers the sensor has, floats not cut in half."""
     covered: set[int] = set()
