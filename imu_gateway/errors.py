@@ -8,6 +8,7 @@ front ends answer with.
      ├── ProtocolError    (imu_gateway/protocol/errors.py: the protocol layer's own tree)
      │    ├── FrameError  the peer sent bytes no document allows (routine on a noisy line)
      │    └── UsageError  our caller asked for a frame the protocol cannot express
+     ├── BrokerUnreached  an MQTT broker was not reached (no connection, no answer)
      └── RequestFailed    a client's request was not carried out; ``kind`` says why
 
 A ``RequestFailed`` is what a command, an on-demand read or a pass-through ends in
@@ -112,6 +113,16 @@ KINDS: Mapping[ErrorKind, KindRow] = MappingProxyType({
     ErrorKind.NOT_FOUND: KindRow(404, None, "no such path"),
     ErrorKind.METHOD_NOT_ALLOWED: KindRow(405, None, "the path does not take that method"),
 })
+
+
+class BrokerUnreached(GatewayError):
+    """An MQTT broker was not reached: ``kind`` is ``"unreachable"`` (no TCP or TLS
+    connection; ``detail`` says why), ``"silent"`` (no CONNACK in time) or
+    ``"closed"`` (closed before answering).  The MQTT client words it for the log."""
+
+    def __init__(self, kind: str, detail: str = "") -> None:
+        super().__init__(kind, detail)
+        self.kind, self.detail = kind, detail
 
 
 class RequestFailed(GatewayError):

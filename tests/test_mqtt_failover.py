@@ -5,6 +5,7 @@ and tested in plain time; the moves against two real mosquitto brokers."""
 
 from __future__ import annotations
 
+import asyncio
 import time
 from pathlib import Path
 from typing import Any
@@ -94,3 +95,24 @@ async def test_the_gateway_moves_to_the_next_node_and_republishes_there(
                     gate.cut()
                     await until(lambda: [m.text for m in on_n2.on(f"{BASE}/status")]
                                 == ["offline"], 15)
+
+
+@pytest.mark.anyio
+async def test_a_node_that_never_answers_costs_one_try_not_two(tmp_path: Path) -> None:
+    """A recovering cluster node may accept a connection and say nothing.  The identity
+    probe's connect is then that node's try: the gateway goes on to the next node
+    without a second connection (and a second wait) to the silent one."""
+    accepted: list[asyncio.StreamWriter] = []
+    silent = await asyncio.start_server(lambda r, w: accepted.append(w), "127.0.0.1", 0)
+    port = silent.sockets[0].getsockname()[1]
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200)
+    with Mosquitto(tmp_path) as n2, simulated([ah]) as line, \
+            recording(n2, f"{BASE}/status") as on_n2:
+        async with silent, running(_config(line.path, [f"mqtt://127.0.0.1:{port}",
+                                                       n2.url])) as gw:
+            await until(lambda: [m.text for m in on_n2.on(f"{BASE}/status")] == ["online"])
+            assert gw.mqtt is not None and gw.mqtt.connected
+            assert len(accepted) == 1  # the probe's; no connect of its own after it
+        for writer in accepted:
+            writer.close()
+            await writer.wait_closed()

@@ -46,6 +46,7 @@ from paho.mqtt.reasoncodes import ReasonCode
 from paho.mqtt.subscribeoptions import SubscribeOptions
 
 from ..config import Broker, MqttConfig
+from ..errors import BrokerUnreached
 from ..stats import FrontendCounts
 from ..supervise import Frontend, PeerLog
 from . import mqtt_identity
@@ -53,7 +54,7 @@ from .common import GatewayLike, json_bytes
 from .mqtt_commands import CommandDesk
 from .mqtt_discovery import discovery_configs, setup_of
 from .mqtt_failover import Failover
-from .mqtt_identity import Identity
+from .mqtt_identity import Identity, reason_of
 from .mqtt_states import StateDesk
 from .mqtt_sweep import SWEEP_S, RetainedSweep
 from .mqtt_topics import (
@@ -70,7 +71,8 @@ from .mqtt_topics import (
 log = logging.getLogger("imu_gateway.mqtt")
 
 KEEPALIVE_S = 30
-CONNACK_TIMEOUT = 5.0  # a broker that says nothing after CONNECT (a TLS port, say)
+#: a broker that says nothing after CONNECT (a TLS port, say); the probe's wait too
+CONNACK_TIMEOUT = mqtt_identity.PROBE_TIMEOUT
 WINDOW = 100  # messages handed to paho and not yet written or acknowledged
 #: messages handed to paho and none written for this long: publishing does not work
 STALLED_S = 2 * KEEPALIVE_S
@@ -369,7 +371,11 @@ class MqttClient(Frontend):
         """One connection to ``broker``, until it is lost; True when it worked."""
         self._lost.clear()
         connects = self.counters.connects
-        if await self.identity.rival(broker, self._make_client) is not None:
+        try:
+            if await self.identity.rival(broker, self._make_client) is not None:
+                return False
+        except BrokerUnreached as failed:  # this broker's try: the connect would fail too
+            self._problem(self._unreached(broker, failed.kind, failed.detail))
             return False
         # A new paho client for every connection (the session is clean anyway, and the
         # last will is set on each, so it works on whichever broker this is): paho's
@@ -379,7 +385,7 @@ class MqttClient(Frontend):
         try:
             await asyncio.to_thread(client.connect, broker.host, broker.port, KEEPALIVE_S)
         except (OSError, ValueError) as exc:
-            self._problem(f"cannot connect to {broker}: {_reason(exc)}")
+            self._problem(self._unreached(broker, "unreachable", reason_of(exc)))
             _close_sockets(client)
             return False
         self._answered.clear()
@@ -389,8 +395,7 @@ class MqttClient(Frontend):
         if self._answered.is_set():
             await self._lost.wait()
         else:
-            self._problem(f"no answer from {broker} within {CONNACK_TIMEOUT:g} s of "
-                          f"connecting{self._tls_hint()}")
+            self._problem(self._unreached(broker, "silent"))
         await asyncio.to_thread(client.loop_stop)
         _close_sockets(client)
         return self.counters.connects > connects
@@ -454,14 +459,19 @@ class MqttClient(Frontend):
             log.warning("mqtt: connection to %s lost (%s); reconnecting",
                         self.failover.current, reason)
         elif not self._answered.is_set() and not self._stopping:
-            self._problem(f"{self.failover.current} closed the connection "
-                          f"without answering{self._tls_hint()}")
+            self._problem(self._unreached(self.failover.current, "closed"))
         self._answered.set()
         self.connected = False
         self._lost.set()
 
-    def _tls_hint(self) -> str:
-        return "" if self.config.tls else " (a TLS port? then use mqtts://)"
+    def _unreached(self, broker: Broker, kind: str, detail: str = "") -> str:
+        """Why ``broker`` was not reached, the same from the probe and the connect."""
+        hint = "" if self.config.tls else " (a TLS port? then use mqtts://)"
+        if kind == "unreachable":
+            return f"cannot connect to {broker}: {detail}"
+        if kind == "silent":
+            return f"no answer from {broker} within {CONNACK_TIMEOUT:g} s of connecting{hint}"
+        return f"{broker} closed the connection without answering{hint}"
 
     def _subscribe(self) -> None:
         assert self._client is not None
@@ -539,6 +549,3 @@ def _close_sockets(client: paho.Client) -> None:
     with contextlib.suppress(OSError):
         client._reset_sockets()
 
-
-def _reason(exc: BaseException) -> str:
-    return getattr(exc, "strerror", None) or str(exc) or type(exc).__name__

@@ -22,6 +22,12 @@ time), published before its status.
   (the claim names its gateway, whose status and claim the probe then reads).
   (mosquitto 2.0 closes a taken-over connection without saying why, so the probe is
   the only reliable signal.)
+* **A probe that cannot reach the broker** (no TCP connection, no CONNACK in time, or
+  closed unanswered) counts as this broker's failed try: the real connect would fail
+  the same way, and a cluster node that holds connections for seconds while it
+  recovers would otherwise cost that wait twice.  A probe the broker refuses, or one
+  whose echo does not come back (an ACL, say), leaves the decision to the real
+  connect: the probe's client id and topic are not the gateway's.
 """
 
 from __future__ import annotations
@@ -41,6 +47,7 @@ import paho.mqtt.client as paho
 from paho.mqtt.reasoncodes import ReasonCode
 
 from ..config import Broker
+from ..errors import BrokerUnreached
 from .mqtt_topics import CONTROL_QOS, Message, Topics
 
 log = logging.getLogger("imu_gateway.mqtt")
@@ -115,13 +122,15 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
     """The retained message of each of ``topics`` on ``broker`` (those that have one),
     read by a connection of its own: ``make(client_id)`` gives a client set up as the
     gateway's (TLS, credentials).  An echo sent after the subscription tells when the
-    retained messages are all in.  Raises ``OSError`` or ``TimeoutError`` when the
-    broker cannot be asked."""
+    retained messages are all in.  Raises ``BrokerUnreached`` when the broker was not
+    reached, ``ConnectionRefusedError`` when it refused the probe, ``TimeoutError``
+    when it answered the connect but not the rest."""
     loop = asyncio.get_running_loop()
     echo = f"{topics[0]}/probe/{uuid.uuid4().hex}"
     seen: dict[str, bytes] = {}
     done: asyncio.Future[object] = loop.create_future()
     client = make(client_id)
+    acked: list[bool] = []  # the broker answered the connect (set on paho's thread)
 
     def settle(result: object) -> None:
         if not done.done():
@@ -129,6 +138,7 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
 
     def on_connect(c: paho.Client, u: object, f: object, reason: ReasonCode,
                    p: object) -> None:
+        acked.append(True)
         if reason.is_failure:
             loop.call_soon_threadsafe(settle, ConnectionRefusedError(str(reason)))
         else:
@@ -142,15 +152,28 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
         elif message.retain:
             seen[message.topic] = bytes(message.payload)
 
+    def on_disconnect(c: paho.Client, u: object, f: object, reason: object,
+                      p: object) -> None:
+        if not acked:
+            loop.call_soon_threadsafe(settle, BrokerUnreached("closed"))
+
     # (the gateway's own callbacks, which ``make`` set, are not the probe's)
     client.on_connect, client.on_message = on_connect, on_message
     client.on_subscribe = lambda c, *_: c.publish(echo, b"", qos=0)
-    client.on_disconnect = client.on_publish = None
+    client.on_disconnect, client.on_publish = on_disconnect, None
     client.will_clear()  # the gateway's will is not the probe's to leave
     try:
-        await asyncio.to_thread(client.connect, broker.host, broker.port, 10)
+        try:
+            await asyncio.to_thread(client.connect, broker.host, broker.port, 10)
+        except (OSError, ValueError) as exc:
+            raise BrokerUnreached("unreachable", reason_of(exc)) from exc
         client.loop_start()
-        result = await asyncio.wait_for(done, PROBE_TIMEOUT)
+        try:
+            result = await asyncio.wait_for(done, PROBE_TIMEOUT)
+        except TimeoutError:
+            if not acked:
+                raise BrokerUnreached("silent") from None
+            raise
         if isinstance(result, Exception):
             raise result
         return seen
@@ -180,7 +203,7 @@ class Identity:
 
     async def rival(self, broker: Broker, make: Callable[[str], paho.Client]) -> Claim | None:
         """A live gateway holding this ``gateway_id`` or client id on ``broker``, asked
-        before connecting."""
+        before connecting.  Raises ``BrokerUnreached`` when ``broker`` was not reached."""
         probe_id = f"{self.client_id}-probe-{self.claim.instance[:8]}"
         t = self.topics
         try:
@@ -200,7 +223,7 @@ class Identity:
                 rival = live if live == other else None
                 what = f"the client id {self.client_id!r}"
         except (OSError, TimeoutError, ValueError):
-            return None  # the real connect tries, and reports why it cannot
+            return None  # refused or half-answered: the real connect tries, and says why
         if rival is not None:
             self.held_off = True
             self._report(
@@ -243,3 +266,7 @@ class Identity:
 
 def _text(payload: bytes | None) -> str | None:
     return None if payload is None else payload.decode(errors="replace")
+
+
+def reason_of(exc: BaseException) -> str:
+    return getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
