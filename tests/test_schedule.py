@@ -21,7 +21,7 @@ from imu_gateway.bus.sensor_state import (
     EVIDENCE_SPAN,
     SensorState,
 )
-from imu_gateway.bus.timing import RTO_INITIAL, RTO_MAX, RTO_MIN, AnswerTimer
+from imu_gateway.bus.timing import LOOK_EVERY, RTO_INITIAL, RTO_MAX, RTO_MIN, AnswerTimer
 from imu_gateway.config import SensorConfig
 from imu_gateway.errors import ErrorKind
 from imu_gateway.model import Series
@@ -105,6 +105,36 @@ def test_the_timeout_follows_rfc6298() -> None:
     timer.sample(0.020)
     assert timer.backoff == 0 and timer.rto < RTO_MAX
     assert AnswerTimer(fixed=0.3).rto == 0.3  # timeout_ms overrides
+
+
+def test_the_answer_is_looked_for_at_its_usual_time_and_one_in_eight_times_it() -> None:
+    timer = AnswerTimer()
+    assert timer.look_after() == 0.0  # nothing learned: watched for from the request
+    for _ in range(20):
+        timer.sample(0.005)
+    assert [timer.look_after() > 0 for _ in range(LOOK_EVERY)].count(False) == 1
+    early = next(x for x in iter(timer.look_after, None) if x)
+    assert 0 < early <= 0.005
+    timer.timed_out()
+    assert timer.look_after() == 0.0  # not answering as it did: watched at once
+    timer.answered()  # an answer found whole at a look times nothing, but ends that
+    assert timer.backoff == 0 and timer.samples == 20
+
+
+def test_a_steady_sensor_s_answer_is_never_whole_before_the_look() -> None:
+    """The look (no wake-up for an answer's first bytes) is at the sensor's usual
+    latency less its spread: a sensor that answers as it did is never kept waiting."""
+    line = VirtualLine(bus("native", flat_out("native", 1)),
+                       [sim("native", "AH", 0, delay=0.004)])
+    line.run(3.0)
+    answers = [e.at for e in line.readings("s0")]
+    looked = [(sent, look) for sent, look in line.looks if look]
+    assert len(looked) > 0.8 * len(line.looks) > 100
+    timer = line.schedule.sensors["s0"].timer
+    assert timer.srtt == pytest.approx(0.004, abs=2e-4)  # still learned, 1 in 8
+    for sent, look in looked:
+        if sent < answers[-1]:  # (the last request's answer is still to come)
+            assert look <= min(a for a in answers if a > sent)
 
 
 def test_an_answer_after_its_timeout_is_used_and_nothing_talks_over_it() -> None:

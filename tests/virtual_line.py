@@ -72,6 +72,8 @@ class VirtualLine:
     schedule: Schedule = field(init=False)
     events: list[Event] = field(default_factory=list)
     writes: list[tuple[float, bytes]] = field(default_factory=list)
+    #: each request's write time and when the bus may first look for its whole answer
+    looks: list[tuple[float, float]] = field(default_factory=list)
     overlaps: int = 0
     collisions: int = 0
     _queue: list[Outgoing] = field(default_factory=list)
@@ -202,6 +204,7 @@ class VirtualLine:
                 for o in self._queue):
             self.overlaps += 1
         self.writes.append((self.now, request.data))
+        self.looks.append((at, at + request.look_after if request.look_after else 0.0))
         self.schedule.written(at)  # the driver, back from the write, says when
         self._driver_free = at
         heard_at = at + len(request.data) * char_time(self.schedule.baud)

@@ -60,6 +60,9 @@ class Attempt:
     #: the write took long enough that when the request left is not known: its
     #: answer measures nothing (``Line.written``)
     untimed: bool = False
+    #: the bus looked for the answer only at its usual time (``Request.look_after``):
+    #: found whole then, it too measures nothing
+    looked: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -70,6 +73,9 @@ class Request:
     data: bytes
     expect: int
     latest: float = math.inf
+    #: the whole answer cannot be in sooner than this many seconds after the write:
+    #: the port need not be watched until then (0: watch it at once)
+    look_after: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)

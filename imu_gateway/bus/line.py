@@ -146,12 +146,13 @@ class Line:
         return max(self.last_rx + settle, self.last_tx_end + self.gap, self.hold_until)
 
     def send(self, job: Job, exchange: Exchange, now: float, timeout: float,
-             hold: float, latest: float = math.inf) -> Request:
+             hold: float, latest: float = math.inf, early: float = 0.0) -> Request:
         """``exchange`` goes out now (``free_at`` said the line is free); its answer is
         due ``timeout`` beyond the wire time, and the line is held ``hold`` more for a
         late one.  Half a frame still in the framer has stopped coming (the line has
         been quiet): it is dropped now, not while nothing needed the line (its rest may
-        yet come, late, on a busy machine)."""
+        yet come, late, on a busy machine).  ``early``: the answer's latency is rarely
+        less (0: not known, or to be timed); the port is not looked at before."""
         self.flush(now)
         wire = self.wire(exchange)
         if not exchange.answer_bytes:
@@ -159,11 +160,12 @@ class Line:
         deadline = now + wire + timeout
         self.attempt = Attempt(job, exchange, now, wire, deadline, deadline + hold,
                                now - self.gap, self.adapter.garbage_seen(self.framer),
-                               tx_end_before=self.last_tx_end)
+                               tx_end_before=self.last_tx_end, looked=early > 0)
         self.last_tx_end = now + len(exchange.request) * char_time(self.baud)
         self.heard.clear()
         job.tries += 1
-        return Request(exchange.request, exchange.answer_bytes, latest)
+        look = wire + early if early > 0 else 0.0
+        return Request(exchange.request, exchange.answer_bytes, latest, look)
 
     def written(self, at: float) -> None:
         """The request handed out was written by ``at`` (when the write returned).

@@ -55,6 +55,9 @@ class _Reader(typing.Protocol):
 
     def on_timer(self) -> None: ...
 
+    def look_at(self, at: float) -> None:
+        """The awaited answer cannot be whole before ``at``: no wake-up for it sooner."""
+
     def close(self) -> None: ...
 
 
@@ -175,15 +178,18 @@ class SerialLink:
         except (serial.SerialException, OSError, ValueError, TypeError):
             return unseen
 
-    def write(self, data: bytes, expect: int = 0) -> None:
-        """Send ``data``; ``expect`` is the length of the answer, when known."""
+    def write(self, data: bytes, expect: int = 0, look_after: float = 0.0) -> None:
+        """Send ``data``; ``expect`` is the length of the answer, when known, and it
+        cannot be whole sooner than ``look_after`` seconds from now."""
         self.expect = expect
-        if self._serial is None:
+        if self._serial is None or self._reader is None:
             raise LinkError(f"{self.port} is not open")
         try:
             self._serial.write(data)
         except (serial.SerialException, OSError) as exc:
             raise LinkError(f"writing to {self.port}: {exc}") from None
+        if look_after > 0:
+            self._reader.look_at(time.monotonic() + look_after)
 
     def set_baudrate(self, baudrate: int) -> None:
         self.baudrate = baudrate
@@ -259,15 +265,24 @@ class _LoopReader:
         else:
             self._hand_over()
 
+    def look_at(self, at: float) -> None:
+        if self.held or self.rest_at != math.inf:
+            return  # bytes of something else are under way: as they come
+        self.reactor.unwatch(self.fd)
+        self.rest_at = at
+
     def _wait_for_rest(self) -> None:
         missing = self.want - len(self.held)
         self.rest_at = time.monotonic() + max(missing, 1) * byte_time(self.link.baudrate)
 
     def on_timer(self) -> None:
+        """The rest of an answer could be in, or (nothing held) the whole of it."""
         self.rest_at = math.inf
         before = len(self.held)
         if not self._read(woken=False):
             return
+        if not before and self.held:  # a look, and the answer has begun
+            self.want = self.link.take_expect()
         if before < len(self.held) < self.want:
             self._wait_for_rest()
             return
@@ -301,6 +316,9 @@ class _ThreadReader:
     descriptor the loop cannot watch."""
 
     rest_at = math.inf  # it waits for an answer's rest on its own thread
+
+    def look_at(self, at: float) -> None:
+        pass  # its thread waits in a blocking read anyway
 
     def __init__(self, link: SerialLink, ser: serial.Serial, reactor: Reactor,
                  on_bytes: OnBytes, on_lost: OnLost) -> None:

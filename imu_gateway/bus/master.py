@@ -311,7 +311,7 @@ class BusMaster:
                 # given (a busy machine): it goes back, and waits for the next place.
                 self.schedule.withdraw()
                 return
-            self.link.write(request.data, request.expect)
+            self.link.write(request.data, request.expect, request.look_after)
             self.schedule.written(self._now())  # held in the write, it left by then
         except LinkError as exc:
             self._on_lost(exc)

@@ -143,7 +143,10 @@ class Outcomes:
             # Karn's rule says, the answer times nothing: whose is it?).
             self.line.hold_until = max(self.line.hold_until, a.give_up)
         elif a.exchange.answer_bytes and not a.untimed:  # (untimed: a slow write)
-            s.timer.sample(at - a.sent - a.wire)
+            if a.looked:  # found whole when looked for: it came in before, when?
+                s.timer.answered()
+            else:
+                s.timer.sample(at - a.sent - a.wire)
         if a.exchange.answer_bytes and a.overdue:
             s.stats.late_answers += 1
             self.stats.late_answers += 1

@@ -205,7 +205,9 @@ class Schedule:
         # An offline sensor is probed without the timeout's back-off: it must cost the
         # others little.
         timeout = s.timer.hold if s.online is False else s.timer.rto
-        return self.line.send(job, exchange, now, timeout, s.timer.hold, latest)
+        # A retry, or a sensor that is not answering as it did, is watched for at once.
+        early = s.timer.look_after() if s.online and not job.tries else 0.0
+        return self.line.send(job, exchange, now, timeout, s.timer.hold, latest, early)
 
     def written(self, at: float) -> None:
         """The request ``next_request`` handed out was written by ``at``."""

@@ -12,6 +12,12 @@ another timeout (``hold``): one that comes then is late, but used and measured.
 
 The latency is the time from the request's last byte to the answer's last byte,
 less the answer's own wire time: what the sensor and the adapter added.
+
+The estimate also says when to *look* for an answer: an answer that cannot be whole
+before its usual latency needs no wake-up for its first bytes (each wake-up costs CPU;
+at a few hundred exchanges a second, most of the gateway's).  An answer found whole at
+such a look came in at some unknown time before it, so it times nothing; one answer in
+``LOOK_EVERY`` is watched for from the request on, and keeps the estimate learning.
 """
 
 from __future__ import annotations
@@ -25,6 +31,8 @@ RTO_MIN = 0.01
 #: Never more: past this a sensor is not answering, and waiting costs the others.
 RTO_MAX = 0.4
 _ALPHA, _BETA, _K = 1 / 8, 1 / 4, 4  # RFC 6298's gains and deviation factor
+#: One answer in this many is watched for from its request on (and times the sensor).
+LOOK_EVERY = 8
 
 
 @dataclass(slots=True)
@@ -39,6 +47,7 @@ class AnswerTimer:
     rttvar: float = 0.0  # its mean deviation
     backoff: int = 0  # timeouts since the last answer: each doubles the timeout
     samples: int = 0
+    looks: int = 0  # requests given a look time (``look_after``)
 
     def sample(self, latency: float) -> None:
         """An answer came ``latency`` seconds after its request left (never negative)."""
@@ -50,6 +59,21 @@ class AnswerTimer:
             self.srtt = (1 - _ALPHA) * self.srtt + _ALPHA * latency
         self.backoff = 0
         self.samples += 1
+
+    def answered(self) -> None:
+        """An answer came that times nothing (found whole at a look): it still ends
+        the back-off."""
+        self.backoff = 0
+
+    def look_after(self) -> float:
+        """How long past a request's wire time its answer cannot be whole yet, as far
+        as the sensor's answers tell: the bus need not look before then.  0: watch for
+        it from the request on (no estimate yet, or the one in ``LOOK_EVERY`` that
+        times the sensor)."""
+        self.looks += 1
+        if self.srtt is None or self.backoff or self.looks % LOOK_EVERY == 0:
+            return 0.0
+        return max(0.0, min(self.srtt - 2 * self.rttvar, self.rto))
 
     def timed_out(self) -> None:
         """An attempt got no answer: the next one waits longer, up to the cap."""
