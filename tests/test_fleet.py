@@ -127,7 +127,10 @@ async def _fleet(cluster: NatsCluster, lines: contextlib.ExitStack,
         with contextlib.suppress(TimeoutError):
             await until(lambda: _statuses(late, retained=True) ==
                         dict.fromkeys(ids, "online"), 30)
-        assert _statuses(late, retained=True) == dict.fromkeys(ids, "online")
+        wrong = {g for g, text in _statuses(late, retained=True).items() if text != "online"}
+        assert not wrong and len(_statuses(late, retained=True)) == GATEWAYS, {
+            g: [(round(m.at - killed_at, 2), m.text) for m in list(rec.messages)
+                if m.topic == f"imu/{g}/status"] for g in wrong}
 
     # what the failover cost: states of the moved gateways never seen
     mark = len(rec.messages)

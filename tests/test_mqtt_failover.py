@@ -116,3 +116,25 @@ async def test_a_node_that_never_answers_costs_one_try_not_two(tmp_path: Path) -
         for writer in accepted:
             writer.close()
             await writer.wait_closed()
+
+
+@pytest.mark.anyio
+async def test_a_late_will_is_answered_with_online_again(tmp_path: Path) -> None:
+    """A cluster can publish the will of a connection it lost (its node died) after
+    the gateway said online on another node: the retained status would say offline
+    while the gateway runs.  Heard live, the gateway says online again."""
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200)
+    with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
+            recording(broker, f"{BASE}/status") as rec:
+        async with running(_config(line.path, [broker.url])) as gw:
+            await until(lambda: [m.text for m in rec.on(f"{BASE}/status")] == ["online"])
+            # the will, as the broker would publish it: retained, from elsewhere
+            rec.client.publish(f"{BASE}/status", b"offline", qos=1, retain=True)
+            await until(lambda: [m.text for m in rec.on(f"{BASE}/status")]
+                        == ["online", "offline", "online"])
+            assert gw.mqtt is not None and gw.mqtt.connected
+            with recording(broker, f"{BASE}/status") as late:
+                await until(lambda: bool(late.on(f"{BASE}/status")))
+                assert [m.text for m in late.on(f"{BASE}/status")] == ["online"]
+        # its own offline at a stop is not answered
+        assert [m.text for m in rec.on(f"{BASE}/status")][-1] == "offline"

@@ -204,7 +204,7 @@ class Identity:
     async def rival(self, broker: Broker, make: Callable[[str], paho.Client]) -> Claim | None:
         """A live gateway holding this ``gateway_id`` or client id on ``broker``, asked
         before connecting.  Raises ``BrokerUnreached`` when ``broker`` was not reached."""
-        probe_id = f"{self.client_id}-probe-{self.claim.instance[:8]}"
+        probe_id = self.probe_id
         t = self.topics
         try:
             found = await read_retained(make, broker, probe_id,
@@ -232,6 +232,12 @@ class Identity:
                 f"retained messages, and looks again every {RIVAL_WAIT:g} s. Give each "
                 f"gateway its own gateway_id and client_id (docs/scaling.md)")
         return rival
+
+    @property
+    def probe_id(self) -> str:
+        """The client id of this gateway's probes (its own: a probe must not take the
+        gateway's session)."""
+        return f"{self.client_id}-probe-{self.claim.instance[:8]}"
 
     @property
     def claim_topics(self) -> tuple[str, str]:
