@@ -32,6 +32,7 @@ from ..model import (
 )
 from ..normalise import field_values
 from ..stats import BusStats
+from . import modbus_ident
 
 INT32_MIN = -(2**31)
 NAN32 = struct.pack(">f", math.nan)
@@ -287,7 +288,7 @@ def markdown() -> str:
         "| exception | when |",
         "|---|---|",
         "| 01 | writes not allowed (`allow_writes: false`), or a function code other than "
-        "03, 04, 06, 16 |",
+        "03, 04, 06, 16, 43 (MEI 14) |",
         "| 02 | an address outside the map, a read across blocks, a command this series "
         "or protocol lacks |",
         "| 03 | a quantity outside 1-125 (read) or 1-123 (write), a bad value, half a "
@@ -308,6 +309,7 @@ def markdown() -> str:
         *(f"| {off if k.words == 1 else f'{off}-{off + 1}'} | {k.value[1]} | {text} |"
           for off, k, _, text, _ in DIAG_REGISTERS),
         "",
+        *modbus_ident.markdown(),
     ]
     return "\n".join(lines)
 

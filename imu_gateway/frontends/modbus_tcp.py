@@ -56,6 +56,7 @@ from ..modbus_codes import (
 )
 from ..stats import FrontendCounts
 from ..supervise import Frontend, PeerLog
+from . import modbus_ident as ident
 from . import modbus_map as mm
 from .common import GatewayLike
 
@@ -101,6 +102,7 @@ class ModbusTcpServer(Frontend):
         self.gateway = gateway
         self.config = config
         protocols = {s.name: b.protocol for b, s in gateway.config.iter_sensors()}
+        self._protocols = protocols
         self.units = {s.unit_id: _Unit(s, protocols[s.name]) for s in gateway.sensors.values()}
         self._by_name = {u.sensor.name: u for u in self.units.values()}
         self.raw_units = {s.raw_unit_id: s.name for s in gateway.sensors.values()
@@ -181,6 +183,8 @@ class ModbusTcpServer(Frontend):
         """The answer PDU to a request PDU: at once for reads, later for writes."""
         function = pdu[0]
         self.counts["requests"] += 1
+        if function == ident.FUNCTION:  # answered here, raw units too: no bus traffic
+            return self._identify(unit_id, pdu)
         if unit_id in self.raw_units:
             return self._passthrough(self.raw_units[unit_id], pdu)
         unit = self.units.get(unit_id)
@@ -216,6 +220,22 @@ class ModbusTcpServer(Frontend):
         elif not image.has_reading:
             return exception(function, TARGET_FAILED)  # no reading yet
         return bytes((function, 2 * count)) + image.words[2 * start: 2 * (start + count)]
+
+    def _identify(self, unit_id: int, pdu: bytes) -> bytes:
+        """Read Device Identification: a sensor's unit (its raw unit too) says what
+        the sensor is; unit 255 what the gateway is (``modbus_ident``)."""
+        unit = self.units.get(unit_id)
+        raw = self.raw_units.get(unit_id)
+        if unit is None and raw is not None:
+            unit = self._by_name[raw]
+        if unit is not None:
+            s = unit.sensor
+            who = ident.Identity(s.series, self._protocols[s.name], s.name)
+        elif unit_id == mm.DIAG_UNIT:
+            who = ident.Identity(None, None, self.gateway.config.gateway_id)
+        else:
+            return exception(pdu[0], GATEWAY_PATH)
+        return ident.answer(pdu, who)
 
     def _diagnostics(self, pdu: bytes) -> bytes:
         function = pdu[0]
