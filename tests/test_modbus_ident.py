@@ -130,7 +130,7 @@ async def test_refusals_are_the_standard_s_exceptions(lines: tuple[str, str]) ->
         assert await ask(port, DIAG_UNIT, bytes((0x2B, 0x0E, 4, 3))) == b"\xab\x02"  # no url
         assert await ask(port, 11, bytes((0x2B, 0x0E, 5, 0))) == b"\xab\x03"  # read code
         assert await ask(port, 11, bytes((0x2B, 0x0E, 1))) == b"\xab\x03"  # too short
-        assert await ask(port, 11, bytes((0x2B, 0x0D, 1, 0))) == b"\xab\x03"  # not MEI 14
+        assert await ask(port, 11, bytes((0x2B, 0x0D, 1, 0))) == b"\xab\x01"  # not MEI 14
         assert await ask(port, 99, bytes((0x2B, 0x0E, 1, 0))) == b"\xab\x0a"  # no unit
         # and the server goes on serving reads
         assert (await ask(port, 11, bytes((3, 0, 6, 0, 1))))[:2] == b"\x03\x02"

@@ -14,7 +14,8 @@ The rules (Modbus Application Protocol V1.1b3, section 6.21):
   announced with "more follows" and the id to ask for next.
 * Read code 4 is *individual* access: that one object, or exception 02 when it does
   not exist.
-* Any other read code is exception 03; a request of the wrong length too.
+* Any other read code is exception 03; a request of the wrong length too.  Another
+  MEI type (13, CANopen) is exception 01.
 * The conformity level is 0x82: regular objects, stream and individual access.
 """
 
@@ -24,7 +25,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from .. import __version__
-from ..modbus_codes import ILLEGAL_ADDRESS, ILLEGAL_VALUE
+from ..modbus_codes import ILLEGAL_ADDRESS, ILLEGAL_FUNCTION, ILLEGAL_VALUE
 from ..model import Series, WireProtocol
 
 FUNCTION, MEI_TYPE = 0x2B, 0x0E
@@ -105,7 +106,9 @@ BY_ID = {o.id: o for o in OBJECTS}
 def answer(pdu: bytes, who: Identity) -> bytes:
     """The answer PDU to a Read Device Identification request PDU (``0x2B 0x0E code
     object``), or the exception answer that refuses it."""
-    if len(pdu) != 4 or pdu[1] != MEI_TYPE:
+    if len(pdu) >= 2 and pdu[1] != MEI_TYPE:  # CANopen (13) or another: not served
+        return bytes((FUNCTION | 0x80, ILLEGAL_FUNCTION))
+    if len(pdu) != 4:
         return bytes((FUNCTION | 0x80, ILLEGAL_VALUE))
     code, first = pdu[2], pdu[3]
     if code == INDIVIDUAL:
@@ -150,7 +153,8 @@ def markdown() -> list[str]:
         "(extended: there are no extended objects, so the regular ones) stream the "
         "category's objects from the object id asked for (one that is not in the "
         "category restarts at its first object); read code 4 reads one object "
-        "(exception 02 if it does not exist). Other read codes: exception 03. "
+        "(exception 02 if it does not exist). Other read codes: exception 03; other MEI "
+        "types (13, CANopen): exception 01. "
         f"Conformity level 0x{CONFORMITY:02X} (regular, stream and individual access). "
         "Values are ASCII. The sensors report no firmware version, so a sensor's "
         "revision is the gateway's (docs/protocol-notes.md). Examples below: an AH "
