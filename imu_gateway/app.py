@@ -26,6 +26,7 @@ from .errors import RequestFailed, StartupError, unknown_sensor
 from .frontends.modbus_tcp import ModbusTcpServer
 from .frontends.mqtt import MqttClient
 from .frontends.rest import HttpServer, openapi_document
+from .frontends.sparkplug.client import SparkplugClient
 from .stats import BusStats, FrontendCounts, SensorStats
 from .supervise import Frontend, Supervisor
 
@@ -52,10 +53,15 @@ class Gateway:
         self._runner_of = {s.name: self.runners[b.name] for b, s in config.iter_sensors()}
         self.sensors: dict[str, SensorConfig] = {s.name: s for _, s in config.iter_sensors()}
         self.modbus = ModbusTcpServer(self, config.modbus) if config.modbus else None
-        self.mqtt = MqttClient(self, config.mqtt) if config.mqtt else None
+        sparkplug = config.mqtt.sparkplug if config.mqtt else None
+        self.mqtt = MqttClient(self, config.mqtt) \
+            if config.mqtt and (sparkplug is None or sparkplug.plain_topics) else None
+        self.sparkplug = SparkplugClient(self, config.mqtt) \
+            if config.mqtt and sparkplug is not None else None
         self.http = HttpServer(self, config.http) if config.http else None
         # the supervised front ends
-        self.frontends: list[Frontend] = [f for f in (self.modbus, self.http, self.mqtt) if f]
+        self.frontends: list[Frontend] = [
+            f for f in (self.modbus, self.http, self.mqtt, self.sparkplug) if f]
         self.supervisor = Supervisor()
         self.started = time.monotonic()
 
@@ -100,11 +106,13 @@ class Gateway:
         async with contextlib.AsyncExitStack() as stopping:  # unwinds last in, first out
             stopping.push_async_callback(self._stop_buses)
             self.buses.start()
-            for frontend in (self.modbus, self.http, self.mqtt):
+            for frontend in (self.modbus, self.http, self.mqtt, self.sparkplug):
                 if frontend is not None:
                     stopping.push_async_callback(frontend.stop)
-            if self.mqtt is not None:  # connects in the background, retrying: never fails
-                await self.mqtt.start()
+            # (they connect in the background, retrying: never fail)
+            for client in (self.mqtt, self.sparkplug):
+                if client is not None:
+                    await client.start()
             watchers = [asyncio.create_task(self.supervisor.watch(f), name=f"watch {f.name}")
                         for f in self.frontends]
             try:
@@ -155,7 +163,8 @@ class Gateway:
         return self.cache.sensor_stats(name)
 
     def frontend_stats(self) -> dict[str, FrontendCounts]:
-        running = {"modbus": self.modbus, "mqtt": self.mqtt, "http": self.http}
+        running = {"modbus": self.modbus, "mqtt": self.mqtt, "http": self.http,
+                   "sparkplug": self.sparkplug}
         return {name: {**f.stats(), "restarts": self.supervisor.restarts[name]}
                 for name, f in running.items() if f is not None}
 

@@ -74,13 +74,15 @@ class ValueGroup:
     are told.  ``symbol`` is what the register map, Home Assistant and the dashboard
     show, ``name`` what the API descriptions say, and ``digits`` the decimals the
     documents give its values (the BCD formats' and the Modbus registers' resolution),
-    which is also the integer registers' scale (``10 ** digits``)."""
+    which is also the integer registers' scale (``10 ** digits``).  ``title`` names
+    the group where a tree shows it (Sparkplug's metric folders, OPC UA's)."""
 
     type: type[Angles | Vector3 | Quaternion]
     fields: tuple[str, ...]
     symbol: str
     name: str
     digits: int
+    title: str
 
     @property
     def scale(self) -> int:
@@ -90,13 +92,15 @@ class ValueGroup:
 #: The value groups, one row each.  The units are the sensors' own in both protocols
 #: (the module docstring says why there is no conversion).
 VALUE_GROUPS: Mapping[Group, ValueGroup] = MappingProxyType({
-    Group.ANGLES: ValueGroup(Angles, ("pitch", "roll", "yaw"), "°", "degrees", 2),
+    Group.ANGLES: ValueGroup(Angles, ("pitch", "roll", "yaw"), "°", "degrees", 2, "Angles"),
     Group.ACCEL: ValueGroup(Vector3, tuple(f"accel_{a}" for a in _XYZ), "g",
-                            "standard gravity (g)", 4),
+                            "standard gravity (g)", 4, "Acceleration"),
     Group.GYRO: ValueGroup(Vector3, tuple(f"gyro_{a}" for a in _XYZ), "°/s",
-                           "degrees per second", 2),
-    Group.MAG: ValueGroup(Vector3, tuple(f"mag_{a}" for a in _XYZ), "G", "gauss", 5),
-    Group.QUATERNION: ValueGroup(Quaternion, ("q0", "q1", "q2", "q3"), "", "unitless", 6),
+                           "degrees per second", 2, "AngularRate"),
+    Group.MAG: ValueGroup(Vector3, tuple(f"mag_{a}" for a in _XYZ), "G", "gauss", 5,
+                          "MagneticField"),
+    Group.QUATERNION: ValueGroup(Quaternion, ("q0", "q1", "q2", "q3"), "", "unitless", 6,
+                                 "Quaternion"),
 })
 
 

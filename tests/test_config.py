@@ -394,7 +394,7 @@ RULES: list[tuple[str, dict[str, Any], str]] = [
      "base_topic, qos, retain, per_field_topics, min_interval_ms, homeassistant_discovery, "
      "homeassistant_min_interval_ms, homeassistant_url, allow_commands, protocol, "
      "client_id, deadband, queue_size, backfill, backfill_per_s, state_expiry_s, "
-     "discovery_prefix); did you mean base_topic?"),
+     "discovery_prefix, sparkplug); did you mean base_topic?"),
     ("mqtt deadband of an unknown field", base(mqtt={"deadband": {"pich": 0.1}}),
      'mqtt.deadband: unknown field "pich" (fields: pitch roll yaw accel_x accel_y accel_z '
      "gyro_x gyro_y gyro_z mag_x mag_y mag_z q0 q1 q2 q3; or a group: angles accel gyro mag "

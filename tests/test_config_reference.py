@@ -17,13 +17,15 @@ from imu_gateway.config import (
     ModbusConfig,
     MqttConfig,
     SensorConfig,
+    SparkplugConfig,
     config_from_dict,
 )
 from imu_gateway.tools import config_reference as ref
 
 ROOT = Path(__file__).parent.parent
 DOC = ROOT / "docs" / "config-reference.md"
-MODELS = (GatewayConfig, BusConfig, SensorConfig, ModbusConfig, MqttConfig, HttpConfig)
+MODELS = (GatewayConfig, BusConfig, SensorConfig, ModbusConfig, MqttConfig, SparkplugConfig,
+          HttpConfig)
 
 
 def test_config_reference_document_is_up_to_date() -> None:

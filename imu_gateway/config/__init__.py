@@ -30,6 +30,7 @@ from .schema import (
     ModbusConfig,
     MqttConfig,
     SensorConfig,
+    SparkplugConfig,
 )
 
 __all__ = [
@@ -41,6 +42,7 @@ __all__ = [
     "ModbusConfig",
     "MqttConfig",
     "SensorConfig",
+    "SparkplugConfig",
     "config_from_dict",
     "load_config",
     "load_config_text",

@@ -124,6 +124,13 @@ def _gateway_id(value: str) -> str:
     return value
 
 
+def _sparkplug_id(value: str) -> str:
+    if not value or any(c in value for c in "/+#"):
+        raise _fail(f"must not be empty nor contain /, + or # (Sparkplug ids are topic "
+                    f"levels), not {_show(value)}")
+    return value
+
+
 def _not_empty(value: str) -> str:
     if not value:
         raise _fail("must not be empty")
@@ -291,6 +298,13 @@ def _existing_file(value: str) -> str:
     return value
 
 
+def _in_existing_folder(value: str) -> str:
+    folder = os.path.dirname(value) or "."
+    if not value or not os.path.isdir(folder):
+        raise _fail(f"no such folder: {folder} (for {value}); create it first")
+    return value
+
+
 Name = Annotated[str, AfterValidator(_name)]
 NonEmpty = Annotated[str, AfterValidator(_not_empty)]
 UnitId = Annotated[int, _between(*UNIT_ID_RANGE)]
@@ -308,3 +322,4 @@ Network = Annotated[
     IPNetwork, PlainValidator(_network), PlainSerializer(_network_text, when_used="json")
 ]
 ExistingFile = Annotated[str, AfterValidator(_existing_file)]
+FileToKeep = Annotated[str, AfterValidator(_in_existing_folder)]

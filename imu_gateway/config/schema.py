@@ -34,6 +34,7 @@ from .fields import (
     PYSERIAL_SCHEMES,
     UNIT_ID_RANGE,
     ExistingFile,
+    FileToKeep,
     Listen,
     ListenAddress,
     Name,
@@ -55,6 +56,7 @@ from .fields import (
     _protocol,
     _serial_port,
     _show,
+    _sparkplug_id,
 )
 
 # ------------------------------------------------------------------------ the models
@@ -203,6 +205,27 @@ class Broker:
         return f"{self.host}:{self.port}"
 
 
+class SparkplugConfig(_Model):
+    """Sparkplug B on the brokers of ``mqtt.url``: the gateway an edge node, each sensor
+    a device (docs/sparkplug.md)."""
+
+    group_id: Annotated[str, AfterValidator(_sparkplug_id)] = Field(description=(
+        "the Sparkplug group id; not empty, no `/`, `+` or `#`"))
+    plain_topics: bool = Field(default=True, description=(
+        "keep the plain topics (`{base}/{gateway_id}/…`) too; false: Sparkplug only"))
+    allow_commands: bool = Field(default=False, description=(
+        "run the catalogue's commands written as DCMD metrics (`Commands/…`)"))
+    primary_host_id: Annotated[str, AfterValidator(_sparkplug_id)] | None = Field(
+        default=None, description=(
+            "the primary host application whose `spBv1.0/STATE/{id}` must say online "
+            "before the gateway is born; null: none is waited for"))
+    client_id: NonEmpty | None = Field(default=None, description="not empty", json_schema_extra={
+        _SHOWN_DEFAULT: "null: `imu-gateway-{gateway_id}-sparkplug`"})
+    bdseq_file: FileToKeep | None = Field(default=None, description=(
+        "where the birth/death sequence number is kept across restarts (its folder must "
+        "exist); null: it starts at 0 with each start"))
+
+
 class MqttConfig(_Model):
     """The MQTT client."""
 
@@ -270,6 +293,8 @@ class MqttConfig(_Model):
     discovery_prefix: Annotated[str, AfterValidator(_base_topic)] = Field(
         default="homeassistant", description=(
             "Home Assistant's discovery prefix; rules as for `base_topic`"))
+    sparkplug: SparkplugConfig | None = Field(default=None, description=(
+        "Sparkplug B ([sparkplug.md](sparkplug.md)); null: off"))
 
     @field_validator("deadband")
     @classmethod

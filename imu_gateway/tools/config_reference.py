@@ -29,6 +29,7 @@ from ..config import (
     ModbusConfig,
     MqttConfig,
     SensorConfig,
+    SparkplugConfig,
 )
 
 #: (heading, model, what the section is): the order of the document.
@@ -42,6 +43,9 @@ SECTIONS: tuple[tuple[str, type[BaseModel], str], ...] = (
     ("mqtt", MqttConfig,
      "The MQTT client ([mqtt.md](mqtt.md)). Relative file paths are relative to the "
      "gateway's working directory."),
+    ("mqtt.sparkplug", SparkplugConfig,
+     "Sparkplug B on the same brokers ([sparkplug.md](sparkplug.md)); `group_id` is "
+     "required."),
     ("http", HttpConfig, "The REST API and dashboard ([rest.md](rest.md))."),
 )
 

@@ -1,0 +1,138 @@
+"""``docs/sparkplug.md``, generated from the metric rows (``metrics``) and the node's
+rules (``node``): ``python -m imu_gateway.frontends.sparkplug.docs > docs/sparkplug.md``.
+``tests/test_sparkplug_docs.py`` fails while the committed file differs."""
+
+from __future__ import annotations
+
+from ...commands import CATALOGUE
+from ...config import SensorConfig
+from ...model import CAPABILITIES, VALUE_GROUPS, Series, WireProtocol
+from .metrics import STATUS_ROWS, DataType, command_rows, command_type, identity_rows
+from .node import BDSEQ, NAMESPACE, REBIRTH
+
+INTRO = """# Sparkplug B
+
+Generated from `imu_gateway/frontends/sparkplug/` by
+`python -m imu_gateway.frontends.sparkplug.docs`; do not edit by hand.
+
+With an `mqtt.sparkplug` section the gateway is a Sparkplug B edge node on the brokers
+of `mqtt.url`: its `gateway_id` is the edge node id, each sensor a device (its name is
+the device id). It speaks Sparkplug 3.0 with the Eclipse Tahu protobuf payload, on an
+MQTT session of its own (client id `imu-gateway-{{gateway_id}}-sparkplug`, its will the
+NDEATH), beside the plain topics of [mqtt.md](mqtt.md) or instead of them
+(`plain_topics: false`). It reads the gateway's cache like every front end: no bus
+traffic of its own. Tested against Eclipse Tahu's decoder (npm `sparkplug-payload`).
+
+```yaml
+mqtt:
+  url: mqtt://broker:1883
+  sparkplug:
+    group_id: plant-a            # required
+    plain_topics: true           # false: Sparkplug only
+    allow_commands: false        # DCMD runs the catalogue's commands when true
+    primary_host_id: scada       # births wait for spBv1.0/STATE/scada to say online
+    bdseq_file: /var/lib/imu-gateway/bdseq   # bdSeq kept across restarts
+```
+
+## Messages
+
+{messages}
+
+- **seq** is 0 in the NBIRTH and one more, modulo 256, in every DBIRTH, DDATA and DDEATH
+  after it.
+- **bdSeq** is one more (modulo 256) at every MQTT connection. With `bdseq_file` it is
+  kept across restarts, so that a will the broker publishes late for a killed gateway
+  never matches the new session's birth; without it, each start begins at 0.
+- **Aliases** are unique within the node and stable for the life of the process.
+- All births and data are QoS 0 and not retained, as Sparkplug asks; states that could
+  not be sent while the broker was away are not replayed (a new session begins with
+  births).
+
+## Commands
+
+- **NCMD** `{ns}/{{group}}/NCMD/{{gateway_id}}` with `{rebirth}` = true: the NBIRTH and
+  every DBIRTH again (same bdSeq, seq from 0).
+- **DCMD** `{ns}/{{group}}/DCMD/{{gateway_id}}/{{sensor}}`: writing a `Commands/…`
+  metric runs that command of the catalogue ([commands.md](commands.md)) through the
+  bus master's command queue, when `allow_commands` is true (otherwise the DCMD is
+  ignored, and counted, and the births carry no command metrics). A command without
+  an argument is run by writing true. The outcome comes back as the device's
+  `Commands/Result` metric in a DDATA: `{{command}}: ok`, or
+  `{{command}}: {{kind}}: {{message}}` (the error kinds REST and MQTT answer with).
+- Anything else (not a Sparkplug payload, an unknown device, a metric that is not a
+  command) is ignored, counted and logged (rate-limited); the node goes on.
+
+## Primary host
+
+With `primary_host_id`, the node subscribes to `{ns}/STATE/{{primary_host_id}}` (the
+Sparkplug 3.0 JSON `{{"online": true, "timestamp": …}}`, or 2.2's `ONLINE`/`OFFLINE`)
+and is born only while the host says online. When the host says offline, the node
+sends its NDEATH, disconnects, and connects again (a new bdSeq), to be born when the
+host is back.
+"""
+
+
+#: (message, topic after ``{ns}/{group}/``, when, what it carries): one row each.
+MESSAGES = (
+    ("NBIRTH", "NBIRTH/{gateway_id}",
+     "after each connect (once the primary host is online), and on a rebirth",
+     f"seq 0; `{BDSEQ}` (Int64, this connection's), `{REBIRTH}` (Boolean, false)"),
+    ("DBIRTH", "DBIRTH/{gateway_id}/{sensor}",
+     "after the NBIRTH for each sensor that is online; when a sensor answers again",
+     "every metric of the device below: name, alias, datatype, value, the sample's time; "
+     "measured values with an `engUnit` property"),
+    ("DDATA", "DDATA/{gateway_id}/{sensor}", "each new reading, status or counter change",
+     "only the metrics that changed, by alias (with their datatype: Tahu's decoder needs "
+     "it), stamped with the sample's wire time"),
+    ("DDEATH", "DDEATH/{gateway_id}/{sensor}", "the sensor went offline", "seq only"),
+    ("NDEATH", "NDEATH/{gateway_id}",
+     "the will of the session (QoS 1); or sent on a clean stop, or when the primary host "
+     "goes offline", f"`{BDSEQ}` equal to the NBIRTH's; no seq"),
+)
+
+
+def _messages() -> str:
+    rows = [f"| `{NAMESPACE}/{{group}}/{topic}` | {when} | {what} |"
+            for _, topic, when, what in MESSAGES]
+    return "\n".join(["| topic | when | content |", "|---|---|---|", *rows])
+
+
+def _device_table(series: Series, protocol: WireProtocol) -> list[str]:
+    sensor = SensorConfig(name="boom", series=series, address=0)
+    rows = [*STATUS_ROWS, *identity_rows(sensor, protocol)]
+    return [f"| `{r.name}` | {r.datatype.spelled} | {r.description} |" for r in rows]
+
+
+def markdown() -> str:
+    intro = INTRO.format(ns=NAMESPACE, bdseq=BDSEQ, rebirth=REBIRTH, messages=_messages())
+    lines = [intro, "## Device metrics",
+             "", "The measured values, one folder per value group; only the groups a "
+             "series measures are in its births:", "",
+             "| metric | datatype | engUnit | series |", "|---|---|---|---|"]
+    for group, spec in VALUE_GROUPS.items():
+        who = ", ".join(s.name for s in Series if group in CAPABILITIES[s].groups)
+        for name in spec.fields:
+            lines.append(f"| `{spec.title}/{name}` | Float | {spec.symbol or '(none)'} | "
+                         f"{who} |")
+    lines += ["", "Status and identity, every series:", "",
+              "| metric | datatype | what it says |", "|---|---|---|",
+              *_device_table(Series.AH, WireProtocol.NATIVE), "",
+              "Commands, with `allow_commands: true`: the catalogue's, for the series and "
+              "protocol that have them, and their outcome:", "",
+              "| metric | datatype | series (native / Modbus RTU) | what it does |",
+              "|---|---|---|---|"]
+    for command in CATALOGUE.values():
+        where = []
+        for protocol in WireProtocol:
+            have = [s.name for s in Series
+                    if any(r.command == command.name for r in command_rows(s, protocol))]
+            where.append(", ".join(have) or "none")
+        lines.append(f"| `Commands/{command.name}` | {command_type(command).spelled} | "
+                     f"{' / '.join(where)} | {command.summary} |")
+    lines += [f"| `Commands/Result` | {DataType.STRING.spelled} | all | the outcome of "
+              "the last command written as a DCMD |", ""]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    print(markdown(), end="")

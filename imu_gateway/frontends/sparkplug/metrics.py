@@ -1,0 +1,126 @@
+"""What a Sparkplug B device (one sensor) and the edge node (the gateway) carry: one
+row per metric.  The births, the data and docs/sparkplug.md all come from these rows.
+
+A sensor's metrics are its series' measured values (``model.VALUE_GROUPS``: one folder
+per group, the value's unit as its ``engUnit`` property), a few status and identity
+metrics, and, when commands are allowed, one metric per command of the catalogue the
+series and protocol have (``commands.CATALOGUE``).
+"""
+
+from __future__ import annotations
+
+import enum
+import typing
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from ...cache import Snapshot, Status
+from ...commands import CATALOGUE, CommandSpec, commands_for
+from ...config import SensorConfig
+from ...model import CAPABILITIES, VALUE_GROUPS, Series, WireProtocol
+from ...normalise import field_values
+
+Value = float | int | bool | str
+
+
+class DataType(enum.IntEnum):
+    """Sparkplug B's data type numbers (those used here)."""
+
+    INT32 = 3
+    INT64 = 4
+    UINT8 = 5
+    UINT32 = 7
+    UINT64 = 8
+    FLOAT = 9
+    DOUBLE = 10
+    BOOLEAN = 11
+    STRING = 12
+
+    @property
+    def spelled(self) -> str:
+        """As Sparkplug writes it: ``UInt64``, ``Boolean``."""
+        return self.name.title().replace("Uint", "UInt")
+
+
+@dataclass(frozen=True, slots=True)
+class MetricRow:
+    """One metric: its name (``/`` makes folders), type, unit, what it says, and its
+    value in a snapshot (``None``: no value now; it is sent as null)."""
+
+    name: str
+    datatype: DataType
+    description: str
+    value: Callable[[Snapshot], Value | None]
+    unit: str | None = None
+    command: str | None = None  # a DCMD writes it: this command of the catalogue
+
+
+def _field(name: str) -> Callable[[Snapshot], Value | None]:
+    def value(snap: Snapshot) -> Value | None:
+        return field_values(snap.reading).get(name) if snap.reading is not None else None
+    return value
+
+
+def value_rows(series: Series) -> list[MetricRow]:
+    """The measured values of ``series``: ``{Group title}/{field}``, float32."""
+    return [MetricRow(f"{spec.title}/{name}", DataType.FLOAT, f"{name} ({spec.name})",
+                      _field(name), spec.symbol or None)
+            for group, spec in VALUE_GROUPS.items() if group in CAPABILITIES[series].groups
+            for name in spec.fields]
+
+
+STATUS_ROWS = (
+    MetricRow("Status/Stale", DataType.BOOLEAN,
+              "the latest sample is older than the sensor's stale_after_ms",
+              lambda s: s.status is Status.STALE),
+    MetricRow("Status/Sequence", DataType.UINT64,
+              "the sample's sequence number (one more per new reading)", lambda s: s.seq),
+    MetricRow("Status/Errors", DataType.UINT64,
+              "the sensor's errors so far (timeouts, bad checksums, bad frames)",
+              lambda s: s.errors),
+    MetricRow("Status/Busy", DataType.BOOLEAN, "a save or calibration is running",
+              lambda s: s.busy),
+)
+
+#: After each command written as a DCMD: its outcome, ``{command}: ok`` or
+#: ``{command}: {kind}: {message}``.
+RESULT = MetricRow("Commands/Result", DataType.STRING,
+                   "the outcome of the last command written as a DCMD", lambda s: None)
+
+
+def identity_rows(sensor: SensorConfig, protocol: WireProtocol) -> list[MetricRow]:
+    return [
+        MetricRow("Properties/Series", DataType.STRING, "IMU, VG, AH or MINS",
+                  lambda s: sensor.series.name),
+        MetricRow("Properties/Protocol", DataType.STRING, "native or modbus",
+                  lambda s: protocol.name.lower()),
+        MetricRow("Properties/Address", DataType.UINT32, "the sensor's address on its bus",
+                  lambda s: sensor.address),
+    ]
+
+
+def command_type(spec: CommandSpec) -> DataType:
+    """A command's metric type: Boolean (write true) without an argument, else its
+    argument's type."""
+    if spec.argument is None:
+        return DataType.BOOLEAN
+    annotation: Any = spec.args.model_fields[spec.argument].annotation
+    if typing.get_origin(annotation) is Literal or annotation is str:
+        return DataType.STRING
+    return DataType.INT32 if annotation is int else DataType.DOUBLE
+
+
+def command_rows(series: Series, protocol: WireProtocol) -> list[MetricRow]:
+    have = commands_for(series, protocol)
+    rows = [MetricRow(f"Commands/{spec.name}", command_type(spec), spec.summary,
+                      lambda s: None, command=spec.name)
+            for spec in CATALOGUE.values() if spec.name in have]
+    return [*rows, RESULT]
+
+
+def device_rows(sensor: SensorConfig, protocol: WireProtocol,
+                commands: bool) -> list[MetricRow]:
+    """Every metric of one sensor's device, in birth order."""
+    rows = [*value_rows(sensor.series), *STATUS_ROWS, *identity_rows(sensor, protocol)]
+    return [*rows, *command_rows(sensor.series, protocol)] if commands else rows
