@@ -25,6 +25,7 @@ from .config import GatewayConfig, HttpConfig, SensorConfig, config_from_dict
 from .errors import RequestFailed, StartupError, unknown_sensor
 from .frontends.modbus_tcp import ModbusTcpServer
 from .frontends.mqtt import MqttClient
+from .frontends.opcua.server import OpcUaServer
 from .frontends.rest import HttpServer, openapi_document
 from .frontends.sparkplug.client import SparkplugClient
 from .stats import BusStats, FrontendCounts, SensorStats
@@ -59,9 +60,10 @@ class Gateway:
         self.sparkplug = SparkplugClient(self, config.mqtt) \
             if config.mqtt and sparkplug is not None else None
         self.http = HttpServer(self, config.http) if config.http else None
+        self.opcua = OpcUaServer(self, config.opcua) if config.opcua else None
         # the supervised front ends
         self.frontends: list[Frontend] = [
-            f for f in (self.modbus, self.http, self.mqtt, self.sparkplug) if f]
+            f for f in (self.modbus, self.http, self.opcua, self.mqtt, self.sparkplug) if f]
         self.supervisor = Supervisor()
         self.started = time.monotonic()
 
@@ -86,7 +88,9 @@ class Gateway:
         bound."""
         for frontend in self.frontends:
             frontend.arm()
-        for name, server in (("modbus", self.modbus), ("http", self.http)):
+        servers: tuple[tuple[str, ModbusTcpServer | HttpServer | OpcUaServer | None], ...] = (
+            ("modbus", self.modbus), ("http", self.http), ("opcua", self.opcua))
+        for name, server in servers:
             if server is not None and not server.listening:
                 try:
                     await server.start()
@@ -106,7 +110,7 @@ class Gateway:
         async with contextlib.AsyncExitStack() as stopping:  # unwinds last in, first out
             stopping.push_async_callback(self._stop_buses)
             self.buses.start()
-            for frontend in (self.modbus, self.http, self.mqtt, self.sparkplug):
+            for frontend in (self.modbus, self.http, self.opcua, self.mqtt, self.sparkplug):
                 if frontend is not None:
                     stopping.push_async_callback(frontend.stop)
             # (they connect in the background, retrying: never fail)
@@ -164,7 +168,7 @@ class Gateway:
 
     def frontend_stats(self) -> dict[str, FrontendCounts]:
         running = {"modbus": self.modbus, "mqtt": self.mqtt, "http": self.http,
-                   "sparkplug": self.sparkplug}
+                   "sparkplug": self.sparkplug, "opcua": self.opcua}
         return {name: {**f.stats(), "restarts": self.supervisor.restarts[name]}
                 for name, f in running.items() if f is not None}
 

@@ -20,7 +20,7 @@ import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, get_origin
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
@@ -229,6 +229,17 @@ CATALOGUE: Mapping[str, CommandSpec] = MappingProxyType({
                                                       declination=answer.get("degrees"))),
     )
 })
+
+
+def argument_type(spec: CommandSpec) -> type[str] | type[int] | type[float] | None:
+    """The type of a command's one argument as a client writes it (a choice is a
+    string); None: no argument."""
+    if spec.argument is None:
+        return None
+    annotation: Any = spec.args.model_fields[spec.argument].annotation
+    if get_origin(annotation) is Literal or annotation is str:
+        return str
+    return int if annotation is int else float
 
 
 def resolution(spec: CommandSpec) -> float | None:

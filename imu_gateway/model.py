@@ -75,7 +75,9 @@ class ValueGroup:
     show, ``name`` what the API descriptions say, and ``digits`` the decimals the
     documents give its values (the BCD formats' and the Modbus registers' resolution),
     which is also the integer registers' scale (``10 ** digits``).  ``title`` names
-    the group where a tree shows it (Sparkplug's metric folders, OPC UA's)."""
+    the group where a tree shows it (Sparkplug's metric folders, OPC UA's); ``span``
+    is the largest magnitude the native protocol's format can carry (OPC UA's
+    EURange)."""
 
     type: type[Angles | Vector3 | Quaternion]
     fields: tuple[str, ...]
@@ -83,6 +85,7 @@ class ValueGroup:
     name: str
     digits: int
     title: str
+    span: float
 
     @property
     def scale(self) -> int:
@@ -92,15 +95,16 @@ class ValueGroup:
 #: The value groups, one row each.  The units are the sensors' own in both protocols
 #: (the module docstring says why there is no conversion).
 VALUE_GROUPS: Mapping[Group, ValueGroup] = MappingProxyType({
-    Group.ANGLES: ValueGroup(Angles, ("pitch", "roll", "yaw"), "°", "degrees", 2, "Angles"),
+    Group.ANGLES: ValueGroup(Angles, ("pitch", "roll", "yaw"), "°", "degrees", 2, "Angles",
+                             999.99),
     Group.ACCEL: ValueGroup(Vector3, tuple(f"accel_{a}" for a in _XYZ), "g",
-                            "standard gravity (g)", 4, "Acceleration"),
+                            "standard gravity (g)", 4, "Acceleration", 9.9999),
     Group.GYRO: ValueGroup(Vector3, tuple(f"gyro_{a}" for a in _XYZ), "°/s",
-                           "degrees per second", 2, "AngularRate"),
+                           "degrees per second", 2, "AngularRate", 999.99),
     Group.MAG: ValueGroup(Vector3, tuple(f"mag_{a}" for a in _XYZ), "G", "gauss", 5,
-                          "MagneticField"),
+                          "MagneticField", 0.99999),
     Group.QUATERNION: ValueGroup(Quaternion, ("q0", "q1", "q2", "q3"), "", "unitless", 6,
-                                 "Quaternion"),
+                                 "Quaternion", 9.999999),
 })
 
 

@@ -68,7 +68,7 @@ async def running(config: dict[str, Any],
     stop = asyncio.Event()
     task = asyncio.create_task(gateway.run(stop))
     try:
-        servers = [s for s in (gateway.modbus, gateway.http) if s is not None]
+        servers = [s for s in (gateway.modbus, gateway.http, gateway.opcua) if s is not None]
         await until(lambda: task.done() or all(s.listening for s in servers))
         if task.done():
             task.result()  # it could not start: raise why

@@ -183,3 +183,18 @@ def test_value_round_trip(case: tuple[bcd.BcdFormat, int]) -> None:
     data = fmt.encode(value)
     assert data == fmt.encode_counts(counts)
     assert fmt.decode(data) == value
+
+
+def test_each_value_group_s_span_is_its_native_format_s_largest_value() -> None:
+    """OPC UA's EURange comes from ``ValueGroup.span``: it must be what the format
+    can carry (the model may not import the protocol layer, so the two are held
+    together here)."""
+    from imu_gateway.model import VALUE_GROUPS, Group
+    from imu_gateway.protocol import bcd
+
+    formats = {Group.ANGLES: bcd.ANGLE, Group.ACCEL: bcd.ACCEL, Group.GYRO: bcd.RATE,
+               Group.MAG: bcd.MAG, Group.QUATERNION: bcd.QUATERNION}
+    for group, fmt in formats.items():
+        largest = 10**fmt.int_digits - 10**-fmt.frac_digits
+        assert VALUE_GROUPS[group].span == pytest.approx(largest, abs=1e-12), group
+        assert VALUE_GROUPS[group].digits == fmt.frac_digits

@@ -356,7 +356,8 @@ RULES: list[tuple[str, dict[str, Any], str]] = [
      "buses[0].sensors[0].pol_hz: unknown key (allowed: name, series, address, unit_id, "
      "poll_hz, stream_hz, stale_after_ms, raw_unit_id); did you mean poll_hz?"),
     ("unknown top key", base(mqqt={}),
-     "mqqt: unknown key (allowed: gateway_id, buses, modbus, mqtt, http); did you mean mqtt?"),
+     "mqqt: unknown key (allowed: gateway_id, buses, modbus, mqtt, http, opcua); "
+     "did you mean mqtt?"),
     ("unknown bus key", with_bus(0, baud=9600),
      "buses[0].baud: unknown key (allowed: name, port, baudrate, protocol, timeout_ms, "
      "retries, trace, rs485, sensors); did you mean baudrate?"),
@@ -748,3 +749,16 @@ def test_baudrate_defaults_to_the_sensors_factory_rate() -> None:
 def test_deadband_of_a_group_applies_to_its_fields_and_a_field_wins() -> None:
     bands = MqttConfig(deadband={"angles": 0.5, "yaw": 2.0, "q0": 0.01}).field_deadbands()
     assert bands == {"pitch": 0.5, "roll": 0.5, "yaw": 2.0, "q0": 0.01}
+
+
+@pytest.mark.parametrize(("opcua", "message"), [
+    ({"allow_commands": True},
+     "opcua: anonymous: true with allow_commands: true lets anyone run commands"),
+    ({"anonymous": False}, "opcua: anonymous: false needs users, or nobody can log in"),
+])
+def test_opcua_access_rules_are_checked(opcua: dict[str, object], message: str) -> None:
+    with pytest.raises(ConfigError) as failed:
+        config_from_dict({"buses": [{"name": "a", "port": "/dev/null", "protocol": "native",
+                                     "sensors": [{"name": "s", "series": "AH"}]}],
+                          "opcua": opcua}, env={})
+    assert any(p.startswith(message) for p in failed.value.problems), failed.value.problems

@@ -16,6 +16,7 @@ from imu_gateway.config import (
     HttpConfig,
     ModbusConfig,
     MqttConfig,
+    OpcUaConfig,
     SensorConfig,
     SparkplugConfig,
     config_from_dict,
@@ -25,7 +26,7 @@ from imu_gateway.tools import config_reference as ref
 ROOT = Path(__file__).parent.parent
 DOC = ROOT / "docs" / "config-reference.md"
 MODELS = (GatewayConfig, BusConfig, SensorConfig, ModbusConfig, MqttConfig, SparkplugConfig,
-          HttpConfig)
+          HttpConfig, OpcUaConfig)
 
 
 def test_config_reference_document_is_up_to_date() -> None:

@@ -29,6 +29,7 @@ from .schema import (
     HttpConfig,
     ModbusConfig,
     MqttConfig,
+    OpcUaConfig,
     SensorConfig,
     SparkplugConfig,
 )
@@ -41,6 +42,7 @@ __all__ = [
     "ListenAddress",
     "ModbusConfig",
     "MqttConfig",
+    "OpcUaConfig",
     "SensorConfig",
     "SparkplugConfig",
     "config_from_dict",

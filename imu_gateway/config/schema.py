@@ -355,6 +355,34 @@ class MqttConfig(_Model):
         return tuple(Broker.of(url) for url in self.urls)
 
 
+class OpcUaConfig(_Model):
+    """The OPC UA server (docs/opcua.md)."""
+
+    listen: Listen = Field(default=ListenAddress("0.0.0.0", 4840), description=(
+        "`host:port` as for `modbus.listen`; the endpoint is `opc.tcp://{host}:{port}/`"))
+    allow_none: bool = Field(default=False, description=(
+        "also offer security mode None (no signing, no encryption); off: Basic256Sha256 "
+        "Sign and SignAndEncrypt only"))
+    anonymous: bool = Field(default=True, description=(
+        "let clients in without a user name; must be false with `allow_commands`"))
+    users: dict[NonEmpty, str] = Field(default_factory=dict, description=(
+        "user name → password (write `${VAR}` to take it from the environment)"))
+    allow_commands: bool = Field(default=False, description=(
+        "each sensor offers the catalogue's commands as methods"))
+    pki_dir: NonEmpty = Field(default="opcua-pki", description=(
+        "the server's certificate and key (made at the first start if missing), and "
+        "`trusted/`: the client certificates it accepts (DER or PEM)"))
+
+    @model_validator(mode="after")
+    def _no_anonymous_commands(self) -> Self:
+        if self.allow_commands and self.anonymous:
+            raise _fail("anonymous: true with allow_commands: true lets anyone run "
+                        "commands; set anonymous: false and list users")
+        if not self.anonymous and not self.users:
+            raise _fail("anonymous: false needs users, or nobody can log in")
+        return self
+
+
 class HttpConfig(_Model):
     """The REST API and dashboard."""
 
@@ -392,6 +420,8 @@ class GatewayConfig(_Model):
         "the MQTT client (`mqtt`); left out: off"))
     http: HttpConfig | None = Field(default=None, description=(
         "the REST API and dashboard (`http`); left out: off"))
+    opcua: OpcUaConfig | None = Field(default=None, description=(
+        "the OPC UA server (`opcua`); left out: off"))
 
     @model_validator(mode="before")
     @classmethod
@@ -415,8 +445,9 @@ class GatewayConfig(_Model):
                 yield bus, sensor
 
     def interfaces(self) -> list[str]:
-        """The interfaces turned on: ``modbus``, ``mqtt``, ``http``, in that order."""
-        return [n for n in ("modbus", "mqtt", "http") if getattr(self, n) is not None]
+        """The interfaces turned on: ``modbus``, ``mqtt``, ``http``, ``opcua``, in that
+        order."""
+        return [n for n in ("modbus", "mqtt", "http", "opcua") if getattr(self, n) is not None]
 
     def summary(self) -> str:
         """``gateway lab-1, 2 buses, 3 sensors; interfaces: modbus, http``."""

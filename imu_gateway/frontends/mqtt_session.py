@@ -250,8 +250,8 @@ class Session:
         self.counters.connects += 1
         self._last_problem = None
         self.pipe.connected_anew()
-        self.log.info("mqtt: %s connected to %s (MQTT %s)", self.client_id,
-                      self.failover.current, self.config.protocol)
+        self.log.info("mqtt: connected to %s (MQTT %s)", self.failover.current,
+                      self.config.protocol)
         self.owner.on_connected()
 
     def _on_disconnect(self, reason: ReasonCode) -> None:

@@ -28,6 +28,7 @@ from ..config import (
     ListenAddress,
     ModbusConfig,
     MqttConfig,
+    OpcUaConfig,
     SensorConfig,
     SparkplugConfig,
 )
@@ -47,6 +48,7 @@ SECTIONS: tuple[tuple[str, type[BaseModel], str], ...] = (
      "Sparkplug B on the same brokers ([sparkplug.md](sparkplug.md)); `group_id` is "
      "required."),
     ("http", HttpConfig, "The REST API and dashboard ([rest.md](rest.md))."),
+    ("opcua", OpcUaConfig, "The OPC UA server ([opcua.md](opcua.md))."),
 )
 
 _NETWORK = (ipaddress.IPv4Network, ipaddress.IPv6Network)

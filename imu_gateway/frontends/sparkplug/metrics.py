@@ -10,13 +10,11 @@ series and protocol have (``commands.CATALOGUE``).
 from __future__ import annotations
 
 import enum
-import typing
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Literal
 
 from ...cache import Snapshot, Status
-from ...commands import CATALOGUE, CommandSpec, commands_for
+from ...commands import CATALOGUE, CommandSpec, argument_type, commands_for
 from ...config import SensorConfig
 from ...model import CAPABILITIES, VALUE_GROUPS, Series, WireProtocol
 from ...normalise import field_values
@@ -103,12 +101,9 @@ def identity_rows(sensor: SensorConfig, protocol: WireProtocol) -> list[MetricRo
 def command_type(spec: CommandSpec) -> DataType:
     """A command's metric type: Boolean (write true) without an argument, else its
     argument's type."""
-    if spec.argument is None:
-        return DataType.BOOLEAN
-    annotation: Any = spec.args.model_fields[spec.argument].annotation
-    if typing.get_origin(annotation) is Literal or annotation is str:
-        return DataType.STRING
-    return DataType.INT32 if annotation is int else DataType.DOUBLE
+    kind = argument_type(spec)
+    return DataType.BOOLEAN if kind is None else {
+        str: DataType.STRING, int: DataType.INT32}.get(kind, DataType.DOUBLE)
 
 
 def command_rows(series: Series, protocol: WireProtocol) -> list[MetricRow]:

@@ -1,0 +1,133 @@
+"""``docs/opcua.md``, generated from the address space's rows (``space``) and the
+command catalogue: ``python -m imu_gateway.frontends.opcua.docs > docs/opcua.md``.
+``tests/test_opcua_docs.py`` fails while the committed file differs."""
+
+from __future__ import annotations
+
+from ...commands import CATALOGUE, argument_type, commands_for
+from ...model import CAPABILITIES, VALUE_GROUPS, Series, WireProtocol
+from .server import CALL_STATUS
+from .space import BUS_VARS, NEVER_READ, QUALITY, SENSOR_VARS, UNECE, UNITS
+
+INTRO = """# OPC UA
+
+Generated from `imu_gateway/frontends/opcua/` by
+`python -m imu_gateway.frontends.opcua.docs`; do not edit by hand.
+
+With an `opcua:` section the gateway serves its sensors to OPC UA clients (SCADA, MES,
+historians): [asyncua](https://github.com/FreeOpcUa/opcua-asyncio) in the gateway's
+own event loop. It reads the gateway's cache like every front end: a Read or a
+subscription never waits for the serial bus, and a hundred clients cost the bus
+nothing. Methods (the commands) go through the bus master's command queue. Tested
+with asyncua's client and Node's node-opcua.
+
+```yaml
+opcua:
+  listen: 0.0.0.0:4840         # opc.tcp://HOST:4840/
+  allow_none: false            # true: also security mode None
+  anonymous: true              # false: only the users below
+  users: {{operator: "${{OPCUA_PASSWORD}}"}}
+  allow_commands: false        # true needs anonymous: false
+  pki_dir: opcua-pki           # server_cert.der and server_key.pem (made at the
+                               # first start), trusted/: client certificates
+```
+
+## Address space
+
+Namespace `urn:imu-gateway`. Node ids are strings, `{{gateway_id}}.{{path}}`, so a
+client's tag list survives a restart and a reordered config:
+
+```
+Objects/IMU Gateway/{{gateway_id}}/                ns=N;s={{gateway_id}}.
+    Sensors/{{sensor}}/                             ns=N;s={{gateway_id}}.Sensors.{{sensor}}
+        {{Group}}/{{field}}                           …Sensors.{{sensor}}.Angles.pitch
+        Status, Age, Sequence, Errors, Series, Protocol, Address
+        {{command}}()                               with allow_commands
+    Buses/{{bus}}/{{counter}}                         …Buses.{{bus}}.Transactions
+```
+"""
+
+SECURITY = """
+## Security
+
+- **Endpoints:** Basic256Sha256 with Sign and with SignAndEncrypt; security mode None
+  only with `allow_none: true`.
+- **The server's certificate** is made at the first start (self-signed, one year) in
+  `pki_dir`, with the key; a client trusts it once (or you replace both files by a
+  certificate of your own CA).
+- **Client certificates** are accepted only if they are in `pki_dir/trusted/` (DER or
+  PEM), or signed by a CA certificate there. An empty folder refuses every secured
+  connection and says so in the log.
+- **Users:** `users` (name → password; write `${VAR}` to keep the password out of the
+  file). `anonymous: false` refuses clients without a user name; with
+  `allow_commands: true` the config insists on it.
+"""
+
+
+def _values() -> list[str]:
+    lines = ["### Measured values", "",
+             "Each an `AnalogItemType` variable of type Float, with `EURange` (the largest "
+             "value the sensor's native format carries) and `EngineeringUnits` (UNECE "
+             f"Recommendation 20, namespace `{UNECE}`). Only the groups a series measures "
+             "are there.", "",
+             "| folder | variables | unit (UNECE code, UnitId) | EURange | series |",
+             "|---|---|---|---|---|"]
+    for group, spec in VALUE_GROUPS.items():
+        unit = UNITS[group]
+        shown = f"{unit.name} (`{unit.code}`, {unit.unit_id})" if unit else "none"
+        who = ", ".join(s.name for s in Series if group in CAPABILITIES[s].groups)
+        lines.append(f"| {spec.title} | {', '.join(spec.fields)} | {shown} | "
+                     f"±{spec.span} | {who} |")
+    return lines
+
+
+def _quality() -> list[str]:
+    return ["", "### Timestamps and quality", "",
+            "A value's SourceTimestamp is the wire time of its sample (when its answer came "
+            "off the line), not when it was published; the ServerTimestamp is when it was "
+            "written. Its StatusCode says how the sensor is:", "",
+            "| sensor | StatusCode |", "|---|---|",
+            *(f"| {status.value} | `{code}` |" for status, code in QUALITY.items()),
+            f"| never read since the start | `{NEVER_READ}` (the value is null or NaN) |", "",
+            "Every new sample is written once; a subscription gets it at the publishing "
+            "interval the client asks for. A value that repeats (a sensor at rest) changes "
+            "only its timestamp: ask for the DataChangeTrigger StatusValueTimestamp to get "
+            "every sample, or watch `Sequence`, which changes with each.", ""]
+
+
+def _rows(title: str, rows: list[tuple[str, str, str]]) -> list[str]:
+    return [title, "", "| variable | type | what it says |", "|---|---|---|",
+            *(f"| {n} | {t} | {d} |" for n, t, d in rows), ""]
+
+
+def _methods() -> list[str]:
+    lines = ["### Methods (`allow_commands: true`)", "",
+             "Each sensor object has the catalogue's commands its series and protocol have "
+             "([commands.md](commands.md)): one input argument (or none) and a `result` "
+             "string out. A refused or failed command is the call's StatusCode:", "",
+             "| why | StatusCode |", "|---|---|",
+             *(f"| {kind.value} | `{code}` |" for kind, code in CALL_STATUS.items()),
+             "", "| method | argument | series (native / Modbus RTU) |", "|---|---|---|"]
+    for spec in CATALOGUE.values():
+        kind = argument_type(spec)
+        arg = "none" if kind is None else \
+            f"{spec.argument} ({ {str: 'String', int: 'Int32'}.get(kind, 'Double') })"
+        where = [", ".join(s.name for s in Series if spec.name in commands_for(s, p)) or "none"
+                 for p in WireProtocol]
+        lines.append(f"| {spec.name} | {arg} | {' / '.join(where)} |")
+    return [*lines, ""]
+
+
+def markdown() -> str:
+    sensor_rows = [(v.name, v.datatype, v.description) for v in SENSOR_VARS] + [
+        ("Series", "String", "IMU, VG, AH or MINS"), ("Protocol", "String", "native or modbus"),
+        ("Address", "UInt16", "the sensor's address on its bus")]
+    bus_rows = [(v.name, v.datatype, v.description) for v in BUS_VARS]
+    lines = [INTRO, *_values(), *_quality(),
+             *_rows("### A sensor's status and identity", sensor_rows),
+             *_rows("### Buses (written every second)", bus_rows), *_methods(), SECURITY]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    print(markdown(), end="")

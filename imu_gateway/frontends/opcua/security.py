@@ -1,0 +1,101 @@
+"""The OPC UA server's security: its certificate (made at the first start), the users
+of the config, and the client certificates it trusts (``{pki_dir}/trusted``).
+
+* Security mode None is offered only with ``allow_none``; Basic256Sha256 Sign and
+  SignAndEncrypt always.
+* A client connecting with a certificate (any secured channel) must present one in
+  the trust list; ``imu-gateway`` puts nothing there itself.
+* Users and passwords come from the config (``${VAR}`` for the secrets); anonymous
+  access is refused when ``anonymous: false`` (the config insists on that with
+  commands on).
+"""
+
+from __future__ import annotations
+
+import hmac
+import logging
+import socket
+from pathlib import Path
+from typing import Any
+
+from asyncua import Server, ua
+from asyncua.common.utils import ServiceError
+from asyncua.crypto.cert_gen import setup_self_signed_certificate
+from asyncua.crypto.permission_rules import User, UserRole
+from asyncua.crypto.truststore import TrustStore
+from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
+from cryptography.x509.oid import ExtendedKeyUsageOID
+
+from ...config import OpcUaConfig
+
+log = logging.getLogger("imu_gateway.opcua")
+
+CERT, KEY, TRUSTED = "server_cert.der", "server_key.pem", "trusted"
+
+
+class ConfigUsers:
+    """asyncua's user manager: the config's users, and anonymous access if allowed."""
+
+    def __init__(self, config: OpcUaConfig) -> None:
+        self.users = dict(config.users)
+        self.anonymous = config.anonymous
+
+    def get_user(self, iserver: Any, username: str | None = None,
+                 password: str | None = None, certificate: Any = None) -> User | None:
+        if username is None:
+            return User(role=UserRole.User) if self.anonymous else None
+        expected = self.users.get(username)
+        if expected is None or password is None or \
+                not hmac.compare_digest(expected.encode(), password.encode()):
+            log.warning("opcua: refused user %r (unknown user or wrong password)", username)
+            return None
+        return User(role=UserRole.User, name=username)
+
+
+def policies(config: OpcUaConfig) -> list[ua.SecurityPolicyType]:
+    secured = [ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt,
+               ua.SecurityPolicyType.Basic256Sha256_Sign]
+    return [*secured, ua.SecurityPolicyType.NoSecurity] if config.allow_none else secured
+
+
+def identity_tokens(config: OpcUaConfig) -> list[type]:
+    tokens: list[type] = [ua.UserNameIdentityToken] if config.users else []
+    return [ua.AnonymousIdentityToken, *tokens] if config.anonymous else tokens
+
+
+async def secure(server: Server, config: OpcUaConfig, app_uri: str) -> Path:
+    """Load (or make) the server's certificate, set the policies, users and trust list.
+    Returns the certificate's path (the demo prints it)."""
+    pki = Path(config.pki_dir)
+    (pki / TRUSTED).mkdir(parents=True, exist_ok=True)
+    cert, key = pki / CERT, pki / KEY
+    made = not cert.exists()
+    await setup_self_signed_certificate(
+        key, cert, app_uri, socket.gethostname(), [ExtendedKeyUsageOID.SERVER_AUTH],
+        {"commonName": f"imu-gateway {app_uri}", "organizationName": "imu-gateway"})
+    if made:
+        log.info("opcua: made the server certificate %s (valid one year; clients must "
+                 "trust it)", cert)
+    await server.load_certificate(str(cert))
+    await server.load_private_key(str(key))
+    server.set_security_policy(policies(config))
+    server.set_identity_tokens(identity_tokens(config))
+    server.set_certificate_validator(await trust_list(pki / TRUSTED))
+    return cert
+
+
+async def trust_list(folder: Path) -> Any:
+    """The check of a client's certificate: in ``folder`` (or signed by a CA there),
+    valid now, meant for a client.  An empty folder refuses every certificate."""
+    if not any(p.suffix.lower() in (".der", ".pem", ".crt") for p in folder.iterdir()):
+        log.warning("opcua: no client certificate in %s: secured connections are refused "
+                    "until a client's certificate (DER or PEM) is put there", folder)
+
+        async def refuse(cert: Any, app_description: Any) -> None:
+            raise ServiceError(ua.StatusCodes.BadCertificateUntrusted)
+        return refuse
+    store = TrustStore([folder], [])
+    await store.load()
+    return CertificateValidator(
+        CertificateValidatorOptions.TRUSTED_VALIDATION | CertificateValidatorOptions.PEER_CLIENT,
+        store)
