@@ -3,8 +3,9 @@ of the config, and the client certificates it trusts (``{pki_dir}/trusted``).
 
 * Security mode None is offered only with ``allow_none``; Basic256Sha256 Sign and
   SignAndEncrypt always.
-* A client connecting with a certificate (any secured channel) must present one in
-  the trust list; ``imu-gateway`` puts nothing there itself.
+* A client that presents a certificate (every secured channel, and many clients in
+  mode None too) must present one in the trust list; ``imu-gateway`` puts nothing
+  there itself.
 * Users and passwords come from the config (``${VAR}`` for the secrets); anonymous
   access is refused when ``anonymous: false`` (the config insists on that with
   commands on).
@@ -80,22 +81,40 @@ async def secure(server: Server, config: OpcUaConfig, app_uri: str) -> Path:
     await server.load_private_key(str(key))
     server.set_security_policy(policies(config))
     server.set_identity_tokens(identity_tokens(config))
-    server.set_certificate_validator(await trust_list(pki / TRUSTED))
+    server.set_certificate_validator(TrustList(pki / TRUSTED))
     return cert
 
 
-async def trust_list(folder: Path) -> Any:
+class TrustList:
     """The check of a client's certificate: in ``folder`` (or signed by a CA there),
-    valid now, meant for a client.  An empty folder refuses every certificate."""
-    if not any(p.suffix.lower() in (".der", ".pem", ".crt") for p in folder.iterdir()):
-        log.warning("opcua: no client certificate in %s: secured connections are refused "
-                    "until a client's certificate (DER or PEM) is put there", folder)
+    valid now, meant for a client.  The folder is read again when it changed, so a
+    certificate put there is trusted without a restart.  Any certificate a client
+    presents is checked, whatever the security mode: one the gateway cannot place is
+    refused rather than half-trusted."""
 
-        async def refuse(cert: Any, app_description: Any) -> None:
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self._seen: tuple[tuple[str, float], ...] | None = None
+        self._check: CertificateValidator | None = None
+
+    async def _load(self) -> None:
+        files = tuple(sorted((p.name, p.stat().st_mtime) for p in self.folder.iterdir()
+                             if p.suffix.lower() in (".der", ".pem", ".crt")))
+        if files == self._seen:
+            return
+        self._seen, self._check = files, None
+        if not files:
+            log.warning("opcua: no client certificate in %s: a client presenting one is "
+                        "refused until its certificate (DER or PEM) is put there", self.folder)
+            return
+        store = TrustStore([self.folder], [])
+        await store.load()
+        self._check = CertificateValidator(
+            CertificateValidatorOptions.TRUSTED_VALIDATION
+            | CertificateValidatorOptions.PEER_CLIENT, store)
+
+    async def __call__(self, cert: Any, app_description: Any) -> None:
+        await self._load()
+        if self._check is None:
             raise ServiceError(ua.StatusCodes.BadCertificateUntrusted)
-        return refuse
-    store = TrustStore([folder], [])
-    await store.load()
-    return CertificateValidator(
-        CertificateValidatorOptions.TRUSTED_VALIDATION | CertificateValidatorOptions.PEER_CLIENT,
-        store)
+        await self._check(cert, app_description)

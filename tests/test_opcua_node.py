@@ -1,0 +1,119 @@
+"""The OPC UA server against Node's node-opcua (tests/node/opcua.js), a client that
+knows it only from docs/opcua.md: browse, read, subscribe, call, and be refused."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+import pytest
+from asyncua.crypto.cert_gen import setup_self_signed_certificate
+from cryptography import x509
+from cryptography.hazmat.primitives import serialization
+from cryptography.x509.oid import ExtendedKeyUsageOID
+from harness import expected, free_port, running, tolerance, until
+
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.simulator import hold, make_sensor, simulated
+from imu_gateway.simulator.motion import Motion
+
+NODE_DIR = Path(__file__).parent / "node"
+GID = "ua-node"
+READING = Motion.from_seed(12).sample(2.0)
+
+
+async def node_opcua(*args: str, certificate: tuple[Path, Path], mode: str = "None"
+                     ) -> dict[str, Any]:
+    """node-opcua's client with this certificate and key (PEM), in this mode."""
+    node = shutil.which("node")
+    assert node is not None, "node is needed: scripts/bootstrap --test installs it"
+    assert (NODE_DIR / "node_modules" / "node-opcua-client").is_dir(), \
+        "run scripts/bootstrap --test (npm ci in tests/node)"
+    proc = await asyncio.create_subprocess_exec(
+        node, str(NODE_DIR / "opcua.js"), *args, stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
+        env={"NODE_PATH": str(NODE_DIR / "node_modules"), "UA_CERT": str(certificate[0]),
+             "UA_KEY": str(certificate[1]), "UA_MODE": mode,
+             "HOME": str(certificate[0].parent)})  # node-opcua's own PKI folder goes there
+    out, err = await asyncio.wait_for(proc.communicate(), 90)
+    assert proc.returncode == 0, err.decode()[-2000:]
+    (line,) = [x for x in out.decode().splitlines() if x.startswith("RESULT ")]
+    answer: dict[str, Any] = json.loads(line.removeprefix("RESULT "))
+    return answer
+
+
+async def trusted_client(tmp_path: Path, pki: Path) -> tuple[Path, Path]:
+    """A client certificate (PEM) and key, put in the server's trust list."""
+    folder = tmp_path / "client"
+    folder.mkdir()
+    key, der = folder / "key.pem", folder / "cert.der"
+    await setup_self_signed_certificate(
+        key, der, "urn:test:node-opcua", "localhost", [ExtendedKeyUsageOID.CLIENT_AUTH],
+        {"commonName": "node-opcua test client"})
+    cert = x509.load_der_x509_certificate(der.read_bytes())
+    pem = folder / "cert.pem"
+    pem.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    (pki / "trusted").mkdir(parents=True, exist_ok=True)
+    (pki / "trusted" / "node-opcua.der").write_bytes(der.read_bytes())
+    return pem, key
+
+
+def _config(port: int, pki: Path, line: str, **opcua: Any) -> dict[str, Any]:
+    return {"gateway_id": GID,
+            "buses": [{"name": "a", "port": line, "baudrate": 115200, "protocol": "native",
+                       "timeout_ms": 300,
+                       "sensors": [{"name": "boom", "series": "AH", "poll_hz": 20}]}],
+            "opcua": {"listen": f"127.0.0.1:{port}", "pki_dir": str(pki), "allow_none": True,
+                      **opcua}}
+
+
+@pytest.mark.anyio
+async def test_node_opcua_browses_reads_and_subscribes(tmp_path: Path) -> None:
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200, source=hold(READING))
+    port = free_port()
+    client = await trusted_client(tmp_path, tmp_path / "pki")
+    with simulated([ah]) as line:
+        async with running(_config(port, tmp_path / "pki", line.path)) as gw:
+            await until(lambda: gw.cache.snapshot("boom").seq >= 2)
+            got = await node_opcua(f"opc.tcp://127.0.0.1:{port}/", GID, "boom",
+                                   certificate=client)
+    assert got["sensors"] == ["boom"]
+    assert {"Angles", "MagneticField", "Status", "Sequence"} <= set(got["children"])
+    for name, value in expected(ah).items():
+        seen = got["values"][name]
+        assert seen["status"] == "Good"
+        slack = tolerance(WireProtocol.NATIVE, name, value) + 1e-6 * max(1, abs(value))
+        assert abs(seen["value"] - value) <= slack, (name, seen, value)
+    numbers = [n["value"] for n in got["notifications"]]
+    sources = [n["source"] for n in got["notifications"]]
+    assert numbers == sorted(numbers) and len(set(numbers)) == len(numbers) >= 5
+    assert sources == sorted(sources)
+
+
+@pytest.mark.anyio
+async def test_node_opcua_needs_a_user_and_then_calls_a_method(tmp_path: Path) -> None:
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200, source=hold(READING))
+    port = free_port()
+    endpoint = f"opc.tcp://127.0.0.1:{port}/"
+    cfg = _config(port, tmp_path / "pki", "", anonymous=False, allow_commands=True,
+                  users={"operator": "s3cret"})
+    cfg["opcua"]["allow_none"] = False  # Basic256Sha256 SignAndEncrypt only
+    client = await trusted_client(tmp_path, tmp_path / "pki")
+    with simulated([ah]) as line:
+        cfg["buses"][0]["port"] = line.path
+        async with running(cfg) as gw:
+            await until(lambda: gw.cache.snapshot("boom").seq >= 2)
+            secure = {"certificate": client, "mode": "SignAndEncrypt"}
+            refused = await node_opcua(endpoint, GID, "boom", **secure)
+            wrong = await node_opcua(endpoint, GID, "boom", "operator", "nope", **secure)
+            plain = await node_opcua(endpoint, GID, "boom", "operator", "s3cret",
+                                     certificate=client)
+            allowed = await node_opcua(endpoint, GID, "boom", "operator", "s3cret", **secure)
+    assert "refused" in refused and "refused" in wrong, (refused, wrong)
+    assert "refused" in plain, plain  # no security mode None offered
+    assert allowed["call"]["status"] == "Good"
+    assert allowed["call"]["result"][0].startswith("set_zero_type: ok")
+    assert ah.settings.zero_type == "relative"
