@@ -106,12 +106,14 @@ async def test_node_opcua_needs_a_user_and_then_calls_a_method(tmp_path: Path) -
         cfg["buses"][0]["port"] = line.path
         async with running(cfg) as gw:
             await until(lambda: gw.cache.snapshot("boom").seq >= 2)
-            secure = {"certificate": client, "mode": "SignAndEncrypt"}
-            refused = await node_opcua(endpoint, GID, "boom", **secure)
-            wrong = await node_opcua(endpoint, GID, "boom", "operator", "nope", **secure)
+            secure = "SignAndEncrypt"
+            refused = await node_opcua(endpoint, GID, "boom", certificate=client, mode=secure)
+            wrong = await node_opcua(endpoint, GID, "boom", "operator", "nope",
+                                     certificate=client, mode=secure)
             plain = await node_opcua(endpoint, GID, "boom", "operator", "s3cret",
                                      certificate=client)
-            allowed = await node_opcua(endpoint, GID, "boom", "operator", "s3cret", **secure)
+            allowed = await node_opcua(endpoint, GID, "boom", "operator", "s3cret",
+                                       certificate=client, mode=secure)
     assert "refused" in refused and "refused" in wrong, (refused, wrong)
     assert "refused" in plain, plain  # no security mode None offered
     assert allowed["call"]["status"] == "Good"
