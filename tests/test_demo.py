@@ -51,11 +51,12 @@ def _wait(condition: Callable[[], bool], timeout: float = 20.0) -> None:
 
 
 def test_demo_serves_every_interface_and_stops_on_ctrl_c(tmp_path: Path) -> None:
-    http_port, modbus_port = free_port(), free_port()
+    http_port, modbus_port, opcua_port = free_port(), free_port(), free_port()
     with Mosquitto(tmp_path) as broker:
         demo = subprocess.Popen(
             [sys.executable, "-m", "imu_gateway", "demo", "--http-port", str(http_port),
-             "--modbus-port", str(modbus_port), "--mqtt", broker.url],
+             "--modbus-port", str(modbus_port), "--opcua-port", str(opcua_port),
+             "--mqtt", broker.url],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
             lines = _banner(demo)
@@ -94,6 +95,12 @@ def test_demo_serves_every_interface_and_stops_on_ctrl_c(tmp_path: Path) -> None
                 values = [float(v) for v in re.findall(r"^\[\d+\]:\s+(\S+)", out, re.M)]
                 assert len(values) == 16, out
                 assert any(v != 0 for v in values[:3]), out  # pitch, roll, yaw
+
+            # OPC UA: the printed uaread line reads the first sensor's pitch.
+            uaread = subprocess.run(_printed(lines, "OPC UA"), capture_output=True,
+                                    text=True, timeout=60)
+            assert uaread.returncode == 0, uaread.stderr
+            float(uaread.stdout.strip().splitlines()[-1])
 
             # MQTT: the printed mosquitto_sub line, state of two sensors or more.
             sub = [*_printed(lines, "MQTT"), "-W", "15", "-C", "40"]

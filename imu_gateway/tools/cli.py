@@ -174,11 +174,12 @@ def _demo_parser(commands: Subcommands) -> None:
         help="the gateway on simulated sensors (no hardware)",
         description="The whole gateway on built-in simulated sensors: a native AH and a "
         "streaming MINS on one simulated line, a Modbus VG on another. Modbus TCP, REST, "
-        "the dashboard and MQTT (when a broker is reachable) are up; ready command lines "
+        "the dashboard, OPC UA and MQTT (when a broker is reachable) are up; ready command lines "
         "are printed. Stop with Ctrl-C.",
     )
     demo.add_argument("--modbus-port", type=_port, default=5020, help="default 5020")
     demo.add_argument("--http-port", type=_port, default=8080, help="default 8080")
+    demo.add_argument("--opcua-port", type=_port, default=4840, help="default 4840")
     demo.add_argument("--mqtt", default="mqtt://localhost:1883", metavar="URL",
                       help="the broker (default mqtt://localhost:1883; retried quietly "
                       "while it is not there)")
@@ -328,10 +329,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
                         format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
     try:
-        run_demo(DemoOptions(args.modbus_port, args.http_port, args.mqtt, args.listen_host))
+        run_demo(DemoOptions(args.modbus_port, args.http_port, args.mqtt, args.listen_host,
+                             args.opcua_port))
     except StartupError as exc:
-        print(f"imu-gateway demo: error: {exc} (choose another port with --modbus-port "
-              "or --http-port)", file=sys.stderr)
+        print(f"imu-gateway demo: error: {exc} (choose another port with --modbus-port, "
+              "--http-port or --opcua-port)", file=sys.stderr)
         return EXIT_BAD_INPUT
     except ConfigError as exc:
         print(f"imu-gateway demo: error: {'; '.join(exc.problems)}", file=sys.stderr)

@@ -14,9 +14,12 @@ import asyncio
 import json
 import secrets
 import shlex
+import sys
+import tempfile
 from collections.abc import Iterator
 from contextlib import ExitStack
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from pathlib import Path
 
 from ..app import Gateway, run_until_signalled
 from ..commands import CATALOGUE
@@ -61,6 +64,9 @@ class DemoOptions:
     http_port: int = 8080
     mqtt_url: str = "mqtt://localhost:1883"
     host: str = "127.0.0.1"
+    opcua_port: int = 4840
+    #: the OPC UA server's certificate and key (a temporary folder: the demo's own)
+    pki_dir: str = "opcua-pki"
 
 
 def _addresses(line: DemoLine) -> Iterator[tuple[DemoSensor, int]]:
@@ -86,6 +92,9 @@ def demo_config(ports: dict[str, str], options: DemoOptions, token: str) -> Gate
         "mqtt": {"url": options.mqtt_url, "allow_commands": True, "protocol": "5"},
         "http": {"listen": f"{options.host}:{options.http_port}", "token": token,
                  "allow_commands": True},
+        # security mode None too, so that a client on this machine needs no certificate
+        "opcua": {"listen": f"{options.host}:{options.opcua_port}", "allow_none": True,
+                  "pki_dir": options.pki_dir},
     }, env={})
 
 
@@ -124,6 +133,12 @@ def banner(gateway: Gateway, token: str) -> str:
         f"Metrics     curl {base}/metrics",
         f"Modbus TCP  mbpoll -m tcp -p {modbus_port} -a 1 -r 101 -c 16 -t 4:float -B -1 {host}",
     ]
+    if gateway.opcua is not None:
+        # asyncua's command-line tools come with the gateway (beside this Python)
+        uaread = Path(sys.executable).parent / "uaread"
+        pitch = f"ns={gateway.opcua.idx};s={config.gateway_id}.Sensors.{first}.Angles.pitch"
+        lines.append(f"OPC UA      {uaread} -u opc.tcp://{host}:{gateway.opcua.port}/ "
+                     f"-n '{pitch}'   (security None or Basic256Sha256)")
     if config.mqtt is not None:
         mqtt = config.mqtt
         prefix = f"{mqtt.base_topic}/{config.gateway_id}"
@@ -141,6 +156,8 @@ def run_demo(options: DemoOptions) -> None:
     """Run until SIGINT or SIGTERM.  Raises ``app.StartupError`` when a port is taken."""
     token = secrets.token_urlsafe(12)
     with ExitStack() as stack:
+        pki = stack.enter_context(tempfile.TemporaryDirectory(prefix="imu-gateway-demo-"))
+        options = replace(options, pki_dir=pki)
         ports = {}
         for line in LINES:
             sims = [make_sensor(line.protocol, s.series, address, baud=BAUD,

@@ -74,6 +74,13 @@ class OpcUaServer(Frontend):
         return self.server is not None
 
     @property
+    def port(self) -> int:
+        """The port listened on (the one asked for, or the one given for port 0)."""
+        if self.server is not None and self.server.bserver is not None:
+            return int(self.server.bserver.port)
+        return self.config.listen.port
+
+    @property
     def endpoint(self) -> str:
         listen = self.config.listen
         return f"opc.tcp://{listen.host}:{listen.port}/"
