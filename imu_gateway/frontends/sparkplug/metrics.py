@@ -10,14 +10,13 @@ series and protocol have (``commands.CATALOGUE``).
 from __future__ import annotations
 
 import enum
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 from ...cache import Snapshot, Status
 from ...commands import CATALOGUE, CommandSpec, argument_type, commands_for
 from ...config import SensorConfig
 from ...model import CAPABILITIES, VALUE_GROUPS, Series, WireProtocol
-from ...normalise import field_values
 
 Value = float | int | bool | str
 
@@ -52,18 +51,18 @@ class MetricRow:
     value: Callable[[Snapshot], Value | None]
     unit: str | None = None
     command: str | None = None  # a DCMD writes it: this command of the catalogue
+    field: str | None = None  # a measured value: this field of the reading
 
-
-def _field(name: str) -> Callable[[Snapshot], Value | None]:
-    def value(snap: Snapshot) -> Value | None:
-        return field_values(snap.reading).get(name) if snap.reading is not None else None
-    return value
+    def of(self, snap: Snapshot, fields: Mapping[str, float]) -> Value | None:
+        """The value now; ``fields``: the snapshot's reading by field, worked out once
+        for all the rows (a reading has 16 values, and a row each)."""
+        return fields.get(self.field) if self.field is not None else self.value(snap)
 
 
 def value_rows(series: Series) -> list[MetricRow]:
     """The measured values of ``series``: ``{Group title}/{field}``, float32."""
     return [MetricRow(f"{spec.title}/{name}", DataType.FLOAT, f"{name} ({spec.name})",
-                      _field(name), spec.symbol or None)
+                      lambda s: None, spec.symbol or None, field=name)
             for group, spec in VALUE_GROUPS.items() if group in CAPABILITIES[series].groups
             for name in spec.fields]
 

@@ -31,6 +31,7 @@ from pathlib import Path
 from google.protobuf.message import DecodeError
 
 from ...cache import Snapshot
+from ...normalise import field_values
 from ..mqtt_topics import Message
 from .metrics import DataType, MetricRow, Value
 from .payload_pb2 import Payload
@@ -219,8 +220,9 @@ class EdgeNode:
         device = self.devices[snap.name]
         payload = Payload(timestamp=now_ms, seq=self._next_seq())
         values: dict[str, Value | None] = {}
+        fields = _fields(snap)
         for row in device.rows:
-            values[row.name] = value = row.value(snap)
+            values[row.name] = value = row.of(snap, fields)
             metric = self._metric(payload, row.name, snap.name, row.datatype, value,
                                   named=True, at=_sample_ms(snap, now_ms))
             if row.unit is not None:
@@ -231,9 +233,10 @@ class EdgeNode:
                        DATA_QOS, False)
 
     def _data(self, snap: Snapshot, now_ms: int) -> list[Message]:
-        last = self.last[snap.name]
-        changed = [(row, row.value(snap)) for row in self.devices[snap.name].rows
-                   if row.command is None and row.value(snap) != last.get(row.name)]
+        last, fields = self.last[snap.name], _fields(snap)
+        now = [(row, row.of(snap, fields)) for row in self.devices[snap.name].rows
+               if row.command is None]
+        changed = [(row, value) for row, value in now if value != last.get(row.name)]
         if not changed:
             return []
         payload = Payload(timestamp=now_ms, seq=self._next_seq())
@@ -276,6 +279,10 @@ class EdgeNode:
     def _next_seq(self) -> int:
         self.seq = (self.seq + 1) % 256
         return self.seq
+
+
+def _fields(snap: Snapshot) -> dict[str, float]:
+    return field_values(snap.reading) if snap.reading is not None else {}
 
 
 def _sample_ms(snap: Snapshot, now_ms: int) -> int:
