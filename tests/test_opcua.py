@@ -240,3 +240,29 @@ async def test_security_users_and_a_method_that_reaches_the_sensor(
         finally:
             await client.disconnect()
     await asyncio.sleep(0)
+
+
+@pytest.mark.anyio
+async def test_sign_only_is_offered_too(tmp_path: Path, lines: Lines) -> None:
+    """Basic256Sha256 Sign (integrity without encryption) as well as SignAndEncrypt."""
+    port = free_port()
+    pki = tmp_path / "pki"
+    cert, key = await _client_cert(tmp_path / "client", "historian")
+    (pki / "trusted").mkdir(parents=True)
+    (pki / "trusted" / "historian.der").write_bytes(cert.read_bytes())
+    async with running(_config(port, pki, lines.native, lines.modbus)) as gw:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+        client = Client(f"opc.tcp://127.0.0.1:{port}/")
+        await client.set_security(SecurityPolicyBasic256Sha256, str(cert), str(key),
+                                  mode=ua.MessageSecurityMode.Sign,
+                                  server_certificate=str(pki / "server_cert.der"))
+        client.application_uri = "urn:test:historian"
+        await client.connect()
+        try:
+            idx = await client.get_namespace_index(NS)
+            status = await node(client, idx, "Sensors.boom.Status").read_value()
+            assert status == "ok"
+            modes = {e.SecurityMode for e in await client.get_endpoints()}
+            assert modes == {ua.MessageSecurityMode.Sign, ua.MessageSecurityMode.SignAndEncrypt}
+        finally:
+            await client.disconnect()
