@@ -3,13 +3,20 @@ processes of their own (as in a plant, they share no interpreter with the load).
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
+import multiprocessing
 import socket
 import subprocess
 import sys
 import tempfile
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
+
+from imu_gateway.app import Gateway
+from imu_gateway.config import GatewayConfig, config_from_dict
+from imu_gateway.simulator.motion import Motion
 
 
 def free_port() -> int:
@@ -52,3 +59,55 @@ buses:
             for proc in running:
                 proc.terminate()
                 proc.wait(10)
+
+
+#: The fed benchmarks' sensors: AH sensors on a line that does not open, whose readings
+#: the benchmark puts into the cache itself (``fed``), at the rate it chooses.
+FED_SENSORS = 4
+
+
+def fed_config(**front_ends: object) -> GatewayConfig:
+    return config_from_dict({
+        "gateway_id": "bench",
+        "buses": [{"name": "a", "port": "/dev/null-bench", "baudrate": 115200,
+                   "protocol": "native",
+                   "sensors": [{"name": f"s{i}", "series": "AH", "address": i,
+                                "poll_hz": 1} for i in range(FED_SENSORS)]}],
+        **front_ends}, env={})
+
+
+async def fed(config: GatewayConfig, rate: float, seconds: float,
+              ready: Callable[[Gateway], bool], counter: Callable[..., None],
+              args: tuple[object, ...], settle: float) -> tuple[int, float]:
+    """Run the gateway on ``config`` with readings fed at ``rate`` a second (round the
+    sensors, moving values) and ``counter(*args, seconds, queue)`` in a process of its
+    own; measured ``settle`` seconds after the counter started, for ``seconds``.
+    Returns what the counter put in its queue and the gateway's CPU (cores)."""
+    gw = Gateway(config)
+    stop, feeding = asyncio.Event(), asyncio.Event()
+    task = asyncio.create_task(gw.run(stop))
+    while not ready(gw):
+        await asyncio.sleep(0.05)
+
+    async def feed() -> None:
+        motion, period, n, start = Motion.from_seed(1), 1.0 / rate, 0, time.monotonic()
+        while not feeding.is_set():
+            gw.cache.publish(f"s{n % FED_SENSORS}", motion.sample(n * period))
+            n += 1
+            await asyncio.sleep(max(0.0, start + n * period - time.monotonic()))
+
+    feeder = asyncio.create_task(feed())
+    results: multiprocessing.Queue[int] = multiprocessing.Queue()
+    process = multiprocessing.Process(target=counter, args=(*args, seconds, results))
+    process.start()
+    await asyncio.sleep(settle)
+    c0, t0 = time.process_time(), time.monotonic()
+    await asyncio.sleep(seconds)
+    cpu, elapsed = time.process_time() - c0, time.monotonic() - t0
+    delivered = await asyncio.to_thread(results.get, True, 120)
+    await asyncio.to_thread(process.join, 30)
+    feeding.set()
+    await feeder
+    stop.set()
+    await task
+    return delivered, cpu / elapsed

@@ -19,20 +19,16 @@ import asyncio
 import logging
 import multiprocessing
 import os
-import socket
 import tempfile
-import time
 from dataclasses import dataclass
 
 from asyncua import Client, ua
+from common import FED_SENSORS, fed, fed_config, free_port
 
-from imu_gateway.app import Gateway
-from imu_gateway.config import config_from_dict
 from imu_gateway.model import VALUE_GROUPS
-from imu_gateway.simulator.motion import Motion
 
 FIELDS = [f"{spec.title}.{name}" for spec in VALUE_GROUPS.values() for name in spec.fields]
-SENSORS = 4
+SENSORS = FED_SENSORS
 
 
 @dataclass(frozen=True)
@@ -40,12 +36,6 @@ class Case:
     rate: float  # samples/s, over all sensors
     clients: int
     items: int  # monitored values per client
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 async def _subscriber(url: str, items: int, seconds: float, counts: list[int], i: int) -> None:
@@ -67,6 +57,7 @@ async def _subscriber(url: str, items: int, seconds: float, counts: list[int], i
 
 
 def _clients(url: str, case: Case, seconds: float, out: multiprocessing.Queue[int]) -> None:
+    """asyncua clients, ``case.clients`` of them: their notifications in ``seconds``."""
     logging.getLogger("asyncua").setLevel(logging.ERROR)  # (it warns of revised values)
     counts = [0] * case.clients
 
@@ -78,48 +69,14 @@ def _clients(url: str, case: Case, seconds: float, out: multiprocessing.Queue[in
     out.put(sum(counts))
 
 
-async def _feed(gw: Gateway, rate: float, stop: asyncio.Event) -> None:
-    """Readings into the cache at ``rate`` a second, round the sensors, each a new
-    sample of moving values."""
-    motion = Motion.from_seed(1)
-    period, n, start = 1.0 / rate, 0, time.monotonic()
-    while not stop.is_set():
-        gw.cache.publish(f"s{n % SENSORS}", motion.sample(n * period))
-        n += 1
-        await asyncio.sleep(max(0.0, start + n * period - time.monotonic()))
-
-
 async def run_case(case: Case, seconds: float, pki: str) -> tuple[float, float, float]:
-    port = _free_port()
-    config = config_from_dict({
-        "gateway_id": "bench",
-        "buses": [{"name": "a", "port": "/dev/null-bench", "baudrate": 115200,
-                   "protocol": "native",
-                   "sensors": [{"name": f"s{i}", "series": "AH", "address": i,
-                                "poll_hz": 1} for i in range(SENSORS)]}],
-        "opcua": {"listen": f"127.0.0.1:{port}", "allow_none": True, "pki_dir": pki}},
-        env={})
-    gw = Gateway(config)
-    stop, feeding = asyncio.Event(), asyncio.Event()
-    task = asyncio.create_task(gw.run(stop))
-    while gw.opcua is None or not gw.opcua.listening:
-        await asyncio.sleep(0.05)
-    feeder = asyncio.create_task(_feed(gw, case.rate, feeding))
-    results: multiprocessing.Queue[int] = multiprocessing.Queue()
-    clients = multiprocessing.Process(target=_clients, args=(
-        f"opc.tcp://127.0.0.1:{port}/", case, seconds, results))
-    clients.start()
-    await asyncio.sleep(1.5)  # they connect and subscribe (measured from here on)
-    c0, t0 = time.process_time(), time.monotonic()
-    await asyncio.sleep(seconds)
-    cpu, elapsed = time.process_time() - c0, time.monotonic() - t0
-    delivered = await asyncio.to_thread(results.get, True, 120)
-    await asyncio.to_thread(clients.join, 30)
-    feeding.set()
-    await feeder
-    stop.set()
-    await task
-    return delivered / seconds, cpu / elapsed, cpu / (case.rate * elapsed)
+    port = free_port()
+    config = fed_config(opcua={"listen": f"127.0.0.1:{port}", "allow_none": True,
+                               "pki_dir": pki})
+    delivered, cores = await fed(
+        config, case.rate, seconds, lambda gw: gw.opcua is not None and gw.opcua.listening,
+        _clients, (f"opc.tcp://127.0.0.1:{port}/", case), settle=1.5)
+    return delivered / seconds, cores, cores / case.rate
 
 
 def main() -> None:

@@ -25,14 +25,10 @@ from pathlib import Path
 from typing import Any
 
 import paho.mqtt.client as paho
-from common import free_port
+from common import FED_SENSORS, fed, fed_config, free_port
 from paho.mqtt.enums import CallbackAPIVersion
 
-from imu_gateway.app import Gateway
-from imu_gateway.config import config_from_dict
-from imu_gateway.simulator.motion import Motion
-
-SENSORS = 4
+SENSORS = FED_SENSORS
 
 
 def _count(port: int, topic: str, seconds: float, out: multiprocessing.Queue[int]) -> None:
@@ -49,46 +45,15 @@ def _count(port: int, topic: str, seconds: float, out: multiprocessing.Queue[int
     out.put(count[0])
 
 
-async def _feed(gw: Gateway, rate: float, stop: asyncio.Event) -> None:
-    motion = Motion.from_seed(2)
-    period, n, start = 1.0 / rate, 0, time.monotonic()
-    while not stop.is_set():
-        gw.cache.publish(f"s{n % SENSORS}", motion.sample(n * period))
-        n += 1
-        await asyncio.sleep(max(0.0, start + n * period - time.monotonic()))
-
-
 async def run_case(port: int, mode: str, rate: float, seconds: float) -> tuple[int, float]:
     mqtt: dict[str, Any] = {"url": f"mqtt://127.0.0.1:{port}", "retain": False}
     if mode != "plain":
         mqtt["sparkplug"] = {"group_id": "bench", "plain_topics": mode == "both"}
-    config = config_from_dict({
-        "gateway_id": "bench",
-        "buses": [{"name": "a", "port": "/dev/null-bench", "baudrate": 115200,
-                   "protocol": "native",
-                   "sensors": [{"name": f"s{i}", "series": "AH", "address": i,
-                                "poll_hz": 1} for i in range(SENSORS)]}],
-        "mqtt": mqtt}, env={})
-    gw = Gateway(config)
-    stop, feeding = asyncio.Event(), asyncio.Event()
-    task = asyncio.create_task(gw.run(stop))
-    await asyncio.sleep(1.0)  # connected
-    feeder = asyncio.create_task(_feed(gw, rate, feeding))
-    results: multiprocessing.Queue[int] = multiprocessing.Queue()
     topic = "spBv1.0/bench/DDATA/#" if mode == "sparkplug" else "imu/bench/+/state"
-    counter = multiprocessing.Process(target=_count, args=(port, topic, seconds, results))
-    counter.start()
-    await asyncio.sleep(1.0)
-    c0, t0 = time.process_time(), time.monotonic()
-    await asyncio.sleep(seconds)
-    cpu, elapsed = time.process_time() - c0, time.monotonic() - t0
-    delivered = await asyncio.to_thread(results.get, True, 60)
-    await asyncio.to_thread(counter.join, 10)
-    feeding.set()
-    await feeder
-    stop.set()
-    await task
-    return delivered, cpu / elapsed
+    started = time.monotonic()
+    return await fed(fed_config(mqtt=mqtt), rate, seconds,
+                     lambda gw: time.monotonic() - started > 1.0,  # connected by then
+                     _count, (port, topic), settle=1.0)
 
 
 def main() -> None:
