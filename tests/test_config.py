@@ -755,6 +755,7 @@ def test_deadband_of_a_group_applies_to_its_fields_and_a_field_wins() -> None:
     ({"allow_commands": True},
      "opcua: anonymous: true with allow_commands: true lets anyone run commands"),
     ({"anonymous": False}, "opcua: anonymous: false needs users, or nobody can log in"),
+    ({"listen": "127.0.0.1:0"}, "opcua: listen: port 0 is not for OPC UA"),
 ])
 def test_opcua_access_rules_are_checked(opcua: dict[str, object], message: str) -> None:
     with pytest.raises(ConfigError) as failed:

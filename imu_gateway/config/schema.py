@@ -359,7 +359,8 @@ class OpcUaConfig(_Model):
     """The OPC UA server (docs/opcua.md)."""
 
     listen: Listen = Field(default=ListenAddress("0.0.0.0", 4840), description=(
-        "`host:port` as for `modbus.listen`; the endpoint is `opc.tcp://{host}:{port}/`"))
+        "`host:port` as for `modbus.listen`, port not 0; the endpoint is "
+        "`opc.tcp://{host}:{port}/`"))
     allow_none: bool = Field(default=False, description=(
         "also offer security mode None (no signing, no encryption); off: Basic256Sha256 "
         "Sign and SignAndEncrypt only"))
@@ -374,7 +375,11 @@ class OpcUaConfig(_Model):
         "`trusted/`: the client certificates it accepts (DER or PEM)"))
 
     @model_validator(mode="after")
-    def _no_anonymous_commands(self) -> Self:
+    def _access_rules(self) -> Self:
+        if self.listen.port == 0:
+            raise _fail("listen: port 0 is not for OPC UA: the server advertises its "
+                        "endpoint URL with its port, and clients connect to that; give "
+                        "a port (4840 is OPC UA's)")
         if self.allow_commands and self.anonymous:
             raise _fail("anonymous: true with allow_commands: true lets anyone run "
                         "commands; set anonymous: false and list users")
