@@ -71,6 +71,14 @@ class NatsCluster:
             with (node.folder / f"{node.name}.log").open("wb") as log:
                 node.process = subprocess.Popen([binary, "-c", str(node.config(routes))],
                                                 stdout=log, stderr=subprocess.STDOUT)
+        try:
+            self._wait_healthy()
+        except BaseException:
+            self.__exit__()  # the nodes that did start must not outlive the test
+            raise
+        return self
+
+    def _wait_healthy(self) -> None:
         deadline = time.monotonic() + 60
         while not all(n.healthy() for n in self.nodes):
             for node in self.nodes:
@@ -81,7 +89,6 @@ class NatsCluster:
             if time.monotonic() > deadline:
                 raise RuntimeError("the NATS cluster did not become healthy in 60 s")
             time.sleep(0.1)
-        return self
 
     def __exit__(self, *_: object) -> None:
         for node in self.nodes:

@@ -175,8 +175,12 @@ class MqttClient(Frontend):
                 try:
                     found = await mqtt_identity.read_retained(
                         self.session.make_client, broker, self.identity.probe_id, [status])
-                except (BrokerUnreached, OSError, TimeoutError, ValueError):
-                    continue  # a node that is down, or asked again at the next check
+                except BrokerUnreached as failed:
+                    if failed.kind == "unreachable":
+                        continue  # a node that is down: it has nothing to serve
+                    found = {}  # up but not answering (recovering): say it again anyway
+                except (OSError, TimeoutError, ValueError):
+                    continue  # asked again at the next check
                 if found.get(status) != ONLINE and self.connected:
                     log.warning("mqtt: %s serves this gateway's retained status as %r, not "
                                 "online (a broker cluster that stored messages out of "
