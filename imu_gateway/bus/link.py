@@ -185,7 +185,16 @@ class SerialLink:
         if self._serial is None or self._reader is None:
             raise LinkError(f"{self.port} is not open")
         try:
-            self._serial.write(data)
+            sent = 0
+            if isinstance(self._reader, _LoopReader):
+                # Straight to the descriptor (non-blocking, as pyserial opens it): a
+                # request is a few bytes and the driver takes them whole.  pyserial's
+                # write would add a select() per request to wait for room there is
+                # (measured: an eighth of the bus thread's system calls).
+                with contextlib.suppress(BlockingIOError):
+                    sent = os.write(self._reader.fd, data)
+            if sent < len(data):
+                self._serial.write(data[sent:])  # the rest, as the driver makes room
         except (serial.SerialException, OSError) as exc:
             raise LinkError(f"writing to {self.port}: {exc}") from None
         if look_after > 0:

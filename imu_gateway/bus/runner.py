@@ -8,10 +8,12 @@ bus masters run on a thread of their own, in one ``select()`` loop (``reactor``)
 thread carries every line of the process (8 lines at 115200 baud on a 2-core machine,
 measured in ``bench/lines.py``).
 
-The masters write to the cache through a ``CacheWriter`` each, which gathers what one
-turn of the bus loop wrote and hands it to the loop that owns the cache in one piece,
-in order, so cache listeners (the front ends) always run there, and the main loop is
-woken once per turn, not once per reading.  Counters travel the same way, as frozen
+The masters write to the cache through one ``CacheWriter``, which gathers what one
+turn of the bus loop wrote (every line's) and hands it to the loop that owns the cache
+in one piece, in order, so cache listeners (the front ends) always run there.  The
+main loop is woken at most once per turn, and not again while a hand-over it has not
+run yet is waiting: later turns join that one (a wake-up of the main loop costs more
+CPU than the work it brings, ``docs/benchmarks.md``).  Counters travel the same way, as frozen
 snapshots made on the bus thread (``BusMaster.stats_snapshot``), and so do the answers
 of whoever asked (after the counters they may read).  The front ends never touch a
 master's state.
@@ -23,6 +25,7 @@ import asyncio
 import contextlib
 import functools
 import logging
+from collections import deque
 from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
 
@@ -47,6 +50,11 @@ class CacheWriter:
         self.cache = cache
         self.loop: asyncio.AbstractEventLoop | None = None  # the cache's loop, set at start
         self._batch: list[Callable[[], None]] = []
+        # turns' writes handed over and not run yet, and whether the cache's loop has
+        # been asked to run them (both shared with that loop: deque and bool are safe
+        # to use from two threads under the GIL)
+        self._out: deque[list[Callable[[], None]]] = deque()
+        self._asked = False
 
     def hand(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
         """Run ``fn`` on the cache's loop, after everything handed before it."""
@@ -56,9 +64,19 @@ class CacheWriter:
         """Hand the turn's writes over (the bus loop calls this after each turn)."""
         if not self._batch or self.loop is None:
             return
-        batch, self._batch = self._batch, []
-        with contextlib.suppress(RuntimeError):  # the main loop closed: the process ends
-            self.loop.call_soon_threadsafe(_run_all, batch)
+        self._out.append(self._batch)
+        self._batch = []
+        if not self._asked:
+            self._asked = True
+            with contextlib.suppress(RuntimeError):  # the main loop closed: the process ends
+                self.loop.call_soon_threadsafe(self._run)
+
+    def _run(self) -> None:
+        """On the cache's loop: every turn handed over so far, in order.  (The flag is
+        cleared first: a turn handed over from now on asks again, so none waits.)"""
+        self._asked = False
+        while self._out:
+            _run_all(self._out.popleft())
 
     def publish(self, name: str, reading: Reading, at: float | None = None) -> None:
         self.hand(self.cache.publish, name, reading, at)
@@ -95,19 +113,16 @@ class BusRunner:
     """One bus master, as the main loop sees it: its calls go to the bus thread, and
     their answers come back to the caller's loop."""
 
-    def __init__(self, config: BusConfig, cache: Cache, reactor: Reactor) -> None:
+    def __init__(self, config: BusConfig, writer: CacheWriter, reactor: Reactor) -> None:
         self.reactor = reactor
-        self.writer = CacheWriter(cache)
-        reactor.after_each_turn(self.writer.flush)
-        self.master = BusMaster(config, self.writer)
+        self.writer = writer
+        self.master = BusMaster(config, writer)
         # the counters as they are before the thread runs (read here, while no other
         # thread touches them): the front ends never see a bus without any
-        cache.note_stats(*self.master.stats_snapshot())
+        writer.cache.note_stats(*self.master.stats_snapshot())
 
     def start(self) -> None:
-        """Join the bus thread (started by the caller); the cache's loop is the running
-        one."""
-        self.writer.loop = asyncio.get_running_loop()
+        """Join the bus thread (started by the caller)."""
         self.reactor.post(functools.partial(self.master.start, self.reactor))
 
     def _not_running(self) -> RequestFailed:
@@ -154,9 +169,14 @@ class BusThread:
 
     def __init__(self, buses: list[BusConfig], cache: Cache) -> None:
         self.reactor = Reactor("bus")
-        self.runners = {bus.name: BusRunner(bus, cache, self.reactor) for bus in buses}
+        self.writer = CacheWriter(cache)  # one for every line: one hand-over per turn
+        self.reactor.after_each_turn(self.writer.flush)
+        self.runners = {bus.name: BusRunner(bus, self.writer, self.reactor)
+                        for bus in buses}
 
     def start(self) -> None:
+        """Start the bus thread; the cache's loop is the running one."""
+        self.writer.loop = asyncio.get_running_loop()
         for runner in self.runners.values():
             runner.start()
         if self.runners:
