@@ -15,13 +15,7 @@ from broker import Gate, Mosquitto, recording
 from harness import running, until
 
 from imu_gateway.config import Broker
-from imu_gateway.frontends.mqtt_failover import (
-    ANSWER_WAIT_MAX,
-    ANSWER_WAIT_MIN,
-    RECONNECT_MAX,
-    RECONNECT_MIN,
-    Failover,
-)
+from imu_gateway.frontends.mqtt_failover import RECONNECT_MAX, RECONNECT_MIN, Failover
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import make_sensor, simulated
 
@@ -55,20 +49,6 @@ def test_one_broker_is_the_plain_back_off() -> None:
     assert [f.ended(worked=False) for _ in range(4)] == \
         [RECONNECT_MIN, 2 * RECONNECT_MIN, 4 * RECONNECT_MIN, 8 * RECONNECT_MIN]
     assert f.current == NODES[0]
-
-
-def test_a_node_is_given_a_short_wait_for_its_answer_while_others_remain() -> None:
-    """A node that holds a CONNECT (NATS while its JetStream recovers) costs the short
-    wait; each round that fails doubles it, up to the single broker's wait."""
-    f = Failover(NODES)
-    waits = []
-    for _ in range(9):
-        waits.append(f.answer_wait)
-        f.ended(worked=False)
-    assert waits == [ANSWER_WAIT_MIN] * 3 + [2 * ANSWER_WAIT_MIN] * 3 + [ANSWER_WAIT_MAX] * 3
-    f.ended(worked=True)
-    assert f.answer_wait == ANSWER_WAIT_MIN  # a new loss starts short again
-    assert Failover(NODES[:1]).answer_wait == ANSWER_WAIT_MAX
 
 
 def _config(line: str, urls: list[str]) -> dict[str, Any]:

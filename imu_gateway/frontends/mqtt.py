@@ -137,11 +137,11 @@ class MqttClient(Frontend):
 
     # ------------------------------------------------------------ the session's owner
 
-    async def before_connect(self, broker: Broker, wait: float) -> float | None:
+    async def before_connect(self, broker: Broker) -> float | None:
         """Another gateway holding this id (found now, or while connected): stay away
         and look again later."""
         if not self.identity.held_off and \
-                await self.identity.rival(broker, self.session.make_client, wait) is None:
+                await self.identity.rival(broker, self.session.make_client) is None:
             return None
         self.identity.held_off = False
         return mqtt_identity.RIVAL_WAIT

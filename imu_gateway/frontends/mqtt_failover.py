@@ -11,14 +11,6 @@
   has failed in a row: then the gateway waits, from ``RECONNECT_MIN`` doubling to
   ``RECONNECT_MAX``, before the next round.  With one broker this is the plain
   back-off.
-* How long a try waits for the broker's answer to CONNECT (``answer_wait``): with one
-  broker, ``ANSWER_WAIT_MAX``.  With several, ``ANSWER_WAIT_MIN`` in the first round
-  after a connection worked, doubling with each round that failed, up to the same
-  bound.  A cluster's node answers in milliseconds; one that does not answer within
-  the short wait is worse off right now than its peers (NATS holds a CONNECT it
-  cannot serve while its JetStream recovers, 4 s, then closes it unanswered), so the
-  gateway asks the next node instead of waiting it out.  When the whole cluster is
-  slow, the later rounds wait longer.
 """
 
 from __future__ import annotations
@@ -26,8 +18,6 @@ from __future__ import annotations
 from ..config import Broker
 
 RECONNECT_MIN, RECONNECT_MAX = 0.5, 30.0  # seconds between rounds of connection attempts
-#: seconds a try waits for the broker's answer (CONNACK, or a probe's answers)
-ANSWER_WAIT_MIN, ANSWER_WAIT_MAX = 2.0, 5.0
 
 
 class Failover:
@@ -43,14 +33,6 @@ class Failover:
     @property
     def current(self) -> Broker:
         return self.brokers[self.index]
-
-    @property
-    def answer_wait(self) -> float:
-        """How long the try of ``current`` waits for the broker's answer."""
-        if len(self.brokers) == 1:
-            return ANSWER_WAIT_MAX
-        rounds_failed = self.failures // len(self.brokers)
-        return min(ANSWER_WAIT_MIN * 2.0 ** rounds_failed, ANSWER_WAIT_MAX)
 
     def ended(self, worked: bool) -> float:
         """The try of ``current`` ended: it connected and was lost (``worked``), or it

@@ -118,13 +118,13 @@ def live_rival(mine: Claim, status: str | None, theirs: Claim | None,
 
 
 async def read_retained(make: Callable[[str], paho.Client], broker: Broker, client_id: str,
-                        topics: list[str], wait: float = PROBE_TIMEOUT) -> dict[str, bytes]:
+                        topics: list[str]) -> dict[str, bytes]:
     """The retained message of each of ``topics`` on ``broker`` (those that have one),
     read by a connection of its own: ``make(client_id)`` gives a client set up as the
     gateway's (TLS, credentials).  An echo sent after the subscription tells when the
     retained messages are all in.  Raises ``BrokerUnreached`` when the broker was not
     reached, ``ConnectionRefusedError`` when it refused the probe, ``TimeoutError``
-    when it answered the connect but not the rest, each within ``wait`` seconds."""
+    when it answered the connect but not the rest."""
     loop = asyncio.get_running_loop()
     echo = f"{topics[0]}/probe/{uuid.uuid4().hex}"
     seen: dict[str, bytes] = {}
@@ -169,7 +169,7 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
             raise BrokerUnreached("unreachable", reason_of(exc)) from exc
         client.loop_start()
         try:
-            result = await asyncio.wait_for(done, wait)
+            result = await asyncio.wait_for(done, PROBE_TIMEOUT)
         except TimeoutError:
             if not acked:
                 raise BrokerUnreached("silent") from None
@@ -201,16 +201,14 @@ class Identity:
             log.error("mqtt: %s", text)
             self._reported = text
 
-    async def rival(self, broker: Broker, make: Callable[[str], paho.Client],
-                    wait: float = PROBE_TIMEOUT) -> Claim | None:
+    async def rival(self, broker: Broker, make: Callable[[str], paho.Client]) -> Claim | None:
         """A live gateway holding this ``gateway_id`` or client id on ``broker``, asked
-        before connecting (each answer awaited ``wait`` s).  Raises ``BrokerUnreached``
-        when ``broker`` was not reached."""
+        before connecting.  Raises ``BrokerUnreached`` when ``broker`` was not reached."""
         probe_id = self.probe_id
         t = self.topics
         try:
             found = await read_retained(make, broker, probe_id,
-                                        [t.status, t.instance, t.client(self.client_id)], wait)
+                                        [t.status, t.instance, t.client(self.client_id)])
             rival = live_rival(self.claim, _text(found.get(t.status)),
                                Claim.parse(found.get(t.instance, b"")))
             what = f"gateway_id {t.gateway_id!r}"
@@ -219,7 +217,7 @@ class Identity:
                 # the client id is claimed by a gateway of another id: is it running?
                 theirs = t.of_gateway(other.gateway_id)
                 found = await read_retained(make, broker, probe_id,
-                                            [theirs.status, theirs.instance], wait)
+                                            [theirs.status, theirs.instance])
                 live = live_rival(self.claim, _text(found.get(theirs.status)),
                                   Claim.parse(found.get(theirs.instance, b"")))
                 rival = live if live == other else None

@@ -36,17 +36,19 @@ from ..config import Broker, MqttConfig
 from ..errors import BrokerUnreached
 from ..supervise import PeerLog
 from .mqtt_failover import Failover
-from .mqtt_identity import reason_of
+from .mqtt_identity import PROBE_TIMEOUT, reason_of
 from .mqtt_pipe import KEEPALIVE_S, WINDOW, Pipe
 from .mqtt_topics import Counters, Message
+
+#: a broker that says nothing after CONNECT (a TLS port, say); the probe's wait too
+CONNACK_TIMEOUT = PROBE_TIMEOUT
 
 
 class Owner(Protocol):
     """What a session asks of the front end it serves; all on the event loop."""
 
-    async def before_connect(self, broker: Broker, wait: float) -> float | None:
+    async def before_connect(self, broker: Broker) -> float | None:
         """None: connect now; else stay away from the brokers this many seconds.
-        ``wait``: how long to wait for the broker's answers (its try's, ``Failover``).
         Raises ``BrokerUnreached`` (that broker's try failed)."""
 
     def will(self) -> Message:
@@ -149,11 +151,11 @@ class Session:
         while True:
             stay_away = None
             try:
-                broker, wait = self.failover.current, self.failover.answer_wait
-                stay_away = await self.owner.before_connect(broker, wait)
-                worked = stay_away is None and await self._connection(broker, wait)
+                stay_away = await self.owner.before_connect(self.failover.current)
+                worked = stay_away is None and await self._connection(self.failover.current)
             except BrokerUnreached as failed:  # its try: the connect would fail too
-                self._problem(self._unreached(broker, failed.kind, failed.detail, wait=wait))
+                self._problem(self._unreached(self.failover.current, failed.kind,
+                                              failed.detail))
                 worked = False
             self.connected = False
             wait = self.failover.ended(worked)
@@ -162,9 +164,8 @@ class Session:
             if wait:
                 await asyncio.sleep(wait)
 
-    async def _connection(self, broker: Broker, wait: float) -> bool:
-        """One connection to ``broker``, until it is lost; True when it worked.
-        ``wait``: for its CONNACK (a server that says nothing: a TLS port, say)."""
+    async def _connection(self, broker: Broker) -> bool:
+        """One connection to ``broker``, until it is lost; True when it worked."""
         self._lost.clear()
         connects = self.counters.connects
         # paho's loop_start() makes a new wake-up socket pair each time without
@@ -181,11 +182,11 @@ class Session:
         self._answered.clear()
         client.loop_start()
         with contextlib.suppress(TimeoutError):
-            await asyncio.wait_for(self._answered.wait(), wait)
+            await asyncio.wait_for(self._answered.wait(), CONNACK_TIMEOUT)
         if self._answered.is_set():
             await self._lost.wait()
         else:
-            self._problem(self._unreached(broker, "silent", wait=wait))
+            self._problem(self._unreached(broker, "silent"))
         await asyncio.to_thread(client.loop_stop)
         close_sockets(client)
         return self.counters.connects > connects
@@ -196,14 +197,13 @@ class Session:
             self.log.warning("mqtt: %s; retrying", text)
             self._last_problem = text
 
-    def _unreached(self, broker: Broker, kind: str, detail: str = "", *,
-                   wait: float = 0.0) -> str:
+    def _unreached(self, broker: Broker, kind: str, detail: str = "") -> str:
         """Why ``broker`` was not reached, the same from a probe and the connect."""
         hint = "" if self.config.tls else " (a TLS port? then use mqtts://)"
         if kind == "unreachable":
             return f"cannot connect to {broker}: {detail}"
         if kind == "silent":
-            return f"no answer from {broker} within {wait:g} s of connecting{hint}"
+            return f"no answer from {broker} within {CONNACK_TIMEOUT:g} s of connecting{hint}"
         return f"{broker} closed the connection without answering{hint}"
 
     # ------------------------------------------------------------ paho's thread

@@ -78,7 +78,7 @@ class SparkplugClient(Frontend):
 
     # ------------------------------------------------------------ the session's owner
 
-    async def before_connect(self, broker: Broker, wait: float) -> float | None:
+    async def before_connect(self, broker: Broker) -> float | None:
         return None
 
     def will(self) -> Message:
