@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import shutil
 import signal
 import subprocess
@@ -15,6 +16,12 @@ from harness import free_port
 
 
 def find_nats_server() -> str:
+    """Debian's, or the binary ``IMU_TEST_NATS_SERVER`` names (another NATS version,
+    to compare: docs/scaling.md)."""
+    if chosen := os.environ.get("IMU_TEST_NATS_SERVER"):
+        if not Path(chosen).is_file():
+            raise RuntimeError(f"IMU_TEST_NATS_SERVER={chosen}: no such file")
+        return chosen
     for candidate in (shutil.which("nats-server"), "/usr/sbin/nats-server"):
         if candidate and Path(candidate).exists():
             return candidate
