@@ -217,7 +217,9 @@ async def test_command_round_trip(tmp_path: Path, version: str,
             return state(rec.on(result_topic)[-1])
 
         async with running(cfg) as gateway:
-            await until(lambda: gateway.mqtt is not None and gateway.mqtt.connected)
+            # (connected is not enough: a command sent before the broker granted the
+            # subscription has no subscriber, and the broker drops it)
+            await until(lambda: gateway.mqtt is not None and gateway.mqtt.taking_commands)
             await until(lambda: gateway.cache.snapshot("boom").seq >= 1)
             result = await ask(f"{cmd}/set_zero_type", '{"type": "relative"}')
             assert result["ok"] is True and result["error"] is None

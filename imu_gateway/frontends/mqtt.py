@@ -88,6 +88,7 @@ class MqttClient(Frontend):
             self.topics, config.discovery_prefix if config.homeassistant_discovery else None,
             self.discovery, retained_leaves(config, gateway.sensors), self._send_control)
         self._sweep_timer: asyncio.TimerHandle | None = None
+        self._command_mid: int | None = None  # the command subscription's message id
         self._checker: asyncio.Task[None] | None = None
         self.identity = Identity(self.topics, self.client_id, self._send_control)
         self.desk = CommandDesk(gateway, config, self._send_control, self.counters,
@@ -96,6 +97,13 @@ class MqttClient(Frontend):
     @property
     def connected(self) -> bool:
         return self.session.connected
+
+    @property
+    def taking_commands(self) -> bool:
+        """Connected, and the broker has granted the command subscription: a command
+        published from now on reaches the gateway.  (Between CONNACK and SUBACK one
+        would be dropped by the broker, having no subscriber yet.)"""
+        return self.connected and self._command_mid in self.session.granted
 
     @property
     def _client(self) -> paho.Client | None:
@@ -201,10 +209,10 @@ class MqttClient(Frontend):
             # known as one even when it arrives live (3.1.1 brokers clear the flag).
             topic = f"{self.prefix}/+/cmd/+"
             if self.config.protocol == "5":
-                self._client.subscribe(topic, options=SubscribeOptions(
+                _, self._command_mid = self._client.subscribe(topic, options=SubscribeOptions(
                     qos=1, retainAsPublished=True))
             else:
-                self._client.subscribe(topic, qos=1)
+                _, self._command_mid = self._client.subscribe(topic, qos=1)
         assert self._loop is not None
         self.sweep.start(self._client, self._loop.time())
         if self._sweep_timer is not None:  # an earlier connection's

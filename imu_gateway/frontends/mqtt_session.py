@@ -81,6 +81,8 @@ class Session:
         self._lost = asyncio.Event()
         self._answered = asyncio.Event()  # the broker answered CONNECT (either way)
         self._last_problem: str | None = None
+        #: the subscriptions (their message ids) the broker has granted on this connection
+        self.granted: set[int] = set()
 
     def run(self) -> asyncio.Task[None]:
         """Connect in the background, for as long as the task runs."""
@@ -110,6 +112,7 @@ class Session:
         client.on_disconnect = self._paho_disconnect
         client.on_publish = self._paho_publish
         client.on_message = self._paho_message
+        client.on_subscribe = self._paho_subscribe
         return client
 
     async def stop(self, runner: asyncio.Task[None] | None, last_words: list[Message]) -> None:
@@ -237,6 +240,11 @@ class Session:
                       message: paho.MQTTMessage) -> None:
         self._hand_over(self.owner.on_message, message)
 
+    def _paho_subscribe(self, client: paho.Client, userdata: Any, mid: int,
+                        reasons: list[ReasonCode], properties: Properties | None) -> None:
+        if reasons and not any(r.is_failure for r in reasons):
+            self._hand_over(self.granted.add, mid)
+
     # ------------------------------------------------------------ connection events
 
     def _on_connect(self, reason: ReasonCode) -> None:
@@ -247,6 +255,7 @@ class Session:
             self._lost.set()
             return
         self.connected = True
+        self.granted.clear()  # an earlier connection's
         self.counters.connects += 1
         self._last_problem = None
         self.pipe.connected_anew()
