@@ -184,10 +184,14 @@ class Reactor:
                 self._readers.pop(fd)
 
     def _drain_wakeups(self) -> None:
-        self._woken = False  # before reading: a post from now on writes a new byte
         with contextlib.suppress(BlockingIOError):
             while os.read(self._wake_r, 4096):
                 pass
+        # After the pipe is empty, not before: a post in between would write a byte the
+        # read swallows, leave the flag set on an empty pipe, and no later post would
+        # wake the loop again.  A post that sees the flag still set is in ``_posted``,
+        # which this turn runs next.
+        self._woken = False
 
     @staticmethod
     def _guarded(fn: Callable[[], Any]) -> None:

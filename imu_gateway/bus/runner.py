@@ -75,7 +75,9 @@ class CacheWriter:
         """On the cache's loop: every turn handed over so far, in order.  (The flag is
         cleared first: a turn handed over from now on asks again, so none waits.)"""
         self._asked = False
-        while self._out:
+        # Only the turns here now: those handed over meanwhile have asked again, and the
+        # loop's other work (sockets, timers) goes first, however busy the lines.
+        for _ in range(len(self._out)):
             _run_all(self._out.popleft())
 
     def publish(self, name: str, reading: Reading, at: float | None = None) -> None:

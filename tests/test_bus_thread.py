@@ -1,0 +1,95 @@
+"""The bus thread's plumbing, step by step, without a serial line: the loop's wake-up
+pipe (``Reactor``) and the hand-over of the cache writes to the main loop
+(``CacheWriter``).  Each race is played in one thread, in the order that hurt."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import select
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+from imu_gateway.bus import reactor as reactor_module
+from imu_gateway.bus.reactor import Reactor
+from imu_gateway.bus.runner import CacheWriter
+from imu_gateway.cache import Cache
+
+
+def _pipe_has_bytes(r: Reactor) -> bool:
+    return bool(select.select([r._wake_r], [], [], 0)[0])
+
+
+def test_a_post_while_the_wakeup_pipe_is_read_still_wakes_the_next_time(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Another thread posts while the loop empties the pipe.  Afterwards the flag must
+    not say "a byte is in the pipe" when none is: else no later post writes one, and
+    the loop would wake for timers only."""
+    r = Reactor()
+    ran: list[str] = []
+    r.post(lambda: ran.append("first"))
+    real_read = os.read
+    posted = False
+
+    def read_with_a_post_between(fd: int, n: int) -> bytes:
+        nonlocal posted
+        if not posted:
+            posted = True
+            r.post(lambda: ran.append("second"))  # the other thread, in the window
+        return real_read(fd, n)
+
+    monkeypatch.setattr(reactor_module.os, "read", read_with_a_post_between)
+    r._drain_wakeups()
+    monkeypatch.setattr(reactor_module.os, "read", real_read)
+    assert not r._woken or _pipe_has_bytes(r)
+    while r._posted:  # what the same turn of the loop does next
+        r._posted.popleft()()
+    assert ran == ["first", "second"]
+    r.post(lambda: ran.append("third"))  # a later post wakes the loop
+    assert _pipe_has_bytes(r)
+    r.close()
+
+
+@pytest.mark.anyio
+async def test_cache_writes_reach_the_main_loop_in_order_and_it_is_not_held() -> None:
+    """Turns handed over while the main loop has not run the last hand-over join it
+    (one wake-up); a hand-over runs only the turns there when it started, so a bus
+    that keeps handing over cannot keep the main loop from its other work."""
+    loop = asyncio.get_running_loop()
+    writer = CacheWriter(Cache([]))
+    writer.loop = loop
+    seen: list[int] = []
+    woken = 0
+    real = loop.call_soon_threadsafe
+
+    def counted(fn: Callable[..., Any], *args: Any) -> asyncio.Handle:
+        nonlocal woken
+        woken += 1
+        return real(fn, *args)
+
+    loop.call_soon_threadsafe = counted  # type: ignore[method-assign]
+    try:
+        for turn in range(3):
+            writer.hand(seen.append, turn)
+            writer.flush()
+        assert woken == 1  # the later turns joined the first hand-over
+        other_work = asyncio.Event()
+        loop.call_soon(other_work.set)
+
+        def a_busy_bus(turn: int) -> None:
+            seen.append(turn)
+            if turn < 1000:  # a turn that hands over the next one while it runs
+                writer.hand(a_busy_bus, turn + 1)
+                writer.flush()
+
+        writer.hand(a_busy_bus, 3)
+        writer.flush()
+        await asyncio.wait_for(other_work.wait(), 5)
+        assert len(seen) < 1000  # the main loop got to its other work in between
+        while len(seen) < 1001:
+            await asyncio.sleep(0)
+        assert seen == list(range(1001))
+    finally:
+        loop.call_soon_threadsafe = real  # type: ignore[method-assign]
