@@ -12,7 +12,6 @@ from typing import Any
 
 import pytest
 
-from imu_gateway.bus import reactor as reactor_module
 from imu_gateway.bus.reactor import Reactor
 from imu_gateway.bus.runner import CacheWriter
 from imu_gateway.cache import Cache
@@ -40,9 +39,9 @@ def test_a_post_while_the_wakeup_pipe_is_read_still_wakes_the_next_time(
             r.post(lambda: ran.append("second"))  # the other thread, in the window
         return real_read(fd, n)
 
-    monkeypatch.setattr(reactor_module.os, "read", read_with_a_post_between)
+    monkeypatch.setattr(os, "read", read_with_a_post_between)
     r._drain_wakeups()
-    monkeypatch.setattr(reactor_module.os, "read", real_read)
+    monkeypatch.setattr(os, "read", real_read)
     assert not r._woken or _pipe_has_bytes(r)
     while r._posted:  # what the same turn of the loop does next
         r._posted.popleft()()
@@ -69,7 +68,7 @@ async def test_cache_writes_reach_the_main_loop_in_order_and_it_is_not_held() ->
         woken += 1
         return real(fn, *args)
 
-    loop.call_soon_threadsafe = counted  # type: ignore[method-assign]
+    loop.call_soon_threadsafe = counted  # type: ignore[method-assign,assignment]
     try:
         for turn in range(3):
             writer.hand(seen.append, turn)
