@@ -5,6 +5,7 @@ pipe (``Reactor``) and the hand-over of the cache writes to the main loop
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import select
 from collections.abc import Callable
@@ -12,9 +13,11 @@ from typing import Any
 
 import pytest
 
+from imu_gateway.bus.link import SerialLink
 from imu_gateway.bus.reactor import Reactor
 from imu_gateway.bus.runner import CacheWriter
 from imu_gateway.cache import Cache
+from imu_gateway.errors import LinkError
 
 
 def _pipe_has_bytes(r: Reactor) -> bool:
@@ -92,3 +95,22 @@ async def test_cache_writes_reach_the_main_loop_in_order_and_it_is_not_held() ->
         assert seen == list(range(1001))
     finally:
         loop.call_soon_threadsafe = real  # type: ignore[method-assign]
+
+
+def test_a_port_that_takes_no_more_output_is_lost_at_once() -> None:
+    """The bus thread carries every line: a port whose output is stuck (flow control
+    held, a hung adapter) must be given up on, not waited on or spun on."""
+    read_end, write_end = os.pipe()  # a descriptor that stops taking bytes, as a tty does
+    os.set_blocking(write_end, False)
+    try:
+        with contextlib.suppress(BlockingIOError):
+            while True:
+                os.write(write_end, b"\0" * 65536)
+        link = SerialLink("/dev/ttyUSB7", 115200)
+        with pytest.raises(LinkError, match=r"/dev/ttyUSB7 takes no more output \(0 of 8"):
+            link._write_now(write_end, bytes(8))
+        os.read(read_end, 65536)  # room again: a request goes out whole
+        link._write_now(write_end, bytes(8))
+    finally:
+        os.close(read_end)
+        os.close(write_end)

@@ -40,6 +40,7 @@ from ..threads import tighten_timers
 from .reactor import BUS_NICE, FD_SETSIZE, Reactor
 
 READ_MAX = 4096
+WRITE_TIMEOUT = 0.5  # s: a port that takes no bytes for this long is lost
 
 OnBytes = Callable[[bytes, float], None]
 OnLost = Callable[[Exception], None]
@@ -123,8 +124,10 @@ class SerialLink:
 
     def _open_port(self) -> serial.Serial:
         try:
+            # (the write timeout: a network port that stops taking bytes is lost, not
+            # waited on by the bus thread, which carries every line)
             ser = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.1,
-                                        do_not_open=True)
+                                        write_timeout=WRITE_TIMEOUT, do_not_open=True)
             if "://" not in self.port:
                 # One owner per line: a second program opening the same device gets a
                 # clear "busy" error instead of both reading half of each answer.
@@ -185,20 +188,29 @@ class SerialLink:
         if self._serial is None or self._reader is None:
             raise LinkError(f"{self.port} is not open")
         try:
-            sent = 0
             if isinstance(self._reader, _LoopReader):
-                # Straight to the descriptor (non-blocking, as pyserial opens it): a
-                # request is a few bytes and the driver takes them whole.  pyserial's
-                # write would add a select() per request to wait for room there is
-                # (measured: an eighth of the bus thread's system calls).
-                with contextlib.suppress(BlockingIOError):
-                    sent = os.write(self._reader.fd, data)
-            if sent < len(data):
-                self._serial.write(data[sent:])  # the rest, as the driver makes room
+                self._write_now(self._reader.fd, data)
+            else:
+                self._serial.write(data)  # (opened with a write timeout: never for ever)
         except (serial.SerialException, OSError) as exc:
             raise LinkError(f"writing to {self.port}: {exc}") from None
         if look_after > 0:
             self._reader.look_at(time.monotonic() + look_after)
+
+    def _write_now(self, fd: int, data: bytes) -> None:
+        """Straight to the descriptor (non-blocking, as pyserial opens it).  A request
+        is at most a few hundred bytes and a driver's output buffer takes thousands,
+        so one that will not take it whole is stuck (hardware flow control held, a hung
+        adapter): the port is lost, rather than the bus thread, which carries every
+        line, waiting on it.  (pyserial's write adds a select() per request, an eighth
+        of the bus thread's system calls, and spins on a full buffer.)"""
+        try:
+            sent = os.write(fd, data)
+        except BlockingIOError:
+            sent = 0
+        if sent < len(data):
+            raise LinkError(f"{self.port} takes no more output ({sent} of {len(data)} "
+                            "bytes written): flow control held, or the adapter hung")
 
     def set_baudrate(self, baudrate: int) -> None:
         self.baudrate = baudrate
@@ -218,6 +230,10 @@ class SerialLink:
         if self._reader is not None:
             self._reader.close()
             self._reader = None
+        with contextlib.suppress(Exception):
+            # Output the port never took is dropped first: a tty's close would wait up
+            # to its closing_wait (30 s by default) for it, on the bus thread.
+            ser.reset_output_buffer()
         with contextlib.suppress(Exception):
             ser.close()
 
