@@ -3,6 +3,7 @@ stays away, rather than take the first's session or overwrite its retained messa
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,9 @@ BOX1 = Claim("b" * 32, "box1", 200, 900.0, "gw", "imu-gateway-gw")
     ("online", MINE, True, False),  # its own
     ("online", BOX1, False, False),  # a crashed predecessor
     ("online", BOX1, True, True),  # a second one here
+    # a predecessor with this process's pid (a container's gateway is pid 1 each time):
+    # not a rival, though a pid of this process's is alive by definition
+    ("online", Claim("b" * 32, "box1", 100, 900.0, "gw", "imu-gateway-gw"), True, False),
 ])
 def test_a_rival_is_another_live_gateway(status: str, theirs: Claim | None, alive: bool,
                                          rival: bool) -> None:
@@ -38,6 +42,16 @@ def test_a_claim_survives_its_payload_and_nonsense_is_nobodys() -> None:
     assert Claim.parse(MINE.payload()) == MINE
     for junk in (b"", b"{", b"[]", b'{"instance": "x"}', b"\xff"):
         assert Claim.parse(junk) is None
+    # values anyone with publish rights could write, which once ended the front end
+    # (OverflowError in the parse, in os.kill, in the time shown)
+    good = json.loads(MINE.payload())
+    for field, value in (("pid", 1e400), ("pid", 10**30), ("pid", -1), ("pid", 0),
+                         ("started", float("nan")), ("started", 1e20),
+                         ("started", float("inf")), ("started", -5)):
+        payload = json.dumps({**good, field: value}).encode()
+        assert Claim.parse(payload) is None, (field, value)
+    assert Claim.parse(b'{"instance": "x", "host": "h", "pid": Infinity, "started": 1, '
+                       b'"gateway_id": "g", "client_id": "c"}') is None
     assert MINE.first(Claim("b" * 32, "box2", 1, 1000.5, "gw", "x"))
 
 

@@ -56,6 +56,9 @@ log = logging.getLogger("imu_gateway.mqtt")
 RIVAL_WAIT = 30.0
 #: How long the probe waits for the broker (connect, retained messages, its echo).
 PROBE_TIMEOUT = 5.0
+#: The largest pid Linux gives (``pid_max`` at most 2**22), and the latest start a
+#: claim may carry (the year 9999): anything past them is a malformed claim.
+MAX_PID, MAX_STARTED = 2**22, 253402300799.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -83,10 +86,16 @@ class Claim:
         clears the topic; a malformed one is nobody's)."""
         try:
             data = json.loads(payload)
-            return cls(str(data["instance"]), str(data["host"]), int(data["pid"]),
-                       float(data["started"]), str(data["gateway_id"]), str(data["client_id"]))
-        except (ValueError, KeyError, TypeError):
+            claim = cls(str(data["instance"]), str(data["host"]), int(data["pid"]),
+                        float(data["started"]), str(data["gateway_id"]),
+                        str(data["client_id"]))
+        except (ValueError, KeyError, TypeError, ArithmeticError):  # 1e400, Infinity
             return None
+        # Anyone with publish rights may write these topics: values a process or a
+        # clock cannot have are nobody's too (a pid past the kernel's, a NaN start).
+        if not (0 < claim.pid <= MAX_PID and 0 <= claim.started <= MAX_STARTED):
+            return None
+        return claim
 
     def describe(self) -> str:
         since = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(self.started))
@@ -112,8 +121,11 @@ def live_rival(mine: Claim, status: str | None, theirs: Claim | None,
     """The other gateway holding this id now, if there is one."""
     if theirs is None or theirs.instance == mine.instance or status != "online":
         return None
-    if theirs.host == mine.host and not alive(theirs.pid):
-        return None  # this machine's gateway before a restart; its will is late
+    if theirs.host == mine.host and (theirs.pid == mine.pid or not alive(theirs.pid)):
+        # this machine's gateway before a restart; its will is late.  (The same pid:
+        # a container's gateway is pid 1 every time, and this process is not a rival
+        # of itself.)
+        return None
     return theirs
 
 
