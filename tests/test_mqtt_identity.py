@@ -29,9 +29,6 @@ BOX1 = Claim("b" * 32, "box1", 200, 900.0, "gw", "imu-gateway-gw")
     ("online", MINE, True, False),  # its own
     ("online", BOX1, False, False),  # a crashed predecessor
     ("online", BOX1, True, True),  # a second one here
-    # a predecessor with this process's pid (a container's gateway is pid 1 each time):
-    # not a rival, though a pid of this process's is alive by definition
-    ("online", Claim("b" * 32, "box1", 100, 900.0, "gw", "imu-gateway-gw"), True, False),
 ])
 def test_a_rival_is_another_live_gateway(status: str, theirs: Claim | None, alive: bool,
                                          rival: bool) -> None:

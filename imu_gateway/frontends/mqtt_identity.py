@@ -121,11 +121,12 @@ def live_rival(mine: Claim, status: str | None, theirs: Claim | None,
     """The other gateway holding this id now, if there is one."""
     if theirs is None or theirs.instance == mine.instance or status != "online":
         return None
-    if theirs.host == mine.host and (theirs.pid == mine.pid or not alive(theirs.pid)):
-        # this machine's gateway before a restart; its will is late.  (The same pid:
-        # a container's gateway is pid 1 every time, and this process is not a rival
-        # of itself.)
-        return None
+    if theirs.host == mine.host and not alive(theirs.pid):
+        return None  # this machine's gateway before a restart; its will is late
+    # (A container's gateway is pid 1 after every restart, so a crashed predecessor
+    # looks alive: the gateway then waits for its will, RIVAL_WAIT at a time.  Taking
+    # the same pid for a predecessor would let two host-networked containers, both
+    # pid 1 on one host name, take each other's session: the wait is the safe side.)
     return theirs
 
 
