@@ -20,6 +20,8 @@ from pymodbus.pdu.mei_message import ReadDeviceInformationResponse
 
 from imu_gateway import __version__
 from imu_gateway.app import Gateway
+from imu_gateway.frontends import modbus_ident as ident
+from imu_gateway.frontends.modbus_ident import Identity
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import hold, make_sensor, simulated
 from imu_gateway.simulator.motion import Motion
@@ -176,3 +178,26 @@ async def test_node_modbus_serial_reads_the_identification(lines: tuple[str, str
     for unit, objects in EXPECTED.items():
         assert got[str(unit)]["conformity"] == 0x82
         assert got[str(unit)]["data"] == {str(i): v.decode() for i, v in objects.items()}
+
+
+@pytest.mark.parametrize("name_length", [1, 100, 117, 118, 240, 246, 247, 400])
+def test_every_answer_fits_a_pdu_and_a_stream_read_ends(name_length: int) -> None:
+    """However long the name (a sensor's, or a gateway_id), each answer is at most
+    253 bytes, and reading a category object after object comes to its end."""
+    for who in (Identity(Series.AH, WireProtocol.MODBUS, "n" * name_length),
+                Identity(None, None, "g" * name_length)):
+        for code in (1, 2, 3):
+            first, seen = 0, 0
+            for _ in range(10):
+                pdu = ident.answer(bytes((0x2B, 0x0E, code, first)), who)
+                assert len(pdu) <= ident.MAX_PDU and pdu[0] == 0x2B, (code, first, len(pdu))
+                seen += pdu[6]
+                if pdu[4] == 0x00:
+                    break
+                first = pdu[5]
+            else:
+                raise AssertionError(f"code {code}: more follows for ever")
+            assert seen == sum(1 for i in ident.STREAM_CODES[code] if ident.BY_ID[i].has(who))
+        for obj in ident.OBJECTS:
+            if obj.has(who):
+                assert len(ident.answer(bytes((0x2B, 0x0E, 4, obj.id)), who)) <= ident.MAX_PDU

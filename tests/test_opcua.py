@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import socket
 from collections.abc import Iterator
 from datetime import datetime
 from pathlib import Path
@@ -59,6 +60,22 @@ def lines() -> Iterator[Lines]:
 
 def node(client: Client, idx: int, path: str) -> Any:
     return client.get_node(ua.NodeId(f"{GID}.{path}", idx))
+
+
+@pytest.mark.anyio
+async def test_an_ipv6_listen_address_serves(tmp_path: Path, lines: Lines) -> None:
+    """``listen: "[::1]:port"``: the endpoint URL carries the host in brackets (it
+    once did not, and asyncua's URL parse ended the start)."""
+    if not socket.has_ipv6:
+        pytest.skip("this machine has no IPv6")
+    port = free_port()
+    cfg = _config(port, tmp_path / "pki", lines.native, lines.modbus, allow_none=True)
+    cfg["opcua"]["listen"] = f"[::1]:{port}"
+    async with running(cfg) as gw:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+        async with Client(f"opc.tcp://[::1]:{port}/") as client:
+            idx = await client.get_namespace_index(NS)
+            assert await node(client, idx, "Sensors.boom.Series").read_value() == "AH"
 
 
 @pytest.mark.anyio
@@ -201,6 +218,8 @@ async def test_security_users_and_a_method_that_reaches_the_sensor(
     url = f"opc.tcp://127.0.0.1:{port}/"
     async with running(cfg, env={"UA_PASSWORD": "s3cret"}) as gw:
         await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+        # the server's private key is its owner's alone
+        assert (pki / "server_key.pem").stat().st_mode & 0o777 == 0o600
 
         async def connect(user: str | None, password: str | None,
                           certificate: Path = cert, private_key: Path = key) -> Client:

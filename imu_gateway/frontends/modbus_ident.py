@@ -33,6 +33,10 @@ CONFORMITY = 0x82  # regular identification, stream and individual access
 STREAM_CODES = {1: range(0x00, 0x03), 2: range(0x00, 0x07), 3: range(0x00, 0x07)}
 INDIVIDUAL = 4
 MAX_PDU = 253  # a Modbus PDU's size limit
+#: an answer's header: function, MEI type, code, conformity, more follows, next id, count
+HEADER = 7
+#: the longest object value: one object alone (its id and length bytes) fits an answer
+MAX_VALUE = MAX_PDU - HEADER - 2
 
 #: The sensors' maker, as the vendor's Modbus document names it (docs/protocol-notes.md).
 VENDOR_NAME = "Wuxi Bewis Sensing Technology"
@@ -68,7 +72,7 @@ class IdObject:
     def value(self, who: Identity) -> bytes:
         text = self.sensor(who) if who.series is not None else \
             self.gateway(who) if self.gateway is not None else ""
-        return text.encode("ascii", "replace")[:MAX_PDU - 8]
+        return text.encode("ascii", "replace")[:MAX_VALUE]
 
     def has(self, who: Identity) -> bool:
         return who.series is not None or self.gateway is not None
@@ -121,7 +125,7 @@ def answer(pdu: bytes, who: Identity) -> bytes:
     if first not in ids:
         first = ids[0]  # the standard's rule: restart at the category's start
     objects = [BY_ID[i] for i in ids if i >= first and BY_ID[i].has(who)]
-    room, taken = MAX_PDU - 6, []
+    room, taken = MAX_PDU - HEADER, []
     for obj in objects:
         size = 2 + len(obj.value(who))
         if size > room:

@@ -74,6 +74,9 @@ async def secure(server: Server, config: OpcUaConfig, app_uri: str) -> Path:
     await setup_self_signed_certificate(
         key, cert, app_uri, socket.gethostname(), [ExtendedKeyUsageOID.SERVER_AUTH],
         {"commonName": f"imu-gateway {app_uri}", "organizationName": "imu-gateway"})
+    # The private key is the server's identity: only its owner reads it (asyncua
+    # writes it with the umask's mode, often 0644).
+    key.chmod(0o600)
     if made:
         log.info("opcua: made the server certificate %s (valid one year; clients must "
                  "trust it)", cert)

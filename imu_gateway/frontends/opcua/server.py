@@ -82,8 +82,7 @@ class OpcUaServer(Frontend):
 
     @property
     def endpoint(self) -> str:
-        listen = self.config.listen
-        return f"opc.tcp://{listen.host}:{listen.port}/"
+        return f"opc.tcp://{self.config.listen}/"  # (an IPv6 host in brackets)
 
     def _id(self, path: str) -> ua.NodeId:
         return ua.NodeId(f"{self.gateway.config.gateway_id}.{path}", self.idx)
