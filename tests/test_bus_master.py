@@ -684,3 +684,31 @@ async def test_a_bug_costs_one_request_not_the_bus(monkeypatch: pytest.MonkeyPat
                 await until(lambda: gw.cache.snapshot("ah").seq >= seq + 3)
         no_overlap(sim)
     assert any("a bug in the schedule" in r.getMessage() or r.exc_info for r in caplog.records)
+
+
+@pytest.mark.anyio
+async def test_a_bug_before_a_request_is_queued_answers_its_asker(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The request fails before the bus master has queued it (a bug in its checks):
+    whoever asked gets a failure at once, not a wait for ever, and the next works."""
+    from imu_gateway.bus.master import BusMaster
+
+    real = BusMaster.submit
+    failed: list[bool] = []
+
+    def broken_once(self: BusMaster, sensor: str, command: Any, done: Any) -> None:
+        if not failed:
+            failed.append(True)
+            raise RuntimeError("a bug before the queue")
+        real(self, sensor, command, done)
+
+    monkeypatch.setattr(BusMaster, "submit", broken_once)
+    with simulated([native(Series.AH, 0)]) as sim:
+        async with running(bus_config(sim.path, "native", [
+                {"name": "ah", "series": "AH", "address": 0, "poll_hz": 20}])) as gw:
+            await until(lambda: gw.cache.snapshot("ah").seq >= 1)
+            first = await asyncio.wait_for(gw.command("ah", "read_settings"), 30)
+            assert not first.ok and first.kind is ErrorKind.FAILURE, first
+            assert "internal error" in (first.error or "")
+            second = await gw.command("ah", "read_settings")
+            assert second.ok, second

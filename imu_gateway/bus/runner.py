@@ -146,7 +146,15 @@ class BusRunner:
         def done(outcome: Any, error: RequestFailed | None) -> None:
             self.writer.hand(_settle, future, outcome, error)
 
-        self.reactor.post(functools.partial(start, done))
+        def begin() -> None:
+            try:
+                start(done)
+            except Exception:  # a bug before the job was queued: its asker is answered
+                log.exception("bus %s: internal error starting a request", self.master.name)
+                done(None, RequestFailed(ErrorKind.FAILURE,
+                                         "internal error in the gateway (logged)"))
+
+        self.reactor.post(begin)
         return await future
 
     async def submit(self, sensor: str, command: Command) -> CommandResult:
