@@ -202,6 +202,12 @@ async def test_births_wait_for_the_primary_host(tmp_path: Path, tahu: Tahu) -> N
             await until(lambda: gw.cache.snapshot("boom").seq >= 5 and gw.sparkplug is not None
                         and gw.sparkplug.connected)
             assert node_messages(rec) == []  # no host yet: no birth
+            # nor when a rebirth is asked for
+            rebirth = tahu.encode({"timestamp": int(time.time() * 1000), "metrics": [
+                {"name": "Node Control/Rebirth", "type": "Boolean", "value": True}]})
+            rec.client.publish(f"{SP}/{GROUP}/NCMD/{NODE}", rebirth, qos=1)
+            await until(lambda: gw.sparkplug is not None and gw.sparkplug.ignored == 1)
+            assert node_messages(rec) == []
             rec.client.publish(state, json.dumps({"online": True, "timestamp": 1}), 1, True)
             await until(lambda: any(kind(m) == "DDATA" for m in node_messages(rec)))
             rec.client.publish(state, json.dumps({"online": False, "timestamp": 2}), 1, True)

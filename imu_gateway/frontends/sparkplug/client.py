@@ -106,7 +106,11 @@ class SparkplugClient(Frontend):
             self._host_state(EdgeNode.host_online(bytes(message.payload)))
             return
         outcome = self.node.command(message.topic, bytes(message.payload))
-        if outcome is True:
+        if outcome is True and not self.host_online:
+            # (Sparkplug: nothing is published while the primary host is away; its
+            # coming back births the node anyway)
+            self._ignore("a rebirth (NCMD) while the primary host is offline")
+        elif outcome is True:
             log.info("sparkplug: rebirth asked for (NCMD)")
             self._birth()
         elif isinstance(outcome, Ignored):
