@@ -51,7 +51,8 @@ mqtt:
 ## Commands
 
 - **NCMD** `{ns}/{{group}}/NCMD/{{gateway_id}}` with `{rebirth}` = true: the NBIRTH and
-  every DBIRTH again (same bdSeq, seq from 0).
+  every DBIRTH again (same bdSeq, seq from 0). While a primary host is awaited
+  (below), a rebirth is ignored and counted: the host's coming back births the node.
 - **DCMD** `{ns}/{{group}}/DCMD/{{gateway_id}}/{{sensor}}`: writing a `Commands/…`
   metric runs that command of the catalogue ([commands.md](commands.md)) through the
   bus master's command queue, when `allow_commands` is true (otherwise the DCMD is
