@@ -289,6 +289,18 @@ def test_bdseq_is_kept_and_wraps_at_256(tmp_path: Path) -> None:
     assert _node().bdseq.next() == 0  # no file: each start from 0
 
 
+def test_a_bdseq_that_cannot_be_kept_goes_on_in_memory(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A full or read-only disk must not end the session (the will needs the number):
+    it goes on counting, and the failure is said once."""
+    (tmp_path / "a-file").write_text("")
+    bdseq = BdSeq(tmp_path / "a-file" / "bdseq")  # its folder is a file: never written
+    with caplog.at_level("ERROR", logger="imu_gateway.sparkplug"):
+        assert [bdseq.next() for _ in range(3)] == [0, 1, 2]
+    said = [r.getMessage() for r in caplog.records if "cannot keep bdSeq" in r.getMessage()]
+    assert len(said) == 1, said
+
+
 def test_commands_that_are_not_acted_on_say_why(tahu: Tahu) -> None:
     node = _node()
     dcmd = f"{SP}/{GROUP}/DCMD/{NODE}/boom"

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -35,6 +36,8 @@ from ...normalise import field_values
 from ..mqtt_topics import Message
 from .metrics import DataType, MetricRow, Value
 from .payload_pb2 import Payload
+
+log = logging.getLogger("imu_gateway.sparkplug")
 
 NAMESPACE = "spBv1.0"
 REBIRTH = "Node Control/Rebirth"
@@ -71,6 +74,7 @@ class BdSeq:
 
     def __init__(self, path: Path | None) -> None:
         self.path = path
+        self._problem: str | None = None  # the last failure to keep it, said once
         self.value = -1  # the first connection takes 0, or the kept one plus one
         if path is not None:
             with contextlib.suppress(OSError, ValueError):
@@ -80,8 +84,18 @@ class BdSeq:
         self.value = (self.value + 1) % 256
         if self.path is not None:
             tmp = self.path.with_name(self.path.name + ".tmp")
-            tmp.write_text(f"{self.value}\n")
-            os.replace(tmp, self.path)  # whole or not at all: a crash leaves the old
+            try:
+                tmp.write_text(f"{self.value}\n")
+                os.replace(tmp, self.path)  # whole or not at all: a crash leaves the old
+            except OSError as exc:
+                # A full or read-only disk must not cost the session: the number goes
+                # on in memory (a restart then starts from the last one kept).
+                if str(exc) != self._problem:
+                    self._problem = str(exc)
+                    log.error("sparkplug: cannot keep bdSeq in %s (%s); going on without "
+                              "(a restart would repeat a bdSeq)", self.path, exc)
+            else:
+                self._problem = None
         return self.value
 
 
