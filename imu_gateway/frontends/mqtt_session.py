@@ -136,12 +136,13 @@ class Session:
                 client.disconnect()
             await asyncio.to_thread(client.loop_stop)
             close_sockets(client)
+        self.connected = False
 
     async def flushed(self, timeout: float) -> bool:
         """Wait until everything queued was written or acknowledged."""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
-        while loop.time() < deadline:
+        while loop.time() < deadline and self.connected:  # (lost: nothing more goes out)
             self.pipe.drain()
             if self.pipe.empty():
                 return True
@@ -190,6 +191,7 @@ class Session:
             await self._lost.wait()
         else:
             self._problem(self._unreached(broker, "silent"))
+            self.client = None  # an answer that comes now is not taken (_on_connect)
         await asyncio.to_thread(client.loop_stop)
         close_sockets(client)
         return self.counters.connects > connects
@@ -225,11 +227,11 @@ class Session:
 
     def _paho_connect(self, client: paho.Client, userdata: Any, flags: Any,
                       reason: ReasonCode, properties: Properties | None) -> None:
-        self._hand_over(self._on_connect, reason)
+        self._hand_over(self._on_connect, reason, client)
 
     def _paho_disconnect(self, client: paho.Client, userdata: Any, flags: Any,
                          reason: ReasonCode, properties: Properties | None) -> None:
-        self._hand_over(self._on_disconnect, reason)
+        self._hand_over(self._on_disconnect, reason, client)
 
     def _paho_publish(self, client: paho.Client, userdata: Any, mid: int,
                       reason: ReasonCode, properties: Properties | None) -> None:
@@ -247,7 +249,9 @@ class Session:
 
     # ------------------------------------------------------------ connection events
 
-    def _on_connect(self, reason: ReasonCode) -> None:
+    def _on_connect(self, reason: ReasonCode, client: paho.Client) -> None:
+        if client is not self.client or self.stopping:
+            return  # a connection given up on (no answer in time), or the end: not ours
         self._answered.set()
         if reason.is_failure:
             self._problem(f"the broker at {self.failover.current} refused the connection: "
@@ -263,7 +267,9 @@ class Session:
                       self.config.protocol)
         self.owner.on_connected()
 
-    def _on_disconnect(self, reason: ReasonCode) -> None:
+    def _on_disconnect(self, reason: ReasonCode, client: paho.Client) -> None:
+        if client is not self.client:
+            return  # an earlier connection's: this one is not lost
         if self.connected and not self.stopping:
             self.log.warning("mqtt: connection to %s lost (%s); reconnecting",
                              self.failover.current, reason)
