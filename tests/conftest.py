@@ -9,3 +9,10 @@ import pytest
 @pytest.fixture
 def anyio_backend() -> str:
     return "asyncio"
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The long tests (marked ``slow``) first, the rest in their order: with the suite in
+    two workers (scripts/test), a long file that started last would run alone at the
+    end while the other worker idles."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)

@@ -59,6 +59,7 @@ def _statuses(rec: Recorder, retained: bool = False) -> dict[str, str]:
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.anyio
 async def test_a_fleet_fails_over_when_the_busiest_node_dies(tmp_path: Path) -> None:
     ids = [f"gw{i:02d}" for i in range(GATEWAYS)]

@@ -72,6 +72,7 @@ def test_the_installed_command_runs_outside_the_checkout(installed: Path,
     assert module.stdout == version.stdout
 
 
+@pytest.mark.slow
 def test_pip_and_pipx_install_from_a_checkout(tmp_path: Path) -> None:
     """``pip install .`` into a venv, and ``pipx install .``: each gives a working
     ``imu-gateway`` on its PATH."""
