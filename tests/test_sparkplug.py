@@ -115,6 +115,20 @@ async def test_births_data_aliases_and_values_as_tahu_reads_them(
 
 
 @pytest.mark.anyio
+async def test_a_sparkplug_2_2_host_on_its_own_state_topic_is_heard(tmp_path: Path) -> None:
+    """Sparkplug 2.2 hosts say ONLINE/OFFLINE on ``STATE/{host}``, outside the
+    namespace: the node is born when one says ONLINE there."""
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200, source=hold(READING))
+    with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
+            recording(broker, f"{SP}/#") as rec:
+        async with running(_config(line.path, broker, primary_host_id="scada")) as gw:
+            await until(lambda: gw.sparkplug is not None and gw.sparkplug.connected)
+            assert node_messages(rec) == []
+            rec.client.publish("STATE/scada", b"ONLINE", 1, True)
+            await until(lambda: any(kind(m) == "NBIRTH" for m in node_messages(rec)))
+
+
+@pytest.mark.anyio
 async def test_seq_wraps_and_an_ncmd_rebirth_births_again(tmp_path: Path, tahu: Tahu) -> None:
     ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200, source=hold(READING))
     with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \

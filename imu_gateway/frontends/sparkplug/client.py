@@ -92,7 +92,8 @@ class SparkplugClient(Frontend):
             client.subscribe(topic, qos=1)
         if self.config.primary_host_id is not None:
             self.host_online = False  # until its STATE says so (retained: at once)
-            client.subscribe(self.node.state_topic(self.config.primary_host_id), qos=1)
+            for topic in self.node.state_topics(self.config.primary_host_id):
+                client.subscribe(topic, qos=1)
         else:
             self._birth()
 
@@ -102,7 +103,7 @@ class SparkplugClient(Frontend):
 
     def on_message(self, message: paho.MQTTMessage) -> None:
         host = self.config.primary_host_id
-        if host is not None and message.topic == self.node.state_topic(host):
+        if host is not None and message.topic in self.node.state_topics(host):
             self._host_state(EdgeNode.host_online(bytes(message.payload)))
             return
         outcome = self.node.command(message.topic, bytes(message.payload))

@@ -66,8 +66,9 @@ mqtt:
 ## Primary host
 
 With `primary_host_id`, the node subscribes to `{ns}/STATE/{{primary_host_id}}` (the
-Sparkplug 3.0 JSON `{{"online": true, "timestamp": …}}`, or 2.2's `ONLINE`/`OFFLINE`)
-and is born only while the host says online. When the host says offline, the node
+Sparkplug 3.0 JSON `{{"online": true, "timestamp": …}}`) and to 2.2's
+`STATE/{{primary_host_id}}` (`ONLINE`/`OFFLINE`), and is born only while the host
+says online. When the host says offline, the node
 sends its NDEATH, disconnects, and connects again (a new bdSeq), to be born when the
 host is back.
 """

@@ -126,8 +126,10 @@ class EdgeNode:
         return f"{base}/{device}" if device is not None else base
 
     @staticmethod
-    def state_topic(host: str) -> str:
-        return f"{NAMESPACE}/STATE/{host}"
+    def state_topics(host: str) -> tuple[str, str]:
+        """Where a primary host says whether it is online: Sparkplug 3.0's topic, and
+        2.2's (outside the namespace)."""
+        return f"{NAMESPACE}/STATE/{host}", f"STATE/{host}"
 
     @property
     def command_topics(self) -> tuple[str, str]:
