@@ -19,6 +19,7 @@ from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
 from harness import expected, free_port, running, tolerance, until
 
+from imu_gateway.errors import StartupError
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated
 from imu_gateway.simulator.motion import Motion
@@ -76,6 +77,18 @@ async def test_an_ipv6_listen_address_serves(tmp_path: Path, lines: Lines) -> No
         async with Client(f"opc.tcp://[::1]:{port}/") as client:
             idx = await client.get_namespace_index(NS)
             assert await node(client, idx, "Sensors.boom.Series").read_value() == "AH"
+
+
+@pytest.mark.anyio
+async def test_a_pki_dir_that_cannot_be_used_is_named_at_start(tmp_path: Path,
+                                                                 lines: Lines) -> None:
+    """Not the port: the certificate's folder is named, with what it is for."""
+    (tmp_path / "a-file").write_text("")
+    cfg = _config(free_port(), tmp_path / "a-file" / "pki", lines.native, lines.modbus,
+                  allow_none=True)
+    with pytest.raises(StartupError, match=r"opcua.pki_dir .*a-file/pki: .*certificate"):
+        async with running(cfg):
+            pass
 
 
 @pytest.mark.anyio

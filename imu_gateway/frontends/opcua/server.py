@@ -23,7 +23,7 @@ from asyncua import Node, Server, ua
 from ...cache import EventKind, Snapshot
 from ...commands import CATALOGUE, argument_type, commands_for
 from ...config import OpcUaConfig, SensorConfig
-from ...errors import ErrorKind
+from ...errors import ErrorKind, StartupError
 from ...model import CAPABILITIES, VALUE_GROUPS, Group, WireProtocol
 from ...normalise import field_values
 from ...stats import FrontendCounts
@@ -92,7 +92,7 @@ class OpcUaServer(Frontend):
 
     async def start(self) -> None:
         """Build the address space and listen; raises ``OSError`` when the address
-        cannot be bound."""
+        cannot be bound, ``StartupError`` when ``pki_dir`` cannot be used."""
         gid = self.gateway.config.gateway_id
         server = Server(user_manager=ConfigUsers(self.config))
         await server.init()
@@ -100,7 +100,13 @@ class OpcUaServer(Frontend):
         server.set_server_name(f"imu-gateway {gid}")
         uri = f"urn:imu-gateway:{gid}"
         await server.set_application_uri(uri)
-        self.certificate = await secure(server, self.config, uri)
+        try:
+            self.certificate = await secure(server, self.config, uri)
+        except OSError as exc:  # not the port's: the folder of its certificate and key
+            raise StartupError(f"opcua.pki_dir {self.config.pki_dir}: {exc.strerror or exc} "
+                               "(the gateway keeps its OPC UA certificate and key there, and "
+                               "reads the trusted client certificates from it: give it a "
+                               "folder it can write)") from None
         self.idx = await server.register_namespace(NAMESPACE)
         await self._build(server)
         try:
