@@ -114,3 +114,17 @@ def test_a_port_that_takes_no_more_output_is_lost_at_once() -> None:
     finally:
         os.close(read_end)
         os.close(write_end)
+
+
+def test_a_post_after_the_close_writes_to_no_descriptor() -> None:
+    """A port's helper thread may post after the bus thread ended and closed its pipe:
+    the post must not write into whatever file now has that descriptor number."""
+    r = Reactor()
+    r.close()
+    read_end, write_end = os.pipe()  # the lowest free numbers: likely the old pipe's
+    try:
+        r.post(lambda: None)
+        assert not select.select([read_end], [], [], 0)[0]
+    finally:
+        os.close(read_end)
+        os.close(write_end)

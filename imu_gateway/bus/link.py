@@ -363,6 +363,8 @@ class _ThreadReader:
         pass
 
     def _take(self, data: bytes, at: float) -> None:
+        if self.closing.is_set():
+            return  # posted before its port was closed: not the reopened port's bytes
         self.flow.taken += len(data)
         self.on_bytes(data, at)
 

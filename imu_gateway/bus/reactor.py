@@ -72,6 +72,8 @@ class Reactor:
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
         self._woken = False  # a wake-up byte is in the pipe and not read yet
+        self._closing = threading.Lock()  # a late post and the close: one at a time
+        self._closed = False
         self._thread = threading.Thread(target=self._main, name=name, daemon=True)
         self._after: list[Callable[[], None]] = []  # run at the end of each turn of the loop
         self.running = False
@@ -88,8 +90,11 @@ class Reactor:
         self._posted.append(fn)
         if not self._woken:
             self._woken = True
-            with contextlib.suppress(BlockingIOError):  # full of wake-ups already
-                os.write(self._wake_w, b"\0")
+            with self._closing:
+                if self._closed:
+                    return  # (its descriptor number may be another file's by now)
+                with contextlib.suppress(BlockingIOError):  # full of wake-ups already
+                    os.write(self._wake_w, b"\0")
 
     def call(self, fn: Callable[[], T]) -> Future[T]:
         """``fn()`` on the loop's thread; its result (or exception) in the future."""
@@ -145,10 +150,14 @@ class Reactor:
             self._guarded(fn)
 
     def close(self) -> None:
-        """After the thread has ended: its wake-up pipe."""
-        for fd in (self._wake_r, self._wake_w):
-            with contextlib.suppress(OSError):
-                os.close(fd)
+        """After the thread has ended: its wake-up pipe.  (Threads that open ports or
+        read them may still post: their posts are dropped, never written to a closed
+        descriptor, whose number the process may have given to another file.)"""
+        with self._closing:
+            self._closed = True
+            for fd in (self._wake_r, self._wake_w):
+                with contextlib.suppress(OSError):
+                    os.close(fd)
 
     def _once(self) -> None:
         now = time.monotonic()
