@@ -128,3 +128,19 @@ def test_a_post_after_the_close_writes_to_no_descriptor() -> None:
     finally:
         os.close(read_end)
         os.close(write_end)
+
+
+def test_after_the_loop_ended_a_post_is_refused_and_a_call_fails() -> None:
+    """Whoever waits for work posted to an ended loop is told at once; nothing is
+    taken that would never run."""
+    r = Reactor()
+    r.start()
+    ran = r.call(lambda: "ran")
+    assert ran.result(5) == "ran"
+    r.end()
+    assert r.join(5)
+    assert r.post(lambda: None) is False
+    late = r.call(lambda: "never")
+    with pytest.raises(RuntimeError, match="the bus thread has ended"):
+        late.result(5)
+    r.close()

@@ -118,7 +118,9 @@ class SerialLink:
             except LinkError as exc:
                 reactor.post(functools.partial(opened, None, exc))
                 return
-            reactor.post(functools.partial(opened, ser, None))
+            if not reactor.post(functools.partial(opened, ser, None)):
+                with contextlib.suppress(Exception):  # the bus thread has ended meanwhile
+                    ser.close()
 
         threading.Thread(target=work, name=f"open {self.port}", daemon=True).start()
 

@@ -72,8 +72,8 @@ class Reactor:
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
         self._woken = False  # a wake-up byte is in the pipe and not read yet
-        self._closing = threading.Lock()  # a late post and the close: one at a time
-        self._closed = False
+        self._closing = threading.Lock()  # a post and the loop's end: one at a time
+        self._finished = False  # the loop ran its last posts: no more are taken
         self._thread = threading.Thread(target=self._main, name=name, daemon=True)
         self._after: list[Callable[[], None]] = []  # run at the end of each turn of the loop
         self.running = False
@@ -85,16 +85,18 @@ class Reactor:
         self.running = True
         self._thread.start()
 
-    def post(self, fn: Callable[[], None]) -> None:
-        """Run ``fn`` on the loop's thread, soon, in the order posted."""
-        self._posted.append(fn)
-        if not self._woken:
-            self._woken = True
-            with self._closing:
-                if self._closed:
-                    return  # (its descriptor number may be another file's by now)
+    def post(self, fn: Callable[[], None]) -> bool:
+        """Run ``fn`` on the loop's thread, soon, in the order posted.  False: the loop
+        has ended and ``fn`` will never run (whoever waits for it must be told)."""
+        with self._closing:  # (a post and the loop's last drain: one at a time)
+            if self._finished:
+                return False
+            self._posted.append(fn)
+            if not self._woken:
+                self._woken = True
                 with contextlib.suppress(BlockingIOError):  # full of wake-ups already
                     os.write(self._wake_w, b"\0")
+        return True
 
     def call(self, fn: Callable[[], T]) -> Future[T]:
         """``fn()`` on the loop's thread; its result (or exception) in the future."""
@@ -107,7 +109,8 @@ class Reactor:
                 except BaseException as exc:  # handed to the caller, not raised here
                     future.set_exception(exc)
 
-        self.post(run)
+        if not self.post(run):
+            future.set_exception(RuntimeError("the bus thread has ended"))
         return future
 
     def end(self) -> None:
@@ -144,8 +147,13 @@ class Reactor:
                 log.exception("bus thread: internal error in its loop")
                 time.sleep(0.1)
         self.running = False
-        while self._posted:  # asked before the end: answered (a stopped bus refuses)
-            self._guarded(self._posted.popleft())
+        while True:  # asked before the end: answered (a stopped bus refuses)
+            while self._posted:
+                self._guarded(self._posted.popleft())
+            with self._closing:
+                if not self._posted:
+                    self._finished = True  # later posts are refused, not lost
+                    break
         for fn in self._after:
             self._guarded(fn)
 
@@ -154,7 +162,7 @@ class Reactor:
         read them may still post: their posts are dropped, never written to a closed
         descriptor, whose number the process may have given to another file.)"""
         with self._closing:
-            self._closed = True
+            self._finished = True
             for fd in (self._wake_r, self._wake_w):
                 with contextlib.suppress(OSError):
                     os.close(fd)

@@ -154,7 +154,8 @@ class BusRunner:
                 done(None, RequestFailed(ErrorKind.FAILURE,
                                          "internal error in the gateway (logged)"))
 
-        self.reactor.post(begin)
+        if not self.reactor.post(begin):
+            raise self._not_running()  # it ended after the check above
         return await future
 
     async def submit(self, sensor: str, command: Command) -> CommandResult:
