@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 from virtual_line import VirtualLine, bus, jittery, sim
 
-from imu_gateway.bus.events import Job
+from imu_gateway.bus.events import Job, Trace
 from imu_gateway.bus.line import stream_wait
 from imu_gateway.bus.schedule import Schedule
 from imu_gateway.bus.sensor_state import (
@@ -22,6 +22,7 @@ from imu_gateway.bus.sensor_state import (
     SensorState,
 )
 from imu_gateway.bus.timing import LOOK_EVERY, RTO_INITIAL, RTO_MAX, RTO_MIN, AnswerTimer
+from imu_gateway.bus.trace import format_trace
 from imu_gateway.config import SensorConfig
 from imu_gateway.errors import ErrorKind
 from imu_gateway.model import Series
@@ -451,6 +452,35 @@ def test_stream_wait_goes_when_it_fits_else_after_the_next_frame() -> None:
     assert stream_wait(0.0401, 0.005, 0.0, 0.02, 0.005)[0] == pytest.approx(0.05)  # may be late
     assert stream_wait(0.0505, 0.001, 0.0, 0.02, 0.005)[0] == pytest.approx(0.0505)  # lost: fits
     assert stream_wait(0.05, 0.010, 0.0, 0.02, 0.005)[0] == pytest.approx(0.06)
+    # and why, as the frame trace shows it
+    assert [stream_wait(now, needs, 0.0, 0.02, 0.005).why for now, needs in (
+        (0.001, 0.005), (0.012, 0.005), (0.0005, 0.030), (0.0401, 0.005))] == [
+        "fits before the next frame", "after the next frame", "right after a frame",
+        "a frame due"]
+    assert stream_wait(0.012, 0.005, 0.0, 0.02, 0.005, waited=1.0).why == \
+        "waited long: any pause"
+
+
+def test_the_frame_trace_says_why_a_request_went_when_it_did_next_to_a_stream() -> None:
+    """A collision with a stream's frame is then explained by the rule that placed the
+    request (a field engineer's first question)."""
+    line = VirtualLine(bus("native", [
+        {"name": "st", "series": "AH", "address": 0, "stream_hz": 20},
+        {"name": "po", "series": "VG", "address": 1, "poll_hz": 10}]),
+        [sim("native", "AH", 0), sim("native", "VG", 1)])
+    line.schedule.outcomes.tracing = True
+    line.run(3.0)
+    polls = [e for e in line.events if isinstance(e, Trace) and e.sensor == "po"]
+    assert polls and all(e.placed for e in polls[-10:]), polls[-10:]
+    assert "fits before the next frame" in {e.placed for e in polls}
+    shown = format_trace("b", polls[-1])
+    assert shown.endswith(f"ok [{polls[-1].placed}]"), shown
+    # with no stream on the line, nothing is said
+    quiet = VirtualLine(bus("native", [{"name": "po", "series": "VG", "address": 1,
+                                        "poll_hz": 10}]), [sim("native", "VG", 1)])
+    quiet.schedule.outcomes.tracing = True
+    quiet.run(1.0)
+    assert all(not e.placed for e in quiet.events if isinstance(e, Trace))
 
 
 # ------------------------------------------------------------------ settings that move the bus

@@ -63,6 +63,8 @@ class Attempt:
     #: the bus looked for the answer only at its usual time (``Request.look_after``):
     #: found whole then, it too measures nothing
     looked: bool = False
+    #: why it went when it did, next to a stream (``line.stream_wait``)
+    placed: str = ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -123,6 +125,7 @@ class Trace:
     rx: bytes
     took: float
     outcome: str
+    placed: str = ""  # next to a stream: the rule that placed the request
 
 
 @dataclass(frozen=True, slots=True)

@@ -23,7 +23,7 @@ from __future__ import annotations
 import enum
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 from ..protocol.exchanges import Exchange, ProtocolAdapter, char_time
 from ..stats import Counters
@@ -51,8 +51,21 @@ class Due(enum.Enum):
     FAILED = 2  # no answer, not even late: the attempt failed
 
 
+class Place(NamedTuple):
+    """Where an exchange goes next to a stream: not before ``at``; written by ``latest``
+    or withdrawn; and why there (shown in the frame trace: a collision with a frame is
+    then explained by the rule that placed the request)."""
+
+    at: float
+    latest: float
+    why: str
+
+
+NO_STREAM = "no stream"
+
+
 def stream_wait(now: float, needs: float, last_end: float, period: float,
-                frame: float, waited: float = 0.0) -> tuple[float, float]:
+                frame: float, waited: float = 0.0) -> Place:
     """When an exchange of ``needs`` seconds may start next to a stream whose frames
     take ``frame`` seconds every ``period``, the last one seen ending at ``last_end``
     (``waited``: how long it has waited for a place already); and, when that is now,
@@ -74,16 +87,19 @@ def stream_wait(now: float, needs: float, last_end: float, period: float,
     k = max(1, math.ceil((now - last_end) / period))
     due = last_end + (k - 1) * period  # the latest frame that should have ended by now
     if k > 1 and now < due + period / 2:
-        return due + period / 2, 0.0  # it may still be coming in
+        return Place(due + period / 2, 0.0, "a frame due")  # it may still be coming in
     next_end = due + period
     if now + needs + margin <= next_end - frame:
-        return now, next_end - frame - needs - margin  # fits before the next frame
+        return Place(now, next_end - frame - needs - margin, "fits before the next frame")
     slack = period - frame - needs - margin  # how long after a frame's end it still fits
     patient = waited >= PATIENCE * period
     after = period - frame if patient else margin
     if (slack < margin or patient) and now - due <= after and k == 1:
-        return now, due + after  # right after a frame: the least harm
-    return next_end, 0.0  # in the pause after the next frame (its arrival wakes us sooner)
+        # right after a frame: the least harm (or, having waited long, any pause)
+        return Place(now, due + after, "waited long: any pause" if patient
+                     else "right after a frame")
+    # in the pause after the next frame (its arrival wakes us sooner)
+    return Place(next_end, 0.0, "after the next frame")
 
 
 class Line:
@@ -146,7 +162,8 @@ class Line:
         return max(self.last_rx + settle, self.last_tx_end + self.gap, self.hold_until)
 
     def send(self, job: Job, exchange: Exchange, now: float, timeout: float,
-             hold: float, latest: float = math.inf, early: float = 0.0) -> Request:
+             hold: float, latest: float = math.inf, early: float = 0.0,
+             placed: str = NO_STREAM) -> Request:
         """``exchange`` goes out now (``free_at`` said the line is free); its answer is
         due ``timeout`` beyond the wire time, and the line is held ``hold`` more for a
         late one.  Half a frame still in the framer has stopped coming (the line has
@@ -160,7 +177,8 @@ class Line:
         deadline = now + wire + timeout
         self.attempt = Attempt(job, exchange, now, wire, deadline, deadline + hold,
                                now - self.gap, self.adapter.garbage_seen(self.framer),
-                               tx_end_before=self.last_tx_end, looked=early > 0)
+                               tx_end_before=self.last_tx_end, looked=early > 0,
+                               placed=placed)
         self.last_tx_end = now + len(exchange.request) * char_time(self.baud)
         self.heard.clear()
         job.tries += 1

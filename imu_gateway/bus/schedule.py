@@ -41,7 +41,7 @@ from .events import (
     StateChange,
 )
 from .jobs import JobQueue
-from .line import Due, Line, stream_wait
+from .line import NO_STREAM, Due, Line, Place, stream_wait
 from .outcomes import Outcomes
 from .sensor_state import STREAM_RETRY, SensorState
 from .timing import AnswerTimer
@@ -195,7 +195,7 @@ class Schedule:
                 self.jobs.current = None
                 return self.next_request(now, pending)
         exchange = job.plan[job.step]
-        at, latest = self._stream_place(job, exchange, now)
+        at, latest, placed = self._stream_place(job, exchange, now)
         if at > now:
             if job.blocked_since is None:
                 job.blocked_since = now
@@ -207,7 +207,7 @@ class Schedule:
         timeout = s.timer.hold if s.online is False else s.timer.rto
         # A retry, or a sensor that is not answering as it did, is watched for at once.
         early = s.timer.look_after() if s.online and not job.tries else 0.0
-        return self.line.send(job, exchange, now, timeout, s.timer.hold, latest, early)
+        return self.line.send(job, exchange, now, timeout, s.timer.hold, latest, early, placed)
 
     def written(self, at: float) -> None:
         """The request ``next_request`` handed out was written by ``at``."""
@@ -245,17 +245,17 @@ class Schedule:
             times.append(ready)
         return min(times)
 
-    def _stream_place(self, job: Job, exchange: Exchange, now: float) -> tuple[float, float]:
+    def _stream_place(self, job: Job, exchange: Exchange, now: float) -> Place:
         """When ``exchange`` may go next to the line's streaming sensor, and the latest it
         may then still be written: with its sensor's answer latency as learned
         (``line.stream_wait``).  After a stream is set up, nothing goes until its first
         frame has set the phase."""
         streamer = next((t for t in self.sensors.values() if t.streaming), None)
         if streamer is None:
-            return now, math.inf
+            return Place(now, math.inf, NO_STREAM)
         period = 1 / streamer.config.stream_hz
         if not streamer.stream_frames and now < streamer.last_stream + 2 * period:
-            return streamer.last_stream + 2 * period, 0.0
+            return Place(streamer.last_stream + 2 * period, 0.0, "the stream's first frame")
         frame = streamer.poll(self.adapter).answer_bytes * char_time(self.baud)
         needs = self.line.wire(exchange) + self.line.gap + job.sensor.timer.expected()
         last_end = streamer.frame_end_before(now)  # in phase: not as late as it was seen

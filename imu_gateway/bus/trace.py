@@ -28,8 +28,9 @@ def hex_bytes(data: bytes) -> str:
 
 def format_trace(bus: str, t: Trace) -> str:
     rx = f"rx {hex_bytes(t.rx)} ({len(t.rx)} B, " if t.rx else "rx nothing ("
+    placed = f" [{t.placed}]" if t.placed else ""
     return (f"bus {bus}: {t.sensor} tx {hex_bytes(t.tx)} | {rx}{t.took * 1000:.1f} ms) "
-            f"{t.outcome}")
+            f"{t.outcome}{placed}")
 
 
 class TraceLog:
