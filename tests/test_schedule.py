@@ -457,8 +457,15 @@ def test_stream_wait_goes_when_it_fits_else_after_the_next_frame() -> None:
         (0.001, 0.005), (0.012, 0.005), (0.0005, 0.030), (0.0401, 0.005))] == [
         "fits before the next frame", "after the next frame", "right after a frame",
         "a frame due"]
+    # waited 12.5 periods: a pause it fits without the margin, not one it does not fit
+    place = stream_wait(0.009, 0.005, 0.0, 0.02, 0.005, waited=0.25)
+    assert (place.at, place.why) == (0.009, "waited long: fits without the margin")
+    assert place.latest == pytest.approx(0.010)
+    assert stream_wait(0.012, 0.005, 0.0, 0.02, 0.005, waited=0.25) == \
+        (0.02, 0.0, "after the next frame")
+    # waited 50 periods: any pause, fitting or not
     assert stream_wait(0.012, 0.005, 0.0, 0.02, 0.005, waited=1.0).why == \
-        "waited long: any pause"
+        "waited very long: any pause"
 
 
 def test_the_frame_trace_says_why_a_request_went_when_it_did_next_to_a_stream() -> None:

@@ -35,9 +35,11 @@ ARRIVING_GRACE = 0.05
 #: Bytes stuck in the port (a starved reader thread) are waited for at most this long.
 STUCK_MAX = 1.0
 HEARD_MAX = 512  # bytes of an exchange's answer kept for the trace
-#: An exchange that found no place next to a stream for this many periods takes the
-#: next pause it can, fitting or not.
+#: An exchange that found no place next to a stream for this many periods goes in a
+#: pause it fits without the margin for the frames' wobble; after ``LAST_RESORT``
+#: times as many, in the next pause it can, fitting or not.
 PATIENCE = 10
+LAST_RESORT = 4
 #: A write that returns later than this after the request was handed out may have put
 #: it on the line any time until then (``Line.written``).
 SLOW_WRITE = 0.002
@@ -80,9 +82,12 @@ def stream_wait(now: float, needs: float, last_end: float, period: float,
 
     An exchange that fits no pause, or only one it cannot be on time for (it has to
     start within ``margin`` of a frame's end), goes right after a frame: the least
-    harm.  One that has waited ``PATIENCE`` periods takes any pause it is woken in: a
-    busy machine must not keep a command from the sensor for ever (the caller passes
-    ``waited`` 0 for what may wait, a poll)."""
+    harm.  One that has waited ``PATIENCE`` periods (a busy machine that wakes the bus
+    late after every frame) goes in a pause it fits without the margin; one that has
+    waited ``LAST_RESORT`` times longer takes any pause it is woken in: a busy machine
+    must not keep a command from the sensor for ever (the caller passes ``waited`` 0
+    for what may wait, a poll).  (Any pause after ``PATIENCE`` alone is the only rule
+    that could have sent a request that met a frame in a soak beside CPU burners.)"""
     margin = min(0.02, period / 10) + MIN_QUIET  # the frames' own timing wobbles
     k = max(1, math.ceil((now - last_end) / period))
     due = last_end + (k - 1) * period  # the latest frame that should have ended by now
@@ -92,11 +97,13 @@ def stream_wait(now: float, needs: float, last_end: float, period: float,
     if now + needs + margin <= next_end - frame:
         return Place(now, next_end - frame - needs - margin, "fits before the next frame")
     slack = period - frame - needs - margin  # how long after a frame's end it still fits
-    patient = waited >= PATIENCE * period
-    after = period - frame if patient else margin
-    if (slack < margin or patient) and now - due <= after and k == 1:
-        # right after a frame: the least harm (or, having waited long, any pause)
-        return Place(now, due + after, "waited long: any pause" if patient
+    if waited >= PATIENCE * period and now + needs <= next_end - frame:
+        return Place(now, next_end - frame - needs, "waited long: fits without the margin")
+    desperate = waited >= LAST_RESORT * PATIENCE * period
+    after = period - frame if desperate else margin
+    if (slack < margin or desperate) and now - due <= after and k == 1:
+        # right after a frame: the least harm (or, having waited very long, any pause)
+        return Place(now, due + after, "waited very long: any pause" if desperate
                      else "right after a frame")
     # in the pause after the next frame (its arrival wakes us sooner)
     return Place(next_end, 0.0, "after the next frame")
