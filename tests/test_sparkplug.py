@@ -68,6 +68,12 @@ def metric(payload: dict[str, Any], name: str) -> dict[str, Any]:
     return found[0]
 
 
+
+def _rebirth(tahu: Tahu) -> bytes:
+    """An NCMD payload asking for a rebirth, as a host's Tahu encodes it."""
+    return tahu.encode({"timestamp": int(time.time() * 1000), "metrics": [
+        {"name": "Node Control/Rebirth", "type": "Boolean", "value": True}]})
+
 @pytest.mark.anyio
 async def test_births_data_aliases_and_values_as_tahu_reads_them(
         tmp_path: Path, tahu: Tahu) -> None:
@@ -135,8 +141,7 @@ async def test_seq_wraps_and_an_ncmd_rebirth_births_again(tmp_path: Path, tahu: 
             recording(broker, f"{SP}/#") as rec:
         async with running(_config(line.path, broker, poll_hz=0)):
             await until(lambda: len(node_messages(rec)) > 300, 60)
-            rebirth = tahu.encode({"timestamp": int(time.time() * 1000), "metrics": [
-                {"name": "Node Control/Rebirth", "type": "Boolean", "value": True}]})
+            rebirth = _rebirth(tahu)
             mark = len(node_messages(rec))
             rec.client.publish(f"{SP}/{GROUP}/NCMD/{NODE}", rebirth, qos=1)
             await until(lambda: any(kind(m) == "NBIRTH" for m in node_messages(rec)[mark:]))
@@ -217,8 +222,7 @@ async def test_births_wait_for_the_primary_host(tmp_path: Path, tahu: Tahu) -> N
                         and gw.sparkplug.connected)
             assert node_messages(rec) == []  # no host yet: no birth
             # nor when a rebirth is asked for
-            rebirth = tahu.encode({"timestamp": int(time.time() * 1000), "metrics": [
-                {"name": "Node Control/Rebirth", "type": "Boolean", "value": True}]})
+            rebirth = _rebirth(tahu)
             rec.client.publish(f"{SP}/{GROUP}/NCMD/{NODE}", rebirth, qos=1)
             await until(lambda: gw.sparkplug is not None and gw.sparkplug.ignored == 1)
             assert node_messages(rec) == []

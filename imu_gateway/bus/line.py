@@ -56,14 +56,11 @@ class Due(enum.Enum):
 class Place(NamedTuple):
     """Where an exchange goes next to a stream: not before ``at``; written by ``latest``
     or withdrawn; and why there (shown in the frame trace: a collision with a frame is
-    then explained by the rule that placed the request)."""
+    then explained by the rule that placed the request; "" with no stream)."""
 
     at: float
     latest: float
     why: str
-
-
-NO_STREAM = "no stream"
 
 
 def stream_wait(now: float, needs: float, last_end: float, period: float,
@@ -170,7 +167,7 @@ class Line:
 
     def send(self, job: Job, exchange: Exchange, now: float, timeout: float,
              hold: float, latest: float = math.inf, early: float = 0.0,
-             placed: str = NO_STREAM) -> Request:
+             placed: str = "") -> Request:
         """``exchange`` goes out now (``free_at`` said the line is free); its answer is
         due ``timeout`` beyond the wire time, and the line is held ``hold`` more for a
         late one.  Half a frame still in the framer has stopped coming (the line has

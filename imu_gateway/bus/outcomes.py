@@ -28,7 +28,7 @@ from .events import (
     Trace,
 )
 from .jobs import JobQueue
-from .line import NO_STREAM, Line
+from .line import Line
 from .sensor_state import STREAM_RETRY, SensorState
 
 
@@ -237,7 +237,7 @@ class Outcomes:
         """(Called only while tracing: the outcome's words are not built otherwise.)"""
         self.emit(Trace(a.job.sensor.name, a.exchange.request, bytes(self.line.heard),
                         at - a.sent, outcome if a.exchange.answer_bytes else "sent",
-                        "" if a.placed == NO_STREAM else a.placed))
+                        a.placed))
 
     def _offline(self, s: SensorState, kind: str, never: bool) -> str:
         """The log line for a sensor going offline: where it was asked, and for one

@@ -72,7 +72,7 @@ class CacheWriter:
                 self.loop.call_soon_threadsafe(self._run)
 
     def _run(self) -> None:
-        """On the cache's loop: every turn handed over so far, in order.  (The flag is
+        """On the cache's loop: the turns handed over by now, in order.  (The flag is
         cleared first: a turn handed over from now on asks again, so none waits.)"""
         self._asked = False
         # Only the turns here now: those handed over meanwhile have asked again, and the

@@ -41,7 +41,7 @@ from .events import (
     StateChange,
 )
 from .jobs import JobQueue
-from .line import NO_STREAM, Due, Line, Place, stream_wait
+from .line import Due, Line, Place, stream_wait
 from .outcomes import Outcomes
 from .sensor_state import STREAM_RETRY, SensorState
 from .timing import AnswerTimer
@@ -252,7 +252,7 @@ class Schedule:
         frame has set the phase."""
         streamer = next((t for t in self.sensors.values() if t.streaming), None)
         if streamer is None:
-            return Place(now, math.inf, NO_STREAM)
+            return Place(now, math.inf, "")
         period = 1 / streamer.config.stream_hz
         if not streamer.stream_frames and now < streamer.last_stream + 2 * period:
             return Place(streamer.last_stream + 2 * period, 0.0, "the stream's first frame")
