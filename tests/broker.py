@@ -181,11 +181,13 @@ class Recorder:
                                 keyfile=str(broker.tls.client_key))
         self.topics = topics
         self.messages: list[Received] = []
+        self.drops: list[float] = []  # when the broker dropped this client (monotonic)
         self._lock = threading.Lock()
         self._subscribed = threading.Event()
         self.client.on_connect = self._on_connect
         self.client.on_subscribe = lambda *_: self._subscribed.set()
         self.client.on_message = self._on_message
+        self.client.on_disconnect = lambda *_: self.drops.append(time.monotonic())
         self.client.connect("127.0.0.1", broker.port)
         self.client.loop_start()
         if topics and not self._subscribed.wait(10):

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import signal
@@ -58,6 +59,19 @@ mqtt {{ listen: 127.0.0.1:{self.port} }}
         with contextlib.suppress(OSError), urllib.request.urlopen(url, timeout=1) as answer:
             return bool(answer.status == 200)
         return False
+
+    def leaders(self) -> dict[str, str]:
+        """Which node leads what, as this node sees it: the JetStream meta group
+        (``meta``) and each stream (NATS's MQTT keeps sessions, retained messages and
+        QoS 1 messages in streams ``$MQTT_sess``, ``$MQTT_rmsgs``, ``$MQTT_msgs``)."""
+        url = f"http://127.0.0.1:{self.http_port}/jsz?accounts=true&streams=true"
+        with urllib.request.urlopen(url, timeout=2) as answer:
+            info = json.load(answer)
+        led = {"meta": str(info.get("meta_cluster", {}).get("leader"))}
+        for account in info.get("account_details", []):
+            for stream in account.get("stream_detail", []):
+                led[stream["name"]] = str(stream.get("cluster", {}).get("leader"))
+        return led
 
     def kill(self) -> None:
         """Gone at once, as a machine that loses power: SIGKILL."""

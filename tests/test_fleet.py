@@ -31,10 +31,10 @@ POLL_HZ = 10
 
 def _config(i: int, line: str, urls: list[str]) -> dict[str, Any]:
     # each gateway lists every node, starting at its own: node 1 gets 4 of the 10.
-    # States not retained: NATS keeps retained messages in JetStream, whose writes
-    # stall while a dead node's streams elect new leaders (measured: the states of the
-    # moved gateways then reached the subscriber 13.6 s after the kill, against 5 s
-    # without; docs/scaling.md).  Status, availability and discovery stay retained.
+    # States not retained: NATS keeps retained messages in JetStream, and holds every
+    # later packet of the connection while it stores one, up to 4 s each while a dead
+    # node's streams elect new leaders (docs/scaling.md).  Status, availability and
+    # discovery stay retained.
     start = i % len(urls)
     return {"gateway_id": f"gw{i:02d}",
             "buses": [{"name": "a", "port": line, "baudrate": 115200, "protocol": "native",
@@ -74,6 +74,9 @@ async def _fleet(cluster: NatsCluster, lines: contextlib.ExitStack,
     busiest, watcher_node, fresh_node = cluster.nodes
     rec = lines.enter_context(recording(watcher_node, "imu/+/status", "imu/+/+/state",
                                        qos=0))
+    # NATS may drop the subscriber too while it recovers: it must be back as soon as
+    # NATS lets it, within a second (paho's own back-off doubles up to 2 min)
+    rec.client.reconnect_delay_set(1, 1)
     gateways: list[Gateway] = []
     for i in range(GATEWAYS):
         line = lines.enter_context(simulated(
@@ -94,12 +97,20 @@ async def _fleet(cluster: NatsCluster, lines: contextlib.ExitStack,
     rate = (len(rec.messages) - mark) / (time.monotonic() - t0)
 
     before = {gid: max(_seqs(list(rec.messages), gid)) for gid in ids}
+    led = [what for what, node in watcher_node.leaders().items() if node == busiest.name]
     killed_at, killed_wall = time.monotonic(), datetime.now(UTC)
     busiest.kill()
     # every gateway on the dead node is connected elsewhere, and its states flow
-    await until(lambda: all(gw.mqtt is not None and gw.mqtt.connected and
-                            gw.mqtt.failover.current.port != busiest.port
-                            for gw in moving), 10)
+    elsewhere: dict[str, float] = {}
+
+    def all_elsewhere() -> bool:
+        for gw in moving:
+            if gw.mqtt is not None and gw.mqtt.connected and \
+                    gw.mqtt.failover.current.port != busiest.port:
+                elsewhere.setdefault(gw.config.gateway_id, time.monotonic() - killed_at)
+        return len(elsewhere) == len(moving)
+
+    await until(all_elsewhere, 10)
     back: dict[str, float] = {}
 
     def all_back() -> bool:
@@ -111,16 +122,14 @@ async def _fleet(cluster: NatsCluster, lines: contextlib.ExitStack,
                 back[gid] = m.at - killed_at
         return len(back) == GATEWAYS
 
-    # The gateway's part is short (the next node at once after a failed try, 0.5 s
-    # after a lost connection); NATS's is not: while a dead node's JetStream groups
-    # elect new leaders, a node holds a new MQTT connection about 4 s and closes it
-    # unanswered.  On the idle 2-core VM every gateway was back within 5.0 s (the
-    # issue asks for 10); beside 4 CPU burners NATS's elections took 13 s.  The bound
-    # here is for a busy machine; the printed figures are what docs/scaling.md quotes.
+    # The gateway's part is short: 0.5 s after the loss it probes the other nodes,
+    # another probe every 0.5 s while none answers, and connects to the first that
+    # does.  NATS's part is the election of new leaders for the dead node's JetStream
+    # groups (4-9 s, fixed in nats-server): a node holds each MQTT connection that
+    # needs one 4 s, then closes it unanswered.  The figures: docs/scaling.md.
     await until(all_back, 30)
     moved = [gw.config.gateway_id for gw in moving]
     failover = max(back[gid] for gid in moved)
-    assert failover < 30
 
     # no retained status is wrong: a subscriber that comes now, to a third node
     # (NATS serves retained messages from JetStream, recovering too: up to 30 s)
@@ -135,13 +144,7 @@ async def _fleet(cluster: NatsCluster, lines: contextlib.ExitStack,
     # (NATS publishes a dead node's wills ~5-10 s after the kill) was answered
     assert all(h and h[-1][1] == "online" for h in history.values()), history
     assert len(retained) == GATEWAYS, retained
-    wrong = sorted(g for g, text in retained.items() if text != "online")
-    if wrong:
-        # NATS 2.9.10 then sometimes keeps serving the will as the retained message on
-        # another node, though "online" was published after it (3 of ~20 runs): the
-        # broker's; reported, as the failover's figures are (docs/scaling.md)
-        print(f"\nfleet: node 3 served a retained 'offline' for {wrong} after their "
-              f"'online' (NATS): { {g: history[g] for g in wrong} }")
+    assert retained == dict.fromkeys(ids, "online"), (retained, history)
 
     # what the failover cost: states of the moved gateways never seen
     mark = len(rec.messages)
@@ -152,11 +155,15 @@ async def _fleet(cluster: NatsCluster, lines: contextlib.ExitStack,
         span = [s for s in seqs if s > before[gid] - POLL_HZ]
         lost[gid] = (span[-1] - span[0] + 1) - len(span)
     print(f"\nfleet: {GATEWAYS} gateways, {rate:.0f} messages/s into the cluster; "
-          f"killed the node of {len(moved)}: all back on another node after "
+          f"killed the node of {len(moved)} (it led {', '.join(led) or 'nothing'}): "
+          f"all back on another node after "
           f"{failover:.2f} s at most (each: "
-          f"{', '.join(f'{back[g]:.2f}' for g in moved)} s); states lost per moved "
+          f"{', '.join(f'{back[g]:.2f}' for g in moved)} s; connected elsewhere after "
+          f"{', '.join(f'{elsewhere[g]:.2f}' for g in moved)} s; the subscriber dropped "
+          f"by NATS at {[round(t - killed_at, 2) for t in rec.drops]} s); states lost per moved "
           f"gateway: {[lost[g] for g in moved]}, per other gateway: "
           f"{[lost[g] for g in ids if g not in moved]}")
-    # (not asserted: in some runs NATS also dropped the surviving nodes' MQTT
-    # connections while its JetStream groups re-elected, so the other gateways lost
-    # states too; what was lost is the figure the test reports)
+    assert failover < 10
+    # (not asserted: in some runs NATS also drops the surviving nodes' MQTT
+    # connections while its JetStream groups elect, so the other gateways lose states
+    # too; what was lost is the figure the test reports)

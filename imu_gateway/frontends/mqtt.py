@@ -41,7 +41,7 @@ from .common import GatewayLike, json_bytes
 from .mqtt_commands import CommandDesk
 from .mqtt_discovery import discovery_configs, setup_of
 from .mqtt_identity import Identity
-from .mqtt_session import Session
+from .mqtt_session import Ready, Session
 from .mqtt_states import StateDesk
 from .mqtt_sweep import SWEEP_S, RetainedSweep
 from .mqtt_topics import (
@@ -90,6 +90,7 @@ class MqttClient(Frontend):
         self._sweep_timer: asyncio.TimerHandle | None = None
         self._command_mid: int | None = None  # the command subscription's message id
         self._checker: asyncio.Task[None] | None = None
+        self._served: dict[str, bytes] = {}  # the retained messages the probe found
         self.identity = Identity(self.topics, self.client_id, self._send_control)
         self.desk = CommandDesk(gateway, config, self._send_control, self.counters,
                                 self.session.peers)
@@ -145,14 +146,22 @@ class MqttClient(Frontend):
 
     # ------------------------------------------------------------ the session's owner
 
-    async def before_connect(self, broker: Broker) -> float | None:
-        """Another gateway holding this id (found now, or while connected): stay away
-        and look again later."""
-        if not self.identity.held_off and \
-                await self.identity.rival(broker, self.session.make_client) is None:
-            return None
+    async def before_connect(self, brokers: tuple[Broker, ...]) -> Ready:
+        """The first of ``brokers`` to answer the probe.  Another gateway holding this
+        id (found now, or while connected): stay away and look again later."""
+        if self.identity.held_off:
+            self.identity.held_off = False
+            return Ready(brokers[0], mqtt_identity.RIVAL_WAIT)
+        probed = await self.identity.rival(brokers, self.session.make_client,
+                                           [f"{self.prefix}/#", *self.discovery])
+        # what that broker serves already need not be said again: the nodes of a
+        # cluster share their retained messages, and NATS holds every later packet of
+        # a connection while it stores one (up to 4 s each while it recovers a node)
+        self._served = probed.served
+        if probed.rival is None:
+            return Ready(probed.broker, None)
         self.identity.held_off = False
-        return mqtt_identity.RIVAL_WAIT
+        return Ready(probed.broker, mqtt_identity.RIVAL_WAIT)
 
     def will(self) -> Message:
         return Message(self.status_topic, OFFLINE, CONTROL_QOS, True)
@@ -205,14 +214,19 @@ class MqttClient(Frontend):
         # said online on another node: heard live, it is answered (``on_message``).
         self._client.subscribe(self.status_topic, qos=0)
         if self.config.allow_commands:
+            # QoS 0: the session is clean, so a QoS 1 subscription would bring no
+            # redelivery (that needs a session that outlives the connection), and NATS
+            # makes a JetStream consumer for each one, holding every later packet of
+            # the connection meanwhile: 0.4-0.8 s at each connect, 4 s while a lost
+            # node's groups elect new leaders (docs/mqtt.md).
             # MQTT 5: the retain flag as published, so that a retained command is
             # known as one even when it arrives live (3.1.1 brokers clear the flag).
             topic = f"{self.prefix}/+/cmd/+"
             if self.config.protocol == "5":
                 _, self._command_mid = self._client.subscribe(topic, options=SubscribeOptions(
-                    qos=1, retainAsPublished=True))
+                    qos=0, retainAsPublished=True))
             else:
-                _, self._command_mid = self._client.subscribe(topic, qos=1)
+                _, self._command_mid = self._client.subscribe(topic, qos=0)
         assert self._loop is not None
         self.sweep.start(self._client, self._loop.time())
         if self._sweep_timer is not None:  # an earlier connection's
@@ -224,16 +238,20 @@ class MqttClient(Frontend):
             self.sweep.end(self._client)
 
     def _announce(self) -> None:
-        """Everything retained, anew: after every connect.  The control messages go
-        first; then each sensor's latest state (the states that waited are old news by
-        now: ``Pipe.connected_anew``)."""
-        self.identity.claim_it()
-        self._send_control(Message(self.status_topic, ONLINE, CONTROL_QOS, True))
-        described = json_properties(self.config)  # one for all (paho packs it per send)
-        for topic, payload in self.discovery.items():
-            self._send_control(Message(topic, json_bytes(payload), CONTROL_QOS, True,
-                                       described))
-        self.states.announce()
+        """Everything retained, anew: after every connect, but what the broker
+        already served as it is when the probe asked (a node of the same cluster:
+        ``_send_control``).  The control messages go first; then each sensor's latest
+        state (the states that waited are old news by now: ``Pipe.connected_anew``)."""
+        try:
+            self.identity.claim_it()
+            self._send_control(Message(self.status_topic, ONLINE, CONTROL_QOS, True))
+            described = json_properties(self.config)  # one for all (paho packs it per send)
+            for topic, payload in self.discovery.items():
+                self._send_control(Message(topic, json_bytes(payload), CONTROL_QOS, True,
+                                           described))
+            self.states.announce()
+        finally:
+            self._served = {}  # the probe's: for this announcement only
 
     def on_message(self, message: paho.MQTTMessage) -> None:
         topic = message.topic
@@ -260,6 +278,8 @@ class MqttClient(Frontend):
         return self.pipe.publishing()
 
     def _send_control(self, message: Message, key: str | None = None) -> None:
+        if message.retain and self._served.get(message.topic) == message.payload:
+            return  # (in ``_announce``) the broker serves it so already
         self.pipe.send_control(message, key)
 
     def stats(self) -> FrontendCounts:

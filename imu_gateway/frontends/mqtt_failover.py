@@ -7,6 +7,10 @@
   cluster's nodes are equals, and a move costs a republish of everything retained).
 * When a connection that worked is lost, the next broker in the list is tried after
   ``RECONNECT_MIN`` (the lost one may be the one that is down).
+* Before a reconnect (after a lost connection or a failed try), the plain MQTT front
+  end probes the brokers (``mqtt_identity``): a probe that has no answer after half a
+  second gets another beside it on the next broker, and the connect goes to the
+  first that answered.
 * When a try fails, the next broker is tried at once, until every broker of the list
   has failed in a row: then the gateway waits, from ``RECONNECT_MIN`` doubling to
   ``RECONNECT_MAX``, before the next round.  With one broker this is the plain
@@ -33,6 +37,14 @@ class Failover:
     @property
     def current(self) -> Broker:
         return self.brokers[self.index]
+
+    def order(self) -> tuple[Broker, ...]:
+        """Every broker, from ``current`` on: the order a hedged probe tries them in."""
+        return self.brokers[self.index:] + self.brokers[:self.index]
+
+    def move_to(self, broker: Broker) -> None:
+        """``broker`` answered first (a hedged probe): it is the one tried now."""
+        self.index = self.brokers.index(broker)
 
     def ended(self, worked: bool) -> float:
         """The try of ``current`` ended: it connected and was lost (``worked``), or it

@@ -40,8 +40,9 @@ import os
 import socket
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
+from typing import NamedTuple
 
 import paho.mqtt.client as paho
 from paho.mqtt.reasoncodes import ReasonCode
@@ -56,6 +57,9 @@ log = logging.getLogger("imu_gateway.mqtt")
 RIVAL_WAIT = 30.0
 #: How long the probe waits for the broker (connect, retained messages, its echo).
 PROBE_TIMEOUT = 5.0
+#: A probe not answered after HEDGE_S gets another beside it, up to HEDGE_MAX at once
+#: (``read_retained_hedged``).
+HEDGE_S, HEDGE_MAX = 0.5, 8
 #: The largest pid Linux gives (``pid_max`` at most 2**22), and the latest start a
 #: claim may carry (the year 9999): anything past them is a malformed claim.
 MAX_PID, MAX_STARTED = 2**22, 253402300799.0
@@ -131,7 +135,7 @@ def live_rival(mine: Claim, status: str | None, theirs: Claim | None,
 
 
 async def read_retained(make: Callable[[str], paho.Client], broker: Broker, client_id: str,
-                        topics: list[str]) -> dict[str, bytes]:
+                        topics: list[str], timeout: float = PROBE_TIMEOUT) -> dict[str, bytes]:
     """The retained message of each of ``topics`` on ``broker`` (those that have one),
     read by a connection of its own: ``make(client_id)`` gives a client set up as the
     gateway's (TLS, credentials).  An echo sent after the subscription tells when the
@@ -182,7 +186,7 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
             raise BrokerUnreached("unreachable", reason_of(exc)) from exc
         client.loop_start()
         try:
-            result = await asyncio.wait_for(done, PROBE_TIMEOUT)
+            result = await asyncio.wait_for(done, timeout)
         except TimeoutError:
             if not acked:
                 raise BrokerUnreached("silent") from None
@@ -196,6 +200,69 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
         await asyncio.to_thread(client.loop_stop)
         with contextlib.suppress(OSError):
             client._reset_sockets()
+
+
+async def read_retained_hedged(make: Callable[[str], paho.Client], brokers: Sequence[Broker],
+                               client_id: str, topics: list[str]
+                               ) -> tuple[Broker, dict[str, bytes]]:
+    """``read_retained`` from the first of ``brokers`` to answer, hedged: while no probe
+    has finished, another starts every ``HEDGE_S`` on the next broker of the list (in
+    turn, client id ``{client_id}-{n}``), up to ``HEDGE_MAX`` at once and
+    ``PROBE_TIMEOUT`` in all.  The first probe to finish wins; the rest are closed.
+
+    Why: a NATS node whose JetStream groups are electing new leaders (a node of the
+    cluster was lost) holds each new MQTT connection 4 s and then closes it unanswered,
+    even when the leaders are back meanwhile, and the surviving nodes do not recover
+    at the same moment.  One probe at a time meets the recovery up to 4 s late, on one
+    node; probes every ``HEDGE_S`` meet it within that, on the first node that is back
+    (docs/scaling.md).  A broker that refuses the TCP connection leaves the turn; one
+    that answers the connect with a refusal fails the whole at once (another probe
+    would be refused too).  Raises as ``read_retained``, for the last broker that
+    failed."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + PROBE_TIMEOUT
+    turn = list(brokers)
+    pending: dict[asyncio.Task[dict[str, bytes]], Broker] = {}
+    failure: Exception = BrokerUnreached("silent")
+    started = 0
+    try:
+        while True:
+            left = deadline - loop.time()
+            if left > 0 and turn and len(pending) < HEDGE_MAX:
+                broker = turn[started % len(turn)]
+                nth = client_id if not started else f"{client_id}-{started}"
+                pending[asyncio.create_task(
+                    read_retained(make, broker, nth, topics, timeout=left))] = broker
+                started += 1
+            if not pending:
+                raise failure
+            done, _ = await asyncio.wait(
+                pending, timeout=min(HEDGE_S, left) if left > 0 and turn else None,
+                return_when=asyncio.FIRST_COMPLETED)
+            for task in done:
+                broker = pending.pop(task)
+                exc = task.exception()
+                if exc is None:
+                    return broker, task.result()
+                if not isinstance(exc, BrokerUnreached | TimeoutError):
+                    raise exc
+                if isinstance(exc, BrokerUnreached) and exc.kind == "unreachable" and \
+                        broker in turn:
+                    turn.remove(broker)
+                if not isinstance(failure, TimeoutError):  # (answered, then silent: kept)
+                    failure = exc
+    finally:
+        for task in pending:
+            task.cancel()
+        await asyncio.gather(*pending, return_exceptions=True)  # each closes its socket
+
+
+class Probed(NamedTuple):
+    """What the probe before a connect found."""
+
+    broker: Broker  # the broker that answered first: the connect goes there
+    rival: Claim | None  # another live gateway holding this id there
+    served: dict[str, bytes]  # the retained messages it serves now, of those asked for
 
 
 class Identity:
@@ -214,14 +281,19 @@ class Identity:
             log.error("mqtt: %s", text)
             self._reported = text
 
-    async def rival(self, broker: Broker, make: Callable[[str], paho.Client]) -> Claim | None:
-        """A live gateway holding this ``gateway_id`` or client id on ``broker``, asked
-        before connecting.  Raises ``BrokerUnreached`` when ``broker`` was not reached."""
+    async def rival(self, brokers: Sequence[Broker], make: Callable[[str], paho.Client],
+                    also: Sequence[str] = ()) -> Probed:
+        """Asked before connecting: the first of ``brokers`` to answer, and a live
+        gateway holding this ``gateway_id`` or client id there; with the retained
+        messages it serves on this gateway's topics and on ``also``.  Raises
+        ``BrokerUnreached`` when no broker was reached."""
         probe_id = self.probe_id
         t = self.topics
+        broker, served = brokers[0], {}
         try:
-            found = await read_retained(make, broker, probe_id,
-                                        [t.status, t.instance, t.client(self.client_id)])
+            broker, found = await read_retained_hedged(
+                make, brokers, probe_id, [t.status, t.instance, t.client(self.client_id), *also])
+            served = dict(found)
             rival = live_rival(self.claim, _text(found.get(t.status)),
                                Claim.parse(found.get(t.instance, b"")))
             what = f"gateway_id {t.gateway_id!r}"
@@ -236,7 +308,8 @@ class Identity:
                 rival = live if live == other else None
                 what = f"the client id {self.client_id!r}"
         except (OSError, TimeoutError, ValueError):
-            return None  # refused or half-answered: the real connect tries, and says why
+            # refused or half-answered: the real connect tries, and says why
+            return Probed(broker, None, {})
         if rival is not None:
             self.held_off = True
             self._report(
@@ -244,7 +317,7 @@ class Identity:
                 f"this one stays away so as not to take its session or overwrite its "
                 f"retained messages, and looks again every {RIVAL_WAIT:g} s. Give each "
                 f"gateway its own gateway_id and client_id (docs/scaling.md)")
-        return rival
+        return Probed(broker, rival, served)
 
     @property
     def probe_id(self) -> str:

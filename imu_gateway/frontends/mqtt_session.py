@@ -25,7 +25,7 @@ import asyncio
 import contextlib
 import logging
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
@@ -44,12 +44,20 @@ from .mqtt_topics import Counters, Message
 CONNACK_TIMEOUT = PROBE_TIMEOUT
 
 
+class Ready(NamedTuple):
+    """The owner's word before a connect."""
+
+    broker: Broker  # the broker to connect to
+    stay_away: float | None  # None: connect now; else stay away this many seconds
+
+
 class Owner(Protocol):
     """What a session asks of the front end it serves; all on the event loop."""
 
-    async def before_connect(self, broker: Broker) -> float | None:
-        """None: connect now; else stay away from the brokers this many seconds.
-        Raises ``BrokerUnreached`` (that broker's try failed)."""
+    async def before_connect(self, brokers: tuple[Broker, ...]) -> Ready:
+        """Which of ``brokers`` (the list, from the one whose turn it is) to connect
+        to, and whether to stay away instead.  Raises ``BrokerUnreached`` (the try of
+        the first failed)."""
 
     def will(self) -> Message:
         """The last will of the next connection."""
@@ -155,8 +163,14 @@ class Session:
         while True:
             stay_away = None
             try:
-                stay_away = await self.owner.before_connect(self.failover.current)
-                worked = stay_away is None and await self._connection(self.failover.current)
+                # the first try goes to the first broker alone; a reconnect takes the
+                # first broker of the list that answers (a cluster's nodes do not come
+                # back from a node's loss at the same moment)
+                again = self.counters.connects or self.failover.failures
+                brokers = self.failover.order() if again else (self.failover.current,)
+                broker, stay_away = await self.owner.before_connect(brokers)
+                self.failover.move_to(broker)
+                worked = stay_away is None and await self._connection(broker)
             except BrokerUnreached as failed:  # its try: the connect would fail too
                 self._problem(self._unreached(self.failover.current, failed.kind,
                                               failed.detail))

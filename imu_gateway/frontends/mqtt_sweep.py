@@ -52,7 +52,10 @@ class RetainedSweep:
     def start(self, client: paho.Client, now: float) -> None:
         self.until = now + SWEEP_S
         for topic in self.subscriptions():
-            client.subscribe(topic, qos=1)
+            # QoS 0: a read of retained messages needs no more, and NATS makes a
+            # JetStream consumer for each QoS 1 subscription, holding the connection's
+            # later packets meanwhile (docs/mqtt.md)
+            client.subscribe(topic, qos=0)
 
     def end(self, client: paho.Client) -> None:
         for topic in self.subscriptions():

@@ -20,7 +20,7 @@ from ...config import Broker, MqttConfig, SparkplugConfig
 from ...stats import FrontendCounts
 from ...supervise import Frontend
 from ..common import GatewayLike
-from ..mqtt_session import Session
+from ..mqtt_session import Ready, Session
 from ..mqtt_topics import Message
 from .metrics import device_rows
 from .node import BdSeq, Device, EdgeNode, Ignored, Write
@@ -78,8 +78,8 @@ class SparkplugClient(Frontend):
 
     # ------------------------------------------------------------ the session's owner
 
-    async def before_connect(self, broker: Broker) -> float | None:
-        return None
+    async def before_connect(self, brokers: tuple[Broker, ...]) -> Ready:
+        return Ready(brokers[0], None)
 
     def will(self) -> Message:
         return self.node.connected()
