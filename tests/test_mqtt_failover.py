@@ -15,6 +15,7 @@ from broker import Gate, Mosquitto, recording
 from harness import running, until
 
 from imu_gateway.config import Broker
+from imu_gateway.frontends import mqtt_identity
 from imu_gateway.frontends.mqtt_failover import RECONNECT_MAX, RECONNECT_MIN, Failover
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import make_sensor, simulated
@@ -146,3 +147,67 @@ async def test_a_late_will_is_answered_with_online_again(tmp_path: Path) -> None
                 assert [m.text for m in late.on(f"{BASE}/status")] == ["online"]
         # its own offline at a stop is not answered
         assert [m.text for m in rec.on(f"{BASE}/status")][-1] == "offline"
+
+
+@pytest.mark.anyio
+async def test_a_reconnect_takes_the_first_node_that_answers(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """After a loss, a node that holds the probe unanswered (a cluster node still
+    electing) gets another probe beside it on the next node every 0.5 s; the gateway
+    connects to the first that answers.  The probe's own limit is made a minute here,
+    so a gateway that waited for the silent node would not be back within the test."""
+    monkeypatch.setattr(mqtt_identity, "PROBE_TIMEOUT", 60.0)
+    connects: list[bytes] = []
+
+    async def hold(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        connects.append(await reader.read(1024))
+        await reader.read()  # until the gateway closes it
+        writer.close()
+
+    silent = await asyncio.start_server(hold, "127.0.0.1", 0)
+    port = silent.sockets[0].getsockname()[1]
+    (tmp_path / "n1").mkdir()
+    (tmp_path / "n3").mkdir()
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200)
+    with Mosquitto(tmp_path / "n1") as n1, Mosquitto(tmp_path / "n3") as n3, \
+            simulated([ah]) as line, recording(n3, f"{BASE}/status") as on_n3:
+        urls = [n1.url, f"mqtt://127.0.0.1:{port}", n3.url]
+        async with silent, running(_config(line.path, urls)) as gw:
+            await until(lambda: gw.mqtt is not None and gw.mqtt.connected)
+            n1.stop()
+            await until(lambda: [m.text for m in on_n3.on(f"{BASE}/status")] == ["online"],
+                        30)
+            assert gw.mqtt is not None and gw.mqtt.failover.current.port == n3.port
+            assert connects and all(b"-probe-" in packet for packet in connects), connects
+
+
+@pytest.mark.anyio
+async def test_a_reconnect_publishes_only_what_the_broker_does_not_serve(
+        tmp_path: Path) -> None:
+    """Back on a broker that kept this gateway's retained messages (the same broker, or
+    a node of the same cluster), the gateway publishes again only those it does not
+    serve as they are: here the status, which the will made ``offline``; not the
+    claim, the availability or the discovery configs."""
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200)
+    with Mosquitto(tmp_path) as n1, simulated([ah]) as line:
+        async with Gate(n1.port) as gate:
+            # (QoS 0: mosquitto then passes the messages on in the order they came)
+            with recording(n1, f"{BASE}/#", "homeassistant/#", qos=0) as rec:
+                urls = [f"mqtt://127.0.0.1:{gate.port}"]
+                async with running(_config(line.path, urls)) as gw:
+                    await until(lambda: any(m.topic.startswith("homeassistant/")
+                                            for m in list(rec.messages)))
+                    await until(lambda: bool(rec.on(f"{BASE}/ah/availability")))
+                    rec.clear()
+                    gate.cut()  # the broker sees the connection drop: the will
+                    await until(lambda: bool(rec.on(f"{BASE}/status")), 15)
+                    gate.shut = False
+                    await until(lambda: [m.text for m in rec.on(f"{BASE}/status")]
+                                == ["offline", "online"], 15)
+                    assert gw.mqtt is not None and gw.mqtt.counters.connects == 2
+                    await until(lambda: bool(rec.on(f"{BASE}/ah/state")))
+                    again = {m.topic for m in list(rec.messages) if m.topic not in
+                             (f"{BASE}/status", f"{BASE}/ah/state")}
+                    assert not any(t.startswith("homeassistant/") for t in again), again
+                    assert f"{BASE}/ah/availability" not in again
+                    assert f"{BASE}/instance" not in again
