@@ -175,7 +175,9 @@ async def test_a_reconnect_takes_the_first_node_that_answers(
         async with silent, running(_config(line.path, urls)) as gw:
             await until(lambda: gw.mqtt is not None and gw.mqtt.connected)
             n1.stop()
-            await until(lambda: [m.text for m in on_n3.on(f"{BASE}/status")] == ["online"],
+            # (its status guard may say online again later: the silent node does not
+            # answer its read-back either)
+            await until(lambda: "online" in [m.text for m in on_n3.on(f"{BASE}/status")],
                         30)
             assert gw.mqtt is not None and gw.mqtt.failover.current.port == n3.port
             assert connects and all(b"-probe-" in packet for packet in connects), connects

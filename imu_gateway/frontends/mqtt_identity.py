@@ -25,9 +25,11 @@ time), published before its status.
 * **A probe that cannot reach the broker** (no TCP connection, no CONNACK in time, or
   closed unanswered) counts as this broker's failed try: the real connect would fail
   the same way, and a cluster node that holds connections for seconds while it
-  recovers would otherwise cost that wait twice.  A probe the broker refuses, or one
-  whose echo does not come back (an ACL, say), leaves the decision to the real
-  connect: the probe's client id and topic are not the gateway's.
+  recovers would otherwise cost that wait twice.  On a reconnect the probe is hedged
+  across the broker list (``read_retained_hedged``), and what it read tells the
+  front end which retained messages the broker already serves.  A probe the broker
+  refuses, or one whose echo does not come back (an ACL, say), leaves the decision
+  to the real connect: the probe's client id and topic are not the gateway's.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ from dataclasses import asdict, dataclass
 from typing import NamedTuple
 
 import paho.mqtt.client as paho
+from paho.mqtt.enums import MQTTErrorCode
 from paho.mqtt.reasoncodes import ReasonCode
 
 from ..config import Broker
@@ -135,13 +138,15 @@ def live_rival(mine: Claim, status: str | None, theirs: Claim | None,
 
 
 async def read_retained(make: Callable[[str], paho.Client], broker: Broker, client_id: str,
-                        topics: list[str], timeout: float = PROBE_TIMEOUT) -> dict[str, bytes]:
+                        topics: list[str], timeout: float = PROBE_TIMEOUT,
+                        reached: asyncio.Event | None = None) -> dict[str, bytes]:
     """The retained message of each of ``topics`` on ``broker`` (those that have one),
     read by a connection of its own: ``make(client_id)`` gives a client set up as the
     gateway's (TLS, credentials).  An echo sent after the subscription tells when the
     retained messages are all in.  Raises ``BrokerUnreached`` when the broker was not
     reached, ``ConnectionRefusedError`` when it refused the probe, ``TimeoutError``
-    when it answered the connect but not the rest."""
+    when it answered the connect but not the rest.  ``reached`` is set once the TCP
+    (and TLS) connection is up."""
     loop = asyncio.get_running_loop()
     echo = f"{topics[0]}/probe/{uuid.uuid4().hex}"
     seen: dict[str, bytes] = {}
@@ -179,11 +184,17 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
     client.on_subscribe = lambda c, *_: c.publish(echo, b"", qos=0)
     client.on_disconnect, client.on_publish = on_disconnect, None
     client.will_clear()  # the gateway's will is not the probe's to leave
+    # (shielded: a probe given up on while it connects, a hedge that lost, must not
+    # wait for the connect, and what the connect opens is closed when it ends)
+    connecting = asyncio.ensure_future(
+        asyncio.to_thread(client.connect, broker.host, broker.port, 10))
     try:
         try:
-            await asyncio.to_thread(client.connect, broker.host, broker.port, 10)
+            await asyncio.shield(connecting)
         except (OSError, ValueError) as exc:
             raise BrokerUnreached("unreachable", reason_of(exc)) from exc
+        if reached is not None:
+            reached.set()
         client.loop_start()
         try:
             result = await asyncio.wait_for(done, timeout)
@@ -195,11 +206,24 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
             raise result
         return seen
     finally:
-        with contextlib.suppress(Exception):
-            client.disconnect()
-        await asyncio.to_thread(client.loop_stop)
-        with contextlib.suppress(OSError):
-            client._reset_sockets()
+        if connecting.done():
+            with contextlib.suppress(Exception):
+                client.disconnect()
+            await asyncio.to_thread(client.loop_stop)
+            _close_sockets(client)
+        else:
+            connecting.add_done_callback(lambda ended: _close_sockets(client, ended))
+
+
+def _close_sockets(client: paho.Client,
+                   connect: asyncio.Future[MQTTErrorCode] | None = None) -> None:
+    """paho leaves a finished client's sockets to the garbage collector (mqtt_session's
+    ``close_sockets`` says why this private call).  ``connect``: the connect that ended
+    after the probe was given up on (its failure, if it failed, is of no interest)."""
+    if connect is not None and not connect.cancelled():
+        connect.exception()
+    with contextlib.suppress(OSError):
+        client._reset_sockets()
 
 
 async def read_retained_hedged(make: Callable[[str], paho.Client], brokers: Sequence[Broker],
@@ -217,22 +241,27 @@ async def read_retained_hedged(make: Callable[[str], paho.Client], brokers: Sequ
     node; probes every ``HEDGE_S`` meet it within that, on the first node that is back
     (docs/scaling.md).  A broker that refuses the TCP connection leaves the turn; one
     that answers the connect with a refusal fails the whole at once (another probe
-    would be refused too).  Raises as ``read_retained``, for the last broker that
-    failed."""
+    would be refused too).  A broker whose last probe is still opening its TCP
+    connection (a host that drops the SYN) gets no other meanwhile: each waits on a
+    thread of the loop's executor.  Raises as ``read_retained``, for the last broker
+    that failed."""
     loop = asyncio.get_running_loop()
     deadline = loop.time() + PROBE_TIMEOUT
     turn = list(brokers)
-    pending: dict[asyncio.Task[dict[str, bytes]], Broker] = {}
+    pending: dict[asyncio.Task[dict[str, bytes]], tuple[Broker, asyncio.Event]] = {}
     failure: Exception = BrokerUnreached("silent")
     started = 0
     try:
         while True:
             left = deadline - loop.time()
-            if left > 0 and turn and len(pending) < HEDGE_MAX:
-                broker = turn[started % len(turn)]
-                nth = client_id if not started else f"{client_id}-{started}"
-                pending[asyncio.create_task(
-                    read_retained(make, broker, nth, topics, timeout=left))] = broker
+            opening = {b for b, up in pending.values() if not up.is_set()}
+            free = [b for b in turn[started % len(turn):] + turn[:started % len(turn)]
+                    if b not in opening] if turn else []
+            if left > 0 and free and len(pending) < HEDGE_MAX:
+                nth, up = client_id if not started else f"{client_id}-{started}", \
+                    asyncio.Event()
+                pending[asyncio.create_task(read_retained(
+                    make, free[0], nth, topics, timeout=left, reached=up))] = (free[0], up)
                 started += 1
             if not pending:
                 raise failure
@@ -240,7 +269,7 @@ async def read_retained_hedged(make: Callable[[str], paho.Client], brokers: Sequ
                 pending, timeout=min(HEDGE_S, left) if left > 0 and turn else None,
                 return_when=asyncio.FIRST_COMPLETED)
             for task in done:
-                broker = pending.pop(task)
+                broker, _ = pending.pop(task)
                 exc = task.exception()
                 if exc is None:
                     return broker, task.result()
