@@ -246,6 +246,8 @@ class Gate:
         self.port = free_port()
         self.shut = False
         self._pipes: set[asyncio.StreamWriter] = set()
+        self._clients: set[asyncio.StreamWriter] = set()  # the client's side of each
+        self._hold_broker_side = False
         self._server: asyncio.Server | None = None
 
     async def __aenter__(self) -> Gate:
@@ -257,10 +259,13 @@ class Gate:
         assert self._server is not None
         self._server.close()
 
-    def cut(self) -> None:
-        """Shut: every relayed connection is closed, and new ones are refused."""
+    def cut(self, client_side_only: bool = False) -> None:
+        """Shut: every relayed connection is closed, and new ones are refused.
+        ``client_side_only``: the broker's side stays open, so the broker takes the
+        connection for alive (as when a NAT box resets only the client's side)."""
         self.shut = True
-        for writer in list(self._pipes):
+        self._hold_broker_side = client_side_only
+        for writer in list(self._clients if client_side_only else self._pipes):
             writer.close()
 
     async def _relay(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -273,12 +278,17 @@ class Gate:
             writer.close()
             return
         self._pipes |= {writer, up_writer}
+        self._clients.add(writer)
         await asyncio.gather(self._copy(reader, up_writer), self._copy(up_reader, writer))
-        self._pipes -= {writer, up_writer}
+        self._pipes.discard(writer)
+        if up_writer.is_closing():  # (a broker's side held open stays, for cut() to close)
+            self._pipes.discard(up_writer)
+        self._clients.discard(writer)
 
     async def _copy(self, source: asyncio.StreamReader, sink: asyncio.StreamWriter) -> None:
         with contextlib.suppress(OSError, asyncio.IncompleteReadError):
             while data := await source.read(65536):
                 sink.write(data)
                 await sink.drain()
-        sink.close()
+        if sink in self._clients or not self._hold_broker_side:
+            sink.close()

@@ -6,6 +6,7 @@ and tested in plain time; the moves against two real mosquitto brokers."""
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 from pathlib import Path
 from typing import Any
@@ -188,8 +189,9 @@ async def test_a_reconnect_publishes_only_what_the_broker_does_not_serve(
         tmp_path: Path) -> None:
     """Back on a broker that kept this gateway's retained messages (the same broker, or
     a node of the same cluster), the gateway publishes again only those it does not
-    serve as they are: here the status, which the will made ``offline``; not the
-    claim, the availability or the discovery configs."""
+    serve as they are (and the status, always, on the broker it was last on): here
+    the status, which the will made ``offline``; not the claim, the availability or
+    the discovery configs."""
     ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200)
     with Mosquitto(tmp_path) as n1, simulated([ah]) as line:
         async with Gate(n1.port) as gate:
@@ -213,3 +215,30 @@ async def test_a_reconnect_publishes_only_what_the_broker_does_not_serve(
                     assert not any(t.startswith("homeassistant/") for t in again), again
                     assert f"{BASE}/ah/availability" not in again
                     assert f"{BASE}/instance" not in again
+
+
+@pytest.mark.anyio
+async def test_back_on_a_broker_that_missed_the_loss_the_status_is_said_again(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """The connection is lost on the gateway's side only: the broker still takes it for
+    alive, serves the status ``online``, and publishes the old connection's will as
+    the new one takes the session over.  The gateway says ``online`` after that, on
+    the broker it was last on, though the probe found it served so."""
+    caplog.set_level(logging.WARNING, "imu_gateway.mqtt")
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200)
+    with Mosquitto(tmp_path) as n1, simulated([ah]) as line:
+        async with Gate(n1.port) as gate:
+            with recording(n1, f"{BASE}/status", qos=0) as rec:
+                async with running(_config(line.path, [f"mqtt://127.0.0.1:{gate.port}"])) \
+                        as gw:
+                    await until(lambda: [m.text for m in rec.on(f"{BASE}/status")]
+                                == ["online"])
+                    gate.cut(client_side_only=True)
+                    await until(lambda: gw.mqtt is not None and not gw.mqtt.connected)
+                    gate.shut = False
+                    # the will, at the takeover, then online from the new connection
+                    await until(lambda: [m.text for m in rec.on(f"{BASE}/status")]
+                                == ["online", "offline", "online"], 15)
+                    assert gw.mqtt is not None and gw.mqtt.connected
+    guarded = [r.getMessage() for r in caplog.records if "not online" in r.getMessage()]
+    assert not guarded, guarded  # said at the connect, not mended by the guard later

@@ -91,6 +91,7 @@ class MqttClient(Frontend):
         self._command_mid: int | None = None  # the command subscription's message id
         self._checker: asyncio.Task[None] | None = None
         self._served: dict[str, bytes] = {}  # the retained messages the probe found
+        self._last_broker: Broker | None = None  # the broker of the last connection
         self.identity = Identity(self.topics, self.client_id, self._send_control)
         self.desk = CommandDesk(gateway, config, self._send_control, self.counters,
                                 self.session.peers)
@@ -156,8 +157,13 @@ class MqttClient(Frontend):
                                            [f"{self.prefix}/#", *self.discovery])
         # what that broker serves already need not be said again: the nodes of a
         # cluster share their retained messages, and NATS holds every later packet of
-        # a connection while it stores one (up to 4 s each while it recovers a node)
-        self._served = probed.served
+        # a connection while it stores one (up to 4 s each while it recovers a node).
+        # But the status, back on the broker of the last connection: if that broker
+        # has not yet seen the connection go, the new one takes it over, and the
+        # broker publishes its will (offline) as this one connects.
+        self._served = dict(probed.served)
+        if probed.broker == self._last_broker:
+            self._served.pop(self.status_topic, None)
         if probed.rival is None:
             return Ready(probed.broker, None)
         self.identity.held_off = False
@@ -167,6 +173,7 @@ class MqttClient(Frontend):
         return Message(self.status_topic, OFFLINE, CONTROL_QOS, True)
 
     def on_connected(self) -> None:
+        self._last_broker = self.failover.current
         self._subscribe()
         self._announce()
         if self._checker is not None:
@@ -198,6 +205,8 @@ class MqttClient(Frontend):
                     found = {}  # up but not answering (recovering): say it again anyway
                 except (OSError, TimeoutError, ValueError):
                     continue  # asked again at the next check
+                log.debug("mqtt: %s serves this gateway's retained status as %r", broker,
+                          found.get(status))
                 if found.get(status) != ONLINE and self.connected:
                     log.warning("mqtt: %s serves this gateway's retained status as %r, not "
                                 "online (a broker cluster that stored messages out of "
