@@ -118,11 +118,12 @@ KINDS: Mapping[ErrorKind, KindRow] = MappingProxyType({
 class BrokerUnreached(GatewayError):
     """An MQTT broker was not reached: ``kind`` is ``"unreachable"`` (no TCP or TLS
     connection; ``detail`` says why), ``"silent"`` (no CONNACK in time) or
-    ``"closed"`` (closed before answering).  The MQTT client words it for the log."""
+    ``"closed"`` (closed before answering).  ``broker`` names it when it is not the
+    one whose turn it was (a hedged probe's).  The MQTT client words it for the log."""
 
-    def __init__(self, kind: str, detail: str = "") -> None:
+    def __init__(self, kind: str, detail: str = "", broker: object = None) -> None:
         super().__init__(kind, detail)
-        self.kind, self.detail = kind, detail
+        self.kind, self.detail, self.broker = kind, detail, broker
 
 
 class RequestFailed(GatewayError):

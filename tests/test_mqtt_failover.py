@@ -242,3 +242,26 @@ async def test_back_on_a_broker_that_missed_the_loss_the_status_is_said_again(
                     assert gw.mqtt is not None and gw.mqtt.connected
     guarded = [r.getMessage() for r in caplog.records if "not online" in r.getMessage()]
     assert not guarded, guarded  # said at the connect, not mended by the guard later
+
+
+@pytest.mark.anyio
+async def test_a_node_that_closes_at_once_gets_one_probe_not_a_storm(
+        tmp_path: Path) -> None:
+    """A node that closes each connection at once (a TLS port spoken to in plain MQTT,
+    a broker at its connection limit): the probe fails, and the gateway goes on to the
+    next node; no probe after probe while its time lasts."""
+    accepted: list[int] = []
+
+    async def close(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        accepted.append(1)
+        writer.close()
+
+    closing = await asyncio.start_server(close, "127.0.0.1", 0)
+    port = closing.sockets[0].getsockname()[1]
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200)
+    with Mosquitto(tmp_path) as n2, simulated([ah]) as line, \
+            recording(n2, f"{BASE}/status") as on_n2:
+        async with closing, running(_config(line.path, [f"mqtt://127.0.0.1:{port}",
+                                                        n2.url])):
+            await until(lambda: "online" in [m.text for m in on_n2.on(f"{BASE}/status")])
+            assert len(accepted) <= 2, len(accepted)  # the probe (and a hedge's, at most)

@@ -158,11 +158,13 @@ class MqttClient(Frontend):
         # what that broker serves already need not be said again: the nodes of a
         # cluster share their retained messages, and NATS holds every later packet of
         # a connection while it stores one (up to 4 s each while it recovers a node).
-        # But the status, back on the broker of the last connection: if that broker
-        # has not yet seen the connection go, the new one takes it over, and the
-        # broker publishes its will (offline) as this one connects.
+        # But the status, at this process's first connect and back on the broker of
+        # its last: a broker that has not yet seen the last connection (of this
+        # process, or of a crashed predecessor) go takes it over as this one connects
+        # and publishes its will (offline).  A move to another node keeps the
+        # status that node serves (a late will is answered: ``on_message``).
         self._served = dict(probed.served)
-        if probed.broker == self._last_broker:
+        if self._last_broker in (None, probed.broker):
             self._served.pop(self.status_topic, None)
         if probed.rival is None:
             return Ready(probed.broker, None)
@@ -288,7 +290,11 @@ class MqttClient(Frontend):
 
     def _send_control(self, message: Message, key: str | None = None) -> None:
         if message.retain and self._served.get(message.topic) == message.payload:
-            return  # (in ``_announce``) the broker serves it so already
+            # the broker serves it so already (``_served``: from the probe before this
+            # connect until the announcement after it); an older one still waiting
+            # for that key would undo it
+            self.pipe.control.pop(key or message.topic, None)
+            return
         self.pipe.send_control(message, key)
 
     def stats(self) -> FrontendCounts:

@@ -9,8 +9,8 @@
   ``RECONNECT_MIN`` (the lost one may be the one that is down).
 * Before a reconnect (after a lost connection or a failed try), the plain MQTT front
   end probes the brokers (``mqtt_identity``): a probe that has no answer after half a
-  second gets another beside it on the next broker, and the connect goes to the
-  first that answered.
+  second gets another beside it on the next broker of the list (the same one, when
+  the list has one), and the connect goes to the first that answered.
 * When a try fails, the next broker is tried at once, until every broker of the list
   has failed in a row: then the gateway waits, from ``RECONNECT_MIN`` doubling to
   ``RECONNECT_MAX``, before the next round.  With one broker this is the plain

@@ -226,60 +226,71 @@ def _close_sockets(client: paho.Client,
         client._reset_sockets()
 
 
+class ProbeFailed(Exception):
+    """A probe ``broker`` answered, but with a refusal or not all the way (``cause``):
+    the real connect goes there, and says why."""
+
+    def __init__(self, broker: Broker, cause: Exception) -> None:
+        super().__init__(broker, cause)
+        self.broker, self.cause = broker, cause
+
+
 async def read_retained_hedged(make: Callable[[str], paho.Client], brokers: Sequence[Broker],
                                client_id: str, topics: list[str]
                                ) -> tuple[Broker, dict[str, bytes]]:
-    """``read_retained`` from the first of ``brokers`` to answer, hedged: while no probe
-    has finished, another starts every ``HEDGE_S`` on the next broker of the list (in
-    turn, client id ``{client_id}-{n}``), up to ``HEDGE_MAX`` at once and
-    ``PROBE_TIMEOUT`` in all.  The first probe to finish wins; the rest are closed.
+    """``read_retained`` from the first of ``brokers`` to answer, hedged: while a probe
+    is out and none has finished, another starts every ``HEDGE_S`` on the next broker
+    of the list in turn (the same one, when the list has one; client id
+    ``{client_id}-{n}``), up to ``HEDGE_MAX`` at once and ``PROBE_TIMEOUT`` in all.
+    The first probe to finish wins; the rest are closed.
 
     Why: a NATS node whose JetStream groups are electing new leaders (a node of the
     cluster was lost) holds each new MQTT connection 4 s and then closes it unanswered,
     even when the leaders are back meanwhile, and the surviving nodes do not recover
     at the same moment.  One probe at a time meets the recovery up to 4 s late, on one
     node; probes every ``HEDGE_S`` meet it within that, on the first node that is back
-    (docs/scaling.md).  A broker that refuses the TCP connection leaves the turn; one
-    that answers the connect with a refusal fails the whole at once (another probe
-    would be refused too).  A broker whose last probe is still opening its TCP
-    connection (a host that drops the SYN) gets no other meanwhile: each waits on a
-    thread of the loop's executor.  Raises as ``read_retained``, for the last broker
-    that failed."""
+    (docs/scaling.md).
+
+    When no probe is out any more (each failed: a broker that closes at once, or
+    refuses the TCP connection) the last failure is raised, ``BrokerUnreached`` naming
+    its broker; so is "silent" when the time is up.  A refusal of the connect, or an
+    answer without the retained messages, raises ``ProbeFailed`` at once.  A broker
+    whose probe is still opening its TCP connection (a host that drops the SYN) gets
+    no other meanwhile: each waits on a thread of the loop's executor."""
     loop = asyncio.get_running_loop()
-    deadline = loop.time() + PROBE_TIMEOUT
+    deadline = next_start = loop.time()
+    deadline += PROBE_TIMEOUT
     turn = list(brokers)
     pending: dict[asyncio.Task[dict[str, bytes]], tuple[Broker, asyncio.Event]] = {}
-    failure: Exception = BrokerUnreached("silent")
+    failure = BrokerUnreached("silent", broker=brokers[0])
     started = 0
     try:
-        while True:
-            left = deadline - loop.time()
+        while (now := loop.time()) < deadline:
             opening = {b for b, up in pending.values() if not up.is_set()}
             free = [b for b in turn[started % len(turn):] + turn[:started % len(turn)]
                     if b not in opening] if turn else []
-            if left > 0 and free and len(pending) < HEDGE_MAX:
+            if now >= next_start and free and len(pending) < HEDGE_MAX:
                 nth, up = client_id if not started else f"{client_id}-{started}", \
                     asyncio.Event()
                 pending[asyncio.create_task(read_retained(
-                    make, free[0], nth, topics, timeout=left, reached=up))] = (free[0], up)
-                started += 1
+                    make, free[0], nth, topics, deadline - now, up))] = (free[0], up)
+                started, next_start = started + 1, now + HEDGE_S
             if not pending:
                 raise failure
-            done, _ = await asyncio.wait(
-                pending, timeout=min(HEDGE_S, left) if left > 0 and turn else None,
-                return_when=asyncio.FIRST_COMPLETED)
-            for task in done:
+            done, _ = await asyncio.wait(pending, timeout=min(HEDGE_S, deadline - now),
+                                         return_when=asyncio.FIRST_COMPLETED)
+            # (a success first, of those that finished together)
+            for task in sorted(done, key=lambda t: t.exception() is not None):
                 broker, _ = pending.pop(task)
-                exc = task.exception()
-                if exc is None:
+                if (exc := task.exception()) is None:
                     return broker, task.result()
-                if not isinstance(exc, BrokerUnreached | TimeoutError):
-                    raise exc
-                if isinstance(exc, BrokerUnreached) and exc.kind == "unreachable" and \
-                        broker in turn:
+                if not isinstance(exc, BrokerUnreached):
+                    raise ProbeFailed(broker, exc) if isinstance(
+                        exc, OSError | TimeoutError | ValueError) else exc
+                if exc.kind == "unreachable" and broker in turn:
                     turn.remove(broker)
-                if not isinstance(failure, TimeoutError):  # (answered, then silent: kept)
-                    failure = exc
+                failure = BrokerUnreached(exc.kind, exc.detail, broker)
+        raise failure
     finally:
         for task in pending:
             task.cancel()
@@ -318,11 +329,13 @@ class Identity:
         ``BrokerUnreached`` when no broker was reached."""
         probe_id = self.probe_id
         t = self.topics
-        broker, served = brokers[0], {}
         try:
             broker, found = await read_retained_hedged(
                 make, brokers, probe_id, [t.status, t.instance, t.client(self.client_id), *also])
-            served = dict(found)
+        except ProbeFailed as failed:
+            return Probed(failed.broker, None, {})  # the real connect says why
+        served = dict(found)
+        try:
             rival = live_rival(self.claim, _text(found.get(t.status)),
                                Claim.parse(found.get(t.instance, b"")))
             what = f"gateway_id {t.gateway_id!r}"
@@ -330,7 +343,8 @@ class Identity:
             if rival is None and other is not None and other.gateway_id != t.gateway_id:
                 # the client id is claimed by a gateway of another id: is it running?
                 theirs = t.of_gateway(other.gateway_id)
-                found = await read_retained(make, broker, probe_id,
+                # (a client id of its own: a hedge that lost may still be connecting)
+                found = await read_retained(make, broker, f"{probe_id}-c",
                                             [theirs.status, theirs.instance])
                 live = live_rival(self.claim, _text(found.get(theirs.status)),
                                   Claim.parse(found.get(theirs.instance, b"")))

@@ -172,8 +172,9 @@ class Session:
                 self.failover.move_to(broker)
                 worked = stay_away is None and await self._connection(broker)
             except BrokerUnreached as failed:  # its try: the connect would fail too
-                self._problem(self._unreached(self.failover.current, failed.kind,
-                                              failed.detail))
+                broker = failed.broker if isinstance(failed.broker, Broker) else \
+                    self.failover.current
+                self._problem(self._unreached(broker, failed.kind, failed.detail))
                 worked = False
             self.connected = False
             wait = self.failover.ended(worked)
