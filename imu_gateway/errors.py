@@ -9,6 +9,8 @@ front ends answer with.
      │    ├── FrameError  the peer sent bytes no document allows (routine on a noisy line)
      │    └── UsageError  our caller asked for a frame the protocol cannot express
      ├── BrokerUnreached  an MQTT broker was not reached (no connection, no answer)
+     ├── ProbeFailed      an MQTT broker answered the probe before a connect, but with a
+     │                    refusal, or not all the way
      └── RequestFailed    a client's request was not carried out; ``kind`` says why
 
 A ``RequestFailed`` is what a command, an on-demand read or a pass-through ends in
@@ -124,6 +126,15 @@ class BrokerUnreached(GatewayError):
     def __init__(self, kind: str, detail: str = "", broker: object = None) -> None:
         super().__init__(kind, detail)
         self.kind, self.detail, self.broker = kind, detail, broker
+
+
+class ProbeFailed(GatewayError):
+    """A probe ``broker`` answered, but with a refusal or not all the way (``cause``):
+    the real connect goes there, and says why."""
+
+    def __init__(self, broker: object, cause: Exception) -> None:
+        super().__init__(broker, cause)
+        self.broker, self.cause = broker, cause
 
 
 class RequestFailed(GatewayError):

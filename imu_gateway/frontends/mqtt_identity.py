@@ -51,7 +51,7 @@ from paho.mqtt.enums import MQTTErrorCode
 from paho.mqtt.reasoncodes import ReasonCode
 
 from ..config import Broker
-from ..errors import BrokerUnreached
+from ..errors import BrokerUnreached, ProbeFailed
 from .mqtt_topics import CONTROL_QOS, Message, Topics
 
 log = logging.getLogger("imu_gateway.mqtt")
@@ -226,15 +226,6 @@ def _close_sockets(client: paho.Client,
         client._reset_sockets()
 
 
-class ProbeFailed(Exception):
-    """A probe ``broker`` answered, but with a refusal or not all the way (``cause``):
-    the real connect goes there, and says why."""
-
-    def __init__(self, broker: Broker, cause: Exception) -> None:
-        super().__init__(broker, cause)
-        self.broker, self.cause = broker, cause
-
-
 async def read_retained_hedged(make: Callable[[str], paho.Client], brokers: Sequence[Broker],
                                client_id: str, topics: list[str]
                                ) -> tuple[Broker, dict[str, bytes]]:
@@ -332,8 +323,9 @@ class Identity:
         try:
             broker, found = await read_retained_hedged(
                 make, brokers, probe_id, [t.status, t.instance, t.client(self.client_id), *also])
-        except ProbeFailed as failed:
-            return Probed(failed.broker, None, {})  # the real connect says why
+        except ProbeFailed as failed:  # the real connect goes there, and says why
+            return Probed(failed.broker if isinstance(failed.broker, Broker) else brokers[0],
+                          None, {})
         served = dict(found)
         try:
             rival = live_rival(self.claim, _text(found.get(t.status)),
