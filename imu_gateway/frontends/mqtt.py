@@ -199,8 +199,11 @@ class MqttClient(Frontend):
                 if not self.connected or self.session.stopping:
                     return
                 try:
+                    # (a client id of its own: a probe of the connect's may still be
+                    # connecting, and a second connection with its id would take over)
                     found = await mqtt_identity.read_retained(
-                        self.session.make_client, broker, self.identity.probe_id, [status])
+                        self.session.make_client, broker, f"{self.identity.probe_id}-g",
+                        [status])
                 except BrokerUnreached as failed:
                     if failed.kind == "unreachable":
                         continue  # a node that is down: it has nothing to serve
