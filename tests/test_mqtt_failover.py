@@ -265,3 +265,24 @@ async def test_a_node_that_closes_at_once_gets_one_probe_not_a_storm(
                                                         n2.url])):
             await until(lambda: "online" in [m.text for m in on_n2.on(f"{BASE}/status")])
             assert len(accepted) <= 2, len(accepted)  # the probe (and a hedge's, at most)
+
+
+@pytest.mark.anyio
+async def test_a_probe_whose_echo_an_acl_drops_leaves_it_to_the_connect(
+        tmp_path: Path) -> None:
+    """An ACL lets the probe connect and subscribe but silently drops its echo: the
+    probe is answered, then never complete.  That is no reason to stay away: the
+    real connect decides (and here succeeds)."""
+    acl = tmp_path / "acl"
+    # (lines before the first "user" are the anonymous test recorder's)
+    acl.write_text(f"topic read #\nuser gateway\ntopic deny {BASE}/status/probe/#\n"
+                   f"topic readwrite #\n")
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200)
+    with Mosquitto(tmp_path, users={"gateway": "s3cret"},
+                   settings={"acl_file": str(acl), "allow_anonymous": "true"}) as n1, \
+            simulated([ah]) as line, recording(n1, f"{BASE}/status") as rec:
+        cfg = _config(line.path, [n1.url])
+        cfg["mqtt"] |= {"username": "gateway", "password": "s3cret"}
+        async with running(cfg) as gw:
+            await until(lambda: "online" in [m.text for m in rec.on(f"{BASE}/status")], 30)
+            assert gw.mqtt is not None and gw.mqtt.connected

@@ -137,16 +137,24 @@ def live_rival(mine: Claim, status: str | None, theirs: Claim | None,
     return theirs
 
 
+class Progress:
+    """How far a probe has come: its TCP (and TLS) connection is up (``reached``), the
+    broker answered its CONNECT (``answered``)."""
+
+    def __init__(self) -> None:
+        self.reached, self.answered = asyncio.Event(), asyncio.Event()
+
+
 async def read_retained(make: Callable[[str], paho.Client], broker: Broker, client_id: str,
                         topics: list[str], timeout: float = PROBE_TIMEOUT,
-                        reached: asyncio.Event | None = None) -> dict[str, bytes]:
+                        progress: Progress | None = None) -> dict[str, bytes]:
     """The retained message of each of ``topics`` on ``broker`` (those that have one),
     read by a connection of its own: ``make(client_id)`` gives a client set up as the
     gateway's (TLS, credentials).  An echo sent after the subscription tells when the
     retained messages are all in.  Raises ``BrokerUnreached`` when the broker was not
     reached, ``ConnectionRefusedError`` when it refused the probe, ``TimeoutError``
-    when it answered the connect but not the rest.  ``reached`` is set once the TCP
-    (and TLS) connection is up."""
+    when it answered the connect but not the rest.  ``progress`` tells how far the
+    probe has come."""
     loop = asyncio.get_running_loop()
     echo = f"{topics[0]}/probe/{uuid.uuid4().hex}"
     seen: dict[str, bytes] = {}
@@ -161,6 +169,8 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
     def on_connect(c: paho.Client, u: object, f: object, reason: ReasonCode,
                    p: object) -> None:
         acked.append(True)
+        if progress is not None:
+            loop.call_soon_threadsafe(progress.answered.set)
         if reason.is_failure:
             loop.call_soon_threadsafe(settle, ConnectionRefusedError(str(reason)))
         else:
@@ -193,8 +203,8 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
             await asyncio.shield(connecting)
         except (OSError, ValueError) as exc:
             raise BrokerUnreached("unreachable", reason_of(exc)) from exc
-        if reached is not None:
-            reached.set()
+        if progress is not None:
+            progress.reached.set()
         client.loop_start()
         try:
             result = await asyncio.wait_for(done, timeout)
@@ -244,30 +254,32 @@ async def read_retained_hedged(make: Callable[[str], paho.Client], brokers: Sequ
 
     When no probe is out any more (each failed: a broker that closes at once, or
     refuses the TCP connection) the last failure is raised, ``BrokerUnreached`` naming
-    its broker; so is "silent" when the time is up.  A refusal of the connect, or an
-    answer without the retained messages, raises ``ProbeFailed`` at once.  A broker
+    its broker.  A refusal of the connect, or an answer without the retained messages,
+    raises ``ProbeFailed`` at once.  When the time is up: ``ProbeFailed`` for a broker
+    that answered the connect but not the rest (the real connect decides there), else
+    ``BrokerUnreached("silent")`` naming a broker that said nothing.  A broker
     whose probe is still opening its TCP connection (a host that drops the SYN) gets
     no other meanwhile: each waits on a thread of the loop's executor."""
     loop = asyncio.get_running_loop()
     deadline = next_start = loop.time()
     deadline += PROBE_TIMEOUT
-    turn = list(brokers)
-    pending: dict[asyncio.Task[dict[str, bytes]], tuple[Broker, asyncio.Event]] = {}
-    failure = BrokerUnreached("silent", broker=brokers[0])
+    turn, cursor = list(brokers), 0  # (the next broker: the first in turn from cursor)
+    pending: dict[asyncio.Task[dict[str, bytes]], tuple[Broker, Progress]] = {}
     started = 0
     try:
         while (now := loop.time()) < deadline:
-            opening = {b for b, up in pending.values() if not up.is_set()}
-            free = [b for b in turn[started % len(turn):] + turn[:started % len(turn)]
-                    if b not in opening] if turn else []
+            opening = {b for b, p in pending.values() if not p.reached.is_set()}
+            free = [b for k in range(len(brokers))
+                    if (b := brokers[(cursor + k) % len(brokers)]) in turn
+                    and b not in opening]
             if now >= next_start and free and len(pending) < HEDGE_MAX:
-                nth, up = client_id if not started else f"{client_id}-{started}", \
-                    asyncio.Event()
+                nth, progress = client_id if not started else f"{client_id}-{started}", \
+                    Progress()
                 pending[asyncio.create_task(read_retained(
-                    make, free[0], nth, topics, deadline - now, up))] = (free[0], up)
+                    make, free[0], nth, topics, deadline - now, progress))] = \
+                    (free[0], progress)
+                cursor = brokers.index(free[0]) + 1
                 started, next_start = started + 1, now + HEDGE_S
-            if not pending:
-                raise failure
             done, _ = await asyncio.wait(pending, timeout=min(HEDGE_S, deadline - now),
                                          return_when=asyncio.FIRST_COMPLETED)
             # (a success first, of those that finished together)
@@ -280,8 +292,14 @@ async def read_retained_hedged(make: Callable[[str], paho.Client], brokers: Sequ
                         exc, OSError | TimeoutError | ValueError) else exc
                 if exc.kind == "unreachable" and broker in turn:
                     turn.remove(broker)
-                failure = BrokerUnreached(exc.kind, exc.detail, broker)
-        raise failure
+                if not pending:  # every probe failed: so has this try
+                    raise BrokerUnreached(exc.kind, exc.detail, broker)
+        # the time is up: a broker that answered, then not all the way (its echo
+        # blocked by an ACL, say), is left to the real connect; else it was silence
+        for broker, progress in pending.values():
+            if progress.answered.is_set():
+                raise ProbeFailed(broker, TimeoutError("answered, but not the rest"))
+        raise BrokerUnreached("silent", broker=next(iter(pending.values()))[0])
     finally:
         for task in pending:
             task.cancel()
@@ -336,8 +354,11 @@ class Identity:
                 # the client id is claimed by a gateway of another id: is it running?
                 theirs = t.of_gateway(other.gateway_id)
                 # (a client id of its own: a hedge that lost may still be connecting)
-                found = await read_retained(make, broker, f"{probe_id}-c",
-                                            [theirs.status, theirs.instance])
+                try:
+                    found = await read_retained(make, broker, f"{probe_id}-c",
+                                                [theirs.status, theirs.instance])
+                except BrokerUnreached as failed:
+                    raise BrokerUnreached(failed.kind, failed.detail, broker) from failed
                 live = live_rival(self.claim, _text(found.get(theirs.status)),
                                   Claim.parse(found.get(theirs.instance, b"")))
                 rival = live if live == other else None
