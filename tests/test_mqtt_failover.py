@@ -6,15 +6,18 @@ and tested in plain time; the moves against two real mosquitto brokers."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
+from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
-from broker import Gate, Mosquitto, recording
+from broker import Gate, Mosquitto, Recorder, recording
 from harness import running, until
 
+from imu_gateway.app import Gateway
 from imu_gateway.config import Broker
 from imu_gateway.frontends import mqtt_identity
 from imu_gateway.frontends.mqtt_failover import RECONNECT_MAX, RECONNECT_MIN, Failover
@@ -99,6 +102,24 @@ async def test_the_gateway_moves_to_the_next_node_and_republishes_there(
                                 == ["offline"], 15)
 
 
+Serve = Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]
+
+
+@contextlib.asynccontextmanager
+async def _behind(serve: Serve, tmp_path: Path) -> AsyncIterator[tuple[Gateway, Recorder]]:
+    """A gateway whose broker list starts with a TCP server that is no broker
+    (``serve`` takes each connection), then a real mosquitto; and a recorder of its
+    status on the mosquitto."""
+    server = await asyncio.start_server(serve, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200)
+    with Mosquitto(tmp_path) as n2, simulated([ah]) as line, \
+            recording(n2, f"{BASE}/status") as on_n2:
+        async with server, running(_config(line.path, [f"mqtt://127.0.0.1:{port}",
+                                                       n2.url])) as gw:
+            yield gw, on_n2
+
+
 @pytest.mark.anyio
 async def test_a_node_that_never_answers_costs_one_try_not_two(tmp_path: Path) -> None:
     """A recovering cluster node may accept a connection and say nothing.  The identity
@@ -112,20 +133,14 @@ async def test_a_node_that_never_answers_costs_one_try_not_two(tmp_path: Path) -
         accepted.append(writer)
         connects.append(await reader.read(1024))
 
-    silent = await asyncio.start_server(hold, "127.0.0.1", 0)
-    port = silent.sockets[0].getsockname()[1]
-    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200)
-    with Mosquitto(tmp_path) as n2, simulated([ah]) as line, \
-            recording(n2, f"{BASE}/status") as on_n2:
-        async with silent, running(_config(line.path, [f"mqtt://127.0.0.1:{port}",
-                                                       n2.url])) as gw:
-            await until(lambda: [m.text for m in on_n2.on(f"{BASE}/status")] == ["online"])
-            assert gw.mqtt is not None and gw.mqtt.connected
-            await until(lambda: len(connects) == len(accepted))
-            assert connects and all(b"-probe-" in packet for packet in connects), connects
-        for writer in accepted:
-            writer.close()
-            await writer.wait_closed()
+    async with _behind(hold, tmp_path) as (gw, on_n2):
+        await until(lambda: [m.text for m in on_n2.on(f"{BASE}/status")] == ["online"])
+        assert gw.mqtt is not None and gw.mqtt.connected
+        await until(lambda: len(connects) == len(accepted))
+        assert connects and all(b"-probe-" in packet for packet in connects), connects
+    for writer in accepted:
+        writer.close()
+        await writer.wait_closed()
 
 
 @pytest.mark.anyio
@@ -256,15 +271,9 @@ async def test_a_node_that_closes_at_once_gets_one_probe_not_a_storm(
         accepted.append(1)
         writer.close()
 
-    closing = await asyncio.start_server(close, "127.0.0.1", 0)
-    port = closing.sockets[0].getsockname()[1]
-    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200)
-    with Mosquitto(tmp_path) as n2, simulated([ah]) as line, \
-            recording(n2, f"{BASE}/status") as on_n2:
-        async with closing, running(_config(line.path, [f"mqtt://127.0.0.1:{port}",
-                                                        n2.url])):
-            await until(lambda: "online" in [m.text for m in on_n2.on(f"{BASE}/status")])
-            assert len(accepted) <= 2, len(accepted)  # the probe (and a hedge's, at most)
+    async with _behind(close, tmp_path) as (_, on_n2):
+        await until(lambda: "online" in [m.text for m in on_n2.on(f"{BASE}/status")])
+        assert len(accepted) <= 2, len(accepted)  # the probe (and a hedge's, at most)
 
 
 @pytest.mark.anyio
