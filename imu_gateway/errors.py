@@ -22,8 +22,8 @@ Library errors are turned into these where the library is called: pyserial's in
 query parameters, in ``frontends/rest/routes.py``), pymodbus's in
 ``protocol/modbus_rtu.py``.
 
-Nothing here imports anything of the gateway but ``modbus_codes`` (a leaf): every
-layer may raise these.
+Nothing here imports anything of the gateway at run time but ``modbus_codes`` (a
+leaf): every layer may raise these.
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ import enum
 from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
+from typing import TYPE_CHECKING
 
 from .modbus_codes import (
     DEVICE_BUSY,
@@ -41,6 +42,9 @@ from .modbus_codes import (
     ILLEGAL_VALUE,
     TARGET_FAILED,
 )
+
+if TYPE_CHECKING:  # (for the annotations only: config imports this module)
+    from .config import Broker
 
 
 class GatewayError(Exception):
@@ -123,7 +127,7 @@ class BrokerUnreached(GatewayError):
     ``"closed"`` (closed before answering).  ``broker`` names it when it is not the
     one whose turn it was (a hedged probe's).  The MQTT client words it for the log."""
 
-    def __init__(self, kind: str, detail: str = "", broker: object = None) -> None:
+    def __init__(self, kind: str, detail: str = "", broker: Broker | None = None) -> None:
         super().__init__(kind, detail)
         self.kind, self.detail, self.broker = kind, detail, broker
 
@@ -132,7 +136,7 @@ class ProbeFailed(GatewayError):
     """A probe ``broker`` answered, but with a refusal or not all the way (``cause``):
     the real connect goes there, and says why."""
 
-    def __init__(self, broker: object, cause: Exception) -> None:
+    def __init__(self, broker: Broker, cause: Exception) -> None:
         super().__init__(broker, cause)
         self.broker, self.cause = broker, cause
 

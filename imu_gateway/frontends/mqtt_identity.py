@@ -220,20 +220,25 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
             with contextlib.suppress(Exception):
                 client.disconnect()
             await asyncio.to_thread(client.loop_stop)
-            _close_sockets(client)
+            close_sockets(client)
         else:
-            connecting.add_done_callback(lambda ended: _close_sockets(client, ended))
+            connecting.add_done_callback(lambda ended: _closed_late(client, ended))
 
 
-def _close_sockets(client: paho.Client,
-                   connect: asyncio.Future[MQTTErrorCode] | None = None) -> None:
-    """paho leaves a finished client's sockets to the garbage collector (mqtt_session's
-    ``close_sockets`` says why this private call).  ``connect``: the connect that ended
-    after the probe was given up on (its failure, if it failed, is of no interest)."""
-    if connect is not None and not connect.cancelled():
-        connect.exception()
+def close_sockets(client: paho.Client) -> None:
+    """paho 2.2 leaves the socket of a failed or lost connection, and loop_start()'s
+    wake-up socket pair, to the garbage collector; ``_reset_sockets`` (private, but the
+    one place that closes all three) closes them now."""
     with contextlib.suppress(OSError):
         client._reset_sockets()
+
+
+def _closed_late(client: paho.Client, connect: asyncio.Future[MQTTErrorCode]) -> None:
+    """The connect of a probe given up on has ended: what it opened is closed (and its
+    failure, if it failed, is of no interest)."""
+    if not connect.cancelled():
+        connect.exception()
+    close_sockets(client)
 
 
 async def read_retained_hedged(make: Callable[[str], paho.Client], brokers: Sequence[Broker],
@@ -342,8 +347,7 @@ class Identity:
             broker, found = await read_retained_hedged(
                 make, brokers, probe_id, [t.status, t.instance, t.client(self.client_id), *also])
         except ProbeFailed as failed:  # the real connect goes there, and says why
-            return Probed(failed.broker if isinstance(failed.broker, Broker) else brokers[0],
-                          None, {})
+            return Probed(failed.broker, None, {})
         served = dict(found)
         try:
             rival = live_rival(self.claim, _text(found.get(t.status)),

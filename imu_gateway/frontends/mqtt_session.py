@@ -36,7 +36,7 @@ from ..config import Broker, MqttConfig
 from ..errors import BrokerUnreached
 from ..supervise import PeerLog
 from .mqtt_failover import Failover
-from .mqtt_identity import PROBE_TIMEOUT, reason_of
+from .mqtt_identity import PROBE_TIMEOUT, close_sockets, reason_of
 from .mqtt_pipe import KEEPALIVE_S, WINDOW, Pipe
 from .mqtt_topics import Counters, Message
 
@@ -172,9 +172,8 @@ class Session:
                 self.failover.move_to(broker)
                 worked = stay_away is None and await self._connection(broker)
             except BrokerUnreached as failed:  # its try: the connect would fail too
-                broker = failed.broker if isinstance(failed.broker, Broker) else \
-                    self.failover.current
-                self._problem(self._unreached(broker, failed.kind, failed.detail))
+                self._problem(self._unreached(failed.broker or self.failover.current,
+                                              failed.kind, failed.detail))
                 worked = False
             self.connected = False
             wait = self.failover.ended(worked)
@@ -293,11 +292,3 @@ class Session:
         self._answered.set()
         self.connected = False
         self._lost.set()
-
-
-def close_sockets(client: paho.Client) -> None:
-    """paho 2.2 leaves the socket of a failed or lost connection, and loop_start()'s
-    wake-up socket pair, to the garbage collector; ``_reset_sockets`` (private, but the
-    one place that closes all three) closes them now."""
-    with contextlib.suppress(OSError):
-        client._reset_sockets()
