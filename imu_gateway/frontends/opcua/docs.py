@@ -52,6 +52,19 @@ SECURITY = """
 
 - **Endpoints:** Basic256Sha256 with Sign and with SignAndEncrypt; security mode None
   only with `allow_none: true`.
+- **A channel with no security** is opened for any client, but with `allow_none:
+  false` it serves discovery only: GetEndpoints and FindServers (what a client asks
+  before it picks a secured endpoint). Every other request on it, CreateSession
+  first, is answered `BadSecurityModeRejected` and logged. (asyncua alone would serve
+  a whole session there; the gateway checks each request first.)
+- **A user token** must name (`PolicyId`) a user token policy of the endpoint its
+  channel is on, of its own type. A password that policy says to encrypt (on Sign,
+  and on None: Basic256Sha256, RSA-OAEP) sent in clear or otherwise is
+  `BadIdentityTokenInvalid`, even a right one. On SignAndEncrypt the channel
+  encrypts it already, and the policy says so.
+- **A session moves** to a new channel (after a connection loss) only with the client
+  certificate that created it; another client's channel gets
+  `BadSecurityChecksFailed`, whatever token it brings.
 - **The server's certificate** is made at the first start (self-signed, one year) in
   `pki_dir`, with the key; a client trusts it once (or you replace both files by a
   certificate of your own CA).

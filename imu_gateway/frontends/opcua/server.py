@@ -29,6 +29,7 @@ from ...normalise import field_values
 from ...stats import FrontendCounts
 from ...supervise import Frontend
 from ..common import GatewayLike
+from .guard import GatewayUaServer
 from .security import ConfigUsers, secure
 from .space import BUS_VARS, NAMESPACE, SENSOR_VARS, UNECE, UNITS, quality
 
@@ -94,7 +95,7 @@ class OpcUaServer(Frontend):
         """Build the address space and listen; raises ``OSError`` when the address
         cannot be bound, ``StartupError`` when ``pki_dir`` cannot be used."""
         gid = self.gateway.config.gateway_id
-        server = Server(user_manager=ConfigUsers(self.config))
+        server = GatewayUaServer(user_manager=ConfigUsers(self.config))
         await server.init()
         server.set_endpoint(self.endpoint)
         server.set_server_name(f"imu-gateway {gid}")
