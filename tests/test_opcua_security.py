@@ -266,6 +266,31 @@ async def test_a_session_cannot_be_taken_by_another_client_certificate(rig: Rig)
 
 
 @pytest.mark.anyio
+async def test_no_service_before_a_session_is_activated(rig: Rig) -> None:
+    """asyncua's tracker has both (issues 1014 and 1156): a session created and never
+    activated, or one whose activation was refused, reads nothing and calls nothing."""
+    port = free_port()
+    cfg = rig.config(port, anonymous=False, allow_commands=True,
+                     users={"operator": PASSWORD})
+    async with running(cfg) as gw:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+        async with channel(rig, port, Mode.SignAndEncrypt) as client:
+            made = await create_session(client)
+            for attempt in ("never activated", "activation refused"):
+                if attempt == "activation refused":
+                    with pytest.raises(UaStatusCodeError):
+                        await activate(client, encrypted_password(rig, made.ServerNonce,
+                                                                  user="nobody"))
+                with pytest.raises(UaStatusCodeError) as no_read:
+                    await read_status(client)
+                assert refused(no_read, ua.StatusCodes.BadSessionNotActivated), attempt
+                with pytest.raises(UaStatusCodeError) as no_call:
+                    await call_declination(client)
+                assert refused(no_call, ua.StatusCodes.BadSessionNotActivated), attempt
+    assert not rig.ah.writes_heard
+
+
+@pytest.mark.anyio
 async def test_a_password_the_endpoint_says_to_encrypt_is_refused_in_clear(rig: Rig) -> None:
     """On Basic256Sha256 Sign the endpoint's user token policy says the password is
     encrypted (the channel is not).  One sent in clear is BadIdentityTokenInvalid,

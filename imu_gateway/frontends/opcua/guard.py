@@ -15,6 +15,8 @@ authentication token.  So here:
   endpoint the channel is on, of the token's type; a password that policy says to
   encrypt must come encrypted with the policy's algorithm.  Else
   BadIdentityTokenInvalid.
+* **A session not activated** (never, or its activation was refused) gets
+  BadSessionNotActivated for anything but discovery and the session services.
 * **A session taken to another channel** (Part 4 5.6.3.1) must come with the client
   certificate it was created with: else BadSecurityChecksFailed.
 
@@ -45,6 +47,10 @@ _DISCOVERY = frozenset({ua.ObjectIds.GetEndpointsRequest_Encoding_DefaultBinary,
                         ua.ObjectIds.FindServersRequest_Encoding_DefaultBinary})
 _ACTIVATE = ua.NodeId(ua.ObjectIds.ActivateSessionRequest_Encoding_DefaultBinary)
 _CREATE = ua.NodeId(ua.ObjectIds.CreateSessionRequest_Encoding_DefaultBinary)
+#: What a session that is not activated may still ask.
+_BEFORE_ACTIVATION = _DISCOVERY | {ua.ObjectIds.CreateSessionRequest_Encoding_DefaultBinary,
+                                   ua.ObjectIds.ActivateSessionRequest_Encoding_DefaultBinary,
+                                   ua.ObjectIds.CloseSessionRequest_Encoding_DefaultBinary}
 
 #: The token types, by the policy type that admits them.
 _TOKEN_TYPES: dict[type, ua.UserTokenType] = {
@@ -117,6 +123,12 @@ class GuardedProcessor(UaProcessor):
             raise _refuse(ua.StatusCodes.BadSecurityModeRejected,
                           f"request {typeid.to_string()} on a channel with security mode "
                           "None (it serves discovery only: opcua.allow_none is false)",
+                          self.name)
+        if self.session is not None and not self.session.is_activated() and \
+                not (typeid.NamespaceIndex == 0 and typeid.Identifier in _BEFORE_ACTIVATION):
+            # (asyncua refuses it too, as BadUserAccessDenied: Part 4 names this code)
+            raise _refuse(ua.StatusCodes.BadSessionNotActivated,
+                          f"request {typeid.to_string()} before its session was activated",
                           self.name)
         if typeid == _ACTIVATE:
             self._check_activation(requesthdr, body.copy(), channel)
