@@ -106,7 +106,8 @@ async def test_browse_read_and_units(tmp_path: Path, lines: Lines) -> None:
             boom = await sensors.get_child([f"{idx}:boom"])
             groups = {(await n.read_browse_name()).Name for n in await boom.get_children()}
             assert {"Angles", "Acceleration", "AngularRate", "MagneticField", "Quaternion",
-                    "Status", "Age", "Sequence", "Series", "Protocol", "Address"} <= groups
+                    "Status", "Sequence", "Errors", "Series", "Protocol", "Address"} <= groups
+            assert "Age" not in groups  # (it froze when the sensor stopped)
             mast = await sensors.get_child([f"{idx}:mast"])
             vg_groups = {(await n.read_browse_name()).Name for n in await mast.get_children()}
             assert "MagneticField" not in vg_groups  # a VG measures none

@@ -12,26 +12,28 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import math
 from collections import Counter
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from asyncua import Node, Server, ua
+from asyncua import Server, ua
 
 from ...cache import EventKind, Snapshot
-from ...commands import CATALOGUE, argument_type, commands_for
-from ...config import OpcUaConfig, SensorConfig
+from ...commands import CATALOGUE, CommandSpec, commands_for
+from ...config import OpcUaConfig
 from ...errors import ErrorKind, StartupError
-from ...model import CAPABILITIES, VALUE_GROUPS, Group, WireProtocol
+from ...model import CAPABILITIES
 from ...normalise import field_values
 from ...stats import FrontendCounts
 from ...supervise import Frontend
 from ..common import GatewayLike
 from .guard import GatewayUaServer
+from .identity import MANUFACTURER, PRODUCT_URI, describe
+from .methods import Caller, instance_caller, type_caller
+from .nodes import Callers, Ids, build_sensor, build_type, variant
 from .security import ConfigUsers, secure
-from .space import BUS_VARS, NAMESPACE, SENSOR_VARS, UNECE, UNITS, quality
+from .space import BUS_VARS, NAMESPACE, quality
 
 log = logging.getLogger("imu_gateway.opcua")
 
@@ -66,6 +68,7 @@ class OpcUaServer(Frontend):
         self.values: dict[str, list[tuple[str, ua.NodeId]]] = {}  # sensor -> (field, node)
         self.status_nodes: dict[str, list[tuple[Any, ua.NodeId]]] = {}
         self.bus_nodes: dict[str, list[tuple[Any, ua.NodeId]]] = {}
+        self.callers: dict[tuple[ua.NodeId, str], Caller] = {}  # (object, command)
         self.counts: Counter[str] = Counter()
         self._unsubscribe: Any = None
         self._bus_timer: asyncio.Task[None] | None = None
@@ -85,12 +88,6 @@ class OpcUaServer(Frontend):
     def endpoint(self) -> str:
         return f"opc.tcp://{self.config.listen}/"  # (an IPv6 host in brackets)
 
-    def _id(self, path: str) -> ua.NodeId:
-        return ua.NodeId(f"{self.gateway.config.gateway_id}.{path}", self.idx)
-
-    def _q(self, name: str) -> ua.QualifiedName:
-        return ua.QualifiedName(name, self.idx)
-
     async def start(self) -> None:
         """Build the address space and listen; raises ``OSError`` when the address
         cannot be bound, ``StartupError`` when ``pki_dir`` cannot be used."""
@@ -99,6 +96,8 @@ class OpcUaServer(Frontend):
         await server.init()
         server.set_endpoint(self.endpoint)
         server.set_server_name(f"imu-gateway {gid}")
+        server.product_uri, server.manufacturer_name = PRODUCT_URI, MANUFACTURER
+        await describe(server)
         uri = f"urn:imu-gateway:{gid}"
         await server.set_application_uri(uri)
         try:
@@ -138,113 +137,58 @@ class OpcUaServer(Frontend):
 
     async def _build(self, server: Server) -> None:
         gid = self.gateway.config.gateway_id
-        top = await server.nodes.objects.add_folder(self._id("IMU Gateway"), self._q("IMU Gateway"))
-        gateway = await top.add_folder(self._id(""), self._q(gid))
-        sensors = await gateway.add_folder(self._id("Sensors"), self._q("Sensors"))
+        ids = Ids(gid, self.idx)
+        top = await server.nodes.objects.add_folder(ids("IMU Gateway"), ids.name("IMU Gateway"))
+        gateway = await top.add_folder(ids(), ids.name(gid))
+        sensors = await gateway.add_folder(ids("Sensors"), ids.name("Sensors"))
+        commands = list(CATALOGUE.values()) if self.config.allow_commands else []
+        type_id = await build_type(server.nodes.base_object_type, self.idx, commands,
+                                   lambda spec, _: type_caller(spec, self.callers))
         protocols = {s.name: b.protocol for b, s in self.gateway.config.iter_sensors()}
         for sensor in self.gateway.sensors.values():
-            await self._build_sensor(sensors, sensor, protocols[sensor.name])
-        buses = await gateway.add_folder(self._id("Buses"), self._q("Buses"))
+            protocol = protocols[sensor.name]
+            have = commands_for(sensor.series, protocol)
+            built = await build_sensor(
+                sensors, Ids(f"{gid}.Sensors.{sensor.name}", self.idx), sensor.name, type_id,
+                set(CAPABILITIES[sensor.series].groups),
+                {"Series": sensor.series.name, "Protocol": protocol.name.lower(),
+                 "Address": sensor.address},
+                [c for c in commands if c.name in have], self._method_of(sensor.name))
+            self.values[sensor.name], self.status_nodes[sensor.name] = built.values, built.status
+        buses = await gateway.add_folder(ids("Buses"), ids.name("Buses"))
         for bus in self.gateway.config.buses:
-            node = await buses.add_object(self._id(f"Buses.{bus.name}"), self._q(bus.name))
-            self.bus_nodes[bus.name] = [
-                (row, (await self._variable(node, f"Buses.{bus.name}.{row.name}", row.name,
-                                            row.datatype, row.description)).nodeid)
-                for row in BUS_VARS]
+            bus_ids = Ids(f"{gid}.Buses.{bus.name}", self.idx)
+            node = await buses.add_object(bus_ids(), bus_ids.name(bus.name))
+            self.bus_nodes[bus.name] = []
+            for row in BUS_VARS:
+                var = await node.add_variable(bus_ids(row.name), bus_ids.name(row.name),
+                                              variant(None, row.datatype),
+                                              datatype=ua.NodeId(getattr(ua.VariantType,
+                                                                         row.datatype).value))
+                await var.write_attribute(ua.AttributeIds.Description, ua.DataValue(
+                    ua.Variant(ua.LocalizedText(row.description))))
+                self.bus_nodes[bus.name].append((row, var.nodeid))
 
-    async def _build_sensor(self, parent: Node, sensor: SensorConfig,
-                            protocol: WireProtocol) -> None:
-        base = f"Sensors.{sensor.name}"
-        node = await parent.add_object(self._id(base), self._q(sensor.name))
-        self.values[sensor.name] = []
-        for group, spec in VALUE_GROUPS.items():
-            if group not in CAPABILITIES[sensor.series].groups:
-                continue
-            folder = await node.add_folder(self._id(f"{base}.{spec.title}"), self._q(spec.title))
-            for name in spec.fields:
-                item = await self._analog(folder, f"{base}.{spec.title}.{name}", name, group)
-                self.values[sensor.name].append((name, item.nodeid))
-        self.status_nodes[sensor.name] = [
-            (row, (await self._variable(node, f"{base}.{row.name}", row.name, row.datatype,
-                                        row.description)).nodeid) for row in SENSOR_VARS]
-        for name, value, kind in (("Series", sensor.series.name, "String"),
-                                  ("Protocol", protocol.name.lower(), "String"),
-                                  ("Address", sensor.address, "UInt16")):
-            await self._variable(node, f"{base}.{name}", name, kind, name.lower(), value)
-        if self.config.allow_commands:
-            await self._methods(node, sensor, protocol)
+    def _method_of(self, sensor: str) -> Callers:
+        def make(spec: CommandSpec, object_id: ua.NodeId) -> Caller:
+            async def run(args: dict[str, Any]) -> Any:
+                return await self._run(sensor, spec.name, args)
+            caller = instance_caller(spec, object_id, run)
+            self.callers[(object_id, spec.name)] = caller
+            return caller
+        return make
 
-    async def _variable(self, parent: Node, path: str, name: str, kind: str,
-                        description: str, value: Any = None) -> Node:
-        node = await parent.add_variable(self._id(path), self._q(name), _variant(value, kind),
-                                         datatype=ua.NodeId(getattr(ua.VariantType, kind).value))
-        await node.write_attribute(ua.AttributeIds.Description,
-                                   ua.DataValue(ua.Variant(ua.LocalizedText(description))))
-        return node
-
-    async def _analog(self, parent: Node, path: str, name: str, group: Group) -> Node:
-        """An AnalogItemType variable (Float) with its EURange and EngineeringUnits."""
-        item = ua.AddNodesItem()
-        item.RequestedNewNodeId = self._id(path)
-        item.BrowseName = ua.QualifiedName(name, self.idx)
-        item.NodeClass = ua.NodeClass.Variable
-        item.ParentNodeId = parent.nodeid
-        item.ReferenceTypeId = ua.NodeId(ua.ObjectIds.HasComponent)
-        item.TypeDefinition = ua.NodeId(ua.ObjectIds.AnalogItemType)
-        attrs = ua.VariableAttributes()
-        attrs.DisplayName = ua.LocalizedText(name)
-        attrs.Description = ua.LocalizedText(f"{name} ({VALUE_GROUPS[group].name})")
-        attrs.DataType = ua.NodeId(ua.ObjectIds.Float)
-        attrs.Value = _variant(None, "Float")  # until the first reading
-        attrs.ValueRank = ua.ValueRank.Scalar
-        attrs.AccessLevel = attrs.UserAccessLevel = ua.AccessLevel.CurrentRead.mask
-        item.NodeAttributes = attrs
-        (result,) = await parent.session.add_nodes([item])
-        result.StatusCode.check()
-        node = Node(parent.session, result.AddedNodeId)
-        span = VALUE_GROUPS[group].span
-        await node.add_property(0, "EURange", ua.Range(-span, span))
-        unit = UNITS[group]
-        if unit is not None:
-            await node.add_property(0, "EngineeringUnits", ua.EUInformation(
-                NamespaceUri=UNECE, UnitId=unit.unit_id, DisplayName=ua.LocalizedText(unit.symbol),
-                Description=ua.LocalizedText(unit.name)))
-        return node
-
-    async def _methods(self, node: Node, sensor: SensorConfig, protocol: WireProtocol) -> None:
-        """The catalogue's commands of this series and protocol, as methods: one input
-        argument (or none), a result string out."""
-        have = commands_for(sensor.series, protocol)
-        for spec in CATALOGUE.values():
-            if spec.name not in have:
-                continue
-            inputs = []
-            if spec.argument is not None:
-                kind = {str: "String", int: "Int32"}.get(argument_type(spec) or float, "Double")
-                arg = ua.Argument(Name=spec.argument,
-                                  DataType=ua.NodeId(getattr(ua.ObjectIds, kind)),
-                                  ValueRank=-1, Description=ua.LocalizedText(spec.summary))
-                inputs.append(arg)
-            result = ua.Argument(Name="result", DataType=ua.NodeId(ua.ObjectIds.String),
-                                 ValueRank=-1)
-            path = f"Sensors.{sensor.name}.{spec.name}"
-            await node.add_method(self._id(path), self._q(spec.name),
-                                  self._caller(sensor.name, spec.name, spec.argument),
-                                  inputs, [result])
-
-    def _caller(self, sensor: str, command: str, argument: str | None) -> Any:
-        async def call(parent: ua.NodeId, *args: ua.Variant) -> Any:
-            self.counts["calls"] += 1
-            values = {argument: args[0].Value} if argument is not None and args else {}
-            result = await self.gateway.command(sensor, command, values)
-            if not result.ok:
-                self.counts["call_errors"] += 1
-                # (a StatusCode returned is the call's; an exception would be asyncua's
-                # BadUnexpectedError, whatever it said)
-                return _status(CALL_STATUS.get(result.kind or ErrorKind.FAILURE,
-                                               "BadInternalError"))
-            return [ua.Variant(f"{command}: ok {dict(result.answer)}", ua.VariantType.String)]
-        return call
+    async def _run(self, sensor: str, command: str, args: dict[str, Any]) -> Any:
+        """A checked call, through the gateway's command path (so the bus master's
+        queue): the result string, or the StatusCode of why there is none."""
+        self.counts["calls"] += 1
+        result = await self.gateway.command(sensor, command, args)
+        if not result.ok:
+            self.counts["call_errors"] += 1
+            # (a StatusCode returned is the call's; an exception would be asyncua's
+            # BadUnexpectedError, whatever it said)
+            return _status(CALL_STATUS.get(result.kind or ErrorKind.FAILURE, "BadInternalError"))
+        return [ua.Variant(f"{command}: ok {dict(result.answer)}", ua.VariantType.String)]
 
     # ------------------------------------------------------------ values
 
@@ -267,11 +211,11 @@ class OpcUaServer(Frontend):
         fields = field_values(snap.reading) if snap.reading is not None else {}
         for name, nodeid in self.values[snap.name]:
             await server.write_attribute_value(nodeid, ua.DataValue(
-                _variant(fields.get(name), "Float"), StatusCode=code, SourceTimestamp=source,
+                variant(fields.get(name), "Float"), StatusCode=code, SourceTimestamp=source,
                 ServerTimestamp=now))
         for row, nodeid in self.status_nodes[snap.name]:
             await server.write_attribute_value(nodeid, ua.DataValue(
-                _variant(row.value(snap), row.datatype), SourceTimestamp=source,
+                variant(row.value(snap), row.datatype), SourceTimestamp=source,
                 ServerTimestamp=now))
         self.counts["samples"] += 1
 
@@ -283,7 +227,7 @@ class OpcUaServer(Frontend):
                 for bus in self.gateway.stats():
                     for row, nodeid in self.bus_nodes.get(bus.name, []):
                         await server.write_attribute_value(nodeid, ua.DataValue(
-                            _variant(row.value(bus), row.datatype), SourceTimestamp=now,
+                            variant(row.value(bus), row.datatype), SourceTimestamp=now,
                             ServerTimestamp=now))
             await asyncio.sleep(BUS_EVERY_S)
 
@@ -295,9 +239,3 @@ class OpcUaServer(Frontend):
                 "samples": self.counts["samples"], "call_errors": self.counts["call_errors"]}
 
 
-def _variant(value: Any, kind: str) -> Any:
-    """A Variant of the named type.  A missing number is NaN, under a Bad or Uncertain
-    StatusCode that says why (asyncua refuses a null Variant for a typed variable)."""
-    if value is None:
-        value = math.nan if kind in ("Float", "Double") else ""
-    return ua.Variant(value, getattr(ua.VariantType, kind))

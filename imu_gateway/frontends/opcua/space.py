@@ -6,7 +6,7 @@ docs/opcua.md is generated from them.
             Angles/pitch …              AnalogItemType (Float), per value group the
             Acceleration/ …             series measures, with EngineeringUnits (UNECE)
             AngularRate/ … MagneticField/ … Quaternion/ …   and EURange
-            Status, Age, Sequence, Series, Protocol, Address
+            Status, Sequence, Errors, Series, Protocol, Address
             (methods: the catalogue's commands, with ``allow_commands``)
         Buses/{bus}/                    the line's counters
 
@@ -69,12 +69,26 @@ class SensorVar:
 
 SENSOR_VARS = (
     SensorVar("Status", "String", "ok, stale or offline", lambda s: s.status.value),
-    SensorVar("Age", "Double", "age of the latest sample, ms (NaN: none yet)",
-              lambda s: s.age_ms),
     SensorVar("Sequence", "UInt64", "the sample's sequence number (one more per reading)",
               lambda s: s.seq),
     SensorVar("Errors", "UInt64", "timeouts, bad checksums and bad frames so far",
               lambda s: s.errors),
+)
+
+
+@dataclass(frozen=True, slots=True)
+class IdentityVar:
+    """What a sensor is, from the config: name, OPC UA type, what it says."""
+
+    name: str
+    datatype: str
+    description: str
+
+
+IDENTITY_VARS = (
+    IdentityVar("Series", "String", "IMU, VG, AH or MINS"),
+    IdentityVar("Protocol", "String", "native or modbus"),
+    IdentityVar("Address", "UInt16", "the sensor's address on its bus"),
 )
 
 
