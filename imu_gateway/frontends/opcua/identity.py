@@ -75,6 +75,16 @@ def capabilities(server: Server) -> list[Capability]:
                    server.iserver.max_connections, v.UInt32),
         Capability(o.Server_ServerCapabilities_MaxSubscriptions,
                    server.iserver.max_subscriptions, v.UInt32),
+        Capability(o.Server_ServerCapabilities_MaxSubscriptionsPerSession,
+                   server.iserver.max_subscriptions, v.UInt32),
+        # (0: no limit of its own; a Publish answers what the queue holds)
+        Capability(o.Server_ServerCapabilities_MaxMonitoredItems, 0, v.UInt32),
+        Capability(o.Server_ServerCapabilities_MaxMonitoredItemsPerSubscription, 0, v.UInt32),
+        Capability(o.Server_ServerCapabilities_MaxMonitoredItemsQueueSize, 0, v.UInt32),
+        # events are not served: no select or where clause is taken
+        Capability(o.Server_ServerCapabilities_MaxSelectClauseParameters, 0, v.UInt32),
+        Capability(o.Server_ServerCapabilities_MaxWhereClauseParameters, 0, v.UInt32),
+        Capability(o.Server_ServerCapabilities_ConformanceUnits, [], v.QualifiedName),
         Capability(o.Server_Auditing, False, v.Boolean),
         # history: the measured values' last ten minutes (docs/opcua.md)
         Capability(o.HistoryServerCapabilities_AccessHistoryDataCapability, True, v.Boolean),
@@ -83,6 +93,7 @@ def capabilities(server: Server) -> list[Capability]:
         Capability(o.HistoryServerCapabilities_MaxReturnDataValues, MAX_HISTORY_VALUES,
                    v.UInt32),
         Capability(o.HistoryServerCapabilities_MaxReturnEventValues, 0, v.UInt32),
+        Capability(o.HistoryServerCapabilities_ServerTimestampSupported, True, v.Boolean),
         *(Capability(node, False, v.Boolean) for node in (
             o.HistoryServerCapabilities_InsertDataCapability,
             o.HistoryServerCapabilities_ReplaceDataCapability,
