@@ -8,6 +8,10 @@ services, and Part 2's rule that an endpoint's security is the least a client ge
 
 from __future__ import annotations
 
+import ipaddress
+import shutil
+import socket
+import subprocess
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -16,9 +20,14 @@ from typing import Any
 import pytest
 from asyncua import Client, ua
 from asyncua.crypto import uacrypto
-from asyncua.crypto.cert_gen import setup_self_signed_certificate
+from asyncua.crypto.cert_gen import (
+    generate_self_signed_app_certificate,
+    setup_self_signed_certificate,
+)
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256, encrypt_asymmetric
 from asyncua.ua.uaerrors import UaStatusCodeError
+from cryptography import x509
+from cryptography.hazmat.primitives import serialization
 from cryptography.x509.oid import ExtendedKeyUsageOID
 from harness import free_port, running, until
 
@@ -339,3 +348,81 @@ async def test_with_none_on_a_none_channel_works_as_documented(rig: Rig) -> None
             assert refused(clear, ua.StatusCodes.BadIdentityTokenInvalid)
             await activate(client, encrypted_password(rig, made.ServerNonce))
             assert (await read_status(client, ns)).Value.Value == "ok"
+
+
+# ------------------------------------------------------------------ the certificates
+
+def _san(path: Path) -> tuple[set[str], set[str], set[str]]:
+    """The URIs, DNS names and IP addresses a DER certificate names."""
+    cert = x509.load_der_x509_certificate(path.read_bytes())
+    names = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    return (set(names.get_values_for_type(x509.UniformResourceIdentifier)),
+            set(names.get_values_for_type(x509.DNSName)),
+            {str(a) for a in names.get_values_for_type(x509.IPAddress)})
+
+
+def _interfaces() -> set[str]:
+    """The host's addresses as ``ip`` lists them (not link-local), or none without it."""
+    ip = shutil.which("ip")
+    if ip is None:
+        return set()
+    out = subprocess.run([ip, "-o", "addr"], capture_output=True, text=True, check=True).stdout
+    found = {line.split()[3].split("/")[0] for line in out.splitlines()}
+    return {a for a in found if not ipaddress.ip_address(a).is_link_local}
+
+
+@pytest.mark.anyio
+async def test_the_server_certificate_names_the_address_clients_connect_to(rig: Rig) -> None:
+    """Its application URI and host name, and the listen address; on 0.0.0.0 every
+    address of the host.  A certificate the gateway made is made again when a name is
+    missing (the address changed); one of your own is never replaced."""
+    port = free_port()
+    cert = rig.pki / "server_cert.der"
+    async with running(rig.config(port)):
+        uris, dns, ips = _san(cert)
+    assert uris == {f"urn:imu-gateway:{GID}"} and socket.gethostname() in dns
+    assert "127.0.0.1" in ips
+    first = cert.read_bytes()
+    async with running(rig.config(port)):
+        assert cert.read_bytes() == first  # nothing missing: kept
+    everywhere = rig.config(port)
+    everywhere["opcua"]["listen"] = f"0.0.0.0:{port}"
+    async with running(everywhere):
+        _, _, ips = _san(cert)
+    assert {"127.0.0.1", "::1"} | _interfaces() <= ips, ips
+    # one of your own: kept as it is, whatever it names
+    key = serialization.load_pem_private_key((rig.pki / "server_key.pem").read_bytes(), None)
+    own = generate_self_signed_app_certificate(
+        key, "plant CA made", {"organizationName": "Plant IT"},
+        [x509.UniformResourceIdentifier(f"urn:imu-gateway:{GID}")],
+        [ExtendedKeyUsageOID.SERVER_AUTH])
+    cert.write_bytes(own.public_bytes(serialization.Encoding.DER))
+    async with running(everywhere):
+        assert cert.read_bytes() == own.public_bytes(serialization.Encoding.DER)
+
+
+@pytest.mark.anyio
+async def test_an_untrusted_client_certificate_waits_in_rejected_to_be_moved(
+        rig: Rig) -> None:
+    """As UaExpert and open62541 do: the refused certificate is saved in ``rejected/``;
+    moved to ``trusted/``, it is accepted without a restart."""
+    port = free_port()
+    (rig.pki / "trusted" / "scada.der").unlink()
+    cfg = rig.config(port, anonymous=False, users={"operator": PASSWORD})
+    async with running(cfg) as gw:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+        async with channel(rig, port, Mode.SignAndEncrypt) as client:
+            with pytest.raises(UaStatusCodeError) as untrusted:
+                await create_session(client)
+            assert refused(untrusted, ua.StatusCodes.BadCertificateUntrusted)
+        (saved,) = list((rig.pki / "rejected").iterdir())
+        assert saved.read_bytes() == rig.cert.read_bytes() and "scada" in saved.name
+        async with channel(rig, port, Mode.SignAndEncrypt) as again:  # (saved once)
+            with pytest.raises(UaStatusCodeError):
+                await create_session(again)
+        assert len(list((rig.pki / "rejected").iterdir())) == 1
+        saved.rename(rig.pki / "trusted" / saved.name)
+        async with channel(rig, port, Mode.SignAndEncrypt) as trusted:
+            made = await create_session(trusted)
+            await activate(trusted, encrypted_password(rig, made.ServerNonce))
+            assert (await read_status(trusted, await namespace(trusted))).Value.Value == "ok"
