@@ -9,6 +9,7 @@ services, and Part 2's rule that an endpoint's security is the least a client ge
 from __future__ import annotations
 
 import ipaddress
+import logging
 import shutil
 import socket
 import subprocess
@@ -426,3 +427,34 @@ async def test_an_untrusted_client_certificate_waits_in_rejected_to_be_moved(
             made = await create_session(trusted)
             await activate(trusted, encrypted_password(rig, made.ServerNonce))
             assert (await read_status(trusted, await namespace(trusted))).Value.Value == "ok"
+
+
+@pytest.mark.anyio
+async def test_a_start_and_a_refused_flood_cost_the_log_a_few_lines(
+        rig: Rig, caplog: pytest.LogCaptureFixture) -> None:
+    """At the default level (INFO) asyncua said about a thousand lines at each start
+    and one per Publish; and a client refused fifty times would cost a hundred lines."""
+    caplog.set_level(logging.INFO)
+    port = free_port()
+    cfg = rig.config(port, anonymous=False, users={"operator": PASSWORD})
+    async with running(cfg) as gw:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+        started = [r for r in caplog.records if r.name.startswith(("asyncua", "imu_gateway"))]
+        assert len(started) <= 10, [r.getMessage() for r in started]
+        caplog.clear()
+        async with channel(rig, port) as client:
+            for _ in range(50):
+                with pytest.raises(UaStatusCodeError):
+                    await create_session(client)
+        async with channel(rig, port, Mode.SignAndEncrypt) as secure:
+            made = await create_session(secure)
+            await activate(secure, encrypted_password(rig, made.ServerNonce))
+            ns = await namespace(secure)
+            for _ in range(50):
+                await read_status(secure, ns)
+    said = [r for r in caplog.records if r.name.startswith(("asyncua.server", "imu_gateway"))]
+    for who in ("imu_gateway", "asyncua"):  # the gateway's line, asyncua's fault line
+        refusals = [r for r in said if r.name.startswith(who)
+                    and "BadSecurityModeRejected" in r.getMessage()]
+        assert len(refusals) == 1, [r.getMessage() for r in said]
+    assert len(said) <= 10, [r.getMessage() for r in said]

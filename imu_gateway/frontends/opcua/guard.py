@@ -41,6 +41,8 @@ from asyncua.server.internal_session import InternalSession
 from asyncua.server.uaprocessor import UaProcessor
 from asyncua.ua.ua_binary import struct_from_binary
 
+from ...supervise import PeerLog
+
 log = logging.getLogger("imu_gateway.opcua")
 
 _DISCOVERY = frozenset({ua.ObjectIds.GetEndpointsRequest_Encoding_DefaultBinary,
@@ -64,8 +66,14 @@ _PASSWORD_ENCRYPTION = {SecurityPolicyBasic256Sha256.URI:
                         SecurityPolicyBasic256Sha256.AsymmetricEncryptionURI}
 
 
+#: The peer warnings of every guarded connection: a line a kind a minute (the server
+#: flushes the counts held back, see ``OpcUaServer``).
+PEERS = PeerLog(log)
+
+
 def _refuse(code: int, why: str, peer: Any) -> ServiceError:
-    log.warning("opcua: refused %s from %s", why, peer)
+    name = ua.StatusCode(code).name
+    PEERS.warning(name, "opcua: refused %s from %s (%s)", why, peer, name)
     return ServiceError(code)
 
 

@@ -26,9 +26,9 @@ from ...errors import ErrorKind, StartupError
 from ...model import CAPABILITIES
 from ...normalise import field_values
 from ...stats import FrontendCounts
-from ...supervise import Frontend
+from ...supervise import Frontend, RepeatFilter
 from ..common import GatewayLike
-from .guard import GatewayUaServer
+from .guard import PEERS, GatewayUaServer
 from .identity import MANUFACTURER, PRODUCT_URI, describe
 from .methods import Caller, instance_caller, type_caller
 from .nodes import Callers, Ids, build_sensor, build_type, variant
@@ -48,6 +48,27 @@ CALL_STATUS = {
     ErrorKind.OFFLINE: "BadCommunicationError",
     ErrorKind.FAILURE: "BadDeviceFailure",
 }
+
+
+#: asyncua's loggers that log once per request or connection at WARNING or above
+#: (a service fault, a refused connection, a session closed): a line a minute each.
+ASYNCUA_PER_REQUEST = ("asyncua.server.uaprocessor", "asyncua.server.binary_server_asyncio",
+                       "asyncua.server.internal_session", "asyncua.server.internal_server",
+                       "asyncua.server.address_space", "asyncua.common.connection",
+                       "asyncua.uaprotocol")
+
+
+def quiet_asyncua() -> None:
+    """asyncua logs about a thousand INFO lines at each start and one per Publish: at
+    the gateway's default level it says only its warnings, each at most once a
+    minute.  With ``--log-level debug`` it says everything."""
+    if logging.getLogger("imu_gateway").getEffectiveLevel() <= logging.DEBUG:
+        return
+    logging.getLogger("asyncua").setLevel(logging.WARNING)
+    for name in ASYNCUA_PER_REQUEST:
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, RepeatFilter) for f in logger.filters):
+            logger.addFilter(RepeatFilter())
 
 
 def _status(name: str) -> ua.StatusCode:
@@ -92,6 +113,7 @@ class OpcUaServer(Frontend):
         """Build the address space and listen; raises ``OSError`` when the address
         cannot be bound, ``StartupError`` when ``pki_dir`` cannot be used."""
         gid = self.gateway.config.gateway_id
+        quiet_asyncua()
         server = GatewayUaServer(user_manager=ConfigUsers(self.config))
         await server.init()
         server.set_endpoint(self.endpoint)
@@ -229,6 +251,7 @@ class OpcUaServer(Frontend):
                         await server.write_attribute_value(nodeid, ua.DataValue(
                             variant(row.value(bus), row.datatype), SourceTimestamp=now,
                             ServerTimestamp=now))
+            PEERS.flush_due()
             await asyncio.sleep(BUS_EVERY_S)
 
     def stats(self) -> FrontendCounts:
