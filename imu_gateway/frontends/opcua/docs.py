@@ -6,8 +6,11 @@ from __future__ import annotations
 
 from ...commands import CATALOGUE, argument_type, commands_for
 from ...model import CAPABILITIES, VALUE_GROUPS, Series, WireProtocol
+from .identity import MANUFACTURER, PRODUCT_NAME, PRODUCT_URI
+from .methods import declared_type
+from .nodes import COMMON_GROUPS
 from .server import CALL_STATUS
-from .space import BUS_VARS, NEVER_READ, QUALITY, SENSOR_VARS, UNECE, UNITS
+from .space import BUS_VARS, IDENTITY_VARS, NEVER_READ, QUALITY, SENSOR_VARS, UNECE, UNITS
 
 INTRO = """# OPC UA
 
@@ -19,32 +22,71 @@ historians): [asyncua](https://github.com/FreeOpcUa/opcua-asyncio) in the gatewa
 own event loop. It reads the gateway's cache like every front end: a Read or a
 subscription never waits for the serial bus, and a hundred clients cost the bus
 nothing. Methods (the commands) go through the bus master's command queue. Tested
-with asyncua's client and Node's node-opcua.
+with asyncua's client (its high-level one, and sessions built by hand from its
+low-level one) and Node's node-opcua.
 
 ```yaml
 opcua:
   listen: 0.0.0.0:4840         # opc.tcp://HOST:4840/
   allow_none: false            # true: also security mode None
   anonymous: true              # false: only the users below
-  users: {{operator: "${{OPCUA_PASSWORD}}"}}
+  users: {operator: "${OPCUA_PASSWORD}"}
   allow_commands: false        # true needs anonymous: false
   pki_dir: opcua-pki           # server_cert.der and server_key.pem (made at the
-                               # first start), trusted/: client certificates
+                               # first start), trusted/: client certificates,
+                               # rejected/: the ones refused, to move to trusted/
 ```
+
+## What is supported, and what is not
+
+- **Supported:** Read, Browse, TranslateBrowsePaths, subscriptions to data changes,
+  Call (the commands), HistoryRead of the measured values (raw and processed, see
+  "History"), GetEndpoints and FindServers; security policies None (only with
+  `allow_none`) and Basic256Sha256 Sign and SignAndEncrypt; anonymous and user name
+  tokens.
+- **Not supported:** writing values (every variable is read-only; a setting is
+  changed by its method), events and Alarms and Conditions (they come with the alarms
+  of a later release), OPC UA PubSub, X.509 user tokens, the Aes policies, and
+  discovery through a Local Discovery Server. The server's `ServerProfileArray`
+  names the profiles whose facets it implements; it is not certified (no conformance
+  test tool has run on it).
 
 ## Address space
 
-Namespace `urn:imu-gateway`. Node ids are strings, `{{gateway_id}}.{{path}}`, so a
-client's tag list survives a restart and a reordered config:
+Namespace `urn:imu-gateway`. Every node the gateway adds has a string NodeId in it:
+the path of browse names below its root, joined by dots. A client's tag list
+survives a restart and a reordered config, and no node of the gateway is mixed in with
+namespace 0's numeric ids (the standard properties `EURange` and `EngineeringUnits`
+keep their browse names in namespace 0, as Part 8 names them, and their NodeIds are
+the gateway's: `…Angles.pitch.EURange`):
 
 ```
-Objects/IMU Gateway/{{gateway_id}}/                ns=N;s={{gateway_id}}.
-    Sensors/{{sensor}}/                             ns=N;s={{gateway_id}}.Sensors.{{sensor}}
-        {{Group}}/{{field}}                           …Sensors.{{sensor}}.Angles.pitch
-        Status, Age, Sequence, Errors, Series, Protocol, Address
-        {{command}}()                               with allow_commands
-    Buses/{{bus}}/{{counter}}                         …Buses.{{bus}}.Transactions
+Objects/IMU Gateway/{gateway_id}/                ns=N;s={gateway_id}
+    Sensors/{sensor}/  (an ImuSensorType)         ns=N;s={gateway_id}.Sensors.{sensor}
+        {Group}/{field}                           …Sensors.{sensor}.Angles.pitch
+            EURange, EngineeringUnits             …Sensors.{sensor}.Angles.pitch.EURange
+        Status, Sequence, Errors, Series, Protocol, Address
+        {command}()                               with allow_commands
+    Buses/{bus}/{counter}                         …Buses.{bus}.Transactions
+Types/ObjectTypes/BaseObjectType/ImuSensorType    ns=N;s=ImuSensorType
 ```
+
+### The sensor type
+
+`ImuSensorType` (a subtype of BaseObjectType, `ns=N;s=ImuSensorType`) declares what a
+sensor may have, so a SCADA builds one template (a UDT) on it and applies it to every
+sensor. Each sensor object's TypeDefinition is it.
+
+| part | modelling rule |
+|---|---|
+{type_rows}
+| Status, Sequence, Errors, Series, Protocol, Address | Mandatory |
+| each command's method | Optional (with `allow_commands`, where the series has it) |
+
+A sensor has only the optional parts its series has: an IMU has no Angles, a VG no
+MagneticField. A sensor's age is not a variable: it is now minus the value's
+SourceTimestamp (a variable of it would be right only at the moment it was written).
+
 """
 
 SECURITY = """
@@ -67,14 +109,47 @@ SECURITY = """
   `BadSecurityChecksFailed`, whatever token it brings.
 - **The server's certificate** is made at the first start (self-signed, one year) in
   `pki_dir`, with the key; a client trusts it once (or you replace both files by a
-  certificate of your own CA).
+  certificate of your own CA). It names the application URI
+  (`urn:imu-gateway:{gateway_id}`), the host name, and the address listened on; with
+  `0.0.0.0` every address of the host (so a client that connects by IP address finds
+  it there). When the gateway finds a name missing from the one it made (the host's
+  addresses changed) or the certificate expired, it makes a new one and says so in the
+  log: clients trust the new one. A certificate not made by the gateway is never
+  replaced.
 - **Client certificates** are accepted only if they are in `pki_dir/trusted/` (DER or
-  PEM), or signed by a CA certificate there. An empty folder refuses every secured
-  connection and says so in the log.
+  PEM), or signed by a CA certificate there, read again when the folder changes (no
+  restart). An empty folder refuses every secured connection and says so in the log.
+  A certificate refused as untrusted is saved in `pki_dir/rejected/`
+  (`{common name} [{SHA-1}].der`, at most 100 files): move it to `trusted/` to accept
+  that client, as in UaExpert or open62541.
+- **The log:** at the gateway's default level an OPC UA start is a few lines; asyncua
+  says only its warnings, each kind at most once a minute, and so does the gateway of
+  the requests it refuses (`--log-level debug` shows everything).
 - **Users:** `users` (name → password; write `${VAR}` to keep the password out of the
   file). `anonymous: false` refuses clients without a user name; with
   `allow_commands: true` the config insists on it.
 """
+
+
+def _type_rows() -> str:
+    rows = []
+    for group, spec in VALUE_GROUPS.items():
+        rule = "Mandatory" if group in COMMON_GROUPS else "Optional"
+        rows.append(f"| {spec.title} (each field Mandatory within it) | {rule} |")
+    return "\n".join(rows)
+
+
+def _identity() -> list[str]:
+    return ["## What the server says of itself", "",
+            f"- **BuildInfo:** ProductName `{PRODUCT_NAME}`, ProductUri `{PRODUCT_URI}`, "
+            f"ManufacturerName `{MANUFACTURER}`, SoftwareVersion and BuildNumber the "
+            "package's version, BuildDate the time of the installed package's files.",
+            "- **ServerCapabilities:** every variable has a value: the profiles, the "
+            "locale (`en`), MinSupportedSampleRate 0 (a value is sampled when the gateway "
+            "writes it), no continuation points for Browse or Query (their answers are "
+            "whole), the string and message limits of the transport, the session and "
+            "subscription limits; the aggregates of HistoryRead under AggregateFunctions; "
+            "`Auditing` false.", ""]
 
 
 def _values() -> list[str]:
@@ -117,14 +192,20 @@ def _methods() -> list[str]:
     lines = ["### Methods (`allow_commands: true`)", "",
              "Each sensor object has the catalogue's commands its series and protocol have "
              "([commands.md](commands.md)): one input argument (or none) and a `result` "
-             "string out. A refused or failed command is the call's StatusCode:", "",
+             "string out. A call is checked before the sensor hears of it (Part 4, "
+             "5.11.2): a method its object does not have is `BadMethodInvalid`; more "
+             "arguments than the method has `BadTooManyArguments`; fewer "
+             "`BadArgumentsMissing`; one of the wrong type `BadInvalidArgument`, with "
+             "`BadTypeMismatch` in its InputArgumentResults (a Double argument takes any "
+             "number, an Int32 any integer, a String only a String). The type's "
+             "declaration of a method, called on a sensor, runs that sensor's own.", "",
+             "A refused or failed command is the call's StatusCode:", "",
              "| why | StatusCode |", "|---|---|",
              *(f"| {kind.value} | `{code}` |" for kind, code in CALL_STATUS.items()),
              "", "| method | argument | series (native / Modbus RTU) |", "|---|---|---|"]
     for spec in CATALOGUE.values():
         kind = argument_type(spec)
-        arg = "none" if kind is None else \
-            f"{spec.argument} ({ {str: 'String', int: 'Int32'}.get(kind, 'Double') })"
+        arg = "none" if kind is None else f"{spec.argument} ({declared_type(spec)})"
         where = [", ".join(s.name for s in Series if spec.name in commands_for(s, p)) or "none"
                  for p in WireProtocol]
         lines.append(f"| {spec.name} | {arg} | {' / '.join(where)} |")
@@ -132,13 +213,12 @@ def _methods() -> list[str]:
 
 
 def markdown() -> str:
-    sensor_rows = [(v.name, v.datatype, v.description) for v in SENSOR_VARS] + [
-        ("Series", "String", "IMU, VG, AH or MINS"), ("Protocol", "String", "native or modbus"),
-        ("Address", "UInt16", "the sensor's address on its bus")]
+    sensor_rows = [(v.name, v.datatype, v.description) for v in (*SENSOR_VARS, *IDENTITY_VARS)]
     bus_rows = [(v.name, v.datatype, v.description) for v in BUS_VARS]
-    lines = [INTRO, *_values(), *_quality(),
+    lines = [INTRO.replace("{type_rows}", _type_rows()), *_values(), *_quality(),
              *_rows("### A sensor's status and identity", sensor_rows),
-             *_rows("### Buses (written every second)", bus_rows), *_methods(), SECURITY]
+             *_rows("### Buses (written every second)", bus_rows), *_methods(),
+             *_identity(), SECURITY]
     return "\n".join(lines)
 
 
