@@ -16,6 +16,7 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.x509.oid import ExtendedKeyUsageOID
 from harness import expected, free_port, running, tolerance, until
 
+import imu_gateway
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import Faults, hold, make_sensor, simulated
 from imu_gateway.simulator.motion import Motion
@@ -25,15 +26,16 @@ GID = "ua-node"
 READING = Motion.from_seed(12).sample(2.0)
 
 
-async def node_opcua(*args: str, certificate: tuple[Path, Path], mode: str = "None"
-                     ) -> dict[str, Any]:
-    """node-opcua's client with this certificate and key (PEM), in this mode."""
+async def node_opcua(*args: str, certificate: tuple[Path, Path], mode: str = "None",
+                     script: str = "opcua.js") -> dict[str, Any]:
+    """node-opcua's client (``script`` in tests/node) with this certificate and key
+    (PEM), in this mode."""
     node = shutil.which("node")
     assert node is not None, "node is needed: scripts/bootstrap --test installs it"
     assert (NODE_DIR / "node_modules" / "node-opcua-client").is_dir(), \
         "run scripts/bootstrap --test (npm ci in tests/node)"
     proc = await asyncio.create_subprocess_exec(
-        node, str(NODE_DIR / "opcua.js"), *args, stdout=asyncio.subprocess.PIPE,
+        node, str(NODE_DIR / script), *args, stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.PIPE,
         env={"NODE_PATH": str(NODE_DIR / "node_modules"), "UA_CERT": str(certificate[0]),
              "UA_KEY": str(certificate[1]), "UA_MODE": mode,
@@ -159,3 +161,40 @@ async def test_node_opcua_needs_a_user_and_then_calls_a_method(tmp_path: Path) -
     assert allowed["call"]["status"] == "Good"
     assert allowed["call"]["result"][0].startswith("set_zero_type: ok")
     assert ah.settings.zero_type == "relative"
+
+
+@pytest.mark.anyio
+async def test_node_opcua_reads_build_info_the_type_and_our_node_ids(tmp_path: Path) -> None:
+    """What node-opcua's client finds: the gateway's BuildInfo, each sensor an
+    ImuSensorType with its modelling rules, EURange and EngineeringUnits by browse path
+    at NodeIds of the gateway's namespace, and Part 4's codes for calls of the wrong
+    shape (the sensor hearing none of them)."""
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200, source=hold(READING))
+    port = free_port()
+    endpoint = f"opc.tcp://127.0.0.1:{port}/"
+    client = await trusted_client(tmp_path, tmp_path / "pki")
+    with simulated([ah]) as line:
+        cfg = _config(port, tmp_path / "pki", line.path, anonymous=False,
+                      allow_commands=True, users={"operator": "s3cret"})
+        async with running(cfg) as gw:
+            await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+            got = await node_opcua(endpoint, GID, "boom", "operator", "s3cret",
+                                   certificate=client, script="opcua_model.js")
+    assert got["build"]["productName"] == "imu-gateway"
+    assert got["build"]["softwareVersion"] == imu_gateway.__version__
+    assert got["build"]["buildNumber"] and not got["build"]["buildDate"].startswith("1601")
+    ns = got["ns"]
+    assert got["type"]["name"] == "ImuSensorType"
+    assert got["type"]["nodeId"] == f"ns={ns};s=ImuSensorType"
+    assert got["type"]["supertype"] == "BaseObjectType"
+    rules = got["type"]["declarations"]
+    assert rules["Acceleration"] == rules["Status"] == "Mandatory"
+    assert rules["MagneticField"] == rules["set_declination"] == "Optional"
+    pitch = f"ns={ns};s={GID}.Sensors.boom.Angles.pitch"
+    assert got["properties"] == {"EURange": [f"{pitch}.EURange"],
+                                 "EngineeringUnits": [f"{pitch}.EngineeringUnits"]}
+    assert got["calls"]["tooMany"]["status"] == "BadTooManyArguments"
+    assert got["calls"]["missing"]["status"] == "BadArgumentsMissing"
+    assert got["calls"]["wrongType"] == {"status": "BadInvalidArgument",
+                                         "inputs": ["BadTypeMismatch"]}
+    assert not ah.writes_heard and ah.settings.declination == 0.0
