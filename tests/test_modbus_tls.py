@@ -489,6 +489,18 @@ async def test_the_docs_openssl_commands_make_certificates_the_gateway_accepts(
     pki = Pki(Pem(files["ca.crt"], tmp_path / "ca.key"),
               Pem(files["gateway.crt"], files["gateway.key"]),
               {"operator": Pem(files["operator.crt"], files["operator.key"])})
-    async with gateway(tls_section(pki)) as gw, pymodbus_tls(gw, pki, "operator") as client:
-        # Operator: its role read from the openssl-made extension
-        assert await rights_seen(client) == {**VIEWER, "write": None}
+    async with gateway(tls_section(pki)) as gw:
+        async with pymodbus_tls(gw, pki, "operator") as client:
+            # Operator: its role read from the openssl-made extension
+            assert await rights_seen(client) == {**VIEWER, "write": None}
+        # a PLC that has only the specification's TLS 1.2 suite is served too
+        context = client_context(pki, "operator", ssl.TLSVersion.TLSv1_2)
+        context.set_ciphers("AES128-SHA256")
+        raw = await TlsRaw.connect(tls_port(gw), context)
+        try:
+            ssl_object = raw.writer.get_extra_info("ssl_object")
+            assert ssl_object.cipher()[0] == "AES128-SHA256"
+            await raw.send(request(9, UNIT, STATUS_READ))
+            assert (await raw.receive())[2][:2] == bytes((3, 18))
+        finally:
+            await raw.close()
