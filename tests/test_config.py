@@ -200,6 +200,7 @@ def test_pyserial_urls_and_listen_forms() -> None:
     config = config_from_dict(base(modbus={"listen": "[::]:1502"},
                                    http={"listen": "127.0.0.1:0"}), env={})
     assert config.modbus is not None and config.http is not None
+    assert config.modbus.listen is not None
     assert (config.modbus.listen.host, config.modbus.listen.port) == ("::", 1502)
     assert str(config.modbus.listen) == "[::]:1502"
     assert config.http.listen == ("127.0.0.1", 0)

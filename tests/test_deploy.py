@@ -137,7 +137,8 @@ def test_examples_are_the_promised_setups() -> None:
     sensors = [s for _, s in rtu.iter_sensors()]
     assert len(sensors) >= 3 and {s.series.name for s in sensors} <= {"VG", "IMU"}
     assert all(s.raw_unit_id is not None for s in sensors)
-    assert rtu.modbus is not None and rtu.modbus.listen.port == 502
+    assert rtu.modbus is not None and rtu.modbus.listen is not None
+    assert rtu.modbus.listen.port == 502
 
 
 def test_examples_use_no_tls_files() -> None:
@@ -373,12 +374,13 @@ def test_compose_services_fit_the_image_and_the_config() -> None:
     devices = {d.split(":")[1] for d in gateway["devices"]}
     assert devices == {bus.port for bus in config.buses}
     # published ports: the config's listening ports, which the image EXPOSEs
-    listens = {config.modbus.listen.port if config.modbus else None,
+    listens = {config.modbus.listen.port if config.modbus and config.modbus.listen else None,
                config.http.listen.port if config.http else None} - {None}
     container_ports = {int(str(p).split(":")[-1]) for p in gateway["ports"]}
     assert container_ports == listens == {int(p) for p in docker_one("EXPOSE").split()}
     # the container's loopback is not the host's: listen on every address
-    assert config.modbus is not None and config.modbus.listen.host == "0.0.0.0"
+    assert config.modbus is not None and config.modbus.listen is not None
+    assert config.modbus.listen.host == "0.0.0.0"
     assert config.http is not None and config.http.listen.host == "0.0.0.0"
     # secrets: gateway.env (from gateway.env.example) holds every ${VAR} of the config
     [env_file] = gateway["env_file"]

@@ -152,13 +152,58 @@ class BusConfig(_Model):
         return _fill_bus_defaults(data)
 
 
+#: What a Modbus/TCP Security role may do (docs/modbus-tcp.md has each function code's right).
+ModbusRight = Literal["read", "write", "passthrough"]
+_DEFAULT_ROLES: dict[str, list[ModbusRight]] = {
+    "Viewer": ["read"], "Operator": ["read", "write"],
+    "Engineer": ["read", "write", "passthrough"]}
+
+
+class ModbusTlsConfig(_Model):
+    """Modbus/TCP Security: mutual TLS on its own port, each client's rights taken from
+    the role in its certificate (docs/modbus-tcp.md)."""
+
+    listen: Listen = Field(default=ListenAddress("0.0.0.0", 802), description=(
+        "`host:port` as for `modbus.listen`; 802 is Modbus/TCP Security's port"))
+    certfile: ExistingFile = Field(description=(
+        "the gateway's certificate (PEM), the CA's chain after it if there is one; an "
+        "existing file"))
+    keyfile: ExistingFile = Field(description=(
+        "its private key (PEM, unencrypted); an existing file"))
+    ca_file: ExistingFile = Field(description=(
+        "the CA (PEM) whose client certificates are accepted; a client without a "
+        "certificate it signed is refused at the handshake; an existing file"))
+    roles: dict[NonEmpty, list[ModbusRight]] = Field(
+        default_factory=lambda: dict(_DEFAULT_ROLES),
+        description=(
+            "role → rights (`read`, `write`, `passthrough`): what a client whose certificate "
+            "carries that role (extension 1.3.6.1.4.1.50316.802.1) may do; names are "
+            "case-sensitive"),
+        json_schema_extra={_SHOWN_DEFAULT: (
+            "`{Viewer: [read], Operator: [read, write], Engineer: [read, write, "
+            "passthrough]}`")})
+    default_role: NonEmpty | None = Field(default=None, description=(
+        "a role of `roles` whose rights a certificate without a role, or with a role not "
+        "in `roles`, gets; null: none, every request of such a client is refused with "
+        "exception 01"))
+
+    @model_validator(mode="after")
+    def _default_role_is_a_role(self) -> Self:
+        if self.default_role is not None and self.default_role not in self.roles:
+            raise _fail(f"default_role: {_show(self.default_role)} is not in roles "
+                        f"({', '.join(self.roles) or 'none'}); name one of them, or null")
+        return self
+
+
 class ModbusConfig(_Model):
     """The Modbus TCP server."""
 
-    listen: Listen = Field(default=ListenAddress("0.0.0.0", 502), description=(
-        "`host:port`, port 0-65535; an IPv6 host in brackets: `[::]:502`"))
+    listen: Listen | None = Field(default=ListenAddress("0.0.0.0", 502), description=(
+        "`host:port`, port 0-65535; an IPv6 host in brackets: `[::]:502`. null: no plain "
+        "port (needs `tls`), only Modbus/TCP Security serves"))
     allow_writes: bool = Field(default=False, description=(
-        "writes (FC06/FC16) are refused with exception 01 unless true"))
+        "writes (FC06/FC16) on the plain port are refused with exception 01 unless true; "
+        "on the TLS port the role's rights decide"))
     allow_from: Annotated[list[Network], Field(min_length=1)] = Field(
         default_factory=lambda: [
             ipaddress.ip_network("0.0.0.0/0"), ipaddress.ip_network("::/0")
@@ -166,7 +211,7 @@ class ModbusConfig(_Model):
         description=(
             "at least one IPv4 or IPv6 network; host bits are allowed (`192.168.1.5/24` "
             "means `192.168.1.0/24`); a bare address is a single host. Clients from "
-            "elsewhere are disconnected at once"),
+            "elsewhere are disconnected at once (on both ports)"),
     )
     max_connections: PositiveInt = Field(default=100, description=(
         "> 0; a client beyond this takes the place of the longest-idle connection, "
@@ -176,6 +221,16 @@ class ModbusConfig(_Model):
         "longest-idle one"))
     idle_timeout_s: NonNegative = Field(default=60.0, description=(
         ">= 0; a client connection idle this long is closed; 0: never"))
+    tls: ModbusTlsConfig | None = Field(default=None, description=(
+        "Modbus/TCP Security (`modbus.tls`), beside the plain port; null: off"))
+
+    @model_validator(mode="after")
+    def _serves_somewhere(self) -> Self:
+        if self.listen is None and self.tls is None:
+            raise _fail("listen: null turns the plain port off, and there is no tls "
+                        "section: nothing would serve; give a listen address, add "
+                        "modbus.tls, or leave the modbus section out")
+        return self
 
     def allows(self, client: str) -> bool:
         """Whether a client address (IPv4, IPv6, or IPv4-mapped IPv6) is in ``allow_from``."""

@@ -21,6 +21,11 @@ the longest-idle connection to make room for the newcomer (as the Modbus Messagi
 Implementation Guide advises), so that clients who only hold sockets cannot lock SCADA
 out; every request that came before a client's FIN is answered; warnings about
 peers are rate-limited.
+
+Modbus/TCP Security (``modbus.tls``, ``modbus_tls``): a second listening socket whose
+connections are this module's ``_Connection`` inside asyncio's TLS transport, so all of
+the above holds there too; each request is first checked against the rights of the
+role in the client's certificate (refused: exception 01).
 """
 
 from __future__ import annotations
@@ -29,7 +34,9 @@ import asyncio
 import contextlib
 import functools
 import logging
+import os
 import socket
+import ssl
 import struct
 import time
 from collections import Counter
@@ -41,7 +48,8 @@ from pymodbus.pdu.register_message import WriteMultipleRegistersResponse
 
 from ..cache import EventKind, Snapshot
 from ..config import ModbusConfig, SensorConfig
-from ..errors import KINDS, ErrorKind, RequestFailed
+from ..config.schema import ModbusTlsConfig
+from ..errors import KINDS, ErrorKind, RequestFailed, StartupError
 from ..modbus_codes import (
     DEVICE_FAILURE,
     GATEWAY_PATH,
@@ -58,6 +66,7 @@ from ..stats import FrontendCounts
 from ..supervise import Frontend, PeerLog
 from . import modbus_ident as ident
 from . import modbus_map as mm
+from . import modbus_tls
 from .common import GatewayLike
 
 log = logging.getLogger("imu_gateway.modbus")
@@ -110,7 +119,8 @@ class ModbusTcpServer(Frontend):
         self._decoder = DecodePDU(is_server=True)
         self.connections: set[_Connection] = set()
         self.counts: Counter[str] = Counter()
-        self._server: asyncio.Server | None = None
+        self._server: asyncio.Server | None = None  # the plain port
+        self._tls_server: asyncio.Server | None = None
         self.peers = PeerLog(log)
         self._housekeeping: asyncio.TimerHandle | None = None
         gateway.cache.subscribe(self._on_cache_event, self.fail)
@@ -122,13 +132,40 @@ class ModbusTcpServer(Frontend):
             self._by_name[snap.name].image.set_reading(snap.reading)
 
     async def start(self) -> None:
-        """Listen; raises ``OSError`` when the address cannot be bound."""
-        listen = self.config.listen
-        self._server = await asyncio.get_running_loop().create_server(
-            lambda: _Connection(self), listen.host, listen.port)
+        """Listen on the plain port and the TLS port, those configured; raises
+        ``OSError`` when the plain address cannot be bound, ``StartupError`` when the
+        TLS port cannot be opened (its address, or its certificate files)."""
+        listen, tls = self.config.listen, self.config.tls
+        if listen is not None:
+            self._server = await asyncio.get_running_loop().create_server(
+                lambda: _Connection(self), listen.host, listen.port)
+            log.info("Modbus TCP on %s:%d", listen.host, self.port)
+        if tls is not None:
+            try:
+                self._tls_server = await self._start_tls(tls)
+            except BaseException:
+                await self.stop()  # not half started: the plain port closes again
+                raise
+            log.info("Modbus/TCP Security on %s:%d, roles %s", tls.listen.host,
+                     self.tls_port, ", ".join(tls.roles) or "none")
         self._tidy()
-        log.info("Modbus TCP on %s:%d, units %s", listen.host, self.port,
-                 sorted(self.units) + sorted(self.raw_units))
+        log.info("Modbus units %s", sorted(self.units) + sorted(self.raw_units))
+
+    async def _start_tls(self, tls: ModbusTlsConfig) -> asyncio.Server:
+        context = modbus_tls.server_context(tls, self._refused_handshake)
+        try:
+            return await asyncio.get_running_loop().create_server(
+                lambda: _Connection(self, tls), tls.listen.host, tls.listen.port,
+                ssl=context, ssl_handshake_timeout=modbus_tls.HANDSHAKE_TIMEOUT_S,
+                ssl_shutdown_timeout=FRAME_DEADLINE_S)
+        except OSError as exc:
+            reason = os.strerror(exc.errno) if exc.errno else str(exc)
+            raise StartupError(f"modbus.tls.listen {tls.listen}: {reason}") from None
+
+    def _refused_handshake(self, exc: ssl.SSLError) -> None:
+        self.counts["refused_handshake"] += 1
+        self.peers.warning("refused_handshake", "Modbus/TCP Security: refused a client "
+                           "at the TLS handshake: %s", modbus_tls.handshake_problem(exc))
 
     def _tidy(self) -> None:
         self.peers.flush_due()
@@ -155,7 +192,7 @@ class ModbusTcpServer(Frontend):
 
     @property
     def listening(self) -> bool:
-        return self._server is not None
+        return self._server is not None or self._tls_server is not None
 
     def stats(self) -> FrontendCounts:
         return {"clients": len(self.connections), "requests": self.counts["requests"],
@@ -163,30 +200,40 @@ class ModbusTcpServer(Frontend):
 
     @property
     def port(self) -> int:
+        """The plain port's number (useful when ``listen`` asked for port 0)."""
         assert self._server is not None
         return int(self._server.sockets[0].getsockname()[1])
+
+    @property
+    def tls_port(self) -> int:
+        assert self._tls_server is not None
+        return int(self._tls_server.sockets[0].getsockname()[1])
 
     async def stop(self) -> None:
         if self._housekeeping is not None:
             self._housekeeping.cancel()
         self.peers.flush()
-        if self._server is not None:
-            self._server.close()
-            for connection in list(self.connections):
-                connection.close()
-            await self._server.wait_closed()
-            self._server = None
+        servers = [s for s in (self._server, self._tls_server) if s is not None]
+        self._server = self._tls_server = None
+        for server in servers:
+            server.close()
+        for connection in list(self.connections):
+            connection.close()
+        for server in servers:
+            await server.wait_closed()
 
     # ------------------------------------------------------------ requests
 
-    def handle(self, unit_id: int, pdu: bytes) -> bytes | Awaitable[bytes]:
-        """The answer PDU to a request PDU: at once for reads, later for writes."""
+    def handle(self, unit_id: int, pdu: bytes, writes: bool) -> bytes | Awaitable[bytes]:
+        """The answer PDU to a request PDU: at once for reads, later for writes.
+        ``writes``: whether the connection may write (``allow_writes``, or on the TLS
+        port true, its role's rights having been checked)."""
         function = pdu[0]
         self.counts["requests"] += 1
         if function == ident.FUNCTION:  # answered here, raw units too: no bus traffic
             return self._identify(unit_id, pdu)
         if unit_id in self.raw_units:
-            return self._passthrough(self.raw_units[unit_id], pdu)
+            return self._passthrough(self.raw_units[unit_id], pdu, writes)
         unit = self.units.get(unit_id)
         if unit is None:
             if unit_id == mm.DIAG_UNIT:  # sensor unit ids are 1-247
@@ -195,7 +242,7 @@ class ModbusTcpServer(Frontend):
         if function in (READ_HOLDING, READ_INPUT):
             return self._read(unit, pdu)
         if function in (WRITE_SINGLE, WRITE_MULTIPLE):
-            problem = self._check_write(pdu)
+            problem = self._check_write(pdu, writes)
             if problem:
                 return exception(function, problem)
             return self._write(unit, pdu)
@@ -250,9 +297,9 @@ class ModbusTcpServer(Frontend):
             return exception(function, ILLEGAL_ADDRESS)
         return bytes((function, 2 * count)) + image[2 * start: 2 * (start + count)]
 
-    def _check_write(self, pdu: bytes) -> int:
+    def _check_write(self, pdu: bytes, writes: bool) -> int:
         """An exception code for a write that must be refused before decoding, or 0."""
-        if not self.config.allow_writes:
+        if not writes:
             return ILLEGAL_FUNCTION
         if pdu[0] == WRITE_SINGLE:
             return 0 if len(pdu) == 5 else ILLEGAL_VALUE
@@ -290,13 +337,13 @@ class ModbusTcpServer(Frontend):
             return pdu  # the answer to FC06 is the request
         return _pdu(WriteMultipleRegistersResponse(address=address, count=len(words)))
 
-    async def _passthrough(self, sensor: str, pdu: bytes) -> bytes:
+    async def _passthrough(self, sensor: str, pdu: bytes, writes: bool) -> bytes:
         function = pdu[0]
         if function in (READ_HOLDING, READ_INPUT):
             if _read_span(pdu) is None:
                 return exception(function, ILLEGAL_VALUE)
         elif function in (WRITE_SINGLE, WRITE_MULTIPLE):
-            if problem := self._check_write(pdu):
+            if problem := self._check_write(pdu, writes):
                 return exception(function, problem)
         else:
             return exception(function, ILLEGAL_FUNCTION)
@@ -317,10 +364,15 @@ def _read_span(pdu: bytes) -> tuple[int, int] | None:
 
 
 class _Connection(asyncio.Protocol):
-    """One client: MBAP framing, requests answered in order, deadlines, back-pressure."""
+    """One client: MBAP framing, requests answered in order, deadlines, back-pressure;
+    on the TLS port (``tls``), each request checked against its role's rights."""
 
-    def __init__(self, server: ModbusTcpServer) -> None:
+    def __init__(self, server: ModbusTcpServer, tls: ModbusTlsConfig | None = None) -> None:
         self.server = server
+        self.tls = tls
+        self.grant: modbus_tls.Grant | None = None  # TLS: what the role may do
+        self.writes = server.config.allow_writes if tls is None else True
+        self.refused = 0  # TLS: requests refused for lack of a right
         self.transport: asyncio.Transport | None = None
         self.buffer = bytearray()
         self.waiting = False  # a write or pass-through is in progress: later ones queue
@@ -350,6 +402,8 @@ class _Connection(asyncio.Protocol):
                                  "allow_from)", self.peer)
             transport.abort()
             return
+        if self.tls is not None:
+            self._take_role(transport, self.tls)
         server.admit(self)
         transport.set_write_buffer_limits(high=WRITE_BOUND)
         sock = transport.get_extra_info("socket")
@@ -362,6 +416,33 @@ class _Connection(asyncio.Protocol):
         server.connections.add(self)
         server.counts["connections"] += 1
         self._watch_idle()
+
+    def _take_role(self, transport: asyncio.Transport, tls: ModbusTlsConfig) -> None:
+        grant = self.grant = modbus_tls.grant_of(transport, tls)
+        if grant.note:
+            self.server.peers.warning("tls_role", "Modbus/TCP Security: %s (%s): %s",
+                                      self.peer, grant.who, grant.note)
+        log.debug("Modbus/TCP Security: %s (%s), role %s: %s", self.peer, grant.who,
+                  grant.role, ", ".join(sorted(grant.rights)) or "no rights")
+
+    def _refuses(self, unit: int, function: int) -> bool:
+        """Whether the connection's role lacks the right the request needs (TLS)."""
+        grant = self.grant
+        if grant is None:
+            return False
+        right = modbus_tls.right_needed(function, unit in self.server.raw_units)
+        if right in grant.rights:
+            return False
+        self.server.counts["refused_role"] += 1
+        self.refused += 1
+        if self.refused == 1:  # once a connection (and rate-limited across them)
+            self.server.peers.warning(
+                "refused_role", "Modbus/TCP Security: refused FC%02d to unit %d from %s "
+                "(%s, role %s, rights: %s; it needs %s): exception 01; further refusals "
+                "on this connection are only counted", function, unit, self.peer,
+                grant.who, grant.role, ", ".join(sorted(grant.rights)) or "none",
+                right or "a function nobody may use")
+        return True
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.server.connections.discard(self)
@@ -454,7 +535,8 @@ class _Connection(asyncio.Protocol):
         self.requests += 1
         self.last_request = time.monotonic()  # (the idle watch reads it)
         try:
-            answer = self.server.handle(unit, pdu)
+            answer = exception(pdu[0], ILLEGAL_FUNCTION) if self._refuses(unit, pdu[0]) \
+                else self.server.handle(unit, pdu, self.writes)
         except Exception:  # a fault of ours must not cost the client its connection
             log.exception("Modbus TCP: a request from %s failed", self.peer)
             answer = exception(pdu[0], DEVICE_FAILURE)

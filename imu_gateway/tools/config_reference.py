@@ -32,6 +32,7 @@ from ..config import (
     SensorConfig,
     SparkplugConfig,
 )
+from ..config.schema import ModbusTlsConfig
 
 #: (heading, model, what the section is): the order of the document.
 SECTIONS: tuple[tuple[str, type[BaseModel], str], ...] = (
@@ -41,6 +42,11 @@ SECTIONS: tuple[tuple[str, type[BaseModel], str], ...] = (
     ("buses[]", BusConfig, "One serial line each; one bus master owns it."),
     ("buses[].sensors[]", SensorConfig, "The sensors on a line."),
     ("modbus", ModbusConfig, "The Modbus TCP server ([modbus-tcp.md](modbus-tcp.md))."),
+    ("modbus.tls", ModbusTlsConfig,
+     "Modbus/TCP Security: mutual TLS, rights by the role in the client's certificate "
+     "([modbus-tcp.md](modbus-tcp.md#modbustcp-security-tls)); `certfile`, `keyfile` "
+     "and `ca_file` are required. Relative file paths are relative to the gateway's "
+     "working directory."),
     ("mqtt", MqttConfig,
      "The MQTT client ([mqtt.md](mqtt.md)). Relative file paths are relative to the "
      "gateway's working directory."),
