@@ -276,6 +276,27 @@ async def test_a_session_cannot_be_taken_by_another_client_certificate(rig: Rig)
 
 
 @pytest.mark.anyio
+async def test_nobody_registers_a_server_to_be_found_here(rig: Rig) -> None:
+    """asyncua answers RegisterServer to anyone, without a session, and FindServers
+    lists what was registered: a client could point others to a server of its own.
+    The gateway is no discovery server: BadServiceUnsupported, and FindServers lists
+    the gateway alone."""
+    port = free_port()
+    async with running(rig.config(port, allow_none=True)) as gw:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+        async with channel(rig, port) as client:
+            fake = ua.RegisteredServer(ServerUri="urn:evil", IsOnline=True,
+                                       ServerType=ua.ApplicationType.Server,
+                                       DiscoveryUrls=["opc.tcp://127.0.0.1:1/"],
+                                       ServerNames=[ua.LocalizedText("evil")])
+            with pytest.raises(UaStatusCodeError) as unsupported:
+                await client.uaclient.register_server(fake)
+            assert refused(unsupported, ua.StatusCodes.BadServiceUnsupported)
+            servers = await client.uaclient.find_servers(ua.FindServersParameters())
+            assert [s.ApplicationUri for s in servers] == [f"urn:imu-gateway:{GID}"]
+
+
+@pytest.mark.anyio
 async def test_no_service_before_a_session_is_activated(rig: Rig) -> None:
     """asyncua's tracker has both (issues 1014 and 1156): a session created and never
     activated, or one whose activation was refused, reads nothing and calls nothing."""

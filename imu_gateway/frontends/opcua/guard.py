@@ -15,6 +15,8 @@ authentication token.  So here:
   endpoint the channel is on, of the token's type; a password that policy says to
   encrypt must come encrypted with the policy's algorithm.  Else
   BadIdentityTokenInvalid.
+* **RegisterServer**, which asyncua serves to anyone without a session (and lists in
+  FindServers), is BadServiceUnsupported: the gateway is no discovery server.
 * **A session not activated** (never, or its activation was refused) gets
   BadSessionNotActivated for anything but discovery and the session services.
 * **A session taken to another channel** (Part 4 5.6.3.1) must come with the client
@@ -49,6 +51,10 @@ _DISCOVERY = frozenset({ua.ObjectIds.GetEndpointsRequest_Encoding_DefaultBinary,
                         ua.ObjectIds.FindServersRequest_Encoding_DefaultBinary})
 _ACTIVATE = ua.NodeId(ua.ObjectIds.ActivateSessionRequest_Encoding_DefaultBinary)
 _CREATE = ua.NodeId(ua.ObjectIds.CreateSessionRequest_Encoding_DefaultBinary)
+#: A Local Discovery Server's services: asyncua serves them to anyone, with no session,
+#: and FindServers then lists what was registered.  The gateway is no LDS.
+_REGISTER = frozenset({ua.ObjectIds.RegisterServerRequest_Encoding_DefaultBinary,
+                       ua.ObjectIds.RegisterServer2Request_Encoding_DefaultBinary})
 #: What a session that is not activated may still ask.
 _BEFORE_ACTIVATION = _DISCOVERY | {ua.ObjectIds.CreateSessionRequest_Encoding_DefaultBinary,
                                    ua.ObjectIds.ActivateSessionRequest_Encoding_DefaultBinary,
@@ -126,6 +132,9 @@ class GuardedProcessor(UaProcessor):
     async def _process_message(self, typeid: ua.NodeId, requesthdr: Any, seqhdr: Any,
                                body: Buffer) -> Any:
         channel = self._channel
+        if typeid.NamespaceIndex == 0 and typeid.Identifier in _REGISTER:
+            raise _refuse(ua.StatusCodes.BadServiceUnsupported,
+                          "RegisterServer (the gateway is no discovery server)", self.name)
         if channel.Mode == ua.MessageSecurityMode.None_ and not self._none_offered and \
                 not (typeid.NamespaceIndex == 0 and typeid.Identifier in _DISCOVERY):
             raise _refuse(ua.StatusCodes.BadSecurityModeRejected,
