@@ -20,6 +20,7 @@ from harness import expected, running, tolerance, until
 from tahu import Tahu
 
 from imu_gateway.config import SensorConfig
+from imu_gateway.frontends.sparkplug.host import HostState, read_state
 from imu_gateway.frontends.sparkplug.metrics import device_rows
 from imu_gateway.frontends.sparkplug.node import BdSeq, Device, EdgeNode, Ignored, Write
 from imu_gateway.model import Series, WireProtocol
@@ -204,7 +205,7 @@ async def test_a_dcmd_runs_the_command_only_when_allowed(tmp_path: Path, tahu: T
                     return [m["value"] for x in node_messages(rec) if kind(x) == "DDATA"
                             for m in tahu.decode(x.payload)["metrics"] if m["alias"] == result]
 
-                await until(lambda: said() == ["set_zero_type: ok"])
+                await until(lambda: said() == ['set_zero_type: ok {"result": "success"}'])
             else:
                 assert gw.sparkplug is not None
                 await until(lambda: gw.sparkplug is not None and gw.sparkplug.ignored == 1)
@@ -342,9 +343,9 @@ def test_commands_that_are_not_acted_on_say_why(tahu: Tahu) -> None:
 
 
 def test_a_primary_host_state_is_read_in_both_spellings() -> None:
-    assert EdgeNode.host_online(b'{"online": true, "timestamp": 1}') is True
-    assert EdgeNode.host_online(b'{"online": false, "timestamp": 1}') is False
-    assert EdgeNode.host_online(b"ONLINE") is True  # Sparkplug 2.2
-    assert EdgeNode.host_online(b"OFFLINE") is False
-    assert EdgeNode.host_online(b'{"online": "yes"}') is None
-    assert EdgeNode.host_online(b"\xff") is None
+    assert read_state(b'{"online": true, "timestamp": 1}', False) == HostState(True, 1, False)
+    assert read_state(b'{"online": false, "timestamp": 1}', False) == HostState(False, 1, False)
+    assert read_state(b"ONLINE", True) == HostState(True, None, True)  # Sparkplug 2.2
+    assert read_state(b"OFFLINE", True) == HostState(False, None, True)
+    assert "boolean" in str(read_state(b'{"online": "yes"}', False))
+    assert "neither" in str(read_state(b"\xff", False))
