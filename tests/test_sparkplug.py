@@ -20,6 +20,7 @@ from harness import expected, running, tolerance, until
 from tahu import Tahu
 
 from imu_gateway.config import SensorConfig
+from imu_gateway.frontends.sparkplug.host import HostState, read_state
 from imu_gateway.frontends.sparkplug.metrics import device_rows
 from imu_gateway.frontends.sparkplug.node import BdSeq, Device, EdgeNode, Ignored, Write
 from imu_gateway.model import Series, WireProtocol
@@ -204,7 +205,7 @@ async def test_a_dcmd_runs_the_command_only_when_allowed(tmp_path: Path, tahu: T
                     return [m["value"] for x in node_messages(rec) if kind(x) == "DDATA"
                             for m in tahu.decode(x.payload)["metrics"] if m["alias"] == result]
 
-                await until(lambda: said() == ["set_zero_type: ok"])
+                await until(lambda: said() == ['set_zero_type: ok {"result": "success"}'])
             else:
                 assert gw.sparkplug is not None
                 await until(lambda: gw.sparkplug is not None and gw.sparkplug.ignored == 1)
@@ -342,9 +343,58 @@ def test_commands_that_are_not_acted_on_say_why(tahu: Tahu) -> None:
 
 
 def test_a_primary_host_state_is_read_in_both_spellings() -> None:
-    assert EdgeNode.host_online(b'{"online": true, "timestamp": 1}') is True
-    assert EdgeNode.host_online(b'{"online": false, "timestamp": 1}') is False
-    assert EdgeNode.host_online(b"ONLINE") is True  # Sparkplug 2.2
-    assert EdgeNode.host_online(b"OFFLINE") is False
-    assert EdgeNode.host_online(b'{"online": "yes"}') is None
-    assert EdgeNode.host_online(b"\xff") is None
+    assert read_state(b'{"online": true, "timestamp": 1}', False) == HostState(True, 1, False)
+    assert read_state(b'{"online": false, "timestamp": 1}', False) == HostState(False, 1, False)
+    assert read_state(b"ONLINE", True) == HostState(True, None, True)  # Sparkplug 2.2
+    assert read_state(b"OFFLINE", True) == HostState(False, None, True)
+    assert "boolean" in str(read_state(b'{"online": "yes"}', False))
+    assert "neither" in str(read_state(b"\xff", False))
+
+
+@pytest.mark.anyio
+async def test_every_metric_is_stamped_and_refused_writes_and_settings_are_answered(
+        tmp_path: Path, tahu: Tahu) -> None:
+    """Every metric has a timestamp (the NBIRTH's bdSeq and rebirth, a command's
+    result too); a DCMD of the wrong datatype is answered in ``Commands/Result``, like
+    a command the sensor refused; ``read_settings`` answers with the settings; the
+    buses' counters are node metrics, in the NBIRTH and then an NDATA of what changed."""
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200, source=hold(READING))
+    dcmd = f"{SP}/{GROUP}/DCMD/{NODE}/boom"
+    with Mosquitto(tmp_path) as broker, simulated([ah]) as line, \
+            recording(broker, f"{SP}/#") as rec:
+        async with running(_config(line.path, broker, allow_commands=True)):
+            await until(lambda: any(kind(m) == "DBIRTH" for m in node_messages(rec)))
+            (dbirth,) = [tahu.decode(m.payload) for m in node_messages(rec)
+                         if kind(m) == "DBIRTH"]
+            result = metric(dbirth, "Commands/Result")["alias"]
+
+            def said() -> list[Any]:
+                return [m["value"] for x in node_messages(rec) if kind(x) == "DDATA"
+                        for m in tahu.decode(x.payload)["metrics"] if m["alias"] == result]
+
+            wrong = tahu.encode({"timestamp": int(time.time() * 1000), "metrics": [
+                {"name": "Commands/set_address", "type": "String", "value": "7"}]})
+            rec.client.publish(dcmd, wrong, qos=1)
+            await until(lambda: len(said()) == 1)
+            assert said()[0] == ("set_address: bad_arguments: Commands/set_address is Int32; "
+                                 "the DCMD wrote a String")
+            assert ah.address == 0
+            read = tahu.encode({"timestamp": int(time.time() * 1000), "metrics": [
+                {"name": "Commands/read_settings", "type": "Boolean", "value": True}]})
+            rec.client.publish(dcmd, read, qos=1)
+            await until(lambda: len(said()) == 2)
+            assert said()[1].startswith("read_settings: ok {")
+            settings = json.loads(said()[1].removeprefix("read_settings: ok "))
+            assert settings["zero_type"] == "absolute" and settings["address"] == 0
+            await until(lambda: any(kind(m) == "NDATA" for m in node_messages(rec)), 20)
+        got = decoded(tahu, node_messages(rec))
+    nbirth = got[0][1]
+    assert metric(nbirth, "Buses/a/Transactions")["type"] == "UInt64"
+    assert metric(nbirth, "Buses/a/Errors/timeout")["value"] == 0
+    assert 0 <= metric(nbirth, "Buses/a/Utilisation")["value"] <= 1
+    transactions = metric(nbirth, "Buses/a/Transactions")["alias"]
+    ndata = [p for k, p in got if k == "NDATA"]
+    assert any(m["alias"] == transactions and m["value"] > 0 for m in ndata[0]["metrics"])
+    for k, payload in got:
+        for m in payload["metrics"]:
+            assert isinstance(m.get("timestamp"), int) and m["timestamp"] > 0, (k, m)

@@ -60,7 +60,8 @@ class Owner(Protocol):
         the first failed)."""
 
     def will(self) -> Message:
-        """The last will of the next connection."""
+        """The last will of the next connection: asked before each try, whether or not
+        its CONNECT goes out (the session's ``connect_sent`` is told when it does)."""
 
     def on_connected(self) -> None:
         """CONNACK came: subscribe, publish everything retained anew."""
@@ -75,8 +76,13 @@ class Session:
     """One client id's connection, kept up; ``pipe`` publishes on it."""
 
     def __init__(self, config: MqttConfig, client_id: str, owner: Owner,
-                 log: logging.Logger, queue_size: int) -> None:
+                 log: logging.Logger, queue_size: int,
+                 connect_sent: Callable[[], None] = lambda: None) -> None:
+        """``connect_sent``: called on the event loop each time a CONNECT packet (with
+        the owner's last will) went out; a try the broker refused at TCP sends none.
+        (Sparkplug counts them: the will's bdSeq.)"""
         self.config, self.client_id, self.owner, self.log = config, client_id, owner, log
+        self.connect_sent = connect_sent
         self.counters = Counters()
         self.peers = PeerLog(log)
         self.client: paho.Client | None = None
@@ -197,6 +203,9 @@ class Session:
             self._problem(self._unreached(broker, "unreachable", reason_of(exc)))
             close_sockets(client)
             return False
+        # paho's connect() returns once it has written the CONNECT (no network thread
+        # runs yet, so it writes it itself)
+        self.connect_sent()
         self._answered.clear()
         client.loop_start()
         with contextlib.suppress(TimeoutError):

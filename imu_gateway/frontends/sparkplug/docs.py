@@ -7,7 +7,8 @@ from __future__ import annotations
 from ...commands import CATALOGUE
 from ...config import SensorConfig
 from ...model import CAPABILITIES, VALUE_GROUPS, Series, WireProtocol
-from .metrics import STATUS_ROWS, DataType, command_rows, command_type, identity_rows
+from .client import NODE_DATA_EVERY_S, REBIRTH_HOLD_S
+from .metrics import BUS_ROWS, STATUS_ROWS, DataType, command_rows, command_type, identity_rows
 from .node import BDSEQ, NAMESPACE, REBIRTH
 
 INTRO = """# Sparkplug B
@@ -38,11 +39,19 @@ mqtt:
 
 {messages}
 
-- **seq** is 0 in the NBIRTH and one more, modulo 256, in every DBIRTH, DDATA and DDEATH
-  after it.
-- **bdSeq** is one more (modulo 256) at every MQTT connection. With `bdseq_file` it is
-  kept across restarts, so that a will the broker publishes late for a killed gateway
-  never matches the new session's birth; without it, each start begins at 0.
+- **seq** is 0 in the NBIRTH and one more, modulo 256, in every DBIRTH, DDATA, DDEATH
+  and NDATA after it.
+- **bdSeq** is one more (modulo 256) in every MQTT CONNECT packet the node sends (the
+  will in it, the NDEATH, carries the number). A try that sends none (the broker is
+  down and refuses the TCP connection) takes none: after an outage the next CONNECT
+  carries the next number, however many tries failed. The NBIRTH of a connection
+  carries its CONNECT's. With `bdseq_file` it is kept across restarts, so that a will
+  the broker publishes late for a killed gateway never matches the new session's
+  birth; without it, each start begins at 0.
+- **Timestamps**: every payload and every metric has one (ms since the epoch). A
+  sensor's metrics carry their sample's wire time; the node's metrics and a command's
+  `Commands/Result` the time they are sent; the NDEATH's `{bdseq}` the time its
+  connection was made.
 - **Aliases** are unique within the node and stable for the life of the process.
 - All births and data are QoS 0 and not retained, as Sparkplug asks; states that could
   not be sent while the broker was away are not replayed (a new session begins with
@@ -58,19 +67,42 @@ mqtt:
   bus master's command queue, when `allow_commands` is true (otherwise the DCMD is
   ignored, and counted, and the births carry no command metrics). A command without
   an argument is run by writing true. The outcome comes back as the device's
-  `Commands/Result` metric in a DDATA: `{{command}}: ok`, or
-  `{{command}}: {{kind}}: {{message}}` (the error kinds REST and MQTT answer with).
-- Anything else (not a Sparkplug payload, an unknown device, a metric that is not a
-  command) is ignored, counted and logged (rate-limited); the node goes on.
+  `Commands/Result` metric in a DDATA: `{{command}}: ok`, followed by the sensor's
+  answer as JSON when it has one, or `{{command}}: {{kind}}: {{message}}` (the error
+  kinds REST and MQTT answer with). `read_settings` answers with the settings read:
+  `read_settings: ok {{"zero_type": "absolute", "degrees": 0.0, "address": 0}}`.
+- A write the node refuses before it reaches the bus gets a `Commands/Result` too,
+  and runs nothing: a metric that is not a command
+  (`{{metric}}: unknown_command: …`), a value of the wrong datatype
+  (`set_address: bad_arguments: Commands/set_address is Int32; the DCMD wrote a String`;
+  an Int32 command takes a whole Float or Double too), no value, or false.
+- Anything else (not a Sparkplug payload, an unknown device, a DCMD while commands
+  are not allowed) is ignored, counted and logged (rate-limited); the node goes on.
 
 ## Primary host
 
 With `primary_host_id`, the node subscribes to `{ns}/STATE/{{primary_host_id}}` (the
-Sparkplug 3.0 JSON `{{"online": true, "timestamp": …}}`) and to 2.2's
+Sparkplug 3.0 JSON `{{"online": true, "timestamp": …}}`) and then to 2.2's
 `STATE/{{primary_host_id}}` (`ONLINE`/`OFFLINE`), and is born only while the host
-says online. When the host says offline, the node
-sends its NDEATH, disconnects, and connects again (a new bdSeq), to be born when the
-host is back.
+says online. Each connection waits for a STATE of its own (a retained one comes at
+once). When the host says offline, the node sends its NDEATH, disconnects, and
+connects again (a new bdSeq), to be born when the host is back. Which STATE counts:
+
+- **Older is ignored.** A 3.0 STATE whose `timestamp` is older than the newest one
+  the node has taken is ignored (and counted, and logged), online or offline: it is
+  a will or a retained message of an earlier host session, delivered late (Sparkplug
+  3.0: `message-flow-edge-node-birth-publish-phid-wait-timestamp`,
+  `operational-behavior-edge-node-termination-host-offline-timestamp`). An equal
+  timestamp is taken: a 3.0 host's will carries the timestamp of the birth it ends.
+  A STATE without a timestamp is taken as it comes.
+- **The 3.0 topic wins.** Once the host has published on `{ns}/STATE/…` (as seen by
+  this gateway since it started), its 2.2 topic is ignored: a host that moved to 3.0
+  often leaves an `OFFLINE` retained there for good. The 2.2 topic counts only while
+  no 3.0 STATE was ever seen. The 3.0 topic is subscribed first, so its retained
+  STATE is read before a retained 2.2 one.
+- **No flapping.** A STATE that asks for a birth within {hold:g} s of the last birth
+  waits until then, and the births are made if the host still says online. An
+  offline is acted on at once.
 """
 
 
@@ -78,7 +110,8 @@ host is back.
 MESSAGES = (
     ("NBIRTH", "NBIRTH/{gateway_id}",
      "after each connect (once the primary host is online), and on a rebirth",
-     f"seq 0; `{BDSEQ}` (Int64, this connection's), `{REBIRTH}` (Boolean, false)"),
+     f"seq 0; `{BDSEQ}` (Int64, this connection's), `{REBIRTH}` (Boolean, false), "
+     "the node metrics below"),
     ("DBIRTH", "DBIRTH/{gateway_id}/{sensor}",
      "after the NBIRTH for each sensor that is online; when a sensor answers again",
      "every metric of the device below: name, alias, datatype, value, the sample's time; "
@@ -87,6 +120,8 @@ MESSAGES = (
      "only the metrics that changed, by alias (with their datatype: Tahu's decoder needs "
      "it), stamped with the sample's wire time"),
     ("DDEATH", "DDEATH/{gateway_id}/{sensor}", "the sensor went offline", "seq only"),
+    ("NDATA", "NDATA/{gateway_id}", "a bus's counters changed (checked every few seconds)",
+     "the node metrics that changed, by alias"),
     ("NDEATH", "NDEATH/{gateway_id}",
      "the will of the session (QoS 1); or sent on a clean stop, or when the primary host "
      "goes offline", f"`{BDSEQ}` equal to the NBIRTH's; no seq"),
@@ -106,8 +141,16 @@ def _device_table(series: Series, protocol: WireProtocol) -> list[str]:
 
 
 def markdown() -> str:
-    intro = INTRO.format(ns=NAMESPACE, bdseq=BDSEQ, rebirth=REBIRTH, messages=_messages())
-    lines = [intro, "## Device metrics",
+    intro = INTRO.format(ns=NAMESPACE, bdseq=BDSEQ, rebirth=REBIRTH, messages=_messages(),
+                         hold=REBIRTH_HOLD_S)
+    lines = [intro, "## Node metrics", "",
+             f"Besides `{BDSEQ}` and `{REBIRTH}`, the NBIRTH carries each bus's counters "
+             "(the `buses` of the configuration, by name); an NDATA carries those that "
+             f"changed, at most every {NODE_DATA_EVERY_S:g} s:", "",
+             "| metric | datatype | what it says |", "|---|---|---|",
+             *(f"| `{row.metric('{bus}')}` | {row.datatype.spelled} | {row.description} |"
+               for row in BUS_ROWS), ""]
+    lines += ["## Device metrics",
              "", "The measured values, one folder per value group; only the groups a "
              "series measures are in its births:", "",
              "| metric | datatype | engUnit | series |", "|---|---|---|---|"]

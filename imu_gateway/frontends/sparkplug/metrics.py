@@ -4,7 +4,8 @@ row per metric.  The births, the data and docs/sparkplug.md all come from these 
 A sensor's metrics are its series' measured values (``model.VALUE_GROUPS``: one folder
 per group, the value's unit as its ``engUnit`` property), a few status and identity
 metrics, and, when commands are allowed, one metric per command of the catalogue the
-series and protocol have (``commands.CATALOGUE``).
+series and protocol have (``commands.CATALOGUE``).  The edge node's own metrics are
+each bus's counters (``BUS_ROWS``: ``Buses/{bus}/…``, from ``Gateway.stats()``).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from ...cache import Snapshot, Status
 from ...commands import CATALOGUE, CommandSpec, argument_type, commands_for
 from ...config import SensorConfig
 from ...model import CAPABILITIES, VALUE_GROUPS, Series, WireProtocol
+from ...stats import ERROR_KINDS, BusStats
 
 Value = float | int | bool | str
 
@@ -118,3 +120,36 @@ def device_rows(sensor: SensorConfig, protocol: WireProtocol,
     """Every metric of one sensor's device, in birth order."""
     rows = [*value_rows(sensor.series), *STATUS_ROWS, *identity_rows(sensor, protocol)]
     return [*rows, *command_rows(sensor.series, protocol)] if commands else rows
+
+
+@dataclass(frozen=True, slots=True)
+class BusRow:
+    """One node metric of every bus: ``Buses/{bus}/{name}``, its value in the bus's
+    stats."""
+
+    name: str
+    datatype: DataType
+    description: str
+    value: Callable[[BusStats], Value]
+
+    def metric(self, bus: str) -> str:
+        return f"Buses/{bus}/{self.name}"
+
+
+def _errors_of(kind: str) -> Callable[[BusStats], Value]:
+    return lambda b: b.errors.get(kind, 0)
+
+
+BUS_ROWS = (
+    BusRow("Transactions", DataType.UINT64, "exchanges done", lambda b: b.transactions),
+    BusRow("Errors/all", DataType.UINT64, "failed exchanges of every kind",
+           lambda b: sum(b.errors.values())),
+    *(BusRow(f"Errors/{kind}", DataType.UINT64, f"failed exchanges: {kind}",
+             _errors_of(kind)) for kind in ERROR_KINDS),
+    BusRow("TransactionsPerSecond", DataType.DOUBLE, "exchanges per second, over the last 5 s",
+           lambda b: b.transactions_per_s),
+    BusRow("Utilisation", DataType.DOUBLE, "time in exchanges ÷ elapsed (0-1)",
+           lambda b: b.utilisation),
+    BusRow("QueueDepth", DataType.UINT32, "commands and reads waiting", lambda b: b.queue_depth),
+    BusRow("PortOpen", DataType.BOOLEAN, "the serial port is open", lambda b: b.port_open),
+)

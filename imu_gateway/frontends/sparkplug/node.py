@@ -2,27 +2,32 @@
 argument (ms since the epoch).  The gateway is the edge node (its ``gateway_id``),
 each sensor a device.  The rules kept (Sparkplug 3.0):
 
-* **bdSeq** goes up by one (0-255, then 0) with every MQTT connection; the NBIRTH and
-  the will (NDEATH) of a connection carry the same.  Kept in ``bdseq_file`` across
-  restarts when one is configured, so that a will published late by the broker (a
-  gateway killed and restarted) is never taken for the new session's death.
+* **bdSeq** goes up by one (0-255, then 0) with every MQTT CONNECT packet sent (the
+  will in it carries the number): a try that never sent one (the broker refused the
+  TCP connection) takes none.  The NBIRTH and the will (NDEATH) of a connection carry
+  the same.  Kept in ``bdseq_file`` across restarts when one is configured, so that a
+  will published late by the broker (a gateway killed and restarted) is never taken
+  for the new session's death.
 * **seq** is 0 in the NBIRTH and one more (mod 256) in every message after it: DBIRTH,
-  DDATA, DDEATH.  NDEATH has none.
+  DDATA, DDEATH, NDATA.  NDEATH has none.
 * **Births** carry every metric with its name, alias, datatype and (for the measured
-  values) an ``engUnit`` property; **data** carry only what changed, by alias, with the
-  sample's own timestamp.  A device that goes offline gets a DDEATH; when it answers
-  again, a DBIRTH with its values.
+  values) an ``engUnit`` property; **data** carry only what changed, by alias.  Every
+  metric has a timestamp: a sensor's, its sample's; the node's and a command's
+  result, the time they are sent.  The NBIRTH and NDATA carry each bus's counters.  A
+  device that goes offline gets a DDEATH; when it answers again, a DBIRTH with its
+  values.
 * **NCMD** ``Node Control/Rebirth`` = true: all the births again (same bdSeq).
-* **DCMD** writes a command metric: the catalogue's command, when commands are allowed.
-* **STATE**: with a primary host configured, births wait until its
-  ``spBv1.0/STATE/{host}`` says online; when it says offline, the node ends its session
-  (NDEATH, disconnect) and is born again once the host is back.
+* **DCMD** writes a command metric: the catalogue's command, when commands are allowed;
+  a write refused here (not a command, the wrong type, no value) is answered in
+  ``Commands/Result`` like a command the sensor refused.
+* **STATE** (``host``): with a primary host configured, births wait until it says
+  online; when it says offline, the node ends its session (NDEATH, disconnect) and is
+  born again once the host is back.
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import os
 from collections.abc import Iterable, Sequence
@@ -32,9 +37,11 @@ from pathlib import Path
 from google.protobuf.message import DecodeError
 
 from ...cache import Snapshot
+from ...errors import ErrorKind
 from ...normalise import field_values
+from ...stats import BusStats
 from ..mqtt_topics import Message
-from .metrics import DataType, MetricRow, Value
+from .metrics import BUS_ROWS, RESULT, DataType, MetricRow, Value
 from .payload_pb2 import Payload
 
 log = logging.getLogger("imu_gateway.sparkplug")
@@ -63,6 +70,20 @@ class Write:
 
 
 @dataclass(frozen=True, slots=True)
+class Refused:
+    """A DCMD's write not run, and why: answered in the device's ``Commands/Result``."""
+
+    device: str
+    metric: str  # the command, or the metric written when it is none
+    kind: ErrorKind
+    reason: str
+
+    @property
+    def text(self) -> str:
+        return f"{self.metric}: {self.kind.value}: {self.reason}"
+
+
+@dataclass(frozen=True, slots=True)
 class Ignored:
     """A command message not acted on, and why (for the log)."""
 
@@ -80,8 +101,13 @@ class BdSeq:
             with contextlib.suppress(OSError, ValueError):
                 self.value = int(path.read_text().strip()) % 256
 
+    @property
+    def upcoming(self) -> int:
+        """The number the next CONNECT carries (``next()`` takes it once sent)."""
+        return (self.value + 1) % 256
+
     def next(self) -> int:
-        self.value = (self.value + 1) % 256
+        self.value = self.upcoming
         if self.path is not None:
             tmp = self.path.with_name(self.path.name + ".tmp")
             try:
@@ -104,7 +130,7 @@ class EdgeNode:
     the will; ``birth()`` the births; ``update()`` the data of a snapshot."""
 
     def __init__(self, group_id: str, node_id: str, devices: Sequence[Device],
-                 bdseq: BdSeq) -> None:
+                 bdseq: BdSeq, buses: Sequence[str] = ()) -> None:
         self.group, self.node = group_id, node_id
         self.devices = {d.name: d for d in devices}
         self.bdseq = bdseq
@@ -113,8 +139,10 @@ class EdgeNode:
         self.born = False
         self.alive: set[str] = set()  # devices born and not dead since
         self.last: dict[str, dict[str, Value | None]] = {}  # last values sent, per device
+        self.last_node: dict[str, Value] = {}  # the node metrics' last values sent
         # aliases: unique in the node, stable for the process
         names = [(None, BDSEQ), (None, REBIRTH),
+                 *((None, r.metric(bus)) for bus in buses for r in BUS_ROWS),
                  *((d.name, r.name) for d in devices for r in d.rows)]
         self.alias = {key: number for number, key in enumerate(names, start=1)}
         self.by_alias = {number: key for key, number in self.alias.items()}
@@ -125,42 +153,68 @@ class EdgeNode:
         base = f"{NAMESPACE}/{self.group}/{kind}/{self.node}"
         return f"{base}/{device}" if device is not None else base
 
-    @staticmethod
-    def state_topics(host: str) -> tuple[str, str]:
-        """Where a primary host says whether it is online: Sparkplug 3.0's topic, and
-        2.2's (outside the namespace)."""
-        return f"{NAMESPACE}/STATE/{host}", f"STATE/{host}"
-
     @property
     def command_topics(self) -> tuple[str, str]:
         return self.topic("NCMD"), f"{NAMESPACE}/{self.group}/DCMD/{self.node}/+"
 
     # ------------------------------------------------------------ session
 
-    def connected(self) -> Message:
-        """A new MQTT connection: its bdSeq, and its will (the NDEATH)."""
-        self.session = self.bdseq.next()
+    def will(self, now_ms: int) -> Message:
+        """The will (the NDEATH) of the next connection try, with the bdSeq its CONNECT
+        carries; ``connect_sent()`` takes the number once that CONNECT went out."""
+        self.session = self.bdseq.upcoming
         self.born = False
         self.alive.clear()
-        return self.death()
+        return self.death(now_ms)
 
-    def death(self) -> Message:
-        payload = Payload()
-        self._metric(payload, BDSEQ, None, DataType.INT64, self.session, named=True)
+    def connect_sent(self) -> None:
+        """The CONNECT with the last will went out: its bdSeq is spent."""
+        self.session = self.bdseq.next()
+
+    def death(self, now_ms: int) -> Message:
+        payload = Payload(timestamp=now_ms)
+        self._metric(payload, BDSEQ, None, DataType.INT64, self.session, now_ms, named=True)
         return Message(self.topic("NDEATH"), payload.SerializeToString(), DEATH_QOS, False)
 
-    def birth(self, snaps: Iterable[Snapshot], now_ms: int) -> list[Message]:
-        """NBIRTH (seq 0), then a DBIRTH for every device that is online."""
+    def birth(self, snaps: Iterable[Snapshot], buses: Iterable[BusStats],
+              now_ms: int) -> list[Message]:
+        """NBIRTH (seq 0, with the buses' counters), then a DBIRTH for every device that
+        is online."""
         self.seq, self.born = 0, True
         self.alive.clear()
         payload = Payload(timestamp=now_ms, seq=0)
-        self._metric(payload, BDSEQ, None, DataType.INT64, self.session, named=True)
-        self._metric(payload, REBIRTH, None, DataType.BOOLEAN, False, named=True)
+        self._metric(payload, BDSEQ, None, DataType.INT64, self.session, now_ms, named=True)
+        self._metric(payload, REBIRTH, None, DataType.BOOLEAN, False, now_ms, named=True)
+        self.last_node = {}
+        for name, datatype, value in self._node_values(buses):
+            self.last_node[name] = value
+            self._metric(payload, name, None, datatype, value, now_ms, named=True)
         out = [Message(self.topic("NBIRTH"), payload.SerializeToString(), DATA_QOS, False)]
         for snap in snaps:
             if snap.name in self.devices and snap.online:
                 out.append(self._device_birth(snap, now_ms))
         return out
+
+    def node_data(self, buses: Iterable[BusStats], now_ms: int) -> list[Message]:
+        """An NDATA of the node metrics that changed since last sent (none: nothing)."""
+        if not self.born:
+            return []
+        changed = [(name, datatype, value) for name, datatype, value in self._node_values(buses)
+                   if self.last_node.get(name) != value]
+        if not changed:
+            return []
+        payload = Payload(timestamp=now_ms, seq=self._next_seq())
+        for name, datatype, value in changed:
+            self.last_node[name] = value
+            self._metric(payload, name, None, datatype, value, now_ms)
+        return [Message(self.topic("NDATA"), payload.SerializeToString(), DATA_QOS, False)]
+
+    def _node_values(self, buses: Iterable[BusStats]) -> list[tuple[str, DataType, Value]]:
+        """The node metrics now: each known bus's counters (a bus the births did not
+        name has no alias, and is left out)."""
+        return [(row.metric(bus.name), row.datatype, row.value(bus))
+                for bus in buses for row in BUS_ROWS
+                if (None, row.metric(bus.name)) in self.alias]
 
     def update(self, snap: Snapshot, now_ms: int) -> list[Message]:
         """A sensor's new snapshot: DBIRTH, DDATA of what changed, or DDEATH."""
@@ -182,14 +236,15 @@ class EdgeNode:
         if not self.born or device not in self.alive:
             return []
         payload = Payload(timestamp=now_ms, seq=self._next_seq())
-        self._metric(payload, "Commands/Result", device, DataType.STRING, text)
+        self._metric(payload, RESULT.name, device, DataType.STRING, text, now_ms)
         return [Message(self.topic("DDATA", device), payload.SerializeToString(),
                         DATA_QOS, False)]
 
     # ------------------------------------------------------------ incoming
 
-    def command(self, topic: str, data: bytes) -> list[Write] | bool | Ignored:
-        """An NCMD or DCMD: True for a rebirth, the writes of a DCMD, or Ignored."""
+    def command(self, topic: str, data: bytes) -> list[Write | Refused] | bool | Ignored:
+        """An NCMD or DCMD: True for a rebirth, a DCMD's writes (each run, or refused
+        with its reason), or Ignored."""
         try:
             payload = Payload.FromString(data)
         except DecodeError as exc:  # a peer's bad bytes
@@ -204,30 +259,36 @@ class EdgeNode:
         device = topic.rsplit("/", 1)[-1]
         if device not in self.devices:
             return Ignored(f"a DCMD for unknown device {device!r}")
-        rows = {r.name: r for r in self.devices[device].rows}
-        writes = []
-        for m in payload.metrics:
-            key = (device, m.name) if m.HasField("name") else self.by_alias.get(m.alias)
-            row = rows.get(key[1]) if key is not None and key[0] == device else None
-            if row is None or row.command is None:
-                return Ignored(f"a DCMD for {device} writes {m.name or m.alias!r}, "
-                               "which is not a command metric")
-            value = _value_of(m, row.datatype)
-            if value is None or value is False:
-                return Ignored(f"a DCMD for {device} writes {row.name} without a value "
-                               "(or false: write true to run a command without arguments)")
-            writes.append(Write(device, row.command, value))
-        return writes or Ignored(f"a DCMD for {device} without metrics")
+        writes = [self._write(device, m) for m in payload.metrics]
+        if not writes:
+            return Ignored(f"a DCMD for {device} without metrics")
+        if RESULT not in self.devices[device].rows:  # commands not allowed: nowhere to answer
+            refused = next((w for w in writes if isinstance(w, Refused)), None)
+            if refused is not None:
+                return Ignored(f"a DCMD for {device}: {refused.text}")
+        return writes
 
-    @staticmethod
-    def host_online(data: bytes) -> bool | None:
-        """A primary host's STATE payload: Sparkplug 3.0's JSON ``{"online": …}``, or
-        2.2's plain ``ONLINE``/``OFFLINE``; None for anything else."""
-        with contextlib.suppress(ValueError, AttributeError, TypeError):
-            online = json.loads(data).get("online")
-            return online if isinstance(online, bool) else None
-        text = data.strip().upper()
-        return {b"ONLINE": True, b"OFFLINE": False}.get(text)
+    def _write(self, device: str, m: Payload.Metric) -> Write | Refused:
+        """One metric of a DCMD: the command it runs, or why it runs none."""
+        rows = {r.name: r for r in self.devices[device].rows}
+        key = (device, m.name) if m.HasField("name") else self.by_alias.get(m.alias)
+        row = rows.get(key[1]) if key is not None and key[0] == device else None
+        if row is None or row.command is None:
+            written = m.name if m.HasField("name") else f"alias {m.alias}"
+            return Refused(device, written, ErrorKind.UNKNOWN_COMMAND,
+                           "not a command metric (write one of Commands/…)")
+        value = _value_of(m, row.datatype)
+        if m.is_null or m.WhichOneof("value") is None:
+            return Refused(device, row.command, ErrorKind.BAD_ARGUMENTS,
+                           f"no value written ({row.name} is {row.datatype.spelled})")
+        if value is None:
+            return Refused(device, row.command, ErrorKind.BAD_ARGUMENTS,
+                           f"{row.name} is {row.datatype.spelled}; the DCMD wrote "
+                           f"{_written_type(m)}")
+        if value is False:
+            return Refused(device, row.command, ErrorKind.BAD_ARGUMENTS,
+                           "false written: write true to run a command without arguments")
+        return Write(device, row.command, value)
 
     # ------------------------------------------------------------ the payloads
 
@@ -240,7 +301,7 @@ class EdgeNode:
         for row in device.rows:
             values[row.name] = value = row.of(snap, fields)
             metric = self._metric(payload, row.name, snap.name, row.datatype, value,
-                                  named=True, at=_sample_ms(snap, now_ms))
+                                  _sample_ms(snap, now_ms), named=True)
             if row.unit is not None:
                 metric.properties.keys.append("engUnit")
                 metric.properties.values.add(type=DataType.STRING, string_value=row.unit)
@@ -259,14 +320,14 @@ class EdgeNode:
         at = _sample_ms(snap, now_ms)
         for row, value in changed:
             last[row.name] = value
-            self._metric(payload, row.name, snap.name, row.datatype, value, at=at)
+            self._metric(payload, row.name, snap.name, row.datatype, value, at)
         return [Message(self.topic("DDATA", snap.name), payload.SerializeToString(),
                         DATA_QOS, False)]
 
     def _metric(self, payload: Payload, metric: str, device: str | None, datatype: DataType,
-                value: Value | None, *, named: bool = False,
-                at: int | None = None) -> Payload.Metric:
-        """Adds one metric: by alias and type, and in births (``named``) by name too.
+                value: Value | None, at: int, *, named: bool = False) -> Payload.Metric:
+        """Adds one metric: by alias, type and timestamp (``at``, ms), and in births
+        (``named``) by name too.
         (Sparkplug 3.0 says data SHOULD NOT carry the type; Eclipse Tahu's own decoder
         gives no value without it, so it is sent: 2 bytes a metric.)"""
         m = payload.metrics.add()
@@ -274,8 +335,7 @@ class EdgeNode:
             m.name = metric
         m.datatype = datatype
         m.alias = self.alias[(device, metric)]
-        if at is not None:
-            m.timestamp = at
+        m.timestamp = at
         if value is None:
             m.is_null = True
         elif datatype is DataType.BOOLEAN:
@@ -324,3 +384,11 @@ def _value_of(metric: Payload.Metric, datatype: DataType) -> Value | None:
         number: float = getattr(metric, field)
         return int(number) if datatype is DataType.INT32 and number.is_integer() else number
     return None
+
+
+def _written_type(metric: Payload.Metric) -> str:
+    """What a written metric says it is: its datatype, or the field its value is in."""
+    with contextlib.suppress(ValueError):
+        return f"a {DataType(metric.datatype).spelled}"
+    field = metric.WhichOneof("value") or "no"
+    return f"a {field.removesuffix('_value')} value"
