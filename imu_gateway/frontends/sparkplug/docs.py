@@ -35,6 +35,17 @@ mqtt:
     bdseq_file: /var/lib/imu-gateway/bdseq   # bdSeq kept across restarts
 ```
 
+## What is supported, and what is not
+
+- **Supported:** the edge node and its devices (NBIRTH, NDEATH, DBIRTH, DDEATH,
+  NDATA, DDATA), aliases, seq and bdSeq, NCMD `Node Control/Rebirth`, DCMD commands,
+  one primary host's STATE (3.0's JSON on `spBv1.0/STATE/{{host}}`, and 2.2's
+  `STATE/{{host}}`), broker failover across `mqtt.url`.
+- **Not supported:** templates and DataSets, metric properties other than `engUnit`,
+  historical metrics (store and forward: what the broker missed is not replayed),
+  payload compression, `Node Control/Next Server` and the other node controls but
+  Rebirth, Sparkplug A, and acting as a host application.
+
 ## Messages
 
 {messages}
