@@ -30,6 +30,7 @@ from ...stats import FrontendCounts
 from ...supervise import Frontend
 from ..common import GatewayLike
 from .guard import GatewayUaServer
+from .history import install as install_history
 from .security import ConfigUsers, secure
 from .space import BUS_VARS, NAMESPACE, SENSOR_VARS, UNECE, UNITS, quality
 
@@ -110,6 +111,8 @@ class OpcUaServer(Frontend):
                                "folder it can write)") from None
         self.idx = await server.register_namespace(NAMESPACE)
         await self._build(server)
+        await install_history(server, self.gateway.history, {
+            node: (s, f) for s, pairs in self.values.items() for f, node in pairs})
         try:
             await server.start()
         except OSError:
@@ -197,7 +200,9 @@ class OpcUaServer(Frontend):
         attrs.DataType = ua.NodeId(ua.ObjectIds.Float)
         attrs.Value = _variant(None, "Float")  # until the first reading
         attrs.ValueRank = ua.ValueRank.Scalar
-        attrs.AccessLevel = attrs.UserAccessLevel = ua.AccessLevel.CurrentRead.mask
+        attrs.AccessLevel = attrs.UserAccessLevel = \
+            ua.AccessLevel.CurrentRead.mask | ua.AccessLevel.HistoryRead.mask
+        attrs.Historizing = True
         item.NodeAttributes = attrs
         (result,) = await parent.session.add_nodes([item])
         result.StatusCode.check()
