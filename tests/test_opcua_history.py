@@ -213,7 +213,7 @@ async def test_history_read_serves_what_the_gateway_kept(tmp_path: Path, line: s
         gw.cache.subscribe(published)
         await until(lambda: bool(published.rows))  # (a first sample)
         t0 = math.ceil(published.rows[0][0]) + 1  # the first whole second seen whole
-        await until(lambda: published.after(t0 + 4))
+        await until(lambda: published.after(t0 + 4), timeout=30)  # (seconds must pass)
         async with Client(f"opc.tcp://127.0.0.1:{port}/") as client:
             idx = await client.get_namespace_index(NS)
             roll = client.get_node(ua.NodeId(ROLL, idx))
@@ -276,14 +276,15 @@ async def test_continuation_points_bounds_and_reverse(tmp_path: Path, line: str)
     async with running(_config(port, tmp_path / "pki", line)) as gw:
         published = Published()
         gw.cache.subscribe(published)
-        await until(lambda: len(gw.history.seconds("boom", FIELD)) >= 6)
-        kept = gw.history.seconds("boom", FIELD)
-        start, end = kept[0].at, kept[5].at  # five kept seconds, in a range now closed
+        # (seconds must pass: a deadline well past them)
+        await until(lambda: len(gw.history.seconds("boom", FIELD)) >= 5, timeout=30)
+        kept = gw.history.seconds("boom", FIELD)[:4]  # seconds over: no sample will change
+        start, end = kept[0].at, kept[3].at
         async with Client(f"opc.tcp://127.0.0.1:{port}/") as client:
             node = ua.NodeId(ROLL, await client.get_namespace_index(NS))
             (whole,) = await client.uaclient.history_read(_params(_raw(start, end), [node]))
             assert [dv.SourceTimestamp.timestamp() for dv in whole.HistoryData.DataValues] \
-                == pytest.approx([s.at for s in kept[:5]], abs=1e-6)
+                == pytest.approx([s.at for s in kept[:3]], abs=1e-6)
             pages, point = [], None
             for _ in range(10):
                 (page,) = await client.uaclient.history_read(
@@ -302,10 +303,11 @@ async def test_continuation_points_bounds_and_reverse(tmp_path: Path, line: str)
                 _params(_raw(end, start - 30, bounds=True), [node]))
             got = back.HistoryData.DataValues
             assert [dv.SourceTimestamp.timestamp() for dv in got[:-1]] \
-                == pytest.approx([s.at for s in reversed(kept[:6])], abs=1e-6)
+                == pytest.approx([s.at for s in reversed(kept)], abs=1e-6)
             assert got[-1].StatusCode.value == _STATUS.BadBoundNotFound
             # processed: more intervals than one answer holds
-            details = _processed(math.floor(end) - 1500, math.floor(end), 1000.0,
+            last = kept[2].start + 1  # (the last interval: kept[2]'s second)
+            details = _processed(last - 1500, last, 1000.0,
                                  [ua.ObjectIds.AggregateFunction_Maximum])
             (first,) = await client.uaclient.history_read(_params(details, [node]))
             assert len(first.HistoryData.DataValues) == MAX_INTERVALS
@@ -322,7 +324,7 @@ async def test_what_history_read_refuses(tmp_path: Path, line: str) -> None:
     """Each refusal names its cause for its node only; the others are served."""
     port = free_port()
     async with running(_config(port, tmp_path / "pki", line)) as gw:
-        await until(lambda: len(gw.history.seconds("boom", FIELD)) >= 2)
+        await until(lambda: len(gw.history.seconds("boom", FIELD)) >= 2, timeout=30)
         end = gw.history.seconds("boom", FIELD)[-1].start
         async with Client(f"opc.tcp://127.0.0.1:{port}/") as client:
             idx = await client.get_namespace_index(NS)
