@@ -327,8 +327,9 @@ fixed from the start.
 **HistoryReadRaw** (`ReadRawModifiedDetails`, `IsReadModified = false`) returns
 each kept second's last value: `SourceTimestamp` and `ServerTimestamp` are both that
 sample's wire time (the gateway stamps a sample when its answer comes off the bus),
-StatusCode Good, DataType Float.  Of a second whose last sample had no value of a
-field, the field's last value of that second is returned, at that time.
+StatusCode Good, DataType Float.  Where a second's last sample had no value of a
+field (NaN), the field's last value of that second is returned, stamped with the
+time of the second's last sample.
 
 - The range is `StartTime ≤ t < EndTime`.  `EndTime` before `StartTime` returns the
   values newest first (`EndTime < t ≤ StartTime`); no `StartTime` reads backwards
