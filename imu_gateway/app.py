@@ -28,6 +28,7 @@ from .frontends.mqtt import MqttClient
 from .frontends.opcua.server import OpcUaServer
 from .frontends.rest import HttpServer, openapi_document
 from .frontends.sparkplug.client import SparkplugClient
+from .history import History
 from .stats import BusStats, FrontendCounts, SensorStats
 from .supervise import Frontend, Supervisor
 
@@ -53,6 +54,11 @@ class Gateway:
         self.masters = {name: runner.master for name, runner in self.runners.items()}
         self._runner_of = {s.name: self.runners[b.name] for b, s in config.iter_sensors()}
         self.sensors: dict[str, SensorConfig] = {s.name: s for _, s in config.iter_sensors()}
+        # One history for every front end (REST's trends, OPC UA's HistoryRead): its
+        # memory is fixed per sensor.  Subscribed first, so it has a reading before any
+        # front end shows it.
+        self.history = History(self)
+        self.cache.subscribe(self.history.on_cache_event)
         self.modbus = ModbusTcpServer(self, config.modbus) if config.modbus else None
         sparkplug = config.mqtt.sparkplug if config.mqtt else None
         self.mqtt = MqttClient(self, config.mqtt) \

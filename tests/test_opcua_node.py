@@ -1,5 +1,6 @@
 """The OPC UA server against Node's node-opcua (tests/node/opcua.js), a client that
-knows it only from docs/opcua.md: browse, read, subscribe, call, and be refused."""
+knows it only from docs/opcua.md: browse, read, subscribe, read history, call, and be
+refused."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from asyncua import ua
 from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from cryptography import x509
 from cryptography.hazmat.primitives import serialization
@@ -117,7 +119,8 @@ async def test_node_opcua_browses_reads_subscribes_and_sees_the_quality(
         cfg = _config(port, tmp_path / "pki", line.path)
         cfg["buses"][0]["sensors"][0]["stale_after_ms"] = 400
         async with running(cfg) as gw:
-            await until(lambda: gw.cache.snapshot("boom").seq >= 2)
+            # (some seconds of history first: seconds must pass, a deadline well past them)
+            await until(lambda: len(gw.history.seconds("boom", "pitch")) >= 4, timeout=30)
             got = await node_opcua(endpoint, GID, "boom", certificate=client)
             assert gw.opcua is not None
             pitch = f"ns={gw.opcua.idx};s={GID}.Sensors.boom.Angles.pitch"
@@ -132,10 +135,36 @@ async def test_node_opcua_browses_reads_subscribes_and_sees_the_quality(
         assert seen["status"] == "Good"
         slack = tolerance(WireProtocol.NATIVE, name, value) + 1e-6 * max(1, abs(value))
         assert abs(seen["value"] - value) <= slack, (name, seen, value)
+    _check_history(got["history"], expected(ah)["pitch"])
     numbers = [n["value"] for n in got["notifications"]]
     sources = [n["source"] for n in got["notifications"]]
     assert numbers == sorted(numbers) and len(set(numbers)) == len(numbers) >= 5
     assert sources == sorted(sources)
+
+
+def _check_history(history: dict[str, Any], pitch: float) -> None:
+    """node-opcua's history of the held pitch: raw values Good, at increasing wire
+    times; Minimum and Maximum per second stamped at each second, Good + Calculated."""
+    slack = tolerance(WireProtocol.NATIVE, "pitch", pitch) + 1e-6 * max(1, abs(pitch))
+    raw = history["raw"]
+    assert raw["status"] == 0, raw
+    # node-opcua asks for the bounds: none before the gateway started, maybe one at the
+    # end (a second newer than the client's clock)
+    first, *kept = raw["values"]
+    assert first["status"] == ua.StatusCodes.BadBoundNotFound, raw
+    if kept[-1]["status"] == ua.StatusCodes.BadBoundNotFound:
+        kept.pop()
+    assert kept and all(v["status"] == 0 and abs(v["value"] - pitch) <= slack
+                        for v in kept), raw
+    sources = [v["source"] for v in raw["values"]]
+    assert sources == sorted(sources)
+    for name in ("minimum", "maximum"):
+        got = history[name]
+        assert got["status"] == 0, got
+        assert [v["source"] for v in got["values"]] == [history["start"] + 1000 * k
+                                                         for k in range(3)]
+        assert all(v["status"] == 0x401 and abs(v["value"] - pitch) <= slack
+                   for v in got["values"]), (got, pitch)
 
 
 @pytest.mark.anyio

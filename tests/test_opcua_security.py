@@ -474,8 +474,12 @@ async def test_a_start_and_a_refused_flood_cost_the_log_a_few_lines(
             for _ in range(50):
                 await read_status(secure, ns)
     said = [r for r in caplog.records if r.name.startswith(("asyncua.server", "imu_gateway"))]
-    for who in ("imu_gateway", "asyncua"):  # the gateway's line, asyncua's fault line
+    # the gateway's line; asyncua's fault line once a minute in the process (an
+    # earlier test may have had this minute's)
+    for who, most in (("imu_gateway", 1), ("asyncua", 1)):
         refusals = [r for r in said if r.name.startswith(who)
                     and "BadSecurityModeRejected" in r.getMessage()]
-        assert len(refusals) == 1, [r.getMessage() for r in said]
+        assert len(refusals) <= most, [r.getMessage() for r in said]
+    assert any(r.name.startswith("imu_gateway") and "BadSecurityModeRejected"
+               in r.getMessage() for r in said)
     assert len(said) <= 10, [r.getMessage() for r in said]

@@ -84,7 +84,7 @@ def two_lines() -> Any:
 def test_history_keeps_each_seconds_lowest_highest_and_last() -> None:
     """A pure check of the ring: buckets by the sample's own second, NaN is no value,
     a step back of the clock is ignored, and a query takes the last N seconds."""
-    from imu_gateway.frontends.rest.history import KEEP_S, History
+    from imu_gateway.history import KEEP_S, History
 
     gateway = SimpleNamespace(sensors={"s": SensorConfig(name="s", series=Series.IMU,
                                                           address=0)})

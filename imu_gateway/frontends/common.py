@@ -9,6 +9,7 @@ from typing import Any, Protocol
 from ..cache import Cache, Snapshot
 from ..commands import CommandResult
 from ..config import GatewayConfig, SensorConfig
+from ..history import History
 from ..stats import BusStats, FrontendCounts, SensorStats
 
 
@@ -18,6 +19,7 @@ class GatewayLike(Protocol):
     config: GatewayConfig
     cache: Cache
     sensors: dict[str, SensorConfig]
+    history: History  # every sensor's last minutes, one for all front ends
     started: float  # time.monotonic() at start
 
     async def command(self, sensor: str, name: str,

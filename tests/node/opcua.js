@@ -4,11 +4,13 @@
 // The environment gives the client's certificate and key (UA_CERT, UA_KEY, PEM) and
 // the security mode (UA_MODE: None or SignAndEncrypt, Basic256Sha256).
 // Prints one JSON object: the browsed tree, the values read, the subscription's
-// notifications of the sensor's Sequence, and a method call's result (with a user);
+// notifications of the sensor's Sequence, its pitch's history (raw over the last
+// minute; Minimum and Maximum over the last 3 whole seconds, 1 s intervals), and a
+// method call's result (with a user);
 // or {"refused": why} when the session is refused.
 const {
   OPCUAClient, MessageSecurityMode, SecurityPolicy, AttributeIds, TimestampsToReturn,
-  ClientSubscription, ClientMonitoredItem, DataType, UserTokenType,
+  ClientSubscription, ClientMonitoredItem, DataType, UserTokenType, AggregateFunction,
 } = require("node-opcua-client");
 
 const [endpoint, gateway, sensor, user, password] = process.argv.slice(2);
@@ -16,6 +18,25 @@ const [endpoint, gateway, sensor, user, password] = process.argv.slice(2);
 async function browseNames(session, nodeId) {
   const result = await session.browse(nodeId);
   return result.references.map((r) => ({ name: r.browseName.name, nodeId: r.nodeId.toString() }));
+}
+
+function values(result) {
+  return { status: result.statusCode.value,
+    values: ((result.historyData && result.historyData.dataValues) || []).map((dv) => ({ value: dv.value.value,
+      source: dv.sourceTimestamp.getTime(), status: dv.statusCode.value })) };
+}
+
+async function history(session, nodeId) {
+  const now = Date.now();
+  const raw = await session.readHistoryValue(nodeId, new Date(now - 60000), new Date(now));
+  const end = Math.floor(now / 1000) * 1000;
+  const out = { raw: values(raw), start: end - 3000 };
+  for (const [name, fn] of [["minimum", AggregateFunction.Minimum],
+    ["maximum", AggregateFunction.Maximum]]) {
+    out[name] = values(await session.readAggregateValue(
+      { nodeId }, new Date(end - 3000), new Date(end), fn, 1000));
+  }
+  return out;
 }
 
 async function main() {
@@ -66,6 +87,7 @@ async function main() {
       out.values[field.name] = { value: dv.value.value, status: dv.statusCode.name };
     }
   }
+  out.history = await history(session, id(`Sensors.${sensor}.Angles.pitch`));
   const subscription = ClientSubscription.create(session, {
     requestedPublishingInterval: 50, requestedLifetimeCount: 100,
     requestedMaxKeepAliveCount: 10, maxNotificationsPerPublish: 100,

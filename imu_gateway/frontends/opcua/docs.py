@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from ...commands import CATALOGUE, argument_type, commands_for
 from ...model import CAPABILITIES, VALUE_GROUPS, Series, WireProtocol
+from .history import HISTORY_DOC
 from .identity import MANUFACTURER, PRODUCT_NAME, PRODUCT_URI
 from .methods import declared_type
 from .nodes import COMMON_GROUPS
@@ -218,7 +219,7 @@ def markdown() -> str:
     lines = [INTRO.replace("{type_rows}", _type_rows()), *_values(), *_quality(),
              *_rows("### A sensor's status and identity", sensor_rows),
              *_rows("### Buses (written every second)", bus_rows), *_methods(),
-             *_identity(), SECURITY]
+             HISTORY_DOC, *_identity(), SECURITY]
     return "\n".join(lines)
 
 

@@ -27,15 +27,9 @@ PROFILES = [
     "http://opcfoundation.org/UA-Profile/Server/HistoricalRawData",
     "http://opcfoundation.org/UA-Profile/Server/AggregateHistorical",
 ]
-#: The aggregates HistoryReadProcessed serves (docs/opcua.md, "History").
-AGGREGATES = {
-    "Minimum": ua.ObjectIds.AggregateFunction_Minimum,
-    "Maximum": ua.ObjectIds.AggregateFunction_Maximum,
-    "Average": ua.ObjectIds.AggregateFunction_Average,
-    "Interpolative": ua.ObjectIds.AggregateFunction_Interpolative,
-}
-MAX_HISTORY_VALUES = 10_000  # per node and HistoryRead; more comes by continuation point
-MAX_HISTORY_CONTINUATIONS = 0  # (0: the server keeps none: history reads are answered whole)
+#: 0: no limit (Part 5): a history continuation point holds where the next page starts,
+#: the server keeps nothing for it
+MAX_HISTORY_CONTINUATIONS = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,14 +80,10 @@ def capabilities(server: Server) -> list[Capability]:
         Capability(o.Server_ServerCapabilities_MaxWhereClauseParameters, 0, v.UInt32),
         Capability(o.Server_ServerCapabilities_ConformanceUnits, [], v.QualifiedName),
         Capability(o.Server_Auditing, False, v.Boolean),
-        # history: the measured values' last ten minutes (docs/opcua.md)
-        Capability(o.HistoryServerCapabilities_AccessHistoryDataCapability, True, v.Boolean),
+        # history: what it offers is history.install's to say; what it does not, here
         Capability(o.HistoryServerCapabilities_AccessHistoryEventsCapability, False,
                    v.Boolean),
-        Capability(o.HistoryServerCapabilities_MaxReturnDataValues, MAX_HISTORY_VALUES,
-                   v.UInt32),
         Capability(o.HistoryServerCapabilities_MaxReturnEventValues, 0, v.UInt32),
-        Capability(o.HistoryServerCapabilities_ServerTimestampSupported, True, v.Boolean),
         *(Capability(node, False, v.Boolean) for node in (
             o.HistoryServerCapabilities_InsertDataCapability,
             o.HistoryServerCapabilities_ReplaceDataCapability,
@@ -109,15 +99,10 @@ def capabilities(server: Server) -> list[Capability]:
 
 
 async def describe(server: Server) -> None:
-    """Write the gateway's BuildInfo, capabilities and aggregates into ``server``'s
-    standard nodes (after ``init``, before ``start``)."""
+    """Write the gateway's BuildInfo and capabilities into ``server``'s standard nodes
+    (after ``init``, before ``start``); the history's are ``history.install``'s."""
     await server.set_build_info(PRODUCT_URI, MANUFACTURER, PRODUCT_NAME, __version__,
                                 __version__, build_date())
     for row in capabilities(server):
         node = server.get_node(ua.NodeId(row.node))
         await node.write_value(ua.Variant(row.value, row.kind))
-    for folder in (ua.ObjectIds.Server_ServerCapabilities_AggregateFunctions,
-                   ua.ObjectIds.HistoryServerCapabilities_AggregateFunctions):
-        node = server.get_node(ua.NodeId(folder))
-        for aggregate in AGGREGATES.values():
-            await node.add_reference(ua.NodeId(aggregate), ua.ObjectIds.Organizes)

@@ -29,6 +29,7 @@ from ...stats import FrontendCounts
 from ...supervise import Frontend, RepeatFilter
 from ..common import GatewayLike
 from .guard import PEERS, GatewayUaServer
+from .history import install as install_history
 from .identity import MANUFACTURER, PRODUCT_URI, describe
 from .methods import Caller, instance_caller, type_caller
 from .nodes import Callers, Ids, build_sensor, build_type, variant
@@ -131,6 +132,8 @@ class OpcUaServer(Frontend):
                                "folder it can write)") from None
         self.idx = await server.register_namespace(NAMESPACE)
         await self._build(server)
+        await install_history(server, self.gateway.history, {
+            node: (s, f) for s, pairs in self.values.items() for f, node in pairs})
         try:
             await server.start()
         except OSError:

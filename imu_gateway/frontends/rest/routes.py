@@ -26,6 +26,7 @@ from ...cache import Snapshot, Status, iso_time
 from ...commands import CATALOGUE, CommandSpec, commands_for, unknown_command
 from ...config import HttpConfig
 from ...errors import KINDS, ErrorKind, RequestFailed
+from ...history import KEEP_S
 from ...model import VALUE_GROUPS
 from ...stats import SensorStats
 from ..common import GatewayLike, json_bytes
@@ -38,7 +39,6 @@ from .access import (
     json_error,
     token_matches,
 )
-from .history import KEEP_S
 from .limits import API, MAX_STREAMS
 from .metrics import GatewayCollector
 from .models import (

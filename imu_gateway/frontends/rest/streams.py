@@ -14,7 +14,6 @@ from fastapi import Request
 
 from ...cache import EventKind, Snapshot
 from ..common import GatewayLike, json_bytes
-from .history import History
 from .limits import KEEPALIVE_S, STALL_S, STREAM_QUEUE
 
 log = logging.getLogger("imu_gateway.http")
@@ -66,11 +65,10 @@ class StreamHub:
         self.dropped = 0  # subscribers dropped as stalled
         self.skipped = 0  # events skipped for subscribers whose queue was full
         self.closing = asyncio.Event()
-        self.history = History(gateway)  # what the streams sent in the last minutes
+        self.history = gateway.history  # the gateway's, shared with the other front ends
         self._unsubscribe = gateway.cache.subscribe(self._on_cache_event, on_error)
 
     def _on_cache_event(self, kind: EventKind, snap: Snapshot) -> None:
-        self.history.on_cache_event(kind, snap)
         if not self.subscribers or kind is EventKind.SETTINGS:  # (not in the stream)
             return
         event = _event("reading" if kind is EventKind.READING else "status", snap)
