@@ -598,5 +598,11 @@ async def test_command_bodies_are_read_only_after_access_is_granted(two_lines: A
                      401, "unauthorised")
         assert_error(await http.post(route, content=huge,
                                      headers={**json_type, **AUTH}), 413, "too_large")
+        # The other routes take no body: refused as soon as the headers announce one.
+        for method, path in (("GET", f"{API}/health"), ("GET", f"{API}/sensors/boom"),
+                             ("DELETE", f"{API}/sensors")):
+            refused = await http.request(method, path, content=b"x" * 10)
+            assert_error(refused, 413, "too_large")
+            assert refused.json()["error"] == f"{method} {path} takes no body"
         ok = await http.post(route, json={"type": "relative"}, headers=AUTH)
         assert ok.status_code == 200, ok.text

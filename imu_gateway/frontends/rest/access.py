@@ -19,23 +19,33 @@ _bearer = HTTPBearer(auto_error=False, description="the gateway's http.token")
 Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 
 
-class CommandGuard:
-    """ASGI middleware in front of the command routes.  FastAPI reads and parses a
-    body before it runs the route's dependencies, so without this an unauthorised
-    client could make the gateway read a body of any size.  Here the access rules
-    come first, then at most ``MAX_BODY`` bytes are read (413 beyond), and the body
-    is handed on as it came."""
+class BodyGuard:
+    """ASGI middleware that limits each request's body by its route: a command's is at
+    most ``MAX_BODY`` bytes, every other route takes none (413 beyond, as soon as the
+    headers say so).
+
+    FastAPI reads and parses a body before it runs the route's dependencies, so
+    without this an unauthorised client could make the gateway read a body of any
+    size.  Here a command's access rules come first, then at most ``MAX_BODY`` bytes
+    are read, and the body is handed on as it came."""
 
     def __init__(self, app: Any, config: HttpConfig) -> None:
         self.app, self.config = app, config
 
     async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
-        if scope["type"] != "http" or scope["method"] not in ("POST", "PUT", "PATCH"):
+        if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        refusal = self._refusal(scope)
+        command = scope["method"] == "POST" and _is_command(scope["path"])
+        headers = dict(scope["headers"])
+        refusal = self._refusal(headers) if command else None
+        if refusal is None:
+            refusal = _declared_too_large(scope, headers, MAX_BODY if command else 0)
         if refusal is not None:
             await error_response(refusal)(scope, receive, send)
+            return
+        if not command:
+            await self.app(scope, receive, send)
             return
         body = bytearray()
         more = True
@@ -60,12 +70,27 @@ class CommandGuard:
 
         await self.app(scope, replay, send)
 
-    def _refusal(self, scope: Any) -> RequestFailed | None:
-        if not scope["path"].startswith(f"{API}/sensors/") or "/commands/" not in scope["path"]:
-            return None
-        headers = dict(scope["headers"])
+    def _refusal(self, headers: dict[bytes, bytes]) -> RequestFailed | None:
         scheme, _, token = headers.get(b"authorization", b"").decode("latin-1").partition(" ")
         return command_refusal(self.config, token if scheme.lower() == "bearer" else None)
+
+
+def _is_command(path: str) -> bool:
+    return path.startswith(f"{API}/sensors/") and "/commands/" in path
+
+
+def _declared_too_large(scope: Any, headers: dict[bytes, bytes],
+                        limit: int) -> RequestFailed | None:
+    """A body the headers announce over ``limit`` bytes (a chunked one has no size
+    until it is read: only a route that takes none refuses it here)."""
+    length = headers.get(b"content-length", b"0")
+    chunked = b"transfer-encoding" in headers
+    if (length.isdigit() and int(length) > limit) or (chunked and limit == 0):
+        if limit == 0:
+            return RequestFailed(ErrorKind.TOO_LARGE,
+                                 f"{scope['method']} {scope['path']} takes no body")
+        return RequestFailed(ErrorKind.TOO_LARGE, f"the body is over {limit} bytes")
+    return None
 
 
 def token_matches(given: str, token: str | None) -> bool:

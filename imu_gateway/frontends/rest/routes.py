@@ -30,7 +30,7 @@ from ...model import VALUE_GROUPS
 from ...stats import SensorStats
 from ..common import GatewayLike, json_bytes
 from .access import (
-    CommandGuard,
+    BodyGuard,
     CountRequests,
     Credentials,
     command_refusal,
@@ -99,7 +99,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     for spec in CATALOGUE.values():
         _command_route(app, routes, spec)
     _metrics_route(app, routes)
-    app.add_middleware(CommandGuard, config=config)
+    app.add_middleware(BodyGuard, config=config)
     counts = counters if counters is not None else {"requests": 0}
     app.add_middleware(CountRequests, counts=counts)  # outermost: counts every request
     app.openapi = _openapi_of(app)  # type: ignore[method-assign]
