@@ -332,6 +332,12 @@ async def test_commands_status_codes(two_lines: Any) -> None:
                                     **AUTH, "Content-Type": "text/plain"})
         assert_error(plain, 422, "bad_arguments")
         assert "Content-Type: application/json" in plain.json()["error"]
+        # a key given twice is not a choice of the last one
+        twice = await http.post(f"{API}/sensors/boom/commands/set_zero_type",
+                                content=b'{"type": "relative", "type": "absolute"}',
+                                headers={**AUTH, "Content-Type": "application/json"})
+        assert_error(twice, 422, "bad_arguments")
+        assert twice.json()["error"] == "the key 'type' is given twice; give each key once"
         # the series or protocol lacks it
         lacks = await post(http, "arm/commands/set_declination", {"degrees": 3})
         assert_error(lacks, 422, "unsupported")

@@ -3,7 +3,6 @@ command catalogue."""
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -28,7 +27,7 @@ from ...config import HttpConfig
 from ...errors import KINDS, ErrorKind, RequestFailed
 from ...model import VALUE_GROUPS
 from ...stats import SensorStats
-from ..common import GatewayLike, json_bytes
+from ..common import GatewayLike, json_bytes, peer_json
 from .access import (
     BodyGuard,
     CountRequests,
@@ -391,7 +390,7 @@ async def command_arguments(request: Request) -> Any:
         raise RequestFailed(ErrorKind.BAD_ARGUMENTS,
                             f"body: {media} is not JSON (send Content-Type: application/json)")
     try:
-        return json.loads(raw)
+        return peer_json(raw)
     except (ValueError, RecursionError) as exc:  # bad UTF-8 is a ValueError too
         reason = str(exc) if isinstance(exc, ValueError) else "nested too deep"
         raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"body: not JSON ({reason})") from None
