@@ -23,6 +23,7 @@ from .limits import (
     BODY_DEADLINE_S,
     HEADER_DEADLINE_S,
     IDLE_S,
+    LINGER_BYTES,
     LINGER_S,
     MAX_HEAD,
     MAX_STREAMS,
@@ -77,6 +78,7 @@ class _GuardedProtocol(HttpToolsProtocol):
     #: are in (the body is the routes' to limit: ``access.BodyGuard``).
     _head: int | None = 0
     _refused = False  # a 431 was sent: what still comes is dropped
+    _dropped = 0  # bytes dropped since
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
@@ -93,7 +95,14 @@ class _GuardedProtocol(HttpToolsProtocol):
     def data_received(self, data: bytes) -> None:
         """The parser gets at most ``MAX_HEAD`` bytes of a request's head: a head that
         goes on past them is answered 431 before its bytes are kept."""
-        while data and not self._refused and not self.transport.is_closing():
+        if self._refused:
+            self._dropped += len(data)
+            if self._dropped > LINGER_BYTES:
+                # Closing now would reset the connection, the 431 perhaps still unread:
+                # the client is left to wait until LINGER_S.
+                self.transport.pause_reading()
+            return
+        while data and not self.transport.is_closing():
             if self._head is None:
                 super().data_received(data)
                 return
@@ -154,7 +163,8 @@ class _GuardedProtocol(HttpToolsProtocol):
                      "send fewer or shorter headers")
         # The client is likely still sending.  Closing now would answer its next bytes
         # with a reset, which can reach it before the 431 does: what comes is read and
-        # dropped for a while, or until the client closes (``eof_received``).
+        # dropped for a while (``LINGER_S``, ``LINGER_BYTES``), or until the client
+        # closes (``eof_received``).
         self.transport.write_eof()
         self._linger_timer = self.loop.call_later(LINGER_S, self._close)
 
