@@ -301,6 +301,12 @@ def test_a_head_over_16_KiB_is_answered_431_and_one_of_16_KiB_is_served(
         body = json.loads(answer.partition(b"\r\n\r\n")[2])
         assert body["kind"] == "headers_too_large", (what, body)
         assert f"over {MAX_HEAD} bytes" in body["error"], (what, body)
+    # Behind a request still being answered (a stream) on the same connection: the
+    # connection is closed, the 431 not written into the stream (nor after it).
+    answer = _send_all_and_answer(
+        gateway_process,
+        f"GET {API}/stream HTTP/1.1\r\nHost: x\r\n\r\n".encode() + _head(100_000))
+    assert b" 431 " not in answer, answer[:300]
     assert _get(f"http://{gateway_process[0]}:{gateway_process[1]}{API}/health") == 200
 
 

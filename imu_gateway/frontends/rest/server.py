@@ -158,6 +158,11 @@ class _GuardedProtocol(HttpToolsProtocol):
             _cancel(timer)
         self._refused = True
         log.debug("http: %s: a request's head over %d bytes", self.client, MAX_HEAD)
+        if self.cycle is not None and not self.cycle.response_complete:
+            # An earlier request on this connection (pipelined) is still being
+            # answered, perhaps a stream: the 431 cannot come after it.
+            self.transport.abort()
+            return
         self._refuse(ErrorKind.HEADERS_TOO_LARGE,
                      f"the request line and headers are over {MAX_HEAD} bytes; "
                      "send fewer or shorter headers")
