@@ -322,6 +322,37 @@ async def idle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> No
     await _until_closed(reader, None)
 
 
+class EndlessHeader:
+    """A request whose one header line never ends, sent as fast as the gateway takes
+    it; counts the status of each answer (``none``: closed without one)."""
+
+    START = b"GET /api/v1/health HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Long: "
+    FILLER = b"a" * 65536
+
+    def __init__(self) -> None:
+        self.answers: dict[str, int] = {}
+        self.sent = 0
+
+    async def behave(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        first = asyncio.ensure_future(reader.read(64))
+        try:
+            writer.write(self.START)
+            with contextlib.suppress(OSError):
+                while not first.done():
+                    writer.write(self.FILLER)
+                    self.sent += len(self.FILLER)
+                    await writer.drain()
+            try:
+                head = await asyncio.wait_for(first, TIMEOUT)
+            except (OSError, TimeoutError):
+                head = b""
+        finally:
+            first.cancel()
+        status = head.split(b" ")[1].decode() if head.startswith(b"HTTP/1.1 ") else "none"
+        self.answers[status] = self.answers.get(status, 0) + 1
+        await _until_closed(reader, TIMEOUT)
+
+
 #: 11 of the 12 bytes of an FC03 request: the frame is never complete.
 PARTIAL_MBAP = read_request(1, 1, 0, 9)[:-1]
 #: a request line and the start of a header that never ends
@@ -613,6 +644,35 @@ def publish_hostile(port: int, messages: list[tuple[str, bytes, bool, Properties
         client.disconnect()
         client.loop_stop()
     return problems
+
+
+class Listener:
+    """An MQTT 5 client that records, on ``topics``, every message that carries the
+    correlation data ``correlation`` (a command result for the asker; the gateway's own
+    messages carry none)."""
+
+    def __init__(self, port: int, topics: list[str], correlation: bytes) -> None:
+        self.correlation = correlation
+        self.got: list[str] = []
+        subscribed = threading.Event()
+        self.client = mqtt_client(paho.MQTTv5)
+        self.client.on_connect = lambda c, *_: c.subscribe([(t, 1) for t in topics])
+        self.client.on_subscribe = lambda *_: subscribed.set()
+        self.client.on_message = self._on_message
+        self.client.connect(HOST, port)
+        self.client.loop_start()
+        if not subscribed.wait(TIMEOUT):
+            self.close()
+            raise RuntimeError("the listener got no SUBACK")
+
+    def _on_message(self, client: paho.Client, userdata: Any,
+                    message: paho.MQTTMessage) -> None:
+        if getattr(message.properties, "CorrelationData", None) == self.correlation:
+            self.got.append(message.topic)
+
+    def close(self) -> None:
+        self.client.disconnect()
+        self.client.loop_stop()
 
 
 def response_topic(topic: str) -> Properties:

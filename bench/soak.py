@@ -611,6 +611,64 @@ async def http_idle(soak: Soak, hold: float) -> Outcome:
                    f"{_swarm_note('50 partial headers', seen['partial_headers'])}", data=seen)
 
 
+async def http_big_headers(soak: Soak, hold: float) -> Outcome:
+    """50 connections each sending a header line that never ends, as fast as the
+    gateway takes it: each must get a 431, and what they hold stay bounded."""
+    flood = h.EndlessHeader()
+    swarm = h.Swarm(soak.http_port, 50, flood.behave)
+    before = sample(soak.gw.pid)
+    peak = before.rss_mb if before else 0.0
+    swarm.start()
+    end = time.monotonic() + hold
+    while time.monotonic() < end:
+        now = sample(soak.gw.pid)
+        peak = max(peak, now.rss_mb if now else 0.0)
+        await asyncio.sleep(0.05)
+    seen = {**await swarm.stop(), "answers": flood.answers, "sent_mb": flood.sent / 1e6,
+            "rss_growth_mb": round(peak - before.rss_mb, 1) if before else None}
+    problems = []
+    if set(flood.answers) - {"431"}:
+        problems.append(f"endless headers answered otherwise than 431: {flood.answers}")
+    if before is not None and peak - before.rss_mb >= 20:
+        problems.append(f"endless headers grew the gateway's RSS by "
+                        f"{peak - before.rss_mb:.0f} MB (at most 20)")
+    return Outcome(f"{_swarm_note('50 endless headers', seen)}; answers {flood.answers}; "
+                   f"{flood.sent / 1e6:.0f} MB sent; RSS +{seen['rss_growth_mb']} MB",
+                   problems, seen)
+
+
+async def mqtt_deputy(soak: Soak, hold: float) -> Outcome:
+    """read_settings to a2 asking for its result on topics others trust: a sensor's
+    state, a command (a1's save), Home Assistant's discovery, Sparkplug, the broker's
+    $SYS.  Each must be refused on the default result topic, none answered there."""
+    topic = f"{BASE}/a2/cmd/read_settings"
+    forbidden = [f"{BASE}/a2/state", f"{BASE}/a1/cmd/save",
+                 "homeassistant/sensor/soak/config", "spBv1.0/soak/NCMD/edge", "$SYS/soak"]
+    saves = (await soak.writes())["a1"].get("save", 0)
+    since, log0 = time.monotonic(), soak.gw.log_size()
+    listener = await asyncio.to_thread(h.Listener, soak.broker.port, forbidden, b"soak")
+    try:
+        refused = await asyncio.to_thread(h.publish_hostile, soak.broker.port, [
+            (topic, b"{}", False, h.response_topic(t)) for t in forbidden])
+        await asyncio.sleep(max(hold, 2.0))
+    finally:
+        await asyncio.to_thread(listener.close)
+    notes, problems = _broker_kept(soak, since, log0, refused)
+    with soak.cl.watcher.lock:
+        refusals = sum(b"response topic" in p for t, name, p in soak.cl.watcher.results
+                       if t >= since and name == f"{topic}/result")
+    if listener.got:
+        problems.append(f"results published where they were refused: {listener.got}")
+    if refusals < len(forbidden) - len(refused):
+        problems.append(f"{refusals} refusals for {len(forbidden) - len(refused)} requests")
+    ran = (await soak.writes())["a1"].get("save", 0) - saves
+    if ran:
+        problems.append(f"a result on a1's cmd/save made the gateway save a1 ({ran}x)")
+    return Outcome(f"refusals on the default topic: {refusals}; results on forbidden "
+                   f"topics: {len(listener.got)}; {notes}", problems,
+                   {"refusals": refusals, "arrived": listener.got})
+
+
 async def mqtt_bad_response(soak: Soak, hold: float) -> Outcome:
     """read_settings to a2 with a wildcard response topic and with the longest one a
     client can send (65,535 bytes: MQTT strings carry a 16-bit length, so 70 kB cannot
@@ -739,10 +797,14 @@ PHASES = (
           modbus_trickle),
     Phase("http-idle", "400 idle HTTP connections, 50 sending a header a byte every 2 s",
           http_idle),
+    Phase("http-big-headers", "50 HTTP connections each sending a header line that "
+          "never ends, as fast as the gateway takes it", http_big_headers),
     Phase("modbus-half-close", "3 Modbus writes, each followed by shutdown(SHUT_WR)",
           modbus_half_close),
     Phase("mqtt-bad-response", "MQTT 5 commands with response topic x/# and a 64 kB one; "
           "a command topic whose /result is over 64 kB", mqtt_bad_response),
+    Phase("mqtt-deputy", "MQTT 5 commands asking for their result on a sensor's state, "
+          "a command, HA discovery, Sparkplug and $SYS topics", mqtt_deputy),
     Phase("mqtt-retained-clear", "an empty retained message on a1/cmd/save",
           mqtt_retained_clear),
     Phase("broker-restart", "mosquitto stopped for the hold, started on the same port",

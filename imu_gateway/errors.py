@@ -84,6 +84,7 @@ class ErrorKind(enum.Enum):
     UNAUTHORISED = "unauthorised"
     FORBIDDEN = "forbidden"
     REQUEST_TIMEOUT = "request_timeout"
+    HEADERS_TOO_LARGE = "headers_too_large"
     NOT_FOUND = "not_found"
     METHOD_NOT_ALLOWED = "method_not_allowed"
 
@@ -116,6 +117,7 @@ KINDS: Mapping[ErrorKind, KindRow] = MappingProxyType({
     ErrorKind.UNAUTHORISED: KindRow(401, None, "a valid bearer token is required"),
     ErrorKind.FORBIDDEN: KindRow(403, None, "commands are turned off"),
     ErrorKind.REQUEST_TIMEOUT: KindRow(408, None, "the request did not come in time"),
+    ErrorKind.HEADERS_TOO_LARGE: KindRow(431, None, "the request line and headers are too large"),
     ErrorKind.NOT_FOUND: KindRow(404, None, "no such path"),
     ErrorKind.METHOD_NOT_ALLOWED: KindRow(405, None, "the path does not take that method"),
 })

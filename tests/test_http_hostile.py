@@ -19,10 +19,12 @@ import selectors
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.error
 import urllib.request
 from collections.abc import AsyncIterator, Callable, Iterator
+from dataclasses import dataclass
 from typing import Any
 
 import httpx
@@ -36,6 +38,7 @@ from imu_gateway.frontends.rest import (
     BODY_DEADLINE_S,
     HEADER_DEADLINE_S,
     IDLE_S,
+    MAX_HEAD,
     STREAM_QUEUE,
     HttpServer,
     StreamHub,
@@ -65,10 +68,21 @@ def _get(url: str) -> int:
         return int(response.status)
 
 
+@dataclass(frozen=True)
+class Process:
+    address: Address
+    pid: int
+
+
 @pytest.fixture(scope="module")
-def gateway_process(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Address]:
+def gateway_process(gateway_pid: Process) -> Address:
+    return gateway_pid.address
+
+
+@pytest.fixture(scope="module")
+def gateway_pid(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Process]:
     """``python -m imu_gateway run`` with HTTP (commands on) and one polled AH; its address
-    once ``/api/v1/health`` answers."""
+    and process id once ``/api/v1/health`` answers."""
     tmp = tmp_path_factory.mktemp("hostile")
     sim = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST, source=Motion.from_seed(3))
     with simulated([sim]) as line:
@@ -96,7 +110,7 @@ def gateway_process(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Addres
                         break
                 assert time.monotonic() < deadline, "the gateway's API did not answer"
                 time.sleep(0.05)
-            yield ("127.0.0.1", port)
+            yield Process(("127.0.0.1", port), process.pid)
             assert process.poll() is None, "the gateway exited"
         finally:
             interrupt(process)
@@ -248,6 +262,132 @@ def test_a_partial_body_is_closed_after_the_body_deadline(gateway_process: Addre
     counted = next(float(line.split()[1]) for line in metrics.splitlines()
                    if line.startswith("imu_gateway_http_request_timeouts_total "))
     assert counted >= 1
+
+
+# ------------------------------------------------------------------ sizes
+
+
+def _head(extra: int = 0, path: str = f"{API}/health") -> bytes:
+    """A request's line and headers of exactly ``MAX_HEAD + extra`` bytes."""
+    start = f"GET {path} HTTP/1.1\r\nHost: x\r\nX-Pad: ".encode()
+    return start + b"a" * (MAX_HEAD + extra - len(start) - 4) + b"\r\n\r\n"
+
+
+def _send_all_and_answer(address: Address, data: bytes) -> bytes:
+    """Send ``data`` (the gateway may stop taking it), then read until it closes."""
+    with _connect(address) as sock:
+        with contextlib.suppress(BrokenPipeError, ConnectionResetError):
+            sock.sendall(data)
+        answer = b""
+        with contextlib.suppress(ConnectionResetError):
+            while chunk := sock.recv(65536):
+                answer += chunk
+        return answer
+
+
+def test_a_head_over_16_KiB_is_answered_431_and_one_of_16_KiB_is_served(
+        gateway_process: Address) -> None:
+    with _connect(gateway_process) as sock:
+        sock.sendall(_head(0))
+        assert _answer(sock).startswith(b"HTTP/1.1 200 ")
+    for what, data in (
+            ("one byte over", _head(1)),
+            ("a 1 MB header", _head(1 << 20)),
+            ("a 20 KiB request line", f"GET /{'a' * 20_000} HTTP/1.1\r\n\r\n".encode()),
+            ("ten thousand short headers",
+             f"GET {API}/health HTTP/1.1\r\n".encode() + b"X-A: b\r\n" * 10_000 + b"\r\n")):
+        answer = _send_all_and_answer(gateway_process, data)
+        assert answer.startswith(b"HTTP/1.1 431 "), (what, answer[:300])
+        body = json.loads(answer.partition(b"\r\n\r\n")[2])
+        assert body["kind"] == "headers_too_large", (what, body)
+        assert f"over {MAX_HEAD} bytes" in body["error"], (what, body)
+    # Behind a request still being answered (a stream) on the same connection: the
+    # connection is closed, the 431 not written into the stream (nor after it).
+    answer = _send_all_and_answer(
+        gateway_process,
+        f"GET {API}/stream HTTP/1.1\r\nHost: x\r\n\r\n".encode() + _head(100_000))
+    assert b" 431 " not in answer, answer[:300]
+    assert _get(f"http://{gateway_process[0]}:{gateway_process[1]}{API}/health") == 200
+
+
+def _rss_kib(pid: int) -> int:
+    with open(f"/proc/{pid}/status") as status:
+        return next(int(line.split()[1]) for line in status if line.startswith("VmRSS:"))
+
+
+def _flood(address: Address, head: bytes, count: int, size: int) -> list[bytes]:
+    """``count`` connections, each sending ``head`` and then ``size`` more bytes of
+    ``a`` as fast as the gateway takes them, until they are sent or it closes; what
+    each received."""
+    socks = [_connect(address) for _ in range(count)]
+    sent = dict.fromkeys(socks, 0)
+    received = dict.fromkeys(socks, b"")
+    deadline = time.monotonic() + HEADER_DEADLINE_S + LATE
+    with selectors.DefaultSelector() as selector:
+        for sock in socks:
+            sock.setblocking(False)
+            sock.sendall(head)
+            selector.register(sock, selectors.EVENT_READ | selectors.EVENT_WRITE)
+        filler = b"a" * 65536
+        while selector.get_map():
+            assert time.monotonic() < deadline, "connections still open"
+            for key, events in selector.select(0.2):
+                ready = key.fileobj
+                assert isinstance(ready, socket.socket)
+                try:
+                    if events & selectors.EVENT_READ:
+                        chunk = ready.recv(65536)
+                        received[ready] += chunk
+                        if not chunk:
+                            raise ConnectionResetError
+                    if events & selectors.EVENT_WRITE and sent[ready] < size:
+                        sent[ready] += ready.send(filler)
+                        if sent[ready] >= size:
+                            selector.modify(ready, selectors.EVENT_READ)
+                except (BrokenPipeError, ConnectionResetError):
+                    selector.unregister(ready)
+                    ready.close()
+                except BlockingIOError:
+                    pass
+    return list(received.values())
+
+
+def test_fifty_endless_heads_and_bodies_before_authentication_hold_under_20_MB(
+        gateway_pid: Process) -> None:
+    """What a connection may make the gateway hold before it is authenticated is
+    bounded: 50 clients each sending a header line of 8 MB, then 50 unauthorised
+    commands each with a body of 8 MB.  (Each head alone once held its 8 MB.)"""
+    before = _rss_kib(gateway_pid.pid)
+    peak = before
+    stop = False
+
+    def sample() -> None:
+        nonlocal peak
+        while not stop:
+            peak = max(peak, _rss_kib(gateway_pid.pid))
+            time.sleep(0.01)
+
+    sampler = threading.Thread(target=sample)
+    sampler.start()
+    try:
+        heads = _flood(gateway_pid.address,
+                       f"GET {API}/health HTTP/1.1\r\nHost: x\r\nX-Long: ".encode(),
+                       50, 8 << 20)
+        bodies = _flood(gateway_pid.address,
+                        f"POST {API}/sensors/boom/commands/set_zero_type HTTP/1.1\r\n"
+                        f"Host: x\r\nContent-Type: application/json\r\n"
+                        f"Content-Length: {8 << 20}\r\n\r\n".encode(), 50, 8 << 20)
+    finally:
+        stop = True
+        sampler.join()
+    grown = (peak - before) / 1024
+    print(f"RSS {before / 1024:.0f} MB, at most {grown:.1f} MB more")
+    assert grown < 20, f"the gateway's RSS grew by {grown:.1f} MB"
+    assert all(answer.startswith(b"HTTP/1.1 431 ") for answer in heads), \
+        {answer[:40] for answer in heads}
+    assert all(answer.startswith(b"HTTP/1.1 401 ") for answer in bodies), \
+        {answer[:40] for answer in bodies}
+    assert _get(f"http://{gateway_pid.address[0]}:{gateway_pid.address[1]}{API}/health") == 200
 
 
 # ------------------------------------------------------------------ streams, in-process

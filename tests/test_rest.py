@@ -8,6 +8,8 @@ deadlines on conditions, never measurements of speed.
 from __future__ import annotations
 
 import asyncio
+import base64
+import hashlib
 import json
 import math
 import re
@@ -128,6 +130,41 @@ async def test_the_api_reference_and_index_are_served_from_the_gateway(two_lines
         assert (await http.get(index["openapi"])).json()["info"]["title"] == "imu-gateway"
         dashboard = (await http.get("/")).text
         assert 'href="docs"' in dashboard
+
+
+@pytest.mark.anyio
+async def test_every_answer_keeps_the_browser_to_the_gateway(two_lines: Any) -> None:
+    """The headers docs/rest.md lists ("Headers"): no sniffing and no Referer on every
+    answer; no-store on all but the static files; a policy that lets the pages load
+    only the gateway's own files (the docs page's one inline script by its hash), and
+    data nothing at all."""
+    _, _, buses = two_lines
+    async with running(config(buses)) as gateway, client(gateway) as http:
+        await until(lambda: gateway.cache.snapshot("boom").seq >= 1)
+        answers = {path: await http.get(path) for path in (
+            "/", "/docs", f"{API}/health", f"{API}/sensors/boom/reading", "/metrics",
+            "/openapi.json", f"{API}/nowhere", "/static/dashboard.js",
+            "/docs/assets/swagger-ui.css")}
+        answers["401"] = await http.post(f"{API}/sensors/boom/commands/save")
+        async with http.stream("GET", f"{API}/stream") as stream:
+            answers["stream"] = stream
+        for what, answer in answers.items():
+            headers = answer.headers
+            assert headers["x-content-type-options"] == "nosniff", what
+            assert headers["referrer-policy"] == "no-referrer", what
+            cached = what.startswith(("/static/", "/docs/assets/"))
+            assert headers.get("cache-control") == (None if cached else "no-store"), what
+            policy = headers["content-security-policy"]
+            assert "frame-ancestors 'none'" in policy, what
+            if what in ("/", "/docs"):
+                assert "default-src 'self'" in policy and "unsafe" not in policy, what
+            else:
+                assert "default-src 'none'" in policy, what
+        docs_policy = answers["/docs"].headers["content-security-policy"]
+        script = re.search(r"<script>(.*?)</script>", answers["/docs"].text, re.S)
+        assert script is not None
+        digest = base64.b64encode(hashlib.sha256(script.group(1).encode()).digest()).decode()
+        assert f"'sha256-{digest}'" in docs_policy
 
 
 @pytest.mark.anyio
@@ -332,6 +369,12 @@ async def test_commands_status_codes(two_lines: Any) -> None:
                                     **AUTH, "Content-Type": "text/plain"})
         assert_error(plain, 422, "bad_arguments")
         assert "Content-Type: application/json" in plain.json()["error"]
+        # a key given twice is not a choice of the last one
+        twice = await http.post(f"{API}/sensors/boom/commands/set_zero_type",
+                                content=b'{"type": "relative", "type": "absolute"}',
+                                headers={**AUTH, "Content-Type": "application/json"})
+        assert_error(twice, 422, "bad_arguments")
+        assert twice.json()["error"] == "the key 'type' is given twice; give each key once"
         # the series or protocol lacks it
         lacks = await post(http, "arm/commands/set_declination", {"degrees": 3})
         assert_error(lacks, 422, "unsupported")
@@ -598,5 +641,13 @@ async def test_command_bodies_are_read_only_after_access_is_granted(two_lines: A
                      401, "unauthorised")
         assert_error(await http.post(route, content=huge,
                                      headers={**json_type, **AUTH}), 413, "too_large")
+        # The other routes take no body: refused as soon as the headers announce one.
+        for path in (f"{API}/health", f"{API}/sensors/boom", "/"):
+            refused = await http.request("GET", path, content=b"x" * 10)
+            assert_error(refused, 413, "too_large")
+            assert refused.json()["error"] == f"GET {path} takes no body"
+        # a method no route has: 405, its body unread
+        assert_error(await http.request("DELETE", f"{API}/sensors", content=b"x" * 10),
+                     405, "method_not_allowed")
         ok = await http.post(route, json={"type": "relative"}, headers=AUTH)
         assert ok.status_code == 200, ok.text

@@ -9,6 +9,7 @@ from typing import Any, Protocol
 from ..cache import Cache, Snapshot
 from ..commands import CommandResult
 from ..config import GatewayConfig, SensorConfig
+from ..errors import ErrorKind, RequestFailed
 from ..history import History
 from ..stats import BusStats, FrontendCounts, SensorStats
 
@@ -45,3 +46,22 @@ def json_bytes(value: Any) -> bytes:
     has no NaN (``Reading.to_json_groups`` makes it null), and nothing else should."""
     return json.dumps(value, separators=(",", ":"), ensure_ascii=False,
                       allow_nan=False).encode()
+
+
+def peer_json(raw: bytes | str) -> Any:
+    """JSON from a peer (a command's arguments), each object's keys given once.
+    ``json.loads`` alone keeps the last of a repeated key, so that
+    ``{"type": "absolute", "type": "relative"}`` would run as relative whatever the
+    sender meant.  Raises ``RequestFailed`` (``bad_arguments``) naming the key, and
+    ``ValueError`` or ``RecursionError`` for what is not JSON."""
+    return json.loads(raw, object_pairs_hook=_once_each)
+
+
+def _once_each(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    found: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in found:
+            raise RequestFailed(ErrorKind.BAD_ARGUMENTS,
+                                f"the key {key!r} is given twice; give each key once")
+        found[key] = value
+    return found

@@ -3,16 +3,18 @@
 A message on ``{prefix}/{sensor}/cmd/{command}`` with a JSON object is a command: it
 goes to the gateway (which validates it and puts it in the bus master's queue) and its
 result is published, to the MQTT 5 response topic when one is given, else to the
-command's topic with ``/result`` appended.  A ``request_id`` in the payload (how an
-MQTT 3.1.1 client correlates: it has no properties) is echoed in the result.  Retained
-and empty messages are never run (docs/mqtt.md).
+command's topic with ``/result`` appended.  A response topic where the gateway, Home
+Assistant, Sparkplug B or the broker own the topics is refused (``ResponseTopics``).
+A ``request_id`` in the payload (how an MQTT 3.1.1 client correlates: it has no
+properties) is echoed in the result.  Retained and empty messages are never run
+(docs/mqtt.md).
 """
 
 from __future__ import annotations
 
 import asyncio
-import json
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import paho.mqtt.client as paho
@@ -22,7 +24,7 @@ from ..commands import CommandResult
 from ..config import MqttConfig
 from ..errors import ErrorKind, RequestFailed
 from ..supervise import PeerLog
-from .common import GatewayLike, json_bytes
+from .common import GatewayLike, json_bytes, peer_json
 from .mqtt_topics import CONTROL_QOS, Counters, Message, json_properties
 
 MAX_COMMANDS = 16  # commands carried out at once; more are answered "busy"
@@ -34,6 +36,46 @@ MAX_CORRELATION_BYTES = 1024
 REQUEST_ID = "request_id"
 MAX_REQUEST_ID = 128
 RequestId = str | int | None
+#: The subtree of ``{base}/{gw}/`` where a peer may ask for its results.
+REPLIES = "replies"
+SPARKPLUG_NAMESPACE = "spBv1.0"
+
+
+@dataclass(frozen=True)
+class ResponseTopics:
+    """Where a peer may have its command results published.
+
+    The gateway publishes a result wherever an MQTT 5 response topic says.  On a topic
+    that others read as the gateway's, Home Assistant's or Sparkplug's, a result would
+    speak with their authority (a confused deputy: ``read_settings`` answered on a
+    sensor's state topic).  So these are refused: the gateway's base topic (all of it:
+    other gateways, the client-id claims) but for ``{base}/{gw}/replies/``, the
+    discovery prefix, ``spBv1.0/``, and ``$`` topics (the broker's: a result there was
+    lost without a word).  With a sensor named ``replies``, that subtree is the
+    sensor's, and refused too."""
+
+    base: str
+    replies: str | None  # "{base}/{gw}/replies/"
+    discovery_prefix: str
+
+    @classmethod
+    def of(cls, config: MqttConfig, gateway_id: str, sensors: Collection[str]) -> ResponseTopics:
+        replies = None if REPLIES in sensors else f"{config.base_topic}/{gateway_id}/{REPLIES}/"
+        return cls(config.base_topic, replies, config.discovery_prefix)
+
+    def problem(self, topic: str) -> str | None:
+        """Why a result may not go to ``topic`` (None: it may)."""
+        if topic.startswith("$"):
+            return "is a $ topic, the broker's own"
+        if self.replies is not None and topic.startswith(self.replies):
+            return None
+        instead = f"{self.replies}…" if self.replies is not None else "another topic"
+        for prefix, owner in ((self.base, "the gateway's"), (self.discovery_prefix,
+                              "Home Assistant's discovery"), (SPARKPLUG_NAMESPACE,
+                              "Sparkplug B's")):
+            if topic == prefix or topic.startswith(f"{prefix}/"):
+                return f"is under {prefix}/, {owner}: ask for results on {instead}"
+        return None
 
 
 class CommandDesk:
@@ -51,6 +93,8 @@ class CommandDesk:
         self.counters = counters
         self._peers = peers
         self.tasks: set[asyncio.Task[None]] = set()  # commands being carried out
+        self.response_topics = ResponseTopics.of(config, gateway.config.gateway_id,
+                                                 gateway.sensors)
         self._clearing: set[str] = set()  # retained commands being cleared by us
         self._results = 0  # command results sent (their control-queue keys)
 
@@ -69,7 +113,7 @@ class CommandDesk:
         try:
             args = _command_args(bytes(message.payload))
             request_id = _request_id(args)
-            _check_properties(message.properties)
+            self._check_properties(message)
         except RequestFailed as exc:
             self._answer(message, CommandResult.failed(sensor, command, exc), request_id)
             return
@@ -109,6 +153,15 @@ class CommandDesk:
             return False
         return True
 
+    def _check_properties(self, message: paho.MQTTMessage) -> None:
+        """Raise ``RequestFailed`` when the MQTT 5 properties of a command are unusable
+        (logged: the asker may not be reading the default result topic)."""
+        problem = _properties_problem(message.properties, self.response_topics)
+        if problem is not None:
+            self._peers.warning("refused properties", "mqtt: a command on %s was not run: "
+                                "%s", message.topic, problem)
+            raise RequestFailed(ErrorKind.BAD_ARGUMENTS, problem)
+
     async def _carry_out(self, message: paho.MQTTMessage, sensor: str, command: str,
                          args: Mapping[str, Any], request_id: RequestId) -> None:
         result = await self.gateway.command(sensor, command, args)
@@ -121,7 +174,7 @@ class CommandDesk:
         # MQTT 5: the asker's response topic and correlation data win, where usable
         # (_check_properties refused the request otherwise, answered here).
         topic, properties = f"{request.topic}/result", json_properties(self.config)
-        if _properties_problem(request.properties) is None:
+        if _properties_problem(request.properties, self.response_topics) is None:
             topic = getattr(request.properties, "ResponseTopic", None) or topic
             correlation = getattr(request.properties, "CorrelationData", None)
             if correlation is not None:  # (only MQTT 5 carries it: properties exist)
@@ -144,7 +197,7 @@ def _command_args(payload: bytes) -> dict[str, Any]:
     if not payload.strip():
         return {}
     try:
-        args = json.loads(payload)
+        args = peer_json(payload)
     except (ValueError, RecursionError) as exc:  # UnicodeDecodeError is a ValueError
         raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"the payload is not JSON: {exc}") from None
     if not isinstance(args, dict):
@@ -179,10 +232,11 @@ def topic_problem(topic: str) -> str | None:
     return None
 
 
-def _properties_problem(properties: Properties | None) -> str | None:
+def _properties_problem(properties: Properties | None,
+                        allowed: ResponseTopics) -> str | None:
     response = getattr(properties, "ResponseTopic", None)
     if response is not None:
-        problem = topic_problem(str(response))
+        problem = topic_problem(str(response)) or allowed.problem(str(response))
         if problem is not None:
             return f"the response topic {str(response)[:60]!r} {problem}"
     correlation = getattr(properties, "CorrelationData", None)
@@ -190,10 +244,3 @@ def _properties_problem(properties: Properties | None) -> str | None:
         return (f"the correlation data is {len(correlation)} bytes; "
                 f"at most {MAX_CORRELATION_BYTES}")
     return None
-
-
-def _check_properties(properties: Properties | None) -> None:
-    """Raise ``RequestFailed`` when the MQTT 5 properties of a command are unusable."""
-    problem = _properties_problem(properties)
-    if problem is not None:
-        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, problem)

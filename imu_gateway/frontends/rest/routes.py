@@ -3,7 +3,9 @@ command catalogue."""
 
 from __future__ import annotations
 
-import json
+import base64
+import hashlib
+import re
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -29,11 +31,13 @@ from ...errors import KINDS, ErrorKind, RequestFailed
 from ...history import KEEP_S
 from ...model import VALUE_GROUPS
 from ...stats import SensorStats
-from ..common import GatewayLike, json_bytes
+from ..common import GatewayLike, json_bytes, peer_json
 from .access import (
-    CommandGuard,
+    PAGE_POLICY,
+    BodyGuard,
     CountRequests,
     Credentials,
+    SecurityHeaders,
     command_refusal,
     error_response,
     json_error,
@@ -99,9 +103,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     for spec in CATALOGUE.values():
         _command_route(app, routes, spec)
     _metrics_route(app, routes)
-    app.add_middleware(CommandGuard, config=config)
-    counts = counters if counters is not None else {"requests": 0}
-    app.add_middleware(CountRequests, counts=counts)  # outermost: counts every request
+    app.add_middleware(BodyGuard, config=config)
     app.openapi = _openapi_of(app)  # type: ignore[method-assign]
     static = resources.files("imu_gateway") / "static"
 
@@ -110,7 +112,10 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
         return HTMLResponse((static / "index.html").read_text(encoding="utf-8"))
 
     app.mount("/static", StaticFiles(packages=[("imu_gateway", "static")]), name="static")
-    _docs_routes(app)
+    docs_policy = _docs_routes(app)
+    app.add_middleware(SecurityHeaders, pages={"/": PAGE_POLICY, "/docs": docs_policy})
+    counts = counters if counters is not None else {"requests": 0}
+    app.add_middleware(CountRequests, counts=counts)  # outermost: counts every request
     return app
 
 
@@ -119,19 +124,24 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
 DOCS_ASSETS = "/docs/assets"
 
 
-def _docs_routes(app: FastAPI) -> None:
+def _docs_routes(app: FastAPI) -> str:
     """The interactive API reference at ``/docs``, and ``/api/v1`` listing the
-    endpoints (a client that starts at the API's root finds its way)."""
+    endpoints (a client that starts at the API's root finds its way).  The docs
+    page's Content-Security-Policy: the page policy, and its one inline script (which
+    starts Swagger UI) by its hash."""
     app.mount(DOCS_ASSETS, StaticFiles(packages=[("fastapi_offline", "static")]),
               name="docs-assets")
+    page = bytes(get_swagger_ui_html(
+        openapi_url=app.openapi_url or "/openapi.json", title="imu-gateway API",
+        swagger_js_url=f"{DOCS_ASSETS}/swagger-ui-bundle.js",
+        swagger_css_url=f"{DOCS_ASSETS}/swagger-ui.css",
+        swagger_favicon_url=f"{DOCS_ASSETS}/favicon.png").body)
+    hashes = " ".join(f"'sha256-{base64.b64encode(hashlib.sha256(script).digest()).decode()}'"
+                      for script in re.findall(rb"<script>(.*?)</script>", page, re.S))
 
     @app.get("/docs", response_class=HTMLResponse, include_in_schema=False)
     async def docs() -> HTMLResponse:
-        return get_swagger_ui_html(
-            openapi_url=app.openapi_url or "/openapi.json", title="imu-gateway API",
-            swagger_js_url=f"{DOCS_ASSETS}/swagger-ui-bundle.js",
-            swagger_css_url=f"{DOCS_ASSETS}/swagger-ui.css",
-            swagger_favicon_url=f"{DOCS_ASSETS}/favicon.png")
+        return HTMLResponse(page)
 
     @app.get(API, response_model=ApiIndexOut, summary="the endpoints of this API")
     async def index() -> dict[str, Any]:
@@ -141,6 +151,8 @@ def _docs_routes(app: FastAPI) -> None:
                      for method in sorted(route.methods or ())]
         return {"name": "imu-gateway", "version": __version__, "docs": "/docs",
                 "openapi": app.openapi_url, "endpoints": endpoints}
+
+    return f"{PAGE_POLICY}; script-src 'self' {hashes}"
 
 
 def _error_handlers(app: FastAPI) -> None:
@@ -307,8 +319,7 @@ def _stream_routes(app: FastAPI, routes: _Routes, hub: StreamHub) -> None:
             raise RequestFailed(ErrorKind.TOO_MANY_STREAMS, f"{MAX_STREAMS} streams are open")
         return StreamingResponse(hub.stream(sensor, stream_peer(request)),
                                  media_type="text/event-stream",
-                                 headers={"Cache-Control": "no-cache",
-                                          "X-Accel-Buffering": "no"})
+                                 headers={"X-Accel-Buffering": "no"})  # (no-store: SecurityHeaders)
 
     sse = {"content": {"text/event-stream": {}},
            "description": "`event: reading` (or `status`) and `data:` the "
@@ -391,7 +402,7 @@ async def command_arguments(request: Request) -> Any:
         raise RequestFailed(ErrorKind.BAD_ARGUMENTS,
                             f"body: {media} is not JSON (send Content-Type: application/json)")
     try:
-        return json.loads(raw)
+        return peer_json(raw)
     except (ValueError, RecursionError) as exc:  # bad UTF-8 is a ValueError too
         reason = str(exc) if isinstance(exc, ValueError) else "nested too deep"
         raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"body: not JSON ({reason})") from None

@@ -7,13 +7,14 @@ import asyncio
 import contextlib
 import logging
 import socket
+from http import HTTPStatus
 from typing import Any, ClassVar
 
 import uvicorn
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 from ...config import HttpConfig
-from ...errors import ErrorKind
+from ...errors import KINDS, ErrorKind
 from ...stats import FrontendCounts
 from ...supervise import Frontend, RepeatFilter
 from ..common import GatewayLike, json_bytes
@@ -22,6 +23,9 @@ from .limits import (
     BODY_DEADLINE_S,
     HEADER_DEADLINE_S,
     IDLE_S,
+    LINGER_BYTES,
+    LINGER_S,
+    MAX_HEAD,
     MAX_STREAMS,
     SEND_BUFFER,
     STALL_S,
@@ -53,9 +57,13 @@ class _GuardedProtocol(HttpToolsProtocol):
     - a request's headers must be complete ``HEADER_DEADLINE_S`` after connecting, or
       after the previous answer on a kept-alive connection (a trickle of bytes does
       not extend it);
-    - its body ``BODY_DEADLINE_S`` after its headers.
+    - its body ``BODY_DEADLINE_S`` after its headers;
+    - its request line and headers are at most ``MAX_HEAD`` bytes.  httptools gathers
+      a header by joining its pieces, with no limit of its own: eight clients sending
+      a 32 MB header each once held 400 MB.
 
-    A late request is answered 408 if no answer is under way, and its connection closed.
+    A late request is answered 408, a head too large 431, if no answer is under way;
+    its connection is then closed.
 
     For the stream hub, ``write_stalled`` says the client's socket has been full, with
     nothing taken from it, for ``STALL_S``."""
@@ -65,6 +73,12 @@ class _GuardedProtocol(HttpToolsProtocol):
     _header_timer: asyncio.TimerHandle | None = None
     _body_timer: asyncio.TimerHandle | None = None
     _stall_timer: asyncio.TimerHandle | None = None
+    _linger_timer: asyncio.TimerHandle | None = None
+    #: Bytes of the current request's line and headers so far; None while its headers
+    #: are in (the body is the routes' to limit: ``access.BodyGuard``).
+    _head: int | None = 0
+    _refused = False  # a 431 was sent: what still comes is dropped
+    _dropped = 0  # bytes dropped since
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
@@ -73,9 +87,33 @@ class _GuardedProtocol(HttpToolsProtocol):
         self._await_headers()
 
     def connection_lost(self, exc: Exception | None) -> None:
-        for timer in (self._header_timer, self._body_timer, self._stall_timer):
+        for timer in (self._header_timer, self._body_timer, self._stall_timer,
+                      self._linger_timer):
             _cancel(timer)
         super().connection_lost(exc)
+
+    def data_received(self, data: bytes) -> None:
+        """The parser gets at most ``MAX_HEAD`` bytes of a request's head: a head that
+        goes on past them is answered 431 before its bytes are kept."""
+        if self._refused:
+            self._dropped += len(data)
+            if self._dropped > LINGER_BYTES:
+                # Closing now would reset the connection, the 431 perhaps still unread:
+                # the client is left to wait until LINGER_S.
+                self.transport.pause_reading()
+            return
+        while data and not self.transport.is_closing():
+            if self._head is None:
+                super().data_received(data)
+                return
+            room = MAX_HEAD - self._head
+            if room <= 0:
+                self._head_too_large()
+                return
+            # (the head may end inside the piece, and what follows is counted anew)
+            piece, data = data[:room], data[room:]
+            self._head += len(piece)
+            super().data_received(piece)
 
     def on_message_begin(self) -> None:
         super().on_message_begin()
@@ -83,6 +121,7 @@ class _GuardedProtocol(HttpToolsProtocol):
 
     def on_headers_complete(self) -> None:
         _cancel(self._header_timer)
+        self._head = None
         super().on_headers_complete()
         # Disarmed by on_message_complete, which comes at once when there is no body.
         self._body_timer = self.loop.call_later(BODY_DEADLINE_S, self._late, "body",
@@ -90,6 +129,7 @@ class _GuardedProtocol(HttpToolsProtocol):
 
     def on_message_complete(self) -> None:
         _cancel(self._body_timer)
+        self._head = 0  # a pipelined request's head may follow at once
         super().on_message_complete()
 
     def on_response_complete(self) -> None:
@@ -109,14 +149,44 @@ class _GuardedProtocol(HttpToolsProtocol):
         self.counters["request_timeouts"] += 1
         log.debug("http: %s: the request's %s did not come within %g s", self.client,
                   part, seconds)
-        if self.cycle is None or self.cycle.response_complete or not self.cycle.response_started:
-            body = json_bytes({"error": f"the request's {part} did not come within "
-                                        f"{seconds:g} s", "kind": ErrorKind.REQUEST_TIMEOUT.value})
-            head = [b"HTTP/1.1 408 Request Timeout\r\n",
-                    *(b"%s: %s\r\n" % h for h in self.server_state.default_headers),
-                    b"content-type: application/json\r\n",
-                    b"content-length: %d\r\n" % len(body), b"connection: close\r\n\r\n"]
-            self.transport.write(b"".join(head) + body)
+        self._refuse(ErrorKind.REQUEST_TIMEOUT,
+                     f"the request's {part} did not come within {seconds:g} s")
+        self._close()
+
+    def _head_too_large(self) -> None:
+        for timer in (self._header_timer, self._body_timer):
+            _cancel(timer)
+        self._refused = True
+        log.debug("http: %s: a request's head over %d bytes", self.client, MAX_HEAD)
+        if self.cycle is not None and not self.cycle.response_complete:
+            # An earlier request on this connection (pipelined) is still being
+            # answered, perhaps a stream: the 431 cannot come after it.
+            self.transport.abort()
+            return
+        self._refuse(ErrorKind.HEADERS_TOO_LARGE,
+                     f"the request line and headers are over {MAX_HEAD} bytes; "
+                     "send fewer or shorter headers")
+        # The client is likely still sending.  Closing now would answer its next bytes
+        # with a reset, which can reach it before the 431 does: what comes is read and
+        # dropped for a while (``LINGER_S``, ``LINGER_BYTES``), or until the client
+        # closes (``eof_received``).
+        self.transport.write_eof()
+        self._linger_timer = self.loop.call_later(LINGER_S, self._close)
+
+    def _refuse(self, kind: ErrorKind, message: str) -> None:
+        """Answer a request that never reached the app, if no answer is under way."""
+        if self.cycle is not None and self.cycle.response_started \
+                and not self.cycle.response_complete:
+            return
+        row = KINDS[kind]
+        body = json_bytes({"error": message, "kind": kind.value})
+        head = [b"HTTP/1.1 %d %s\r\n" % (row.status, HTTPStatus(row.status).phrase.encode()),
+                *(b"%s: %s\r\n" % h for h in self.server_state.default_headers),
+                b"content-type: application/json\r\n",
+                b"content-length: %d\r\n" % len(body), b"connection: close\r\n\r\n"]
+        self.transport.write(b"".join(head) + body)
+
+    def _close(self) -> None:
         # close() waits until what is buffered is sent: for a client that does not
         # read, for ever.
         if self.transport.get_write_buffer_size():
