@@ -361,14 +361,15 @@ async def test_with_none_on_a_none_channel_works_as_documented(rig: Rig) -> None
     async with running(cfg) as gw:
         await until(lambda: gw.cache.snapshot("boom").seq >= 1)
         async with channel(rig, port) as client:
-            made = await create_session(client)
-            await activate(client)
+            await create_session(client)
+            done = await activate(client)
             ns = await namespace(client)
             assert (await read_status(client, ns)).Value.Value == "ok"
             with pytest.raises(UaStatusCodeError) as clear:
                 await activate(client, clear_password())
             assert refused(clear, ua.StatusCodes.BadIdentityTokenInvalid)
-            await activate(client, encrypted_password(rig, made.ServerNonce))
+            # (with the nonce of the latest activation: an older one would be a replay)
+            await activate(client, encrypted_password(rig, done.ServerNonce))
             assert (await read_status(client, ns)).Value.Value == "ok"
 
 

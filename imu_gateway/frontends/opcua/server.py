@@ -28,7 +28,7 @@ from ...normalise import field_values
 from ...stats import FrontendCounts
 from ...supervise import Frontend, RepeatFilter
 from ..common import GatewayLike
-from .guard import PEERS, GatewayUaServer
+from .guard import GatewayUaServer
 from .history import install as install_history
 from .identity import MANUFACTURER, PRODUCT_URI, describe
 from .methods import Caller, instance_caller, type_caller
@@ -254,7 +254,8 @@ class OpcUaServer(Frontend):
                         await server.write_attribute_value(nodeid, ua.DataValue(
                             variant(row.value(bus), row.datatype), SourceTimestamp=now,
                             ServerTimestamp=now))
-            PEERS.flush_due()
+            if isinstance(server, GatewayUaServer):
+                server.watch.peers.flush_due()
             await asyncio.sleep(BUS_EVERY_S)
 
     def stats(self) -> FrontendCounts:
