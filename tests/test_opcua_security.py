@@ -56,8 +56,9 @@ class Rig:
                 "opcua": {"listen": f"127.0.0.1:{port}", "pki_dir": str(self.pki), **opcua}}
 
 
-@pytest.fixture
-async def rig(tmp_path: Path) -> AsyncIterator[Rig]:
+@asynccontextmanager
+async def made_rig(tmp_path: Path) -> AsyncIterator[Rig]:
+    """A simulated AH on a line, and a client certificate the server trusts."""
     ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200,
                      source=hold(Motion.from_seed(3).sample(1.0)))
     with simulated([ah]) as line:
@@ -68,6 +69,12 @@ async def rig(tmp_path: Path) -> AsyncIterator[Rig]:
             {"commonName": "scada"})
         (r.pki / "trusted").mkdir(parents=True)
         (r.pki / "trusted" / "scada.der").write_bytes(r.cert.read_bytes())
+        yield r
+
+
+@pytest.fixture
+async def rig(tmp_path: Path) -> AsyncIterator[Rig]:
+    async with made_rig(tmp_path) as r:
         yield r
 
 

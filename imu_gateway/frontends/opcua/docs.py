@@ -4,13 +4,20 @@ command catalogue: ``python -m imu_gateway.frontends.opcua.docs > docs/opcua.md`
 
 from __future__ import annotations
 
+from asyncua.common.connection import TransportLimits
+
 from ...commands import CATALOGUE, argument_type, commands_for
 from ...model import CAPABILITIES, VALUE_GROUPS, Series, WireProtocol
+from .guard import (
+    MAX_PUBLISHING_INTERVAL_MS,
+    MAX_SUBSCRIPTION_LIFETIME_S,
+    MAX_SUBSCRIPTIONS_PER_SESSION,
+)
 from .history import HISTORY_DOC
 from .identity import MANUFACTURER, PRODUCT_NAME, PRODUCT_URI
 from .methods import declared_type
 from .nodes import COMMON_GROUPS
-from .server import CALL_STATUS
+from .server import CALL_STATUS, MAX_CLIENTS
 from .space import BUS_VARS, IDENTITY_VARS, NEVER_READ, QUALITY, SENSOR_VARS, UNECE, UNITS
 
 INTRO = """# OPC UA
@@ -108,10 +115,27 @@ SECURITY = """
 - **A session moves** to a new channel (after a connection loss) only with the client
   certificate that created it; another client's channel gets
   `BadSecurityChecksFailed`, whatever token it brings.
+- **CreateSession on a secured channel** must name the certificate the channel was
+  opened with (`BadSecurityChecksFailed`), and that certificate must be trusted
+  (`BadCertificateUntrusted`; asyncua checked only a certificate the request named,
+  when it named one).
+- **An encrypted password** must end with the nonce the server gave its session last
+  (Part 4 7.41.2.3): one seen on a Sign channel cannot be replayed in another session
+  (`BadIdentityTokenInvalid`).
+- **A session not activated** gets `BadSessionNotActivated` for everything but the
+  session services; a connection holds one (a second CreateSession closes the first),
+  and a connection with none activated after 10 s is closed.
+- **RegisterServer** is `BadServiceUnsupported`: the gateway is no discovery server.
+- **Limits:** {clients} clients at once; {subs} subscriptions a session, a publishing
+  interval of at most {interval:g} s (a longer one is revised down) and a lifetime of
+  at most {lifetime:g} s; a closed session's subscriptions are deleted, whatever the
+  CloseSession asked (a client cannot leave them behind to hold the server's); a
+  message chunk larger than the receive buffer ({buffer} bytes) is refused from its
+  header (`BadTcpMessageTooLarge`) and the connection closed.
 - **The server's certificate** is made at the first start (self-signed, one year) in
   `pki_dir`, with the key; a client trusts it once (or you replace both files by a
   certificate of your own CA). It names the application URI
-  (`urn:imu-gateway:{gateway_id}`), the host name, and the address listened on; with
+  (`urn:imu-gateway:{{gateway_id}}`), the host name, and the address listened on; with
   `0.0.0.0` every address of the host (so a client that connects by IP address finds
   it there). When the gateway finds a name missing from the one it made (the host's
   addresses changed) or the certificate expired, it makes a new one and says so in the
@@ -121,12 +145,12 @@ SECURITY = """
   PEM), or signed by a CA certificate there, read again when the folder changes (no
   restart). An empty folder refuses every secured connection and says so in the log.
   A certificate refused as untrusted is saved in `pki_dir/rejected/`
-  (`{common name} [{SHA-1}].der`, at most 100 files): move it to `trusted/` to accept
-  that client, as in UaExpert or open62541.
+  (`{{common name}} [{{SHA-1}}].der`; at most 100 files of 16 KiB, 1 MiB in all): move
+  it to `trusted/` to accept that client, as in UaExpert or open62541.
 - **The log:** at the gateway's default level an OPC UA start is a few lines; asyncua
   says only its warnings, each kind at most once a minute, and so does the gateway of
   the requests it refuses (`--log-level debug` shows everything).
-- **Users:** `users` (name → password; write `${VAR}` to keep the password out of the
+- **Users:** `users` (name → password; write `${{VAR}}` to keep the password out of the
   file). `anonymous: false` refuses clients without a user name; with
   `allow_commands: true` the config insists on it.
 """
@@ -216,10 +240,14 @@ def _methods() -> list[str]:
 def markdown() -> str:
     sensor_rows = [(v.name, v.datatype, v.description) for v in (*SENSOR_VARS, *IDENTITY_VARS)]
     bus_rows = [(v.name, v.datatype, v.description) for v in BUS_VARS]
+    security = SECURITY.format(
+        clients=MAX_CLIENTS, subs=MAX_SUBSCRIPTIONS_PER_SESSION,
+        interval=MAX_PUBLISHING_INTERVAL_MS / 1000, lifetime=MAX_SUBSCRIPTION_LIFETIME_S,
+        buffer=TransportLimits().max_recv_buffer)
     lines = [INTRO.replace("{type_rows}", _type_rows()), *_values(), *_quality(),
              *_rows("### A sensor's status and identity", sensor_rows),
              *_rows("### Buses (written every second)", bus_rows), *_methods(),
-             HISTORY_DOC, *_identity(), SECURITY]
+             HISTORY_DOC, *_identity(), security]
     return "\n".join(lines)
 
 

@@ -14,6 +14,7 @@ from typing import Any
 from asyncua import Server, ua
 
 from ... import __version__
+from .guard import MAX_SUBSCRIPTIONS_PER_SESSION
 
 PRODUCT_NAME = "imu-gateway"
 PRODUCT_URI = "urn:imu-gateway:product"
@@ -70,7 +71,7 @@ def capabilities(server: Server) -> list[Capability]:
         Capability(o.Server_ServerCapabilities_MaxSubscriptions,
                    server.iserver.max_subscriptions, v.UInt32),
         Capability(o.Server_ServerCapabilities_MaxSubscriptionsPerSession,
-                   server.iserver.max_subscriptions, v.UInt32),
+                   MAX_SUBSCRIPTIONS_PER_SESSION, v.UInt32),
         # (0: no limit of its own; a Publish answers what the queue holds)
         Capability(o.Server_ServerCapabilities_MaxMonitoredItems, 0, v.UInt32),
         Capability(o.Server_ServerCapabilities_MaxMonitoredItemsPerSubscription, 0, v.UInt32),

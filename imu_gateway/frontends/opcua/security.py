@@ -27,6 +27,7 @@ import hmac
 import ipaddress
 import itertools
 import logging
+import os
 import socket
 from datetime import UTC, datetime
 from pathlib import Path
@@ -50,7 +51,8 @@ from ...config import OpcUaConfig
 log = logging.getLogger("imu_gateway.opcua")
 
 CERT, KEY, TRUSTED, REJECTED = "server_cert.der", "server_key.pem", "trusted", "rejected"
-MAX_REJECTED = 100  # files kept in rejected/: a client trying new certificates fills no disk
+#: What rejected/ keeps: a client trying new (or padded) certificates fills no disk.
+MAX_REJECTED, MAX_REJECTED_BYTES, MAX_CERTIFICATE_BYTES = 100, 1 << 20, 16 << 10
 ORGANIZATION = "imu-gateway"  # the subject's O of a certificate the gateway made
 
 
@@ -153,10 +155,11 @@ def ensure_certificate(pki: Path, app_uri: str, listen_host: str) -> tuple[Path,
         key: Any = serialization.load_pem_private_key(key_file.read_bytes(), password=None)
     else:
         key = generate_private_key()
-        key_file.write_bytes(dump_private_key_as_pem(key))
-    # The private key is the server's identity: only its owner reads it (asyncua
-    # writes it with the umask's mode, often 0644).
-    key_file.chmod(0o600)
+        # the server's identity: only its owner reads it, from the moment it exists
+        fd = os.open(key_file, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "wb") as out:
+            out.write(dump_private_key_as_pem(key))
+    key_file.chmod(0o600)  # (one made by an earlier release, or by hand, too)
     why = "first start"
     if cert_file.exists():
         missing = _missing(x509.load_der_x509_certificate(cert_file.read_bytes()), wanted)
@@ -236,7 +239,10 @@ class TrustList:
                         for c in str(names[0].value if names else "client"))[:60]
         target = self.rejected / f"{label} [{hashlib.sha1(der).hexdigest()}].der"
         with contextlib.suppress(OSError, ValueError):
-            if target.exists() or len(list(self.rejected.iterdir())) >= MAX_REJECTED:
+            kept = list(self.rejected.iterdir())
+            if target.exists() or len(der) > MAX_CERTIFICATE_BYTES or \
+                    len(kept) >= MAX_REJECTED or \
+                    sum(p.stat().st_size for p in kept) + len(der) > MAX_REJECTED_BYTES:
                 return
             target.write_bytes(der)
             log.warning("opcua: refused an untrusted client certificate (%s); saved as %s: "

@@ -28,7 +28,7 @@ from ...normalise import field_values
 from ...stats import FrontendCounts
 from ...supervise import Frontend, RepeatFilter
 from ..common import GatewayLike
-from .guard import GatewayUaServer
+from .guard import MAX_SUBSCRIPTIONS_PER_SESSION, GatewayUaServer
 from .history import install as install_history
 from .identity import MANUFACTURER, PRODUCT_URI, describe
 from .methods import Caller, instance_caller, type_caller
@@ -57,6 +57,18 @@ ASYNCUA_PER_REQUEST = ("asyncua.server.uaprocessor", "asyncua.server.binary_serv
                        "asyncua.server.internal_session", "asyncua.server.internal_server",
                        "asyncua.server.address_space", "asyncua.common.connection",
                        "asyncua.uaprotocol")
+
+
+#: Clients at once (asyncua's 1000 is near a process's 1024 descriptors, which every
+#: front end and port shares), and how long a connection may stay without an
+#: activated session (asyncua: 30 s).
+MAX_CLIENTS, ACTIVATION_S = 100, 10.0
+
+
+def limit_clients(server: Server) -> None:
+    server.iserver.max_connections = MAX_CLIENTS
+    server.iserver.max_pending_activation_seconds = ACTIVATION_S
+    server.iserver.max_subscriptions = MAX_CLIENTS * MAX_SUBSCRIPTIONS_PER_SESSION
 
 
 def quiet_asyncua() -> None:
@@ -120,6 +132,7 @@ class OpcUaServer(Frontend):
         server.set_endpoint(self.endpoint)
         server.set_server_name(f"imu-gateway {gid}")
         server.product_uri, server.manufacturer_name = PRODUCT_URI, MANUFACTURER
+        limit_clients(server)
         await describe(server)
         uri = f"urn:imu-gateway:{gid}"
         await server.set_application_uri(uri)
