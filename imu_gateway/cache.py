@@ -170,6 +170,8 @@ class Cache:
         e = self._entry(name)
         if online is not None:
             e.online = online
+            if not online:
+                self._forget_settings(name, e)
         if busy is not None:
             e.busy = busy
             if not busy and e.settings.busy_with is not None:  # what it was busy with is over
@@ -206,6 +208,16 @@ class Cache:
             shown = replace(shown, busy_with=None)
         settings, e.settings = e.settings, e.settings.updated(shown)
         if e.settings != settings:
+            self._emit(EventKind.SETTINGS, name)
+
+    def _forget_settings(self, name: str, e: _Entry) -> None:
+        """The sensor is offline, or its port is gone: it may be power-cycled and back at
+        what it saved (a zero type set ``relative`` and never saved comes back
+        ``absolute``), so what was learned of it is unknown until it is read again (its
+        bus does that by itself when it answers again)."""
+        forgotten = KnownSettings(busy_with=e.settings.busy_with)
+        if e.settings != forgotten:
+            e.settings = forgotten
             self._emit(EventKind.SETTINGS, name)
 
     def settings(self, name: str) -> KnownSettings:

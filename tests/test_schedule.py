@@ -13,16 +13,18 @@ from typing import Any
 import pytest
 from virtual_line import VirtualLine, bus, jittery, sim
 
-from imu_gateway.bus.events import Job, Trace
+from imu_gateway.bus.events import Finished, Job, Kind, Trace
 from imu_gateway.bus.line import stream_wait
 from imu_gateway.bus.schedule import Schedule
 from imu_gateway.bus.sensor_state import (
     BACKOFF_MAX,
     EVIDENCE_SPAN,
+    SETTINGS_RETRY,
     SensorState,
 )
 from imu_gateway.bus.timing import LOOK_EVERY, RTO_INITIAL, RTO_MAX, RTO_MIN, AnswerTimer
 from imu_gateway.bus.trace import format_trace
+from imu_gateway.commands import CommandResult
 from imu_gateway.config import SensorConfig
 from imu_gateway.errors import ErrorKind
 from imu_gateway.model import Series
@@ -291,6 +293,76 @@ def test_offline_sensors_are_refused_at_once_and_the_port_loss_fails_everything(
     assert line.schedule.refusal("s0") is not None
 
 
+def _settings_reads(line: VirtualLine, name: str) -> list[Finished]:
+    """The settings reads the bus made by itself, for ``name``."""
+    return [e for e in line.events if isinstance(e, Finished) and e.job.sensor.name == name
+            and e.job.kind is Kind.SETTINGS]
+
+
+@pytest.mark.parametrize("protocol", ["native", "modbus"])
+def test_a_sensor_back_from_offline_has_its_settings_read_once(protocol: str) -> None:
+    """A power cut may have undone what a command set: once the sensor answers again
+    the bus reads its settings by itself, once, and its neighbour keeps its polls."""
+    first = 0 if protocol == "native" else 1
+    sensors = [sim(protocol, "AH", first), sim(protocol, "AH", first + 1)]
+    line = VirtualLine(bus(protocol, flat_out(protocol, 2)), sensors)
+    line.run(2.0)
+    assert _settings_reads(line, "s0") == []  # nothing was ever lost: nothing is read
+    sensors[0].faults.stalled = True
+    line.run(30.0, until=lambda: line.schedule.sensors["s0"].online is False)
+    sensors[0].apply_zero_type("relative", line.now)  # (set while it was away)
+    sensors[0].faults.stalled = False
+    line.run(30.0, until=lambda: bool(_settings_reads(line, "s0")))
+    polls = len(line.readings("s1"))
+    line.run(5.0)
+    (read,) = _settings_reads(line, "s0")
+    assert isinstance(read.outcome, CommandResult) and read.outcome.ok
+    assert read.outcome.answer["zero_type"] == "relative"
+    assert len(line.readings("s1")) - polls > 100
+    assert line.overlaps == 0 and line.collisions == 0
+
+
+def test_a_stream_set_up_again_after_a_port_loss_has_its_settings_read_between_frames(
+        ) -> None:
+    sensors = [sim("native", "AH", 0), sim("native", "VG", 1)]
+    line = VirtualLine(bus("native", [
+        {"name": "st", "series": "AH", "address": 0, "stream_hz": 50},
+        {"name": "po", "series": "VG", "address": 1, "poll_hz": 0}]), sensors)
+    st = line.schedule.sensors["st"]
+    line.run(3.0)
+    assert st.streaming and _settings_reads(line, "st") == []
+    line.lose_port()  # the adapter, which powers the sensors, is pulled and put back
+    sensors[0].stream_interval = 0.0
+    line.schedule.open(line.now)
+    line.run(30.0, until=lambda: bool(_settings_reads(line, "st")))
+    (read,) = _settings_reads(line, "st")
+    assert isinstance(read.outcome, CommandResult) and read.outcome.ok
+    assert st.streaming and st.stream_frames  # set up again first, read between frames
+    line.run(3.0)
+    assert len(_settings_reads(line, "st")) == 1
+    assert line.overlaps == 0 and line.collisions == 0
+
+
+def test_a_failed_settings_read_is_tried_again_later_not_at_once() -> None:
+    sensors = [sim("native", "AH", 0)]
+    line = VirtualLine(bus("native", flat_out("native", 1)), sensors)
+    s0 = line.schedule.sensors["s0"]
+    sensors[0].faults.stalled = True
+    line.run(30.0, until=lambda: s0.online is False)
+    sensors[0].faults.stalled = False
+    line.run(30.0, until=lambda: s0.online is True)
+    sensors[0].faults.drop_rate = 1.0  # the settings read goes unanswered
+    line.run(5.0, until=lambda: bool(_settings_reads(line, "s0")))
+    (failed,) = _settings_reads(line, "s0")
+    assert isinstance(failed.outcome, CommandResult) and not failed.outcome.ok
+    assert s0.settings_at == pytest.approx(line.now + SETTINGS_RETRY, abs=0.5)
+    sensors[0].faults.drop_rate = 0.0
+    line.run(30.0, until=lambda: len(_settings_reads(line, "s0")) == 2)
+    retried = _settings_reads(line, "s0")[1]
+    assert isinstance(retried.outcome, CommandResult) and retried.outcome.ok
+    assert line.overlaps == 0
+
+
 def test_a_sensor_away_for_days_is_still_tried_every_back_off() -> None:
     """Failures go on counting while a sensor is away: thousands of them must not
     overflow the back-off's doubling (2 ** 1024 is past a float)."""
@@ -357,8 +429,6 @@ def test_a_read_of_a_streaming_sensor_waits_for_its_next_frame_without_spinning(
 
 
 def test_stopping_during_a_stream_set_up_still_leaves_the_line_quiet() -> None:
-    from imu_gateway.bus.events import Kind
-
     sensor = sim("native", "AH", 0)
     line = VirtualLine(bus("native", [{"name": "st", "series": "AH", "address": 0,
                                        "stream_hz": 20}]), [sensor])

@@ -18,13 +18,15 @@ from .sensor_state import SensorState
 
 
 class Kind(enum.Enum):
-    """What a job is for.  Who waits for it: COMMAND, PASSTHROUGH and READ."""
+    """What a job is for.  Who waits for it: COMMAND, PASSTHROUGH and READ (and the
+    driver, for SETTINGS: what the answer shows goes to the cache)."""
 
     COMMAND = "command"
     PASSTHROUGH = "pass-through"
     STREAM_START = "stream set-up"
     STREAM_STOP = "stream stop"
     READ = "on-demand read"
+    SETTINGS = "settings read"  # read_settings, by the bus itself (a sensor back from offline)
     POLL = "poll"
 
 

@@ -7,7 +7,9 @@ Next is, in this order:
 3. a stop for a sensor found streaming unasked (on evidence only, see
    ``sensor_state``);
 4. on-demand reads, one per sensor however many ask;
-5. polls: the due sensor that waited longest first.
+5. the settings read (``read_settings``) of a sensor back from offline, at its poll's
+   turn (a streaming one's: at once), once;
+6. polls: the due sensor that waited longest first.
 
 While stopping, only the stops of the streams go out.
 """
@@ -15,6 +17,7 @@ While stopping, only the stops of the streams go out.
 from __future__ import annotations
 
 import logging
+import math
 from collections import deque
 from collections.abc import Callable, Iterable
 
@@ -27,6 +30,8 @@ from .events import Event, Finished, Job, Kind, Note
 from .sensor_state import STREAM_RETRY, SensorState
 
 MAX_QUEUED_PER_SENSOR = 16  # commands waiting for one sensor before more are refused (busy)
+#: what the bus sends by itself to learn a sensor's settings anew
+READ_SETTINGS = Command("read_settings")
 
 
 class JobQueue:
@@ -89,7 +94,7 @@ class JobQueue:
         if self.reads.get(job.sensor.name) is job:
             del self.reads[job.sensor.name]
         if job.kind in (Kind.POLL, Kind.STREAM_START, Kind.STREAM_STOP):
-            return  # nobody waits for these
+            return  # nobody waits for these (SETTINGS: the driver learns from it)
         if error is not None and job.command is not None:
             outcome = CommandResult.failed(job.sensor.name, job.command.name, error)
             error = None
@@ -117,6 +122,9 @@ class JobQueue:
                                                      "or calibration)"))
             elif not job.sensor.streaming and not job.started:
                 return job  # stays listed until answered, for later askers
+        for s in sensors:
+            if s.settings_due(now):
+                return Job(Kind.SETTINGS, s, command=READ_SETTINGS)
         due = [s for s in sensors if s.due(now)]
         if due:
             return Job(Kind.POLL, min(due, key=lambda s: (s.next_due, s.last_served)))
@@ -142,7 +150,7 @@ class JobQueue:
                     job.plan = adapter.stream_start(series, s.address, s.config.stream_hz)
                 case Kind.STREAM_STOP:
                     job.plan = adapter.stream_stop(series, s.address)
-                case Kind.COMMAND:
+                case Kind.COMMAND | Kind.SETTINGS:
                     assert job.command is not None
                     job.plan = adapter.command(series, s.address, job.command.name,
                                                job.command.args)
@@ -151,6 +159,8 @@ class JobQueue:
                 self.emit(Note(logging.ERROR, f"sensor {s.name}: cannot stream at "
                                f"{s.config.stream_hz} Hz: {exc}"))
                 s.stream_retry_at = float("inf")
+            if job.kind is Kind.SETTINGS:
+                s.settings_at = math.inf  # (every series has it: never, in fact)
             kind = ErrorKind.UNSUPPORTED if isinstance(exc, Unsupported) else \
                 ErrorKind.BAD_ARGUMENTS
             self.finish(job, error=RequestFailed(kind, str(exc)))

@@ -27,14 +27,24 @@ import typing
 from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
 
-from ..commands import Command, CommandResult
+from ..commands import CATALOGUE, Command, CommandResult
 from ..config import BusConfig
 from ..errors import ErrorKind, LinkError, RequestFailed
-from ..model import Reading
+from ..model import KnownSettings, Reading
 from ..normalise import to_reading
 from ..protocol.exchanges import ModbusAdapter, adapter_for
 from ..stats import BusStats, Counters, SensorStats, ms, share
-from .events import ErrorCounted, Event, Finished, Job, Note, Publish, StateChange, Trace
+from .events import (
+    ErrorCounted,
+    Event,
+    Finished,
+    Job,
+    Kind,
+    Note,
+    Publish,
+    StateChange,
+    Trace,
+)
 from .link import SerialLink
 from .reactor import Reactor
 from .schedule import Schedule
@@ -67,6 +77,8 @@ class BusToCache(typing.Protocol):
                   streaming: bool | None = None) -> None: ...
 
     def count_error(self, name: str) -> None: ...
+
+    def learn(self, name: str, shown: KnownSettings) -> None: ...
 
     def note_stats(self, bus: BusStats, sensors: Mapping[str, SensorStats]) -> None: ...
 
@@ -341,6 +353,10 @@ class BusMaster:
             case ErrorCounted(name):
                 self.cache.count_error(name)
             case Finished(job, outcome, error):
+                if job.kind is Kind.SETTINGS and isinstance(outcome, CommandResult) \
+                        and outcome.ok:  # (asked by the bus itself: nobody else learns it)
+                    self.cache.learn(job.sensor.name, CATALOGUE["read_settings"].learns(
+                        {}, outcome.answer))
                 self._resolve(job, outcome, error)
             case Note(level, text):
                 log.log(level, "%s", text)

@@ -6,6 +6,7 @@ late answers, and the evidence that a sensor streams unasked.  Part of ``Schedul
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -29,7 +30,7 @@ from .events import (
 )
 from .jobs import JobQueue
 from .line import Line
-from .sensor_state import STREAM_RETRY, SensorState
+from .sensor_state import SETTINGS_RETRY, STREAM_RETRY, SensorState
 
 
 class Outcomes:
@@ -187,7 +188,9 @@ class Outcomes:
             self._note(logging.WARNING, f"sensor {s.name}: refused auto-output: {answer.detail}")
             s.stream_retry_at = at + STREAM_RETRY
             return
-        if job.kind is Kind.COMMAND:
+        if job.kind is Kind.SETTINGS:
+            s.settings_at = math.inf  # it refuses: asking again would not help
+        if job.kind in (Kind.COMMAND, Kind.SETTINGS):
             assert job.command is not None
             self.jobs.finish(job, CommandResult(
                 s.name, job.command.name, False, dict(answer.values),
@@ -204,12 +207,17 @@ class Outcomes:
                 self.emit(StateChange(s.name, streaming=True))
                 self._note(logging.INFO, f"sensor {s.name}: streaming at "
                            f"{s.config.stream_hz:g} Hz")
-            case Kind.COMMAND:
+            case Kind.COMMAND | Kind.SETTINGS:
                 assert job.command is not None
                 if job.command.name == "read_settings":
                     job.values["address"] = s.address
-                self._note(logging.INFO, f"sensor {s.name}: {job.command.name} "
-                           f"{dict(job.command.args) or ''} done")
+                if job.kind is Kind.SETTINGS:
+                    s.settings_at = math.inf
+                    self._note(logging.INFO, f"sensor {s.name}: its settings read again "
+                               f"(a power cut may have reset them): {job.values}")
+                else:
+                    self._note(logging.INFO, f"sensor {s.name}: {job.command.name} "
+                               f"{dict(job.command.args) or ''} done")
                 self.jobs.finish(job, CommandResult(s.name, job.command.name, True, job.values))
             case Kind.PASSTHROUGH:
                 self.jobs.finish(job, job.values.get("pdu"))
@@ -228,6 +236,8 @@ class Outcomes:
                       "refused": ErrorKind.FAILURE}.get(kind, ErrorKind.TIMEOUT)
         if job.kind is Kind.STREAM_START:
             s.stream_retry_at = now + STREAM_RETRY
+        if job.kind is Kind.SETTINGS:
+            s.settings_at = now + SETTINGS_RETRY
         if job.kind in (Kind.POLL, Kind.READ):
             s.last_served = now
             s.schedule_next_poll(now)

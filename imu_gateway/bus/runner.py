@@ -33,7 +33,7 @@ from ..cache import Cache
 from ..commands import Command, CommandResult
 from ..config import BusConfig
 from ..errors import ErrorKind, RequestFailed
-from ..model import Reading
+from ..model import KnownSettings, Reading
 from ..stats import BusStats, SensorStats
 from .master import BusMaster, Done
 from .reactor import Reactor
@@ -89,6 +89,9 @@ class CacheWriter:
 
     def count_error(self, name: str) -> None:
         self.hand(self.cache.count_error, name)
+
+    def learn(self, name: str, shown: KnownSettings) -> None:
+        self.hand(self.cache.learn, name, shown)
 
     def note_stats(self, bus: BusStats, sensors: Mapping[str, SensorStats]) -> None:
         self.hand(self.cache.note_stats, bus, sensors)

@@ -184,9 +184,10 @@ class Schedule:
                 now < self.line.free_at(now, pending):
             return None
         job = self.jobs.current
-        if job is not None and job.kind is Kind.POLL and not job.tries and \
-                self.jobs.ready(self.stopping):
-            job = self.jobs.current = None  # a poll not sent yet gives way to a command
+        if job is not None and job.kind in (Kind.POLL, Kind.SETTINGS) and not job.tries \
+                and self.jobs.ready(self.stopping):
+            # a poll (or settings read) not sent yet gives way to a command
+            job = self.jobs.current = None
         if job is None:
             job = self.jobs.current = self.jobs.pick(now, self.sensors.values(), self.stopping)
             if job is None:
@@ -233,6 +234,8 @@ class Schedule:
                     continue
             if s.streaming:
                 times.append(s.last_stream + s.stream_timeout)
+                if s.online is True and s.settings_at < math.inf:  # (``settings_due``)
+                    work.append(max(s.settings_at, s.busy_until))
             else:
                 work.append(s.next_due)
             if (s.config.stream_hz and not s.streaming) or s.stop_stream:

@@ -5,6 +5,7 @@ method takes the time as an argument.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -17,6 +18,8 @@ from .timing import AnswerTimer
 OFFLINE_AFTER = 3  # consecutive failed exchanges before a sensor is called offline
 BACKOFF_MIN, BACKOFF_MAX = 0.25, 10.0  # seconds between tries of a failing sensor
 STREAM_RETRY = 5.0  # seconds before setting up (or stopping) a stream again
+#: seconds before a failed settings read of a sensor back from offline is tried again
+SETTINGS_RETRY = 5.0
 # A sensor is taken to stream unasked only on evidence a late answer cannot give:
 # EVIDENCE_FRAMES frames nobody asked for within EVIDENCE_WINDOW seconds, spread over
 # at least EVIDENCE_SPAN seconds, each arriving with no request to that sensor
@@ -52,6 +55,9 @@ class SensorState:
     stop_stream: bool = False  # it streams though nobody asked: tell it to stop
     evidence: deque[float] = field(default_factory=deque)  # unexplained frames' times
     unanswered: deque[float] = field(default_factory=lambda: deque(maxlen=64))
+    #: when its settings are to be read (``read_settings``, by the bus itself): after it
+    #: was offline, what a command set may have been undone by a power cut (inf: never)
+    settings_at: float = math.inf
     _poll: tuple[int, Exchange] | None = None
 
     @property
@@ -78,6 +84,12 @@ class SensorState:
         return bool(self.config.stream_hz) and not self.streaming \
             and now >= self.stream_retry_at and now >= self.busy_until
 
+    def settings_due(self, now: float) -> bool:
+        """Are its settings to be read now?  Only while it answers and is not busy, at
+        the turn of its poll (a streaming sensor: at once)."""
+        return self.settings_at <= now and self.online is True and \
+            self.busy_until <= now and (self.streaming or self.next_due <= now)
+
     def due(self, now: float) -> bool:
         return self.next_due <= now and (self.busy_until <= now or self.read_while_busy) \
             and not self.streaming
@@ -90,6 +102,8 @@ class SensorState:
         if self.online is True:
             return None
         change = "recovered" if self.online is False else "online"
+        if self.online is False:  # (it may have lost power meanwhile)
+            self.settings_at = 0.0
         self.online = True
         return change
 

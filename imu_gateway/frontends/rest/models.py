@@ -108,7 +108,8 @@ class SensorDetailOut(SensorOut):
     config: dict[str, Any]
     settings: dict[str, Any] = Field(description=(
         "what the gateway learnt from commands (and Modbus pass-through); busy_with only "
-        "while a save or calibration runs"))
+        "while a save or calibration runs; forgotten (unknown) while the sensor is offline "
+        "or its port lost, and read again by the bus when it answers"))
     stats: dict[str, Any]
     reading: ReadingOut | None
 

@@ -1,0 +1,315 @@
+"""What the gateway's memory keeps after an attack: the real process, its VmRSS.
+
+    .venv/bin/python bench/rss.py [--trickle 400] [--garbage 57000] [--trace] [--json F]
+
+Starts two simulated lines (a native AH and VG polled at 10 Hz; a Modbus AH streaming
+at 20 Hz), mosquitto, and ``python -m imu_gateway run`` with every front end on (Modbus
+TCP, MQTT 5 with Home Assistant discovery, HTTP, OPC UA).  Then, one after the other,
+with a quiet settle after each:
+
+1. **trickle**: ``--trickle`` connections (half HTTP, half Modbus TCP) from 127.0.0.2,
+   each sending its request one byte every 2 s and never the last (closed ones come
+   back a second later), for ``--hold`` seconds;
+2. **garbage**: ``--garbage`` REST requests from 20 connections at once: unknown
+   paths, bad methods, bad tokens, bodies that are not JSON, request lines that are not
+   HTTP (``docs/reliability.md`` has the mix and the figures).
+
+VmRSS (``/proc/PID/status``) is sampled at the start, at the end of each attack, and
+after each settle.  With ``--trace`` the gateway runs under ``tracemalloc`` (slower,
+and more memory of its own): the Python-level total is sampled at the same moments,
+and the biggest growths by line are printed.  At the end the gateway is asked to
+``malloc_trim(0)``: what RSS then gives back was free memory the allocator held.
+
+The gateway is started through this file (``--child``), which adds a SIGUSR1 handler
+that writes those figures to a file: the gateway's own code is unchanged.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import ctypes
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+import tracemalloc
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from broker import Mosquitto
+from hostile import PARTIAL_HEADERS, PARTIAL_MBAP, Swarm, trickle
+
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.simulator import make_sensor, simulated
+
+FAST = 115200
+TOKEN = "rss-token"
+HOST = "127.0.0.1"
+
+
+# ------------------------------------------------------------------ the gateway's side
+
+
+def child(config: str, report: str, trace: bool) -> int:
+    """The gateway, with a SIGUSR1 handler that writes its memory figures to
+    ``report`` (SIGUSR2: ``malloc_trim(0)`` first)."""
+    if trace:
+        tracemalloc.start(1)
+    baseline: list[tracemalloc.Snapshot] = []
+
+    def dump(trim: bool) -> None:
+        if trim:
+            ctypes.CDLL("libc.so.6").malloc_trim(0)
+        out: dict[str, Any] = {"rss_mb": rss_mb(os.getpid()),
+                               "threads": len(os.listdir("/proc/self/task"))}
+        if trace:
+            current, peak = tracemalloc.get_traced_memory()
+            out.update(traced_mb=current / 2**20, traced_peak_mb=peak / 2**20)
+            snap = tracemalloc.take_snapshot().filter_traces(
+                [tracemalloc.Filter(False, tracemalloc.__file__)])
+            if not baseline:
+                baseline.append(snap)
+            out["top"] = [str(stat) for stat in
+                          snap.compare_to(baseline[0], "lineno")[:12]]
+        Path(report).write_text(json.dumps(out))
+
+    signal.signal(signal.SIGUSR1, lambda *_: dump(False))
+    signal.signal(signal.SIGUSR2, lambda *_: dump(True))
+    from imu_gateway.tools.cli import main
+    return main(["run", "-c", config])
+
+
+def rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise RuntimeError("no VmRSS")
+
+
+class Gateway:
+    def __init__(self, folder: Path, config: str, trace: bool, env: dict[str, str]) -> None:
+        self.report = folder / "memory.json"
+        path = folder / "gateway.yaml"
+        path.write_text(config)
+        self.log = (folder / "gateway.log").open("wb")
+        self.process = subprocess.Popen(
+            [sys.executable, __file__, "--child", str(path), str(self.report),
+             *(["--trace"] if trace else [])],
+            stdout=self.log, stderr=subprocess.STDOUT, env={**os.environ, **env})
+
+    async def figures(self, trim: bool = False) -> dict[str, Any]:
+        self.report.unlink(missing_ok=True)
+        self.process.send_signal(signal.SIGUSR2 if trim else signal.SIGUSR1)
+        for _ in range(4000):  # (a snapshot of a traced heap takes a while)
+            with contextlib.suppress(FileNotFoundError, json.JSONDecodeError):
+                found: dict[str, Any] = json.loads(self.report.read_text())
+                return found
+            await asyncio.sleep(0.05)
+        raise RuntimeError("the gateway wrote no figures")
+
+    def stop(self) -> None:
+        self.process.send_signal(signal.SIGINT)
+        try:
+            self.process.wait(20)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+
+
+def config_yaml(lines: dict[str, str], ports: dict[str, int], broker: Mosquitto,
+                pki: Path) -> str:
+    return f"""gateway_id: rss
+buses:
+  - name: a
+    port: {lines['a']}
+    baudrate: {FAST}
+    protocol: native
+    sensors:
+      - {{name: a1, series: AH, address: 0, poll_hz: 10}}
+      - {{name: a2, series: VG, address: 1, poll_hz: 10}}
+  - name: b
+    port: {lines['b']}
+    baudrate: {FAST}
+    protocol: modbus
+    sensors:
+      - {{name: b1, series: AH, address: 1, stream_hz: 20}}
+modbus: {{listen: '{HOST}:{ports['modbus']}', allow_writes: true}}
+mqtt: {{url: '{broker.url}', protocol: 5, allow_commands: true,
+       homeassistant_discovery: true}}
+http: {{listen: '{HOST}:{ports['http']}', token: {TOKEN}, allow_commands: true}}
+opcua: {{listen: '{HOST}:{ports['opcua']}', allow_none: true, pki_dir: '{pki}'}}
+"""
+
+
+# ------------------------------------------------------------------ the attacks
+
+
+def garbage_request(rng: random.Random) -> bytes:
+    """One request of the mix: most are answered (404, 401, 405, 422), some are not
+    HTTP at all (the gateway closes those connections)."""
+    word = "".join(rng.choice("abcdefghijklmnopqrstuvwxyz0123456789%") for _ in range(12))
+    auth = f"Authorization: Bearer {TOKEN}\r\n"
+    kind = rng.randrange(6)
+    if kind == 0:
+        return f"GET /api/v1/{word}/{rng.random()} HTTP/1.1\r\nHost: x\r\n\r\n".encode()
+    if kind == 1:
+        return f"GET /api/v1/sensors/{word} HTTP/1.1\r\nHost: x\r\n{auth}\r\n".encode()
+    if kind == 2:
+        return (f"POST /api/v1/sensors/a1/commands/{word} HTTP/1.1\r\nHost: x\r\n"
+                f"Authorization: Bearer {word}\r\nContent-Length: 3\r\n\r\n{{x}}").encode()
+    if kind == 3:
+        body = word * 8
+        return (f"POST /api/v1/sensors/a1/commands/set_zero_type HTTP/1.1\r\nHost: x\r\n"
+                f"{auth}Content-Type: application/json\r\nContent-Length: {len(body)}\r\n"
+                f"\r\n{body}").encode()
+    if kind == 4:
+        return f"DELETE /api/v1/health?{word}={word} HTTP/1.1\r\nHost: x\r\n\r\n".encode()
+    return f"{word} \x01\x02 {word}\r\n\r\n".encode()  # not HTTP: closed
+
+
+async def _garbage_worker(port: int, count: int, seed: int) -> int:
+    rng = random.Random(seed)
+    sent = 0
+    reader: asyncio.StreamReader | None = None
+    writer: asyncio.StreamWriter | None = None
+    while sent < count:
+        if writer is None or reader is None:
+            reader, writer = await asyncio.open_connection(HOST, port,
+                                                           local_addr=("127.0.0.2", 0))
+        writer.write(garbage_request(rng))
+        sent += 1
+        try:
+            head = await reader.readuntil(b"\r\n\r\n")
+            length = next((int(line.split(b":")[1]) for line in head.split(b"\r\n")
+                           if line.lower().startswith(b"content-length:")), 0)
+            await reader.readexactly(length)
+            if b"connection: close" in head.lower():
+                raise ConnectionError
+        except (ConnectionError, asyncio.IncompleteReadError):
+            writer.close()
+            reader = writer = None
+    if writer is not None:
+        writer.close()
+    return sent
+
+
+async def garbage(port: int, total: int, workers: int = 20) -> int:
+    counts = await asyncio.gather(*(_garbage_worker(port, total // workers, i)
+                                    for i in range(workers)))
+    return sum(counts)
+
+
+# ------------------------------------------------------------------ the run
+
+
+async def measure(args: argparse.Namespace, folder: Path) -> dict[str, Any]:
+    from harness import free_port
+
+    sims = {"a": [make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST),
+                  make_sensor(WireProtocol.NATIVE, Series.VG, 1, baud=FAST)],
+            "b": [make_sensor(WireProtocol.MODBUS, Series.AH, 1, baud=FAST)]}
+    ports = {name: free_port() for name in ("modbus", "http", "opcua")}
+    env = dict(item.split("=", 1) for item in args.env)
+    samples: dict[str, Any] = {}
+    with Mosquitto(folder) as broker, simulated(sims["a"]) as a, simulated(sims["b"]) as b:
+        gw = Gateway(folder, config_yaml({"a": a.path, "b": b.path}, ports, broker,
+                                         folder / "pki"), args.trace, env)
+        try:
+            await _until_http(ports["http"], gw)
+            await asyncio.sleep(args.settle)
+            samples["start"] = await _steady(gw, args.settle)
+            for n in range(1, args.rounds + 1):
+                await _trickle(args, ports, gw, samples, f"round {n}: ")
+                began = time.monotonic()
+                sent = await garbage(ports["http"], args.garbage)
+                took = time.monotonic() - began
+                samples[f"round {n}: garbage ({sent} in {took:.0f} s), at its end"] = \
+                    await gw.figures()
+                await asyncio.sleep(args.settle)
+                samples[f"round {n}: garbage, settled"] = await gw.figures()
+            samples["after malloc_trim(0)"] = await gw.figures(trim=True)
+        finally:
+            gw.stop()
+    return samples
+
+
+async def _steady(gw: Gateway, settle: float) -> dict[str, Any]:
+    """The figures once the gateway has settled after its start (the OPC UA server
+    builds its address space for a while; under tracemalloc, for long)."""
+    await asyncio.sleep(settle)
+    last = await gw.figures()
+    while True:
+        await asyncio.sleep(settle)
+        now = await gw.figures()
+        if abs(now.get("traced_mb", 0) - last.get("traced_mb", 0)) < 0.2 and \
+                abs(now["rss_mb"] - last["rss_mb"]) < 0.5:
+            return now
+        last = now
+
+
+async def _trickle(args: argparse.Namespace, ports: dict[str, int], gw: Gateway,
+                   samples: dict[str, Any], prefix: str) -> None:
+    swarms = [Swarm(ports["http"], args.trickle // 2, trickle(PARTIAL_HEADERS)),
+              Swarm(ports["modbus"], args.trickle - args.trickle // 2, trickle(PARTIAL_MBAP))]
+    for swarm in swarms:
+        swarm.start()
+    await asyncio.sleep(args.hold)
+    samples[f"{prefix}trickle, at its end"] = await gw.figures()
+    for swarm in swarms:
+        await swarm.stop()
+    await asyncio.sleep(args.settle)
+    samples[f"{prefix}trickle, settled"] = await gw.figures()
+
+
+async def _until_http(port: int, gw: Gateway) -> None:
+    for _ in range(600):
+        if gw.process.poll() is not None:
+            raise RuntimeError("the gateway exited")
+        with contextlib.suppress(OSError):
+            _, writer = await asyncio.open_connection(HOST, port)
+            writer.close()
+            return
+        await asyncio.sleep(0.1)
+    raise RuntimeError("the gateway's HTTP did not come up")
+
+
+def main() -> int:
+    if sys.argv[1:2] == ["--child"]:
+        return child(sys.argv[2], sys.argv[3], "--trace" in sys.argv)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--trickle", type=int, default=400)
+    parser.add_argument("--garbage", type=int, default=57_000)
+    parser.add_argument("--hold", type=float, default=30.0, help="trickle for this long, s")
+    parser.add_argument("--settle", type=float, default=10.0, help="quiet after each, s")
+    parser.add_argument("--rounds", type=int, default=1, help="both attacks, this many times")
+    parser.add_argument("--trace", action="store_true", help="the gateway under tracemalloc")
+    parser.add_argument("--env", action="append", default=[], metavar="NAME=VALUE",
+                        help="for the gateway: MALLOC_ARENA_MAX=2, PYTHONMALLOC=malloc, …")
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory(prefix="rss-") as folder:
+        samples = asyncio.run(measure(args, Path(folder)))
+    for name, figures in samples.items():
+        if not isinstance(figures, dict):
+            print(f"{name}: {figures}")
+            continue
+        traced = f", traced {figures['traced_mb']:.1f} MB" if "traced_mb" in figures else ""
+        print(f"{name}: RSS {figures['rss_mb']:.1f} MB, {figures['threads']} threads{traced}")
+        for line in figures.get("top", [])[:8]:
+            print(f"    {line}")
+    if args.json:
+        args.json.write_text(json.dumps(samples, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
