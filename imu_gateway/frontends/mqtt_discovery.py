@@ -229,8 +229,10 @@ def _command_entity(setup: Setup, name: str, spec: CommandSpec) -> tuple[str, Co
         return "button", {"payload_press": "{}"}
     shown: Config = {}
     if spec.register.setting:
+        # (.get: a setting not known, after an absence, renders "None", which Home
+        # Assistant shows as unknown; a missing key would render "" and log an error)
         shown = {"state_topic": setup.topics.sensor(name, SETTINGS_LEAF),
-                 "value_template": _jinja(f"value_json.{spec.register.setting}")}
+                 "value_template": _jinja(f"value_json.get('{spec.register.setting}')")}
     command = {"command_template": f'{{"{argument}": ' + _jinja("value | tojson") + "}"}
     if spec.register.codes:
         return "select", {"options": list(spec.register.codes), **command, **shown}
