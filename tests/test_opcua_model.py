@@ -7,6 +7,7 @@ from the server."""
 from __future__ import annotations
 
 from collections.abc import AsyncIterator, Iterator
+from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +56,17 @@ def rig() -> Iterator[Rig]:
         yield Rig(ah, vg, imu, a.path, b.path)
 
 
+@asynccontextmanager
+async def served(rig: Rig, pki: Path) -> AsyncIterator[tuple[Client, int]]:
+    """The gateway with its first sample in, and asyncua's client on it (security mode
+    None): the client and the gateway's namespace index."""
+    port = free_port()
+    async with running(rig.config(port, pki)) as gw, \
+            Client(f"opc.tcp://127.0.0.1:{port}/") as client:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+        yield client, await client.get_namespace_index(NS)
+
+
 async def walk(node: Node) -> AsyncIterator[Node]:
     """Every node below ``node`` by hierarchical references (each once)."""
     seen: set[ua.NodeId] = set()
@@ -70,10 +82,7 @@ async def walk(node: Node) -> AsyncIterator[Node]:
 
 @pytest.mark.anyio
 async def test_build_info_and_capabilities_are_the_gateways(rig: Rig, tmp_path: Path) -> None:
-    port = free_port()
-    async with running(rig.config(port, tmp_path / "pki")) as gw, \
-            Client(f"opc.tcp://127.0.0.1:{port}/") as client:
-        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+    async with served(rig, tmp_path / "pki") as (client, _):
         build = await client.get_node(ua.ObjectIds.Server_ServerStatus_BuildInfo).read_value()
         assert build.ProductName == "imu-gateway"
         assert build.SoftwareVersion == imu_gateway.__version__
@@ -105,11 +114,7 @@ async def test_build_info_and_capabilities_are_the_gateways(rig: Rig, tmp_path: 
 @pytest.mark.anyio
 async def test_every_sensor_is_an_imu_sensor_type_with_its_series_parts(
         rig: Rig, tmp_path: Path) -> None:
-    port = free_port()
-    async with running(rig.config(port, tmp_path / "pki")) as gw, \
-            Client(f"opc.tcp://127.0.0.1:{port}/") as client:
-        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
-        idx = await client.get_namespace_index(NS)
+    async with served(rig, tmp_path / "pki") as (client, idx):
         base = client.get_node(ua.ObjectIds.BaseObjectType)
         sensor_type = await base.get_child([f"{idx}:ImuSensorType"])
         assert sensor_type.nodeid == ua.NodeId("ImuSensorType", idx)
@@ -144,11 +149,7 @@ async def test_every_sensor_is_an_imu_sensor_type_with_its_series_parts(
 @pytest.mark.anyio
 async def test_every_node_of_the_gateway_has_a_string_id_in_its_namespace(
         rig: Rig, tmp_path: Path) -> None:
-    port = free_port()
-    async with running(rig.config(port, tmp_path / "pki")) as gw, \
-            Client(f"opc.tcp://127.0.0.1:{port}/") as client:
-        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
-        idx = await client.get_namespace_index(NS)
+    async with served(rig, tmp_path / "pki") as (client, idx):
         roots = [client.get_node(ua.NodeId("ImuSensorType", idx)),
                  client.get_node(ua.NodeId(GID, idx))]
         strays = []
