@@ -87,10 +87,54 @@ def _issue(folder: Path, name: str, issuer: tuple[x509.Name, ec.EllipticCurvePri
     return pem, (cert.subject, key)
 
 
-def _role(text: str) -> tuple[x509.ExtensionType, bool]:
+def _role(text: str, critical: bool = False,
+          oid: x509.ObjectIdentifier = ROLE_OID) -> tuple[x509.ExtensionType, bool]:
     utf8 = text.encode()
     assert len(utf8) < 128  # the short form of the DER length
-    return x509.UnrecognizedExtension(ROLE_OID, bytes([0x0C, len(utf8)]) + utf8), False
+    return x509.UnrecognizedExtension(oid, bytes([0x0C, len(utf8)]) + utf8), critical
+
+
+def _der(tag: int, body: bytes) -> bytes:
+    """One DER TLV (the long form of the length for 128 bytes and more)."""
+    size = len(body)
+    if size < 128:
+        return bytes((tag, size)) + body
+    octets = size.to_bytes((size.bit_length() + 7) // 8, "big")
+    return bytes((tag, 0x80 | len(octets))) + octets + body
+
+
+def _two_roles(folder: Path, issuer: tuple[x509.Name, ec.EllipticCurvePrivateKey]) -> Pem:
+    """A certificate with two Modbus Role extensions, Viewer and Engineer, signed by the
+    CA.  ``cryptography`` builds no such thing, so the second role is built under a twin
+    OID of the same length, renamed in the signed part, and that part signed again."""
+    twin = x509.ObjectIdentifier("1.3.6.1.4.1.50316.802.9")
+    pem, _ = _issue(folder, "two-roles", issuer, [LEAF, _role("Viewer"),
+                                                   _role("Engineer", oid=twin)])
+    cert = x509.load_pem_x509_certificate(pem.cert.read_bytes())
+    tbs = cert.tbs_certificate_bytes
+    assert tbs.count(_oid_der(twin)) == 1
+    tbs = tbs.replace(_oid_der(twin), _oid_der(ROLE_OID))
+    signature = issuer[1].sign(tbs, ec.ECDSA(hashes.SHA256()))
+    algorithm = _der(0x30, _oid_der(cert.signature_algorithm_oid))  # (no parameters)
+    der = _der(0x30, tbs + algorithm + _der(0x03, b"\0" + signature))
+    twice = x509.load_der_x509_certificate(der)
+    with pytest.raises(x509.DuplicateExtension):
+        twice.extensions  # noqa: B018 (what the gateway meets)
+    pem.cert.write_bytes(twice.public_bytes(serialization.Encoding.PEM))
+    return pem
+
+
+def _oid_der(oid: x509.ObjectIdentifier) -> bytes:
+    """An OID in DER: base 128, the first two arcs in one."""
+    arcs = [int(a) for a in oid.dotted_string.split(".")]
+    body = bytearray([40 * arcs[0] + arcs[1]])
+    for arc in arcs[2:]:
+        digits = [arc & 0x7F]
+        while arc > 0x7F:
+            arc >>= 7
+            digits.append(0x80 | (arc & 0x7F))
+        body += bytes(reversed(digits))
+    return _der(0x06, bytes(body))
 
 
 CA_EXTENSION = (x509.BasicConstraints(ca=True, path_length=0), True)
@@ -101,7 +145,9 @@ LEAF = (x509.BasicConstraints(ca=False, path_length=None), True)
 class Pki:
     ca: Pem
     server: Pem
-    clients: dict[str, Pem]  # viewer, operator, engineer, no-role, janitor, rogue
+    # viewer, operator, engineer, no-role, janitor, rogue; critical (its role extension
+    # marked so), two-roles (Viewer and Engineer)
+    clients: dict[str, Pem]
 
 
 @pytest.fixture(scope="module")
@@ -116,6 +162,9 @@ def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
         ("engineer", [_role("Engineer")]), ("no-role", []), ("janitor", [_role("Janitor")]))}
     _, other_issuer = _issue(folder, "other-ca", None, [CA_EXTENSION])
     clients["rogue"], _ = _issue(folder, "rogue", other_issuer, [LEAF, _role("Engineer")])
+    clients["critical"], _ = _issue(folder, "critical", ca_issuer,
+                                    [LEAF, _role("Operator", critical=True)])
+    clients["two-roles"] = _two_roles(folder, ca_issuer)
     return Pki(ca, server, clients)
 
 
@@ -275,6 +324,25 @@ async def test_default_role_gives_its_rights_to_the_roleless(pki: Pki) -> None:
 
 
 @pytest.mark.anyio
+async def test_two_role_extensions_get_no_rights_not_even_the_default(
+        pki: Pki, caplog: pytest.LogCaptureFixture) -> None:
+    """A certificate with two roles (Viewer and Engineer): which was meant is not known,
+    so it gets nothing, not default_role's rights either; one warning says why, and
+    no traceback (it was asyncio's ERROR for every such connection)."""
+    caplog.set_level(logging.WARNING)
+    async with gateway(tls_section(pki, default_role="Engineer")) as gw:
+        for _ in range(3):
+            async with pymodbus_tls(gw, pki, "two-roles") as modbus:
+                assert await rights_seen(modbus) == REFUSED_ALL
+        async with pymodbus_tls(gw, pki, "viewer") as viewer:  # the others are as they were
+            assert await rights_seen(viewer) == VIEWER
+    said = [r.getMessage() for r in caplog.records if "ambiguous" in r.getMessage()]
+    assert len(said) == 1, said  # rate-limited: one line for the three connections
+    assert "CN=two-roles" in said[0] and "no rights, whatever default_role" in said[0]
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR] == []
+
+
+@pytest.mark.anyio
 async def test_roles_are_the_configs(pki: Pki) -> None:
     """A role map of the config's own: Viewer may write here, Operator is not a role."""
     roles = {"Viewer": ["read", "write"], "Engineer": ["passthrough"]}
@@ -372,7 +440,12 @@ async def test_untrusted_missing_and_old_clients_are_refused_at_the_handshake(
         old.set_ciphers("DEFAULT:@SECLEVEL=0")  # (so that the refusal is the gateway's)
         await refused(port, old)
         await until(lambda: "TLS 1.2 or later is required" in logged())
-        assert gw.modbus.stats()["refused_handshake"] == 4
+        # a role extension marked critical: OpenSSL refuses the certificate itself
+        caplog.clear()
+        await refused(port, client_context(pki, "critical"))
+        await until(lambda: "must not be critical" in logged())
+        assert "1.3.6.1.4.1.50316.802.1" in logged() and "signed by the CA" not in logged()
+        assert gw.modbus.stats()["refused_handshake"] == 5
         # and none of them cost a well-behaved client its service, on TLS 1.2 either
         for version in (None, ssl.TLSVersion.TLSv1_2):
             raw = await TlsRaw.connect(port, client_context(pki, "viewer", version))
@@ -385,20 +458,66 @@ async def test_untrusted_missing_and_old_clients_are_refused_at_the_handshake(
 
 
 @pytest.mark.anyio
-async def test_a_client_that_never_handshakes_is_closed_and_holds_no_slot(
+async def test_a_client_that_never_handshakes_gives_way_and_is_closed_in_time(
         pki: Pki, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Connections that never handshake hold places of max_connections, the first
+    given up to a newcomer: a real client is served at once, and the rest are closed
+    by the handshake deadline."""
     monkeypatch.setattr(modbus_tls, "HANDSHAKE_TIMEOUT_S", 1.0)
     async with gateway(tls_section(pki), max_connections=2) as gw:
+        assert gw.modbus is not None
         port = tls_port(gw)
         silent = [await asyncio.open_connection("127.0.0.1", port) for _ in range(4)]
-        # the server is not full of them: a real client is served at once
+        await until(lambda: gw.modbus is not None and gw.modbus.stats()["connections"] == 4)
+        assert gw.modbus.stats()["handshaking"] == 2  # the newest two: the others gave way
         async with pymodbus_tls(gw, pki, "viewer") as viewer:
             assert await answer_of(viewer.read_holding_registers(
                 0, count=9, device_id=UNIT)) is None
-        # and each is closed by the handshake deadline
-        for reader, writer in silent:
-            assert await asyncio.wait_for(reader.read(100), 10) == b""
-            writer.close()
+            for reader, writer in silent:
+                assert await asyncio.wait_for(reader.read(100), 10) == b""
+                writer.close()
+            stats = gw.modbus.stats()
+            assert (stats["clients"], stats["handshaking"]) == (1, 0)
+        assert stats["evicted_limit"] == 3  # two for the 3rd and 4th, one for the viewer
+        assert stats["handshake_timeouts"] == 1
+
+
+def client_hello(context: ssl.SSLContext) -> bytes:
+    """The first flight of a TLS client on ``context``."""
+    incoming, outgoing = ssl.MemoryBIO(), ssl.MemoryBIO()
+    tls = context.wrap_bio(incoming, outgoing, server_hostname="127.0.0.1")
+    with contextlib.suppress(ssl.SSLWantReadError):
+        tls.do_handshake()
+    return outgoing.read()
+
+
+@pytest.mark.anyio
+async def test_allow_from_closes_a_stranger_before_its_handshake(pki: Pki) -> None:
+    """A client from an address outside allow_from is closed before the handshake: it
+    gets not one byte of TLS (no ServerHello, no certificate), however good its own
+    (before: the handshake was done, and the client closed after it); one from inside
+    is served."""
+    async with gateway(tls_section(pki), allow_from=["127.0.0.2/32"]) as gw:
+        assert gw.modbus is not None
+        context = client_context(pki, "engineer")
+        reader, writer = await asyncio.open_connection("127.0.0.1", tls_port(gw))
+        writer.write(client_hello(context))
+        try:
+            first = await asyncio.wait_for(reader.read(1), 10)
+        except ConnectionError:
+            first = b""
+        writer.close()
+        assert first == b"", "the gateway began a TLS handshake with a stranger"
+        reader, writer = await asyncio.wait_for(asyncio.open_connection(
+            "127.0.0.1", tls_port(gw), ssl=context, local_addr=("127.0.0.2", 0)), 10)
+        inside = TlsRaw(reader, writer)
+        try:
+            await inside.send(request(3, UNIT, STATUS_READ))
+            assert (await inside.receive())[2][:2] == bytes((3, 18))
+        finally:
+            await inside.close()
+        stats = gw.modbus.stats()
+        assert (stats["refused_address"], stats.get("refused_handshake", 0)) == (1, 0)
 
 
 @pytest.mark.anyio
