@@ -4,8 +4,9 @@ from the side of the client trying to get in.
 The gateway runs on a simulated Modbus-RTU sensor; the clients are pymodbus's TLS
 client and plain TLS sockets, with certificates this test makes with ``cryptography``
 (its own CA, and another one the gateway does not trust), and, in the last test, with
-the very ``openssl`` commands docs/modbus-tcp.md gives.  Waits are deadlines on a
-condition, never measurements.
+the very ``openssl`` commands docs/modbus-tcp.md gives.  One test runs the gateway as
+its own process, its descriptors limited, against connections that never handshake.
+Waits are deadlines on a condition, never measurements.
 """
 
 from __future__ import annotations
@@ -13,26 +14,35 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import datetime
+import errno
 import ipaddress
+import json
 import logging
 import os
 import re
+import resource
+import select
 import shutil
+import socket
 import ssl
 import struct
 import subprocess
+import sys
+import time
+import urllib.request
 import warnings
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import pytest
+import yaml
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import NameOID
-from harness import running, until
+from harness import free_port, interrupt, running, until
 from pymodbus.client import AsyncModbusTlsClient
 
 from imu_gateway.app import Gateway
@@ -537,6 +547,162 @@ async def test_pipelined_requests_on_tls_are_each_answered_in_order(pki: Pki) ->
             assert answers[2][2][:2] == bytes((4, 4))
         finally:
             await raw.close()
+
+
+# ------------------------------------------------------------------ descriptors
+
+NOFILE = 256  # the gateway process's descriptor limit in the next test
+ATTACKERS = [f"127.0.0.{n}" for n in range(2, 10)]  # eight addresses, loopback only
+HELD = 40  # connections each opens and holds, never sending a byte: 320 in all
+PROMPT_S = 5.0  # a real client's connect, handshake and read, each; it needs milliseconds
+
+
+class TlsProcess:
+    """``python -m imu_gateway run`` with the TLS port alone (its counts over HTTP),
+    limited to ``NOFILE`` descriptors the way a service's soft limit would."""
+
+    def __init__(self, process: subprocess.Popen[bytes], port: int, http: int,
+                 log: Path) -> None:
+        self.process, self.port, self.http, self.log = process, port, http, log
+
+    def fds(self) -> int:
+        return len(os.listdir(f"/proc/{self.process.pid}/fd"))
+
+    def counts(self) -> dict[str, Any] | None:
+        """``frontends.modbus`` of /api/v1/health; None while it does not answer."""
+        url = f"http://127.0.0.1:{self.http}/api/v1/health"
+        try:
+            with urllib.request.urlopen(url, timeout=PROMPT_S) as answer:
+                modbus: dict[str, Any] = json.load(answer)["frontends"]["modbus"]
+                return modbus
+        except OSError:
+            return None
+
+    def until(self, condition: Callable[[], bool], what: str, timeout: float = 30) -> None:
+        deadline = time.monotonic() + timeout
+        while not condition():
+            assert self.process.poll() is None, self.log.read_text()[-3000:]
+            assert time.monotonic() < deadline, (
+                f"{what}, not within {timeout} s: {self.unaccepted()} connections wait to "
+                f"be accepted, the gateway has {self.fds()} descriptors")
+            time.sleep(0.02)
+
+    def unaccepted(self) -> int:
+        """Connections the kernel completed that the gateway has not accepted: the
+        accept queue of its listening socket (/proc/net/tcp)."""
+        for line in Path("/proc/net/tcp").read_text().splitlines()[1:]:
+            fields = line.split()
+            if fields[3] == "0A" and int(fields[1].rsplit(":", 1)[1], 16) == self.port:
+                return int(fields[4].split(":")[1], 16)
+        raise AssertionError(f"nothing listens on port {self.port}")
+
+
+@contextlib.contextmanager
+def tls_process(tmp_path: Path, pki: Pki, **modbus: Any) -> Iterator[TlsProcess]:
+    vg = make_sensor(WireProtocol.MODBUS, Series.VG, 1, baud=FAST, source=hold(READING))
+    with simulated([vg]) as line:
+        port, http = free_port(), free_port()
+        config = {"gateway_id": "tls-fds", "buses": [{
+            "name": "line", "port": line.path, "baudrate": FAST, "protocol": "modbus",
+            "sensors": [{"name": "vg", "series": "VG", "address": 1, "unit_id": UNIT}]}],
+            "modbus": {"listen": None, "tls": tls_section(pki, listen=f"127.0.0.1:{port}"),
+                       **modbus},
+            "http": {"listen": f"127.0.0.1:{http}"}}
+        path, log = tmp_path / "gateway.yaml", tmp_path / "gateway.log"
+        path.write_text(yaml.safe_dump(config))
+        with log.open("wb") as out:
+            process = subprocess.Popen(
+                [sys.executable, "-m", "imu_gateway", "run", "-c", str(path)],
+                stdout=out, stderr=subprocess.STDOUT)
+        try:
+            # (before it listens: the interpreter is still starting)
+            resource.prlimit(process.pid, resource.RLIMIT_NOFILE, (NOFILE, NOFILE))
+            gw = TlsProcess(process, port, http, log)
+            gw.until(lambda: gw.counts() is not None, "the gateway's API answers")
+            yield gw
+        finally:
+            interrupt(process)
+    text = log.read_text()
+    assert process.returncode == 0 and "Traceback" not in text, text[-3000:]
+    assert "Too many open files" not in text and "out of system resource" not in text
+
+
+class RealClient:
+    """A client with a good certificate on a blocking TLS socket, each step within
+    ``PROMPT_S``: what a SCADA poller does."""
+
+    def __init__(self, port: int, context: ssl.SSLContext) -> None:
+        sock = socket.create_connection(("127.0.0.1", port), timeout=PROMPT_S)
+        self.tls = context.wrap_socket(sock, server_hostname="127.0.0.1")
+
+    def read_status(self) -> None:
+        self.tls.sendall(request(5, UNIT, STATUS_READ))
+        answer = b""
+        while len(answer) < MBAP.size + 2 + 18:
+            chunk = self.tls.recv(4096)
+            assert chunk, "the gateway closed a real client's connection"
+            answer += chunk
+        assert answer[MBAP.size - 1:MBAP.size + 2] == bytes((UNIT, 3, 18)), answer
+
+    def close(self) -> None:
+        self.tls.close()
+
+
+def hold_silent(host: str, port: int, count: int) -> list[socket.socket]:
+    """``count`` TCP connections from ``host`` that will never send a byte, once the
+    kernel has made each (the gateway need not have accepted them)."""
+    socks = []
+    for _ in range(count):
+        sock = socket.socket()
+        socks.append(sock)
+        sock.setblocking(False)
+        sock.bind((host, 0))
+        assert sock.connect_ex(("127.0.0.1", port)) in (0, errno.EINPROGRESS)
+    for sock in socks:
+        assert select.select([], [sock], [], PROMPT_S)[1], "a connect did not complete"
+        assert sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR) == 0
+    return socks
+
+
+def test_connections_that_never_handshake_cannot_take_the_gateways_descriptors(
+        tmp_path: Path, pki: Pki) -> None:
+    """Eight addresses open 40 TCP connections each to the TLS port and send nothing:
+    320, more than the gateway's 256 descriptors.  Before, each held a descriptor until
+    its handshake deadline (accept then failed with EMFILE: every port, every file).
+    Now they count against the limits like any connection (20, and 10 an address), the
+    unfinished handshake giving way first: the descriptors stay bounded, and a real
+    client, connected before or new, is served at once after every wave."""
+    limit, per_address = 20, 10
+    context = client_context(pki, "viewer")
+    with tls_process(tmp_path, pki, max_connections=limit,
+                     max_connections_per_address=per_address) as gw:
+        polling = RealClient(gw.port, context)
+        polling.read_status()
+        before = gw.fds()  # the process's own, the listening sockets and this client
+        bound = before + limit + 8  # (8: the health request's, and one closing)
+        held: list[socket.socket] = []
+        try:
+            for wave, host in enumerate(ATTACKERS, 1):
+                held += hold_silent(host, gw.port, HELD)
+                gw.until(lambda: gw.unaccepted() == 0, f"wave {wave}: all accepted")
+                # well within the handshake deadline: it is the limits that close them
+                gw.until(lambda: gw.fds() <= bound, f"wave {wave}: {bound} descriptors "
+                         "or fewer", timeout=2.0)
+                polling.read_status()  # the client that was connected is still served
+                fresh = RealClient(gw.port, context)  # and a new one gets in
+                try:
+                    fresh.read_status()
+                finally:
+                    fresh.close()
+        finally:
+            for sock in held:
+                sock.close()
+            polling.close()
+        counts = gw.counts()
+        assert counts is not None
+        assert counts["connections"] == 1 + len(held) + len(ATTACKERS), counts
+        assert counts["evicted_per_address"] == len(ATTACKERS) * (HELD - per_address)
+        assert counts["evicted_limit"] > 0 and counts["handshaking"] <= limit, counts
 
 
 # ------------------------------------------------------------------ config and startup

@@ -556,7 +556,10 @@ class _Connection(asyncio.Protocol):
         self.ended = True
         if self.transport is not None:
             self._answer_what_is_complete()
-        return True  # the transport stays open for the answers: _finish_if_ended closes
+        # The transport stays open for the answers (_finish_if_ended closes), except on
+        # TLS: asyncio closes after the client's close_notify whatever this says, and
+        # logs a warning for each True.
+        return self.tls is None
 
     def data_received(self, data: bytes) -> None:
         self.buffer += data
