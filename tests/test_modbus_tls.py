@@ -625,6 +625,7 @@ def tls_process(tmp_path: Path, pki: Pki, **modbus: Any) -> Iterator[TlsProcess]
     text = log.read_text()
     assert process.returncode == 0 and "Traceback" not in text, text[-3000:]
     assert "Too many open files" not in text and "out of system resource" not in text
+    assert "WARNING asyncio" not in text, text[-3000:]  # (one for each TLS client's close)
 
 
 class RealClient:
