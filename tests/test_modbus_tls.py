@@ -4,8 +4,9 @@ from the side of the client trying to get in.
 The gateway runs on a simulated Modbus-RTU sensor; the clients are pymodbus's TLS
 client and plain TLS sockets, with certificates this test makes with ``cryptography``
 (its own CA, and another one the gateway does not trust), and, in the last test, with
-the very ``openssl`` commands docs/modbus-tcp.md gives.  Waits are deadlines on a
-condition, never measurements.
+the very ``openssl`` commands docs/modbus-tcp.md gives.  One test runs the gateway as
+its own process, its descriptors limited, against connections that never handshake.
+Waits are deadlines on a condition, never measurements.
 """
 
 from __future__ import annotations
@@ -13,26 +14,35 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import datetime
+import errno
 import ipaddress
+import json
 import logging
 import os
 import re
+import resource
+import select
 import shutil
+import socket
 import ssl
 import struct
 import subprocess
+import sys
+import time
+import urllib.request
 import warnings
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import pytest
+import yaml
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import NameOID
-from harness import running, until
+from harness import free_port, interrupt, running, until
 from pymodbus.client import AsyncModbusTlsClient
 
 from imu_gateway.app import Gateway
@@ -87,10 +97,54 @@ def _issue(folder: Path, name: str, issuer: tuple[x509.Name, ec.EllipticCurvePri
     return pem, (cert.subject, key)
 
 
-def _role(text: str) -> tuple[x509.ExtensionType, bool]:
+def _role(text: str, critical: bool = False,
+          oid: x509.ObjectIdentifier = ROLE_OID) -> tuple[x509.ExtensionType, bool]:
     utf8 = text.encode()
     assert len(utf8) < 128  # the short form of the DER length
-    return x509.UnrecognizedExtension(ROLE_OID, bytes([0x0C, len(utf8)]) + utf8), False
+    return x509.UnrecognizedExtension(oid, bytes([0x0C, len(utf8)]) + utf8), critical
+
+
+def _der(tag: int, body: bytes) -> bytes:
+    """One DER TLV (the long form of the length for 128 bytes and more)."""
+    size = len(body)
+    if size < 128:
+        return bytes((tag, size)) + body
+    octets = size.to_bytes((size.bit_length() + 7) // 8, "big")
+    return bytes((tag, 0x80 | len(octets))) + octets + body
+
+
+def _two_roles(folder: Path, issuer: tuple[x509.Name, ec.EllipticCurvePrivateKey]) -> Pem:
+    """A certificate with two Modbus Role extensions, Viewer and Engineer, signed by the
+    CA.  ``cryptography`` builds no such thing, so the second role is built under a twin
+    OID of the same length, renamed in the signed part, and that part signed again."""
+    twin = x509.ObjectIdentifier("1.3.6.1.4.1.50316.802.9")
+    pem, _ = _issue(folder, "two-roles", issuer, [LEAF, _role("Viewer"),
+                                                   _role("Engineer", oid=twin)])
+    cert = x509.load_pem_x509_certificate(pem.cert.read_bytes())
+    tbs = cert.tbs_certificate_bytes
+    assert tbs.count(_oid_der(twin)) == 1
+    tbs = tbs.replace(_oid_der(twin), _oid_der(ROLE_OID))
+    signature = issuer[1].sign(tbs, ec.ECDSA(hashes.SHA256()))
+    algorithm = _der(0x30, _oid_der(cert.signature_algorithm_oid))  # (no parameters)
+    der = _der(0x30, tbs + algorithm + _der(0x03, b"\0" + signature))
+    twice = x509.load_der_x509_certificate(der)
+    with pytest.raises(x509.DuplicateExtension):
+        twice.extensions  # noqa: B018 (what the gateway meets)
+    pem.cert.write_bytes(twice.public_bytes(serialization.Encoding.PEM))
+    return pem
+
+
+def _oid_der(oid: x509.ObjectIdentifier) -> bytes:
+    """An OID in DER: base 128, the first two arcs in one."""
+    arcs = [int(a) for a in oid.dotted_string.split(".")]
+    body = bytearray([40 * arcs[0] + arcs[1]])
+    for arc in arcs[2:]:
+        digits = [arc & 0x7F]
+        while arc > 0x7F:
+            arc >>= 7
+            digits.append(0x80 | (arc & 0x7F))
+        body += bytes(reversed(digits))
+    return _der(0x06, bytes(body))
 
 
 CA_EXTENSION = (x509.BasicConstraints(ca=True, path_length=0), True)
@@ -101,7 +155,9 @@ LEAF = (x509.BasicConstraints(ca=False, path_length=None), True)
 class Pki:
     ca: Pem
     server: Pem
-    clients: dict[str, Pem]  # viewer, operator, engineer, no-role, janitor, rogue
+    # viewer, operator, engineer, no-role, janitor, rogue; critical (its role extension
+    # marked so), two-roles (Viewer and Engineer)
+    clients: dict[str, Pem]
 
 
 @pytest.fixture(scope="module")
@@ -116,6 +172,9 @@ def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
         ("engineer", [_role("Engineer")]), ("no-role", []), ("janitor", [_role("Janitor")]))}
     _, other_issuer = _issue(folder, "other-ca", None, [CA_EXTENSION])
     clients["rogue"], _ = _issue(folder, "rogue", other_issuer, [LEAF, _role("Engineer")])
+    clients["critical"], _ = _issue(folder, "critical", ca_issuer,
+                                    [LEAF, _role("Operator", critical=True)])
+    clients["two-roles"] = _two_roles(folder, ca_issuer)
     return Pki(ca, server, clients)
 
 
@@ -275,6 +334,25 @@ async def test_default_role_gives_its_rights_to_the_roleless(pki: Pki) -> None:
 
 
 @pytest.mark.anyio
+async def test_two_role_extensions_get_no_rights_not_even_the_default(
+        pki: Pki, caplog: pytest.LogCaptureFixture) -> None:
+    """A certificate with two roles (Viewer and Engineer): which was meant is not known,
+    so it gets nothing, not default_role's rights either; one warning says why, and
+    no traceback (it was asyncio's ERROR for every such connection)."""
+    caplog.set_level(logging.WARNING)
+    async with gateway(tls_section(pki, default_role="Engineer")) as gw:
+        for _ in range(3):
+            async with pymodbus_tls(gw, pki, "two-roles") as modbus:
+                assert await rights_seen(modbus) == REFUSED_ALL
+        async with pymodbus_tls(gw, pki, "viewer") as viewer:  # the others are as they were
+            assert await rights_seen(viewer) == VIEWER
+    said = [r.getMessage() for r in caplog.records if "ambiguous" in r.getMessage()]
+    assert len(said) == 1, said  # rate-limited: one line for the three connections
+    assert "CN=two-roles" in said[0] and "no rights, whatever default_role" in said[0]
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR] == []
+
+
+@pytest.mark.anyio
 async def test_roles_are_the_configs(pki: Pki) -> None:
     """A role map of the config's own: Viewer may write here, Operator is not a role."""
     roles = {"Viewer": ["read", "write"], "Engineer": ["passthrough"]}
@@ -372,7 +450,12 @@ async def test_untrusted_missing_and_old_clients_are_refused_at_the_handshake(
         old.set_ciphers("DEFAULT:@SECLEVEL=0")  # (so that the refusal is the gateway's)
         await refused(port, old)
         await until(lambda: "TLS 1.2 or later is required" in logged())
-        assert gw.modbus.stats()["refused_handshake"] == 4
+        # a role extension marked critical: OpenSSL refuses the certificate itself
+        caplog.clear()
+        await refused(port, client_context(pki, "critical"))
+        await until(lambda: "must not be critical" in logged())
+        assert "1.3.6.1.4.1.50316.802.1" in logged() and "signed by the CA" not in logged()
+        assert gw.modbus.stats()["refused_handshake"] == 5
         # and none of them cost a well-behaved client its service, on TLS 1.2 either
         for version in (None, ssl.TLSVersion.TLSv1_2):
             raw = await TlsRaw.connect(port, client_context(pki, "viewer", version))
@@ -385,20 +468,66 @@ async def test_untrusted_missing_and_old_clients_are_refused_at_the_handshake(
 
 
 @pytest.mark.anyio
-async def test_a_client_that_never_handshakes_is_closed_and_holds_no_slot(
+async def test_a_client_that_never_handshakes_gives_way_and_is_closed_in_time(
         pki: Pki, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Connections that never handshake hold places of max_connections, the first
+    given up to a newcomer: a real client is served at once, and the rest are closed
+    by the handshake deadline."""
     monkeypatch.setattr(modbus_tls, "HANDSHAKE_TIMEOUT_S", 1.0)
     async with gateway(tls_section(pki), max_connections=2) as gw:
+        assert gw.modbus is not None
         port = tls_port(gw)
         silent = [await asyncio.open_connection("127.0.0.1", port) for _ in range(4)]
-        # the server is not full of them: a real client is served at once
+        await until(lambda: gw.modbus is not None and gw.modbus.stats()["connections"] == 4)
+        assert gw.modbus.stats()["handshaking"] == 2  # the newest two: the others gave way
         async with pymodbus_tls(gw, pki, "viewer") as viewer:
             assert await answer_of(viewer.read_holding_registers(
                 0, count=9, device_id=UNIT)) is None
-        # and each is closed by the handshake deadline
-        for reader, writer in silent:
-            assert await asyncio.wait_for(reader.read(100), 10) == b""
-            writer.close()
+            for reader, writer in silent:
+                assert await asyncio.wait_for(reader.read(100), 10) == b""
+                writer.close()
+            stats = gw.modbus.stats()
+            assert (stats["clients"], stats["handshaking"]) == (1, 0)
+        assert stats["evicted_limit"] == 3  # two for the 3rd and 4th, one for the viewer
+        assert stats["handshake_timeouts"] == 1
+
+
+def client_hello(context: ssl.SSLContext) -> bytes:
+    """The first flight of a TLS client on ``context``."""
+    incoming, outgoing = ssl.MemoryBIO(), ssl.MemoryBIO()
+    tls = context.wrap_bio(incoming, outgoing, server_hostname="127.0.0.1")
+    with contextlib.suppress(ssl.SSLWantReadError):
+        tls.do_handshake()
+    return outgoing.read()
+
+
+@pytest.mark.anyio
+async def test_allow_from_closes_a_stranger_before_its_handshake(pki: Pki) -> None:
+    """A client from an address outside allow_from is closed before the handshake: it
+    gets not one byte of TLS (no ServerHello, no certificate), however good its own
+    (before: the handshake was done, and the client closed after it); one from inside
+    is served."""
+    async with gateway(tls_section(pki), allow_from=["127.0.0.2/32"]) as gw:
+        assert gw.modbus is not None
+        context = client_context(pki, "engineer")
+        reader, writer = await asyncio.open_connection("127.0.0.1", tls_port(gw))
+        writer.write(client_hello(context))
+        try:
+            first = await asyncio.wait_for(reader.read(1), 10)
+        except ConnectionError:
+            first = b""
+        writer.close()
+        assert first == b"", "the gateway began a TLS handshake with a stranger"
+        reader, writer = await asyncio.wait_for(asyncio.open_connection(
+            "127.0.0.1", tls_port(gw), ssl=context, local_addr=("127.0.0.2", 0)), 10)
+        inside = TlsRaw(reader, writer)
+        try:
+            await inside.send(request(3, UNIT, STATUS_READ))
+            assert (await inside.receive())[2][:2] == bytes((3, 18))
+        finally:
+            await inside.close()
+        stats = gw.modbus.stats()
+        assert (stats["refused_address"], stats.get("refused_handshake", 0)) == (1, 0)
 
 
 @pytest.mark.anyio
@@ -418,6 +547,163 @@ async def test_pipelined_requests_on_tls_are_each_answered_in_order(pki: Pki) ->
             assert answers[2][2][:2] == bytes((4, 4))
         finally:
             await raw.close()
+
+
+# ------------------------------------------------------------------ descriptors
+
+NOFILE = 256  # the gateway process's descriptor limit in the next test
+ATTACKERS = [f"127.0.0.{n}" for n in range(2, 10)]  # eight addresses, loopback only
+HELD = 40  # connections each opens and holds, never sending a byte: 320 in all
+PROMPT_S = 5.0  # a real client's connect, handshake and read, each; it needs milliseconds
+
+
+class TlsProcess:
+    """``python -m imu_gateway run`` with the TLS port alone (its counts over HTTP),
+    limited to ``NOFILE`` descriptors the way a service's soft limit would."""
+
+    def __init__(self, process: subprocess.Popen[bytes], port: int, http: int,
+                 log: Path) -> None:
+        self.process, self.port, self.http, self.log = process, port, http, log
+
+    def fds(self) -> int:
+        return len(os.listdir(f"/proc/{self.process.pid}/fd"))
+
+    def counts(self) -> dict[str, Any] | None:
+        """``frontends.modbus`` of /api/v1/health; None while it does not answer."""
+        url = f"http://127.0.0.1:{self.http}/api/v1/health"
+        try:
+            with urllib.request.urlopen(url, timeout=PROMPT_S) as answer:
+                modbus: dict[str, Any] = json.load(answer)["frontends"]["modbus"]
+                return modbus
+        except OSError:
+            return None
+
+    def until(self, condition: Callable[[], bool], what: str, timeout: float = 30) -> None:
+        deadline = time.monotonic() + timeout
+        while not condition():
+            assert self.process.poll() is None, self.log.read_text()[-3000:]
+            assert time.monotonic() < deadline, (
+                f"{what}, not within {timeout} s: {self.unaccepted()} connections wait to "
+                f"be accepted, the gateway has {self.fds()} descriptors")
+            time.sleep(0.02)
+
+    def unaccepted(self) -> int:
+        """Connections the kernel completed that the gateway has not accepted: the
+        accept queue of its listening socket (/proc/net/tcp)."""
+        for line in Path("/proc/net/tcp").read_text().splitlines()[1:]:
+            fields = line.split()
+            if fields[3] == "0A" and int(fields[1].rsplit(":", 1)[1], 16) == self.port:
+                return int(fields[4].split(":")[1], 16)
+        raise AssertionError(f"nothing listens on port {self.port}")
+
+
+@contextlib.contextmanager
+def tls_process(tmp_path: Path, pki: Pki, **modbus: Any) -> Iterator[TlsProcess]:
+    vg = make_sensor(WireProtocol.MODBUS, Series.VG, 1, baud=FAST, source=hold(READING))
+    with simulated([vg]) as line:
+        port, http = free_port(), free_port()
+        config = {"gateway_id": "tls-fds", "buses": [{
+            "name": "line", "port": line.path, "baudrate": FAST, "protocol": "modbus",
+            "sensors": [{"name": "vg", "series": "VG", "address": 1, "unit_id": UNIT}]}],
+            "modbus": {"listen": None, "tls": tls_section(pki, listen=f"127.0.0.1:{port}"),
+                       **modbus},
+            "http": {"listen": f"127.0.0.1:{http}"}}
+        path, log = tmp_path / "gateway.yaml", tmp_path / "gateway.log"
+        path.write_text(yaml.safe_dump(config))
+        with log.open("wb") as out:
+            process = subprocess.Popen(
+                [sys.executable, "-m", "imu_gateway", "run", "-c", str(path)],
+                stdout=out, stderr=subprocess.STDOUT)
+        try:
+            # (before it listens: the interpreter is still starting)
+            resource.prlimit(process.pid, resource.RLIMIT_NOFILE, (NOFILE, NOFILE))
+            gw = TlsProcess(process, port, http, log)
+            gw.until(lambda: gw.counts() is not None, "the gateway's API answers")
+            yield gw
+        finally:
+            interrupt(process)
+    text = log.read_text()
+    assert process.returncode == 0 and "Traceback" not in text, text[-3000:]
+    assert "Too many open files" not in text and "out of system resource" not in text
+    assert "WARNING asyncio" not in text, text[-3000:]  # (one for each TLS client's close)
+
+
+class RealClient:
+    """A client with a good certificate on a blocking TLS socket, each step within
+    ``PROMPT_S``: what a SCADA poller does."""
+
+    def __init__(self, port: int, context: ssl.SSLContext) -> None:
+        sock = socket.create_connection(("127.0.0.1", port), timeout=PROMPT_S)
+        self.tls = context.wrap_socket(sock, server_hostname="127.0.0.1")
+
+    def read_status(self) -> None:
+        self.tls.sendall(request(5, UNIT, STATUS_READ))
+        answer = b""
+        while len(answer) < MBAP.size + 2 + 18:
+            chunk = self.tls.recv(4096)
+            assert chunk, "the gateway closed a real client's connection"
+            answer += chunk
+        assert answer[MBAP.size - 1:MBAP.size + 2] == bytes((UNIT, 3, 18)), answer
+
+    def close(self) -> None:
+        self.tls.close()
+
+
+def hold_silent(host: str, port: int, count: int) -> list[socket.socket]:
+    """``count`` TCP connections from ``host`` that will never send a byte, once the
+    kernel has made each (the gateway need not have accepted them)."""
+    socks = []
+    for _ in range(count):
+        sock = socket.socket()
+        socks.append(sock)
+        sock.setblocking(False)
+        sock.bind((host, 0))
+        assert sock.connect_ex(("127.0.0.1", port)) in (0, errno.EINPROGRESS)
+    for sock in socks:
+        assert select.select([], [sock], [], PROMPT_S)[1], "a connect did not complete"
+        assert sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR) == 0
+    return socks
+
+
+def test_connections_that_never_handshake_cannot_take_the_gateways_descriptors(
+        tmp_path: Path, pki: Pki) -> None:
+    """Eight addresses open 40 TCP connections each to the TLS port and send nothing:
+    320, more than the gateway's 256 descriptors.  Before, each held a descriptor until
+    its handshake deadline (accept then failed with EMFILE: every port, every file).
+    Now they count against the limits like any connection (20, and 10 an address), the
+    unfinished handshake giving way first: the descriptors stay bounded, and a real
+    client, connected before or new, is served at once after every wave."""
+    limit, per_address = 20, 10
+    context = client_context(pki, "viewer")
+    with tls_process(tmp_path, pki, max_connections=limit,
+                     max_connections_per_address=per_address) as gw:
+        polling = RealClient(gw.port, context)
+        polling.read_status()
+        before = gw.fds()  # the process's own, the listening sockets and this client
+        bound = before + limit + 8  # (8: the health request's, and one closing)
+        held: list[socket.socket] = []
+        try:
+            for wave, host in enumerate(ATTACKERS, 1):
+                held += hold_silent(host, gw.port, HELD)
+                gw.until(lambda: gw.unaccepted() == 0, f"wave {wave}: all accepted")
+                # well within the handshake deadline: it is the limits that close them
+                gw.until(lambda: gw.fds() <= bound, f"wave {wave}: {bound} descriptors "
+                         "or fewer", timeout=2.0)
+                polling.read_status()  # the client that was connected is still served
+                fresh = RealClient(gw.port, context)  # and a new one gets in
+                try:
+                    fresh.read_status()
+                finally:
+                    fresh.close()
+        finally:
+            for sock in held:
+                sock.close()
+            polling.close()
+        counts = gw.counts()
+        assert counts is not None
+        assert counts["connections"] == 1 + len(held) + len(ATTACKERS), counts
+        assert counts["evicted_per_address"] == len(ATTACKERS) * (HELD - per_address)
+        assert counts["evicted_limit"] > 0 and counts["handshaking"] <= limit, counts
 
 
 # ------------------------------------------------------------------ config and startup

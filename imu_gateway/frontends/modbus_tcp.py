@@ -23,9 +23,14 @@ out; every request that came before a client's FIN is answered; warnings about
 peers are rate-limited.
 
 Modbus/TCP Security (``modbus.tls``, ``modbus_tls``): a second listening socket whose
-connections are this module's ``_Connection`` inside asyncio's TLS transport, so all of
-the above holds there too; each request is first checked against the rights of the
-role in the client's certificate (refused: exception 01).
+connections are this module's ``_Connection``, upgraded to TLS by ``loop.start_tls``
+once admitted, so all of the above holds there too; each request is first checked
+against the rights of the role in the client's certificate (refused: exception 01).
+The port listens in plain TCP and does the handshake itself, rather than asyncio's
+``create_server(ssl=...)``, because a connection must be counted from its accept:
+one whose handshake is in progress holds a socket, and the limits, ``allow_from`` and
+the room-for-newcomers rule must reach it, or clients that connect and never
+handshake take every descriptor of the process (every port and file fails then).
 """
 
 from __future__ import annotations
@@ -121,6 +126,7 @@ class ModbusTcpServer(Frontend):
         self.counts: Counter[str] = Counter()
         self._server: asyncio.Server | None = None  # the plain port
         self._tls_server: asyncio.Server | None = None
+        self.tls_context: ssl.SSLContext | None = None  # the TLS port's, once it listens
         self.peers = PeerLog(log)
         self._housekeeping: asyncio.TimerHandle | None = None
         gateway.cache.subscribe(self._on_cache_event, self.fail)
@@ -152,12 +158,11 @@ class ModbusTcpServer(Frontend):
         log.info("Modbus units %s", sorted(self.units) + sorted(self.raw_units))
 
     async def _start_tls(self, tls: ModbusTlsConfig) -> asyncio.Server:
-        context = modbus_tls.server_context(tls, self._refused_handshake)
+        # Plain TCP: each _Connection upgrades itself once admitted (see the docstring).
+        self.tls_context = modbus_tls.server_context(tls, self._refused_handshake)
         try:
             return await asyncio.get_running_loop().create_server(
-                lambda: _Connection(self, tls), tls.listen.host, tls.listen.port,
-                ssl=context, ssl_handshake_timeout=modbus_tls.HANDSHAKE_TIMEOUT_S,
-                ssl_shutdown_timeout=FRAME_DEADLINE_S)
+                lambda: _Connection(self, tls), tls.listen.host, tls.listen.port)
         except OSError as exc:
             reason = os.strerror(exc.errno) if exc.errno else str(exc)
             raise StartupError(f"modbus.tls.listen {tls.listen}: {reason}") from None
@@ -174,7 +179,7 @@ class ModbusTcpServer(Frontend):
 
     def admit(self, newcomer: _Connection) -> None:
         """Make room for a new connection: close the longest-idle one of its address,
-        or of all, when either is at its limit."""
+        or of all, when either is at its limit (an unfinished TLS handshake first)."""
         config = self.config
         for why, limit in (("per_address", config.max_connections_per_address),
                            ("limit", config.max_connections)):
@@ -184,8 +189,9 @@ class ModbusTcpServer(Frontend):
                 continue
             victim = min(crowd, key=_Connection.idle_rank)
             self.counts[f"evicted_{why}"] += 1
-            self.peers.warning(f"evicted_{why}", "Modbus TCP: closed %s, idle longest, to "
-                               "make room for %s (%s)", victim.peer, newcomer.peer,
+            self.peers.warning(f"evicted_{why}", "Modbus TCP: closed %s, %s, to make room "
+                               "for %s (%s)", victim.peer, "idle longest" if victim.ready
+                               else "its TLS handshake unfinished", newcomer.peer,
                                "max_connections_per_address" if why == "per_address"
                                else "max_connections")
             victim.evict()
@@ -195,8 +201,9 @@ class ModbusTcpServer(Frontend):
         return self._server is not None or self._tls_server is not None
 
     def stats(self) -> FrontendCounts:
-        return {"clients": len(self.connections), "requests": self.counts["requests"],
-                **self.counts}
+        ready = sum(c.ready for c in self.connections)
+        return {"clients": ready, "requests": self.counts["requests"], **self.counts,
+                "handshaking": len(self.connections) - ready}
 
     @property
     def port(self) -> int:
@@ -217,10 +224,12 @@ class ModbusTcpServer(Frontend):
         self._server = self._tls_server = None
         for server in servers:
             server.close()
+        handshakes = [c.handshake for c in self.connections if c.handshake is not None]
         for connection in list(self.connections):
             connection.close()
         for server in servers:
             await server.wait_closed()
+        await asyncio.gather(*handshakes, return_exceptions=True)  # (they end at once)
 
     # ------------------------------------------------------------ requests
 
@@ -365,7 +374,8 @@ def _read_span(pdu: bytes) -> tuple[int, int] | None:
 
 class _Connection(asyncio.Protocol):
     """One client: MBAP framing, requests answered in order, deadlines, back-pressure;
-    on the TLS port (``tls``), each request checked against its role's rights."""
+    on the TLS port (``tls``), the handshake first, then each request checked against
+    its role's rights."""
 
     def __init__(self, server: ModbusTcpServer, tls: ModbusTlsConfig | None = None) -> None:
         self.server = server
@@ -373,7 +383,10 @@ class _Connection(asyncio.Protocol):
         self.grant: modbus_tls.Grant | None = None  # TLS: what the role may do
         self.writes = server.config.allow_writes if tls is None else True
         self.refused = 0  # TLS: requests refused for lack of a right
-        self.transport: asyncio.Transport | None = None
+        self.transport: asyncio.Transport | None = None  # the one requests are served on
+        self.tcp: asyncio.Transport | None = None  # TLS: the socket, while it handshakes
+        self.handshake: asyncio.Task[None] | None = None
+        self.ready = False  # accepted and (TLS) handshaken: requests are served
         self.buffer = bytearray()
         self.waiting = False  # a write or pass-through is in progress: later ones queue
         self.blocked = False  # the client does not read its answers (WRITE_BOUND)
@@ -385,14 +398,15 @@ class _Connection(asyncio.Protocol):
         self.requests = 0
         self.last_request = time.monotonic()  # or the connect, before the first
 
-    def idle_rank(self) -> tuple[bool, float]:
-        """Sorts first the connection to close for room: one that never completed a
-        request (a trickle, a held socket), then the one quiet longest."""
-        return (self.requests > 0, self.last_request)
+    def idle_rank(self) -> tuple[bool, bool, float]:
+        """Sorts first the connection to close for room: an unfinished TLS handshake,
+        then one that never completed a request (a trickle, a held socket), then the
+        one quiet longest (the oldest first, among equals)."""
+        return (self.ready, self.requests > 0, self.last_request)
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        """A TCP connection accepted (on the TLS port too: before its handshake)."""
         assert isinstance(transport, asyncio.Transport)
-        self.transport = transport
         peer = transport.get_extra_info("peername") or ("?", 0)
         self.peer, self.address = f"{peer[0]}:{peer[1]}", str(peer[0])
         server = self.server
@@ -402,10 +416,7 @@ class _Connection(asyncio.Protocol):
                                  "allow_from)", self.peer)
             transport.abort()
             return
-        if self.tls is not None:
-            self._take_role(transport, self.tls)
         server.admit(self)
-        transport.set_write_buffer_limits(high=WRITE_BOUND)
         sock = transport.get_extra_info("socket")
         if sock is not None:
             # The kernel's own send buffer grows to megabytes for a client that does
@@ -413,9 +424,51 @@ class _Connection(asyncio.Protocol):
             # third of a second before WRITE_BOUND is reached.  A fixed one does not.
             with contextlib.suppress(OSError):
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
-        server.connections.add(self)
+        server.connections.add(self)  # a handshake in progress takes its place too
         server.counts["connections"] += 1
+        if self.tls is None:
+            self._serve(transport)
+            return
+        self.tcp = transport
+        transport.pause_reading()  # the ClientHello is the TLS layer's, not data_received's
+        self.handshake = asyncio.ensure_future(self._handshake(transport, self.tls))
+
+    async def _handshake(self, tcp: asyncio.Transport, tls: ModbusTlsConfig) -> None:
+        """Upgrade to TLS, then serve; a failed handshake is logged by the context's
+        hook (``modbus_tls.server_context``), a late one here."""
+        server = self.server
+        assert server.tls_context is not None
+        transport: asyncio.Transport | None = None
+        try:
+            transport = await asyncio.get_running_loop().start_tls(
+                tcp, self, server.tls_context, server_side=True,
+                ssl_handshake_timeout=modbus_tls.HANDSHAKE_TIMEOUT_S,
+                ssl_shutdown_timeout=FRAME_DEADLINE_S)
+        except ConnectionAbortedError:  # asyncio's handshake deadline
+            server.counts["handshake_timeouts"] += 1
+            server.peers.warning("handshake_timeouts", "Modbus/TCP Security: closed %s: "
+                                 "no TLS handshake within %g s", self.peer,
+                                 modbus_tls.HANDSHAKE_TIMEOUT_S)
+        except OSError:  # refused (logged by the hook), or the client went away
+            pass
+        self.tcp = None
+        if transport is None or self not in server.connections:  # lost, or evicted
+            server.connections.discard(self)
+            if transport is not None:
+                transport.abort()
+            return
+        self._serve(transport)
+
+    def _serve(self, transport: asyncio.Transport) -> None:
+        """Start serving requests: at once on the plain port, after the handshake on
+        the TLS port (where what came with the handshake's last flight is waiting)."""
+        self.transport, self.ready = transport, True
+        transport.set_write_buffer_limits(high=WRITE_BOUND)
+        if self.tls is not None:
+            self._take_role(transport, self.tls)
         self._watch_idle()
+        if self.buffer or self.ended:
+            self._answer_what_is_complete()
 
     def _take_role(self, transport: asyncio.Transport, tls: ModbusTlsConfig) -> None:
         grant = self.grant = modbus_tls.grant_of(transport, tls)
@@ -453,11 +506,14 @@ class _Connection(asyncio.Protocol):
     def close(self) -> None:
         if self.transport is not None:
             self.transport.close()
+        elif self.tcp is not None:  # nothing to say to a client that is still handshaking
+            self.tcp.abort()
 
     def evict(self) -> None:
         self.server.connections.discard(self)  # its room is taken now
-        if self.transport is not None:
-            self.transport.abort()
+        transport = self.transport or self.tcp
+        if transport is not None:
+            transport.abort()
 
     def _watch_idle(self) -> None:
         """Close the connection once ``last_request`` is ``idle_timeout_s`` old.  One
@@ -481,24 +537,34 @@ class _Connection(asyncio.Protocol):
 
     def pause_writing(self) -> None:
         """The client's unread answers passed ``WRITE_BOUND``: read no more of it."""
+        if self.transport is None:  # (TLS: its handshake's own writes; no answer yet)
+            return
         self.blocked = True
         self.server.counts["paused_unread"] += 1
-        assert self.transport is not None
         self.transport.pause_reading()
 
     def resume_writing(self) -> None:
         self.blocked = False
-        self._answer_what_is_complete()
+        if self.transport is not None:
+            self._answer_what_is_complete()
+
+    # TLS: asyncio hands over what came with the handshake's last flight before
+    # start_tls returns; it waits in the buffer until _serve.
 
     def eof_received(self) -> bool:
         """The client is done sending; what it sent before is still answered."""
         self.ended = True
-        self._answer_what_is_complete()
-        return True  # the transport stays open for the answers: _finish_if_ended closes
+        if self.transport is not None:
+            self._answer_what_is_complete()
+        # The transport stays open for the answers (_finish_if_ended closes), except on
+        # TLS: asyncio closes after the client's close_notify whatever this says, and
+        # logs a warning for each True.
+        return self.tls is None
 
     def data_received(self, data: bytes) -> None:
         self.buffer += data
-        self._answer_what_is_complete()
+        if self.transport is not None:
+            self._answer_what_is_complete()
 
     # ------------------------------------------------------------ requests
 

@@ -1,8 +1,9 @@
 """Modbus/TCP Security (Modbus.org MB-TCP-Security v21, docs/modbus-tcp.md): the TLS
 port's context, the role in a client's certificate, and the right each request needs.
 
-The connections themselves are ``modbus_tcp``'s: asyncio wraps the same protocol in
-TLS, so pipelining, deadlines and the limits on hostile clients hold on both ports.
+The connections themselves are ``modbus_tcp``'s: accepted in plain TCP (so the limits
+on hostile clients reach a handshake in progress too), then upgraded by asyncio's
+``start_tls``, so pipelining, deadlines and those limits hold on both ports.
 What this module adds is decided once per connection (the role, from the certificate
 the handshake verified) and checked once per request (``right_needed``).
 """
@@ -26,9 +27,10 @@ log = logging.getLogger("imu_gateway.modbus")
 
 #: The Modbus Role extension: its value is one ASN.1 UTF8String, the role's name.
 ROLE_OID = x509.ObjectIdentifier("1.3.6.1.4.1.50316.802.1")
-#: A client that opened TCP must finish its handshake within this; until then it holds
-#: a socket but no slot of ``max_connections`` (it becomes a connection only after).
-HANDSHAKE_TIMEOUT_S = 10.0
+#: A client that opened TCP must finish its handshake within this.  Until then it holds
+#: a socket and a place of ``max_connections`` (and of its address's), the first place
+#: given up to a newcomer; a real client needs milliseconds.
+HANDSHAKE_TIMEOUT_S = 5.0
 #: OpenSSL's TLS 1.2 suites, forward-secret ones first; the last is the suite the
 #: specification names for every mbaps device (TLS_RSA_WITH_AES_128_CBC_SHA256), for
 #: the PLCs that offer nothing else.  Its NULL (unencrypted) suite is never offered.
@@ -96,8 +98,20 @@ def _watched(refused: Callable[[ssl.SSLError], None]) -> type[ssl.SSLObject]:
     return Watched
 
 
+#: OpenSSL's X509_V_ERR_UNHANDLED_CRITICAL_EXTENSION.
+UNHANDLED_CRITICAL_EXTENSION = 34
+
+
 def handshake_problem(exc: ssl.SSLError) -> str:
     """A refused handshake's cause for the log, with the likely fix."""
+    if isinstance(exc, ssl.SSLCertVerificationError) \
+            and exc.verify_code == UNHANDLED_CRITICAL_EXTENSION:
+        # OpenSSL refuses it before the gateway sees the certificate, and does not say
+        # which extension; the role's is the one a Modbus PKI adds, so it is named.
+        return (f"its certificate has an extension marked critical that TLS does not "
+                f"know ({exc.verify_message}): the Modbus Role extension "
+                f"({ROLE_OID.dotted_string}) must not be critical; issue the certificate "
+                "again without 'critical' on that extension")
     if isinstance(exc, ssl.SSLCertVerificationError):
         return (f"its certificate failed verification ({exc.verify_message}): is it "
                 "signed by the CA of modbus.tls.ca_file, and still valid?")
@@ -130,9 +144,17 @@ def grant_of(transport: Any, config: ModbusTlsConfig) -> Grant:
     der = ssl_object.getpeercert(binary_form=True) if ssl_object is not None else None
     if der is None:  # (CERT_REQUIRED: a handshake without one does not complete)
         return Grant("?", None, frozenset(), "no client certificate")
-    cert = x509.load_der_x509_certificate(der)
-    who = cert.subject.rfc4514_string() or "an empty subject"
-    role, problem = _role(cert)
+    who = "?"
+    try:
+        cert = x509.load_der_x509_certificate(der)
+        who = cert.subject.rfc4514_string() or "an empty subject"
+        role, problem = _role(cert)
+    except (x509.DuplicateExtension, ValueError) as exc:
+        # Two role extensions, or extensions that do not parse: which role was meant is
+        # not known, and such a certificate is suspicious, so not even default_role.
+        return Grant(who, None, frozenset(), f"its certificate's extensions are ambiguous "
+                     f"({exc}): no rights, whatever default_role; issue it again with one "
+                     "Modbus Role extension")
     if role is not None and role in config.roles:
         return Grant(who, role, frozenset(config.roles[role]), "")
     why = problem or (f"role {role!r} is not in modbus.tls.roles" if role is not None
@@ -143,7 +165,9 @@ def grant_of(transport: Any, config: ModbusTlsConfig) -> Grant:
 
 
 def _role(cert: x509.Certificate) -> tuple[str | None, str]:
-    """The certificate's role, or None and what is wrong with its extension."""
+    """The certificate's role, or None and what is wrong with its extension; raises
+    ``x509.DuplicateExtension`` (two of any extension, two roles among them) or
+    ``ValueError`` (extensions that do not parse): ``grant_of`` gives no rights then."""
     try:
         extension = cert.extensions.get_extension_for_oid(ROLE_OID)
     except x509.ExtensionNotFound:
