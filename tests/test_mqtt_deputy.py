@@ -38,7 +38,7 @@ FORBIDDEN = {
     "$SYS/broker/uptime": "$ topic",
     "$share/g/x": "$ topic",
 }
-ALLOWED = (f"{BASE}/replies/me/1", "replies/me")
+ALLOWED = (f"{BASE}/replies/me/1", f"{BASE}/replies", "replies/me")
 
 
 def _properties(response_topic: str, correlation: bytes) -> Properties:

@@ -145,17 +145,20 @@ class ModbusTcpServer(Frontend):
         if listen is not None:
             self._server = await asyncio.get_running_loop().create_server(
                 lambda: _Connection(self), listen.host, listen.port)
-            log.info("Modbus TCP on %s:%d", listen.host, self.port)
+            log.info("Modbus TCP on %s:%d, units %s", listen.host, self.port, self._unit_ids)
         if tls is not None:
             try:
                 self._tls_server = await self._start_tls(tls)
             except BaseException:
                 await self.stop()  # not half started: the plain port closes again
                 raise
-            log.info("Modbus/TCP Security on %s:%d, roles %s", tls.listen.host,
-                     self.tls_port, ", ".join(tls.roles) or "none")
+            log.info("Modbus/TCP Security on %s:%d, units %s, roles %s", tls.listen.host,
+                     self.tls_port, self._unit_ids, ", ".join(tls.roles) or "none")
         self._tidy()
-        log.info("Modbus units %s", sorted(self.units) + sorted(self.raw_units))
+
+    @property
+    def _unit_ids(self) -> list[int]:
+        return sorted(self.units) + sorted(self.raw_units)
 
     async def _start_tls(self, tls: ModbusTlsConfig) -> asyncio.Server:
         # Plain TCP: each _Connection upgrades itself once admitted (see the docstring).

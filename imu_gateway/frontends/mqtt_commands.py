@@ -49,7 +49,7 @@ class ResponseTopics:
     that others read as the gateway's, Home Assistant's or Sparkplug's, a result would
     speak with their authority (a confused deputy: ``read_settings`` answered on a
     sensor's state topic).  So these are refused: the gateway's base topic (all of it:
-    other gateways, the client-id claims) but for ``{base}/{gw}/replies/``, the
+    other gateways, the client-id claims) but for ``{base}/{gw}/replies`` and below, the
     discovery prefix, ``spBv1.0/``, and ``$`` topics (the broker's: a result there was
     lost without a word).  With a sensor named ``replies``, that subtree is the
     sensor's, and refused too."""
@@ -67,7 +67,8 @@ class ResponseTopics:
         """Why a result may not go to ``topic`` (None: it may)."""
         if topic.startswith("$"):
             return "is a $ topic, the broker's own"
-        if self.replies is not None and topic.startswith(self.replies):
+        if self.replies is not None and (topic.startswith(self.replies)
+                                         or topic == self.replies.removesuffix("/")):
             return None
         instead = f"{self.replies}…" if self.replies is not None else "another topic"
         for prefix, owner in ((self.base, "the gateway's"), (self.discovery_prefix,
