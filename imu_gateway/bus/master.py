@@ -353,10 +353,8 @@ class BusMaster:
             case ErrorCounted(name):
                 self.cache.count_error(name)
             case Finished(job, outcome, error):
-                if job.kind is Kind.SETTINGS and isinstance(outcome, CommandResult) \
-                        and outcome.ok:  # (asked by the bus itself: nobody else learns it)
-                    self.cache.learn(job.sensor.name, CATALOGUE["read_settings"].learns(
-                        {}, outcome.answer))
+                if (shown := _learned(job, outcome)) is not None:
+                    self.cache.learn(job.sensor.name, shown)
                 self._resolve(job, outcome, error)
             case Note(level, text):
                 log.log(level, "%s", text)
@@ -385,6 +383,14 @@ class BusMaster:
 
     def bus_stats(self) -> BusStats:
         return bus_stats_of(self, self._now())
+
+
+def _learned(job: Job, outcome: Any) -> KnownSettings | None:
+    """The settings a read the bus asked for itself (after an absence) found: nobody
+    else is there to learn them."""
+    if job.kind is Kind.SETTINGS and isinstance(outcome, CommandResult) and outcome.ok:
+        return CATALOGUE["read_settings"].learns({}, outcome.answer)
+    return None
 
 
 def sensor_stats_of(master: BusMaster, name: str, now: float) -> SensorStats:
