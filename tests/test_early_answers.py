@@ -16,6 +16,7 @@ from collections.abc import Iterator
 
 import pytest
 from harness import running, until
+from pymodbus.client import AsyncModbusTcpClient
 
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import make_sensor, simulated
@@ -68,3 +69,41 @@ async def test_answers_inside_the_gap_are_taken_idle_and_loaded(
         print(f"{protocol} {delay_ms} ms load {load}: readings {stats.readings}, "
               f"transactions {stats.transactions}, early {stats.early_answers}, "
               f"errors {dict(stats.errors)}")
+
+
+@pytest.mark.anyio
+@pytest.mark.parametrize("lost", [False, True])
+async def test_a_modbus_tcp_write_is_sent_once_and_a_lost_answer_is_unconfirmed(
+        lost: bool) -> None:
+    """The issue's worst case: a Modbus TCP client writes 1 (relative) to register
+    1000 of a VG that answers 0.5 ms after the request.  The sensor hears the write
+    once, whether its acknowledgement comes (a normal answer) or is lost (exception
+    04, "unconfirmed: read the setting back"; never 0B, never a second write)."""
+    vg = make_sensor(WireProtocol.MODBUS, Series.VG, 1, baud=9600, answer_delay=0.0005,
+                     keep_gap=False)
+    with simulated([vg]) as sim:
+        async with running({"gateway_id": "test", "modbus": {"listen": "127.0.0.1:0",
+                                                            "allow_writes": True},
+                            "buses": [{"name": "line", "port": sim.path, "baudrate": 9600,
+                                       "protocol": "modbus", "retries": 2, "sensors": [
+                                           {"name": "vg", "series": "VG", "address": 1,
+                                            "poll_hz": 5}]}]}) as gw:
+            await until(lambda: gw.sensor_stats("vg").readings >= 2, 30)
+            vg.faults.drop_rate = 1.0 if lost else 0.0
+            before = sum(vg.writes_heard.values())
+            assert gw.modbus is not None
+            client = AsyncModbusTcpClient("127.0.0.1", port=gw.modbus.port, timeout=10,
+                                          retries=0)
+            assert await client.connect()
+            try:
+                rr = await client.write_register(1000, 1, device_id=1)
+            finally:
+                client.close()
+            vg.faults.drop_rate = 0.0
+            await until(lambda: gw.sensor_stats("vg").readings >= 4, 30)  # the line went on
+        assert sum(vg.writes_heard.values()) == before + 1
+        if lost:
+            assert rr.isError() and rr.exception_code == 0x04, rr
+        else:
+            assert not rr.isError(), rr
+        assert sim.bus.stats.masters_overlaps == 0

@@ -220,6 +220,38 @@ def test_an_answer_sooner_than_the_gap_allows_is_this_request_s(
 
 
 @pytest.mark.parametrize("protocol", ["native", "modbus"])
+@pytest.mark.parametrize(("command", "args", "idempotent"), [
+    ("set_zero_type", {"type": "relative"}, False),
+    ("save", {}, False),
+    ("read_settings", {}, True),
+])
+def test_a_write_whose_answer_is_lost_is_never_sent_again(
+        protocol: str, command: str, args: dict[str, Any], idempotent: bool) -> None:
+    """The sensor carries the command out, but its answer is lost (every one, with
+    three retries allowed).  A command that changes the sensor is sent once and fails
+    as ``unconfirmed``; an idempotent one (its catalogue row says so) is sent again."""
+    first = 0 if protocol == "native" else 1
+    sensor = sim(protocol, "AH", first)
+    line = VirtualLine(bus(protocol, flat_out(protocol, 1), retries=3), [sensor])
+    line.run(0.5, until=lambda: len(line.readings("s0")) >= 3)
+    sensor.faults.drop_rate = 1.0
+    job = line.command("s0", command, **args)
+    line.run(10.0, until=lambda: line.result(job) is not None)
+    result = line.result(job)
+    assert result is not None and isinstance(result.outcome, CommandResult)
+    assert not result.outcome.ok
+    if idempotent:
+        assert result.outcome.kind is ErrorKind.TIMEOUT
+        assert sum(line.writes_to(e.request) for e in job.plan[:1]) == 4  # 1 + 3 retries
+    else:
+        assert result.outcome.kind is ErrorKind.UNCONFIRMED
+        assert "read the setting back" in (result.outcome.error or "")
+        assert sum(sensor.writes_heard.values()) == 1  # the simulator heard one write
+        assert sum(line.writes_to(e.request) for e in job.plan) == 1
+    assert line.overlaps == 0
+
+
+@pytest.mark.parametrize("protocol", ["native", "modbus"])
 def test_garbled_answers_cost_an_attempt_never_the_bus(protocol: str) -> None:
     """A bad checksum can leave half a frame in the framer; the attempt must still end
     (it once waited for the rest for ever, and the bus stood still)."""

@@ -10,7 +10,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from ..commands import CommandResult
+from ..commands import CATALOGUE, CommandResult
 from ..config import BusConfig
 from ..errors import ErrorKind, RequestFailed
 from ..model import WireProtocol
@@ -31,6 +31,21 @@ from .events import (
 from .jobs import JobQueue
 from .line import Line
 from .sensor_state import SETTINGS_RETRY, STREAM_RETRY, SensorState
+
+#: Modbus function codes that change the device (a pass-through of one is a write).
+MODBUS_WRITES = frozenset({0x05, 0x06, 0x0F, 0x10, 0x16, 0x17})
+
+
+def changes_sensor(job: Job) -> bool:
+    """Whether ``job`` may have changed the sensor, and sending it again could change it
+    again: a command whose catalogue row is not ``idempotent``, or a Modbus
+    pass-through write.  Its lost answer is not retried (docs/bus-master.md)."""
+    if job.kind is Kind.COMMAND and job.command is not None:
+        return not CATALOGUE[job.command.name].idempotent
+    if job.kind is Kind.PASSTHROUGH:
+        request = job.plan[0].request
+        return len(request) > 1 and request[1] in MODBUS_WRITES
+    return False
 
 
 class Outcomes:
@@ -135,6 +150,11 @@ class Outcomes:
             s.unanswered.append(a.sent)
             s.timer.timed_out()
         self.line.flush(now)
+        if changes_sensor(job):  # it may have been carried out: never sent twice
+            what = job.command.name if job.command is not None else "the write"
+            self.fail_job(job, now, "unconfirmed", f"{s.name}: {what} was sent but not "
+                          f"confirmed ({kind}): read the setting back before sending it again")
+            return
         if job.tries <= self.config.retries:
             return  # the same exchange goes again
         self.fail_job(job, now, kind, f"{s.name} did not answer ({kind})")
@@ -238,7 +258,8 @@ class Outcomes:
             self._note(logging.WARNING, self._offline(s, kind, never=was is None))
             self.emit(StateChange(s.name, online=False))
         error_kind = {"port_lost": ErrorKind.OFFLINE, "internal": ErrorKind.OFFLINE,
-                      "refused": ErrorKind.FAILURE}.get(kind, ErrorKind.TIMEOUT)
+                      "refused": ErrorKind.FAILURE,
+                      "unconfirmed": ErrorKind.UNCONFIRMED}.get(kind, ErrorKind.TIMEOUT)
         if job.kind is Kind.STREAM_START:
             s.stream_retry_at = now + STREAM_RETRY
         if job.kind is Kind.SETTINGS:
