@@ -14,6 +14,7 @@ import subprocess
 import sys
 from collections.abc import Iterator
 
+import httpx
 import pytest
 from harness import running, until
 from pymodbus.client import AsyncModbusTcpClient
@@ -107,3 +108,28 @@ async def test_a_modbus_tcp_write_is_sent_once_and_a_lost_answer_is_unconfirmed(
         else:
             assert not rr.isError(), rr
         assert sim.bus.stats.masters_overlaps == 0
+
+
+@pytest.mark.anyio
+async def test_early_answers_are_shown_per_sensor_and_per_bus() -> None:
+    """``early_answers`` is in the REST bus list (the bus's total and each sensor's
+    timing) and in /metrics, as the late answers are (docs/rest.md)."""
+    vg = make_sensor(WireProtocol.MODBUS, Series.VG, 1, baud=9600, answer_delay=0.0,
+                     keep_gap=False)
+    with simulated([vg]) as sim:
+        async with running({"gateway_id": "test", "http": {"listen": "127.0.0.1:0"},
+                            "buses": [{"name": "line", "port": sim.path, "baudrate": 9600,
+                                       "protocol": "modbus", "sensors": [
+                                           {"name": "vg", "series": "VG", "address": 1,
+                                            "poll_hz": 20}]}]}) as gw:
+            await until(lambda: gw.sensor_stats("vg").readings >= POLLS, 30)
+            assert gw.http is not None
+            async with httpx.AsyncClient(
+                    base_url=f"http://127.0.0.1:{gw.http.port}", timeout=10) as http:
+                buses = (await http.get("/api/v1/buses")).json()
+                metrics = (await http.get("/metrics")).text
+    (line,) = buses
+    early = line["timing"]["vg"]["early_answers"]
+    # (the two are read one after the other while polls go on: either may be ahead)
+    assert isinstance(early, int) and early >= 0 and line["early_answers"] >= 0
+    assert 'imu_gateway_sensor_early_answers_total{sensor="vg"}' in metrics
