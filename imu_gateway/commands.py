@@ -156,6 +156,10 @@ class CommandSpec:
     register: TcpRegister | None = None
     #: arguments to show in examples (the dashboard's, the demo's, the docs')
     example: Args = field(default_factory=dict)
+    #: sent twice, it leaves the sensor as sent once: sent again when its answer is
+    #: lost.  Any other command is not, since the lost answer may be the only thing
+    #: lost; it fails as ``unconfirmed`` instead (docs/bus-master.md, "Retries").
+    idempotent: bool = False
 
     @property
     def argument(self) -> str | None:
@@ -173,6 +177,7 @@ CATALOGUE: Mapping[str, CommandSpec] = MappingProxyType({
     spec.name: spec
     for spec in (
         CommandSpec(
+            # (not idempotent: a relative zero is the attitude when it is heard)
             "set_zero_type", ZeroTypeArgs, "absolute or relative zero point", ALL,
             learns=lambda args, answer: KnownSettings(zero_type=args["type"]),
             register=TcpRegister(1000, "zero_type", "zero type: write 0 absolute, 1 relative; "
@@ -200,7 +205,7 @@ CATALOGUE: Mapping[str, CommandSpec] = MappingProxyType({
             register=TcpRegister(1004, "relative_heading", "relative heading start point, "
                                  "degrees (MINS), rounded to 0.01 half away from zero; reads "
                                  "the last written (NaN unknown)", "relative_heading"),
-            example={"degrees": 90.0}),
+            example={"degrees": 90.0}, idempotent=True),
         CommandSpec(
             "set_declination", DeclinationArgs, "magnetic declination (AH)", AH,
             # the sensor's echo: -1.25 is sent and stored as -1.3
@@ -209,7 +214,7 @@ CATALOGUE: Mapping[str, CommandSpec] = MappingProxyType({
             register=TcpRegister(1006, "declination", "magnetic declination, degrees (AH), "
                                  "-99.9 to 99.9, rounded to 0.1 half away from zero; reads "
                                  "the last known (NaN unknown)", "declination"),
-            example={"degrees": -3.5}),
+            example={"degrees": -3.5}, idempotent=True),
         CommandSpec(
             "mag_calibration", MagCalibrationArgs,
             "plane circumference calibration: start, finish, clear (AH)", AH,
@@ -226,7 +231,8 @@ CATALOGUE: Mapping[str, CommandSpec] = MappingProxyType({
         CommandSpec(
             "read_settings", NoArgs, "zero type, address, declination (AH)", ALL,
             learns=lambda args, answer: KnownSettings(zero_type=answer.get("zero_type"),
-                                                      declination=answer.get("degrees"))),
+                                                      declination=answer.get("degrees")),
+            idempotent=True),
     )
 })
 

@@ -78,6 +78,7 @@ class ErrorKind(enum.Enum):
     TIMEOUT = "timeout"
     OFFLINE = "offline"
     FAILURE = "failure"
+    UNCONFIRMED = "unconfirmed"
     NO_READING = "no_reading"
     TOO_MANY_STREAMS = "too_many_streams"
     TOO_LARGE = "too_large"
@@ -111,6 +112,11 @@ KINDS: Mapping[ErrorKind, KindRow] = MappingProxyType({
     ErrorKind.TIMEOUT: KindRow(504, TARGET_FAILED, "the sensor did not answer"),
     ErrorKind.OFFLINE: KindRow(504, TARGET_FAILED, "the sensor or its port is gone"),
     ErrorKind.FAILURE: KindRow(502, DEVICE_FAILURE, "the sensor answered that it failed"),
+    # Sent, and maybe carried out: not "did not answer" (0B), which a client may take
+    # as leave to send it again.  04, as for a failure: look before writing again.
+    ErrorKind.UNCONFIRMED: KindRow(
+        502, DEVICE_FAILURE, "the command was sent but its answer was lost: read the "
+        "setting back before sending it again"),
     ErrorKind.NO_READING: KindRow(503, TARGET_FAILED, "the sensor has not been read yet"),
     ErrorKind.TOO_MANY_STREAMS: KindRow(503, None, "every event stream is taken"),
     ErrorKind.TOO_LARGE: KindRow(413, None, "the request body is too large"),

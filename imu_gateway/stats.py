@@ -46,6 +46,8 @@ class Counters:
     readings: int = 0
     missed_polls: int = 0
     late_answers: int = 0  # answers that came after their timeout, and were used
+    #: answers in sooner than request, gap and answer could cross the wire, and used
+    early_answers: int = 0
     stream_stops: int = 0  # stops sent to a sensor found streaming unasked
     busy_time: float = 0.0  # the line was ours: request, answer delay, answer, gaps
     wire_time: float = 0.0  # the bytes of the exchanges done, at the wire's rate
@@ -69,6 +71,7 @@ class SensorStats:
     errors: Mapping[str, int]
     missed_polls: int
     late_answers: int
+    early_answers: int
     stream_stops: int
     bus_share: float  # of the bus's time since start
     requested_hz: float
@@ -93,6 +96,7 @@ class BusStats:
     transactions: int
     errors: Mapping[str, int]
     late_answers: int
+    early_answers: int
     transactions_per_s: float
     utilisation: float  # time in exchanges ÷ elapsed
     busy_ms: int

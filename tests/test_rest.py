@@ -396,10 +396,12 @@ async def test_commands_status_codes(two_lines: Any) -> None:
             "busy_with"] == "save"
         assert_error(await post(http, "boom/commands/calibrate_gyro"), 409, "busy")
         assert (await saving).status_code == 200
-        # the sensor does not answer
+        # the sensor does not answer: a command that changes it was sent, and may have
+        # been carried out ("unconfirmed": not sent again); a read is a timeout
         vg.faults.stalled = True
         assert_error(await post(http, "arm/commands/set_zero_type", {"type": "absolute"}),
-                     504, "timeout")
+                     502, "unconfirmed")
+        assert_error(await post(http, "arm/commands/read_settings"), 504, "timeout")
         assert ah.settings.zero_type == "relative"  # nothing else happened to it
 
 

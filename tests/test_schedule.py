@@ -197,6 +197,61 @@ def test_an_answer_hidden_past_the_hold_is_not_talked_over_by_the_retry(
 
 
 @pytest.mark.parametrize("protocol", ["native", "modbus"])
+@pytest.mark.parametrize("delay", [0.0, 0.0005, 0.002])
+@pytest.mark.parametrize("busy", [False, True])
+def test_an_answer_sooner_than_the_gap_allows_is_this_request_s(
+        protocol: str, delay: float, busy: bool) -> None:
+    """Sensors that answer 0-2 ms after the request's last byte, inside RTU's
+    3.5-character gap (3.65 ms at 9600 baud), on an idle machine and on one whose
+    wake-ups are up to 30 ms late: every poll is taken, none is a timeout, and the
+    Modbus answers inside the gap are counted as early."""
+    first = 0 if protocol == "native" else 1
+    line = VirtualLine(bus(protocol, flat_out(protocol, 1, series="VG"), baudrate=9600),
+                       [sim(protocol, "VG", first, delay=delay, baud=9600, keep_gap=False)],
+                       late=jittery(5, 0.03) if busy else lambda: 0.0)
+    line.run(5.0)
+    s = line.schedule.sensors["s0"]
+    assert len(line.readings("s0")) > 30
+    assert s.stats.errors["timeout"] == 0 and not line.notes("offline")
+    assert s.stats.transactions == len(line.readings("s0"))
+    if protocol == "modbus" and not busy:
+        assert s.stats.early_answers == s.stats.transactions  # all inside the gap
+    assert line.overlaps == 0 and line.collisions == 0
+
+
+@pytest.mark.parametrize("protocol", ["native", "modbus"])
+@pytest.mark.parametrize(("command", "args", "idempotent"), [
+    ("set_zero_type", {"type": "relative"}, False),
+    ("save", {}, False),
+    ("read_settings", {}, True),
+])
+def test_a_write_whose_answer_is_lost_is_never_sent_again(
+        protocol: str, command: str, args: dict[str, Any], idempotent: bool) -> None:
+    """The sensor carries the command out, but its answer is lost (every one, with
+    three retries allowed).  A command that changes the sensor is sent once and fails
+    as ``unconfirmed``; an idempotent one (its catalogue row says so) is sent again."""
+    first = 0 if protocol == "native" else 1
+    sensor = sim(protocol, "AH", first)
+    line = VirtualLine(bus(protocol, flat_out(protocol, 1), retries=3), [sensor])
+    line.run(0.5, until=lambda: len(line.readings("s0")) >= 3)
+    sensor.faults.drop_rate = 1.0
+    job = line.command("s0", command, **args)
+    line.run(10.0, until=lambda: line.result(job) is not None)
+    result = line.result(job)
+    assert result is not None and isinstance(result.outcome, CommandResult)
+    assert not result.outcome.ok
+    if idempotent:
+        assert result.outcome.kind is ErrorKind.TIMEOUT
+        assert sum(line.writes_to(e.request) for e in job.plan[:1]) == 4  # 1 + 3 retries
+    else:
+        assert result.outcome.kind is ErrorKind.UNCONFIRMED
+        assert "read the setting back" in (result.outcome.error or "")
+        assert sum(sensor.writes_heard.values()) == 1  # the simulator heard one write
+        assert sum(line.writes_to(e.request) for e in job.plan) == 1
+    assert line.overlaps == 0
+
+
+@pytest.mark.parametrize("protocol", ["native", "modbus"])
 def test_garbled_answers_cost_an_attempt_never_the_bus(protocol: str) -> None:
     """A bad checksum can leave half a frame in the framer; the attempt must still end
     (it once waited for the rest for ever, and the bus stood still)."""

@@ -744,3 +744,20 @@ def test_modbus_address_outside_1_to_247_is_refused_and_the_line_lives() -> None
             assert rtu.decode_frame(exchange(port, raw, 5)) == rtu.ExceptionAnswer(1, 6, 3)
         assert rtu.decode_frame(exchange(port, rtu.read_request(1, 4, 1), 7)) == \
             rtu.ReadResponse(1, (1,))
+
+
+@pytest.mark.parametrize("delay", [0.0, 0.0005, 0.002])
+def test_a_modbus_sensor_can_answer_inside_the_rtu_gap(delay: float) -> None:
+    """``keep_gap=False`` (``--below-gap``): the answer starts ``delay`` after the
+    request's last byte, inside RTU's 3.5 characters (3.65 ms at 9600 baud), as many
+    real sensors answer; with the gap kept it starts after it."""
+    below = make_sensor(WireProtocol.MODBUS, Series.VG, answer_delay=delay, keep_gap=False)
+    kept = make_sensor(WireProtocol.MODBUS, Series.VG, answer_delay=delay)
+    for now in (100.0, 101.0):  # a second answer is not held back by a gap either
+        [out] = below.hear(read_request(WireProtocol.MODBUS), now, after_silence=True)
+        assert out.not_before == pytest.approx(now + delay)
+    [out] = kept.hear(read_request(WireProtocol.MODBUS), 100.0, after_silence=True)
+    assert out.not_before == pytest.approx(100.0 + rtu_silence(9600) + delay)
+    args = build_parser().parse_args(["simulate", "--protocol", "modbus", "--series", "VG",
+                                      "--answer-delay-ms", "0", "--below-gap"])
+    assert args.answer_delay_ms == 0 and args.below_gap

@@ -39,10 +39,11 @@ def bus(protocol: str, sensors: list[dict[str, Any]], baudrate: int = 115200,
 
 
 def sim(protocol: str, series: str, address: int, *, delay: float = 0.002,
-        jitter: float = 0.0, seed: int = 0, baud: int = 115200) -> SimSensor:
+        jitter: float = 0.0, seed: int = 0, baud: int = 115200,
+        keep_gap: bool = True) -> SimSensor:
     from imu_gateway.model import Series
     return make_sensor(WireProtocol[protocol.upper()], Series[series], address, baud=baud,
-                       answer_delay=delay, jitter=jitter, seed=seed)
+                       answer_delay=delay, jitter=jitter, seed=seed, keep_gap=keep_gap)
 
 
 @dataclass(slots=True)

@@ -10,7 +10,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from ..commands import CommandResult
+from ..commands import CATALOGUE, CommandResult
 from ..config import BusConfig
 from ..errors import ErrorKind, RequestFailed
 from ..model import WireProtocol
@@ -31,6 +31,21 @@ from .events import (
 from .jobs import JobQueue
 from .line import Line
 from .sensor_state import SETTINGS_RETRY, STREAM_RETRY, SensorState
+
+#: Modbus function codes that change the device (a pass-through of one is a write).
+MODBUS_WRITES = frozenset({0x05, 0x06, 0x0F, 0x10, 0x16, 0x17})
+
+
+def changes_sensor(job: Job) -> bool:
+    """Whether ``job`` may have changed the sensor, and sending it again could change it
+    again: a command whose catalogue row is not ``idempotent``, or a Modbus
+    pass-through write.  Its lost answer is not retried (docs/bus-master.md)."""
+    if job.kind is Kind.COMMAND and job.command is not None:
+        return not CATALOGUE[job.command.name].idempotent
+    if job.kind is Kind.PASSTHROUGH:
+        request = job.plan[0].request
+        return len(request) > 1 and request[1] in MODBUS_WRITES
+    return False
 
 
 class Outcomes:
@@ -55,10 +70,15 @@ class Outcomes:
         a = self.line.attempt
         if a is not None:
             answer = a.exchange.match(frame)
-            # An answer cannot be in before its request and itself have crossed the
-            # wire: one that is, with this attempt's shape, is an older request's,
-            # late (a busy machine held it back).  This attempt's own is still to come.
-            if answer is not None and at >= a.sent + a.wire - self.line.char:
+            # Bytes that matched the request are its answer, however early: many
+            # sensors answer well inside RTU's 3.5-character gap, and on a busy machine
+            # a read's times are late and bunched, so they cannot tell early from late.
+            # Only an answer in before the request was written is surely an older one's.
+            if answer is not None and at >= a.sent:
+                if at < a.sent + a.wire - self.line.char:  # sooner than the gap allows
+                    s = a.job.sensor
+                    s.stats.early_answers += 1
+                    self.stats.early_answers += 1
                 self.answered(a, answer, at)
                 return
         for s in self.sensors.values():
@@ -130,6 +150,11 @@ class Outcomes:
             s.unanswered.append(a.sent)
             s.timer.timed_out()
         self.line.flush(now)
+        if changes_sensor(job):  # it may have been carried out: never sent twice
+            what = job.command.name if job.command is not None else "the write"
+            self.fail_job(job, now, "unconfirmed", f"{s.name}: {what} was sent but not "
+                          f"confirmed ({kind}): read the setting back before sending it again")
+            return
         if job.tries <= self.config.retries:
             return  # the same exchange goes again
         self.fail_job(job, now, kind, f"{s.name} did not answer ({kind})")
@@ -233,7 +258,8 @@ class Outcomes:
             self._note(logging.WARNING, self._offline(s, kind, never=was is None))
             self.emit(StateChange(s.name, online=False))
         error_kind = {"port_lost": ErrorKind.OFFLINE, "internal": ErrorKind.OFFLINE,
-                      "refused": ErrorKind.FAILURE}.get(kind, ErrorKind.TIMEOUT)
+                      "refused": ErrorKind.FAILURE,
+                      "unconfirmed": ErrorKind.UNCONFIRMED}.get(kind, ErrorKind.TIMEOUT)
         if job.kind is Kind.STREAM_START:
             s.stream_retry_at = now + STREAM_RETRY
         if job.kind is Kind.SETTINGS:

@@ -65,6 +65,10 @@ class SimSensor(ABC):
     settings: Settings
     source: Source = field(default_factory=Motion)
     answer_delay: float = 0.002  # turnaround before an answer starts
+    #: Modbus only: wait out RTU's 3.5-character silence before answering, as the
+    #: serial-line rule says.  False answers ``answer_delay`` after the request's last
+    #: byte, as many real sensors do (0.5 ms at 9600 baud is well inside the gap).
+    keep_gap: bool = True
     jitter: float = 0.0  # plus a uniform 0..jitter, drawn per answer from ``rng``
     save_duration: float = 4.0
     gyro_cal_duration: float = 2.0
@@ -427,7 +431,7 @@ class ModbusSensor(SimSensor):
         )
 
     def _silence(self) -> float:
-        return rtu_silence(self.baud)
+        return rtu_silence(self.baud) if self.keep_gap else 0.0
 
     def _write_name(self, message: rtu.RtuMessage) -> str | None:
         if message.unit not in (self.address, 0):

@@ -244,7 +244,12 @@ def _simulate_parser(commands: Subcommands) -> None:
         help="another sensor on the same line (repeatable)",
     )
     sim.add_argument("--answer-delay-ms", type=_non_negative, default=2.0,
-                     help="the sensors' turnaround before answering (default 2)")
+                     help="the sensors' turnaround before answering (default 2; 0 answers "
+                     "at once); a Modbus sensor waits out RTU's 3.5-character silence first "
+                     "unless --below-gap")
+    sim.add_argument("--below-gap", action="store_true",
+                     help="Modbus sensors answer --answer-delay-ms after the request's last "
+                     "byte, inside RTU's 3.5-character silence, as many real sensors do")
     sim.add_argument("--jitter-ms", type=_non_negative, default=0.0,
                      help="each answer's delay is --answer-delay-ms plus a uniform random "
                      "0..jitter ms (seeded by --seed)")
@@ -411,6 +416,7 @@ def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
             protocol, series, address, baud,
             source=Motion.from_seed(args.seed + i),
             answer_delay=args.answer_delay_ms / 1000,
+            keep_gap=not args.below_gap,
             jitter=args.jitter_ms / 1000,
             save_duration=args.save_ms / 1000,
             faults=Faults(drop_rate=args.drop, corrupt_rate=args.corrupt),

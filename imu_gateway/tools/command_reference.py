@@ -95,13 +95,14 @@ def _number(value: float) -> str:
 
 def catalogue() -> list[str]:
     lines = ["| command | arguments | " + " | ".join(s.name for s in Series)
-             + " | native | Modbus RTU | summary |",
-             "|---|---|" + "---|" * len(Series) + "---|---|---|"]
+             + " | native | Modbus RTU | retried | summary |",
+             "|---|---|" + "---|" * len(Series) + "---|---|---|---|"]
     for spec in CATALOGUE.values():
         has = " | ".join("✓" if s in spec.series else "" for s in Series)
         lines.append(f"| `{spec.name}` | {_arguments(spec)} | {has} | "
                      f"{_wire(spec, WireProtocol.NATIVE, _native_code)} | "
-                     f"{_wire(spec, WireProtocol.MODBUS, _modbus_step)} | {spec.summary} |")
+                     f"{_wire(spec, WireProtocol.MODBUS, _modbus_step)} | "
+                     f"{'✓' if spec.idempotent else ''} | {spec.summary} |")
     return lines
 
 

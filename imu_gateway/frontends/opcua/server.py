@@ -48,6 +48,7 @@ CALL_STATUS = {
     ErrorKind.TIMEOUT: "BadTimeout",
     ErrorKind.OFFLINE: "BadCommunicationError",
     ErrorKind.FAILURE: "BadDeviceFailure",
+    ErrorKind.UNCONFIRMED: "BadDeviceFailure",  # as Modbus TCP's 04: read it back
 }
 
 

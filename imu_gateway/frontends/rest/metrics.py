@@ -91,6 +91,8 @@ class GatewayCollector:
                          "the wire time, learned from the latency", ["sensor"])
         late = family(CounterMetricFamily, "sensor_late_answers", "answers after their "
                       "timeout, used", ["sensor"])
+        early = family(CounterMetricFamily, "sensor_early_answers", "answers sooner than "
+                       "request, RTU gap and answer could cross the wire, used", ["sensor"])
         stops = family(CounterMetricFamily, "sensor_stream_stops", "stops sent to a sensor "
                        "found streaming unasked", ["sensor"])
         for snap in g.cache.snapshots():
@@ -100,6 +102,7 @@ class GatewayCollector:
                 latency.add_metric([snap.name], stats.latency_ms / 1000)
             timeout.add_metric([snap.name], stats.timeout_ms / 1000)
             late.add_metric([snap.name], stats.late_answers)
+            early.add_metric([snap.name], stats.early_answers)
             stops.add_metric([snap.name], stats.stream_stops)
             if snap.age_ms is not None:
                 age.add_metric([snap.name], snap.age_ms / 1000)

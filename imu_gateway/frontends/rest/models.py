@@ -120,6 +120,8 @@ class TimingOut(_Out):
     latency_dev_ms: float | None = Field(description="its mean deviation")
     timeout_ms: float = Field(description="what the next attempt waits beyond the wire time")
     late_answers: int
+    early_answers: int = Field(description="answers sooner than request, RTU gap and answer "
+                               "could cross the wire, and used")
     requested_hz: float = Field(description="the configured rate: stream_hz while it "
                                 "streams, else poll_hz (0: polled flat out)")
     achieved_hz: float = Field(description="readings a second, lately")
@@ -140,6 +142,8 @@ class BusOut(_Out):
     queue_depth: int
     late_answers: int = Field(description="answers that came after their timeout, and "
                               "were used")
+    early_answers: int = Field(description="answers sooner than request, RTU gap and "
+                               "answer could cross the wire, and used")
     sensors: list[str]
     timing: dict[str, TimingOut] = Field(description="each sensor's learned answer timing")
 

@@ -243,6 +243,7 @@ def _status_routes(app: FastAPI, routes: _Routes) -> None:
             stats = gateway.sensor_stats(name)
             return {"latency_ms": stats.latency_ms, "latency_dev_ms": stats.latency_dev_ms,
                     "timeout_ms": stats.timeout_ms, "late_answers": stats.late_answers,
+                    "early_answers": stats.early_answers,
                     "requested_hz": stats.requested_hz, "achieved_hz": stats.achieved_hz}
 
         return [{**{k: v for k, v in b.as_dict().items() if k in BusOut.model_fields},
