@@ -293,7 +293,9 @@ def markdown() -> str:
         "or protocol lacks |",
         "| 03 | a quantity outside 1-125 (read) or 1-123 (write), a bad value, half a "
         "float (one register of 1004-1007, or a write starting at 1005 or 1007) |",
-        "| 04 | the sensor answered \"failure\" |",
+        "| 04 | the sensor answered \"failure\"; or a write was sent but its answer was lost "
+        "(`unconfirmed`: read the register back before writing again; it is never sent "
+        "twice) |",
         "| 06 | the sensor is busy (save or calibration running) |",
         "| 0A | an unknown unit id |",
         "| 0B | the sensor did not answer; or a read of measured values before the first "
