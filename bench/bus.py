@@ -19,6 +19,10 @@ that answer 35 ms late, then 5-40 ms late (uniformly jittered), against the defa
 config: the timeout is learned, not set.  Their ceiling counts the mean delay; their
 bare loop is told the answer length, so it waits exactly as long as needed.
 
+The dead-sensor case (``--no-absent`` leaves it out) configures 3 live sensors and a
+4th the simulator does not play (native, 115200): the gateway probes it; its figures
+count the live sensors' exchanges only, and the bare loop polls only those.
+
 Run: ``.venv/bin/python bench/bus.py [--seconds 5] [--delay-ms 2]``; ``--protocol``,
 ``--baud`` and ``--sensors`` (each repeatable) run only some of the cases.
 """
@@ -48,6 +52,7 @@ class Case:
     sensors: int
     delay: float  # the sensors' answer delay, s
     jitter: float = 0.0  # plus a uniform random 0..jitter, s
+    absent: int = 0  # sensors configured (after the live ones) that nobody plays
 
     def per_exchange(self, delay: float) -> float:
         """Seconds one poll takes at best: the wire, the gaps, the sensor's delay."""
@@ -104,7 +109,7 @@ async def measure(case: Case, port: str, seconds: float) -> dict[str, float]:
     config = config_from_dict({"buses": [{
         "name": "bench", "port": port, "baudrate": case.baud, "protocol": case.protocol,
         "sensors": [{"name": f"s{i}", "series": "AH", "address": first + i, "poll_hz": 0}
-                    for i in range(case.sensors)]}]}, env={})
+                    for i in range(case.sensors + case.absent)]}]}, env={})
     gateway = Gateway(config)
     stop = asyncio.Event()
     task = asyncio.create_task(gateway.run(stop))
@@ -113,9 +118,10 @@ async def measure(case: Case, port: str, seconds: float) -> dict[str, float]:
     while not all(gateway.cache.snapshot(f"s{i}").seq for i in range(case.sensors)):
         await asyncio.sleep(0.01)
     loop = asyncio.get_running_loop()
-    t0, n0, busy0 = loop.time(), master.stats.transactions, master.stats.busy_time
+    live = [master.schedule.sensors[f"s{i}"].stats for i in range(case.sensors)]
+    t0, n0, busy0 = loop.time(), sum(s.transactions for s in live), master.stats.busy_time
     await asyncio.sleep(seconds)
-    t1, n1, busy1 = loop.time(), master.stats.transactions, master.stats.busy_time
+    t1, n1, busy1 = loop.time(), sum(s.transactions for s in live), master.stats.busy_time
     errors = sum(master.stats.errors.values())
     late, stops = master.stats.late_answers, master.stats.stream_stops
     stop.set()
@@ -138,6 +144,9 @@ def main() -> None:
     parser.add_argument("--slow", action=argparse.BooleanOptionalAction, default=True,
                         help="also the slow-sensor cases: two sensors at 115200 answering "
                         "35 ms late, then 5-40 ms (jittered), with the default config")
+    parser.add_argument("--absent", action=argparse.BooleanOptionalAction, default=True,
+                        help="also the dead-sensor case: 3 live sensors and 1 configured "
+                        "but absent, native, 115200")
     args = parser.parse_args()
     sys.setswitchinterval(GIL_SWITCH_INTERVAL)  # as `imu-gateway run` does
     protocols = args.protocol or ("native", "modbus")
@@ -146,9 +155,11 @@ def main() -> None:
     if args.slow:
         cases += [Case(p, 115200, 2, d, j) for p in protocols
                   for d, j in ((0.035, 0.0), (0.005, 0.035))]
+    if args.absent:
+        cases.append(Case("native", 115200, 3, args.delay_ms / 1000, absent=1))
     print(f"bus master, poll_hz 0, AH sensors, {args.seconds} s per run, "
           f"{os.cpu_count()} CPUs")
-    print(f"{'protocol':8} {'baud':>6} {'sensors':>7} {'delay ms':>8} {'tx/s':>8} "
+    print(f"{'protocol':8} {'baud':>6} {'sensors':>9} {'delay ms':>8} {'tx/s':>8} "
           f"{'wire max':>9} {'+delay max':>10} {'achieved/max':>12} {'utilisation':>11} "
           f"{'errors':>6} {'late':>5} {'stops':>5} {'bare loop':>9} {'gateway/bare':>12}")
     for case in cases:
@@ -166,7 +177,8 @@ def run_case(case: Case, seconds: float) -> None:
     wire_max = 1 / case.per_exchange(0.0)
     real_max = 1 / case.per_exchange(case.delay + case.jitter / 2)  # the mean delay
     delay = f"{case.delay * 1000:g}" + (f"+{case.jitter * 1000:g}" if case.jitter else "")
-    print(f"{case.protocol:8} {case.baud:6} {case.sensors:7} {delay:>8} {result['tps']:8.1f} "
+    sensors = f"{case.sensors}" + (f"+{case.absent}x" if case.absent else "")
+    print(f"{case.protocol:8} {case.baud:6} {sensors:>9} {delay:>8} {result['tps']:8.1f} "
           f"{wire_max:9.1f} {real_max:10.1f} {result['tps'] / real_max:12.3f} "
           f"{result['utilisation']:11.3f} {result['errors']:6.0f} {result['late']:5.0f} "
           f"{result['stops']:5.0f} {bare:9.1f} {result['tps'] / bare:12.3f}", flush=True)

@@ -19,10 +19,20 @@ from imu_gateway.bus.schedule import Schedule
 from imu_gateway.bus.sensor_state import (
     BACKOFF_MAX,
     EVIDENCE_SPAN,
+    PROBE_BUDGET,
     SETTINGS_RETRY,
     SensorState,
 )
-from imu_gateway.bus.timing import LOOK_EVERY, RTO_INITIAL, RTO_MAX, RTO_MIN, AnswerTimer
+from imu_gateway.bus.timing import (
+    LOOK_EVERY,
+    PROBE_MARGIN,
+    PROBE_MAX,
+    RTO_INITIAL,
+    RTO_MAX,
+    RTO_MIN,
+    WIDE_EVERY,
+    AnswerTimer,
+)
 from imu_gateway.bus.trace import format_trace
 from imu_gateway.commands import CommandResult
 from imu_gateway.config import SensorConfig
@@ -321,12 +331,13 @@ def test_a_dead_address_backs_off_goes_offline_once_and_costs_the_others_little(
     dead = line.schedule.sensors["dead"]
     line.run(60.0)
     assert dead.online is False and len(line.notes("dead: offline")) == 1
-    assert dead.next_due - line.now <= BACKOFF_MAX
+    assert dead.next_due - line.now <= max(BACKOFF_MAX, LONGEST_PROBE / PROBE_BUDGET)
     busy, now = dead.stats.busy_time, line.now
     line.run(60.0)  # with the back-off at its cap
     assert (dead.stats.busy_time - busy) / (line.now - now) < 0.05
     sensors[2].faults.stalled = False
-    line.run(BACKOFF_MAX + 1, until=lambda: dead.online is True)
+    line.run(max(BACKOFF_MAX, LONGEST_PROBE / PROBE_BUDGET) + 1,
+             until=lambda: dead.online is True)
     assert dead.online is True and len(line.notes("dead: recovered")) == 1
     assert line.overlaps == 0
 
@@ -692,3 +703,97 @@ def test_a_streams_phase_is_the_front_of_its_frames_arrivals() -> None:
         s.stream_frame(1.0 + k * 0.01 + rng.expovariate(1 / 0.0005))  # true ends 1.00, 1.01…
     assert s.frame_end_before(3.0) == pytest.approx(1.0 + 199 * 0.01, abs=0.0005)
     assert s.last_stream > s.frame_end_before(3.0)  # the last one was seen late
+
+
+# ------------------------------------------------------------------ dead sensors' probes
+
+
+def _with_absent(live: int, absent: int, delay: float = 0.002,
+                 poll_hz: float = 0) -> VirtualLine:
+    """``live`` sensors answering after ``delay``, then ``absent`` ones configured that
+    nothing on the line plays (addresses ``live`` on)."""
+    sensors = [sim("native", "AH", i, delay=delay) for i in range(live)]
+    return VirtualLine(bus("native", flat_out("native", live + absent, poll_hz=poll_hz)),
+                       sensors)
+
+
+def _run_probes(line: VirtualLine, name: str, seconds: float) -> list[tuple[float, float]]:
+    """Run the line, and say for each attempt to ``name`` when it was sent, its timeout
+    and how long the line was then held for a late answer."""
+    seen: dict[float, tuple[float, float]] = {}
+
+    def look() -> bool:
+        a = line.schedule.line.attempt
+        if a is not None and a.job.sensor.name == name and a.sent not in seen:
+            seen[a.sent] = (a.deadline - a.sent - a.wire, a.give_up - a.deadline)
+        return False
+
+    line.run(seconds, until=look)
+    return [seen[sent] for sent in sorted(seen)]
+
+
+def _probe_share(line: VirtualLine, names: range) -> float:
+    """The dead sensors' probes' share of the line's time: their line time over the
+    time they are spaced across (each probe is paid by the wait after it, so the span
+    runs to the last one's next probe)."""
+    dead = [line.schedule.sensors[f"s{i}"] for i in names]
+    span = max(line.now, *(s.next_due for s in dead))
+    return sum(s.stats.busy_time for s in dead) / span
+
+
+#: The most one probe (its retry too) holds the line: every attempt's timeout and hold
+#: at the cap.
+LONGEST_PROBE = 2 * (poll_time("native") + 2 * PROBE_MAX)
+
+
+@pytest.mark.parametrize(("live", "delay", "timeout", "learnt"), [
+    (2, 0.002, RTO_MIN, 10.0),  # fast neighbours: the floor (once their latency is learnt)
+    (2, 0.02, 0.02 * PROBE_MARGIN, 10.0),  # their latency times the margin
+    (2, 0.08, PROBE_MAX, 0.0),  # slow ones: the cap, from the first probe on
+    (0, 0.0, min(RTO_INITIAL, PROBE_MAX), 0.0),  # nobody to learn from
+])
+def test_a_dead_sensor_is_probed_with_its_neighbours_latency_never_doubled(
+        live: int, delay: float, timeout: float, learnt: float) -> None:
+    """Each attempt holds the line for its timeout and as long again for a late
+    answer: both from the live neighbours' latency, the same for a retry and after
+    going offline; one attempt in ``WIDE_EVERY`` waits the first-answer timeout (for a
+    sensor far slower than its neighbours), then as long as the others."""
+    line = _with_absent(live, 1, delay)
+    line.run(learnt)  # (the neighbours' latency learnt: their timeout settled)
+    attempts = _run_probes(line, f"s{live}", 300.0 - learnt)
+    assert len(attempts) >= 20 and line.schedule.sensors[f"s{live}"].online is False
+    first = min(RTO_INITIAL, PROBE_MAX)
+    assert all(hold == pytest.approx(timeout) for _, hold in attempts), attempts
+    assert all(t == pytest.approx(timeout) or t == pytest.approx(first)
+               for t, _ in attempts), attempts
+    assert sum(t != pytest.approx(timeout) for t, _ in attempts) <= \
+        len(attempts) // WIDE_EVERY + 1
+    assert line.overlaps == 0 and line.collisions == 0
+
+
+@pytest.mark.parametrize("dead", [1, 3, 12])
+def test_dead_sensors_together_cost_their_line_at_most_the_probe_budget(dead: int) -> None:
+    """Ten virtual minutes: the dead sensors' probes, startup included, took no more
+    than ``PROBE_BUDGET`` of the line's time, and the live ones kept their rate."""
+    line = _with_absent(2, dead, poll_hz=20)
+    line.run(600.0)
+    assert _probe_share(line, range(2, 2 + dead)) <= PROBE_BUDGET
+    assert all(line.schedule.sensors[f"s{i}"].online is False for i in range(2, 2 + dead))
+    assert all(len(line.readings(f"s{i}")) >= 0.99 * 20 * 600 for i in range(2))
+
+
+@pytest.mark.parametrize("dead", [1, 3, 12])
+def test_a_replugged_sensor_is_found_within_the_documented_time(dead: int) -> None:
+    """docs/bus-master.md: a probe that held the line T seconds is followed by the next
+    one max(BACKOFF_MAX, T * dead / PROBE_BUDGET) later; the budget held all along."""
+    line = _with_absent(2, dead, poll_hz=20)
+    line.run(300.0)
+    back = line.schedule.sensors["s2"]
+    assert back.online is False
+    plugged, share = line.now, _probe_share(line, range(2, 2 + dead))
+    line.sensors.append(sim("native", "AH", 2))
+    bound = max(BACKOFF_MAX, LONGEST_PROBE * dead / PROBE_BUDGET) + LONGEST_PROBE
+    line.run(bound + 1, until=lambda: back.online is True)
+    assert back.online is True and line.now - plugged <= bound
+    assert len(line.notes("s2: recovered")) == 1
+    assert share <= PROBE_BUDGET

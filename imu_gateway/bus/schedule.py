@@ -44,7 +44,7 @@ from .jobs import JobQueue
 from .line import Due, Line, Place, stream_wait
 from .outcomes import Outcomes
 from .sensor_state import STREAM_RETRY, SensorState
-from .timing import AnswerTimer
+from .timing import WIDE_EVERY, AnswerTimer, probe_timeout
 
 
 class Schedule:
@@ -54,6 +54,9 @@ class Schedule:
         fixed = None if config.timeout_ms is None else config.timeout_ms / 1000
         self.sensors = {s.name: SensorState(s, s.address, AnswerTimer(fixed))
                         for s in config.sensors}
+        line = list(self.sensors.values())
+        for state in line:
+            state.line = line  # (its probes' spacing counts the line's dead sensors)
         self.stats = Counters()
         self.started = 0.0
         self.port_open = False
@@ -203,12 +206,22 @@ class Schedule:
             return None
         job.blocked_since = None
         s = job.sensor
-        # An offline sensor is probed without the timeout's back-off: it must cost the
-        # others little.
-        timeout = s.timer.hold if s.online is False else s.timer.rto
+        timeout, hold = (s.timer.rto, s.timer.hold) if s.online else self._probe(s)
         # A retry, or a sensor that is not answering as it did, is watched for at once.
         early = s.timer.look_after() if s.online and not job.tries else 0.0
-        return self.line.send(job, exchange, now, timeout, s.timer.hold, latest, early, placed)
+        return self.line.send(job, exchange, now, timeout, hold, latest, early, placed)
+
+    def _probe(self, s: SensorState) -> tuple[float, float]:
+        """The timeout and hold of a probe of a sensor not answering (never yet, or
+        offline): from its live neighbours' latency, without back-off, for it must cost
+        them little; one attempt in ``WIDE_EVERY`` waits longer (``timing``)."""
+        if s.timer.fixed is not None:
+            return s.timer.fixed, s.timer.fixed  # (the config's own word)
+        s.probes += 1
+        live = [t.timer for t in self.sensors.values() if t.online]
+        hold = probe_timeout(live, s.timer)
+        wide = s.probes % WIDE_EVERY == 1
+        return (probe_timeout(live, s.timer, wide=True) if wide else hold), hold
 
     def written(self, at: float) -> None:
         """The request ``next_request`` handed out was written by ``at``."""

@@ -17,6 +17,11 @@ from .timing import AnswerTimer
 
 OFFLINE_AFTER = 3  # consecutive failed exchanges before a sensor is called offline
 BACKOFF_MIN, BACKOFF_MAX = 0.25, 10.0  # seconds between tries of a failing sensor
+#: The share of a line's time all its dead sensors' probes may take together, while a
+#: sensor on it answers: a probe of a sensor that is not answering (never yet, or offline)
+#: that held the line T seconds is followed by the next one no sooner than
+#: T * dead / PROBE_BUDGET seconds later (and no sooner than its back-off).
+PROBE_BUDGET = 0.02
 STREAM_RETRY = 5.0  # seconds before setting up (or stopping) a stream again
 #: seconds before a failed settings read of a sensor back from offline is tried again
 SETTINGS_RETRY = 5.0
@@ -58,6 +63,10 @@ class SensorState:
     #: when its settings are to be read (``read_settings``, by the bus itself): after it
     #: was offline, what a command set may have been undone by a power cut (inf: never)
     settings_at: float = math.inf
+    #: every sensor on its line, itself too (one list, shared): how many are dead
+    line: list[SensorState] = field(default_factory=list, repr=False)
+    probes: int = 0  # probe attempts sent (one in ``WIDE_EVERY`` waits longer)
+    _busy_mark: float = 0.0  # its line time when its last poll ended
     _poll: tuple[int, Exchange] | None = None
 
     @property
@@ -115,15 +124,26 @@ class SensorState:
             return True
         return False
 
+    @property
+    def dead(self) -> bool:
+        """Not answering: never yet, or offline (its polls are probes)."""
+        return self.online is not True and self.failures > 0
+
     def schedule_next_poll(self, now: float) -> None:
         """After a poll: the next one at its rate, or after a back-off when failing.
         Polls that fell more than a period behind are counted as missed, not fired
         later as a burst of catch-up reads."""
+        held, self._busy_mark = self.stats.busy_time - self._busy_mark, self.stats.busy_time
         if self.failures:
             # (the exponent is capped: a sensor away for days fails without end, and
             # 2 ** 1024 is past a float)
-            doubled = BACKOFF_MIN * 2 ** min(self.failures - 1, 32)
-            self.next_due = now + min(BACKOFF_MAX, doubled)
+            wait = min(BACKOFF_MAX, BACKOFF_MIN * 2 ** min(self.failures - 1, 32))
+            if self.dead and any(t.online for t in self.line):
+                # its share of the probe budget of a line others use (one not answering
+                # yet counts as dead: at startup too, no probe takes more than its share)
+                dead = sum(t.online is not True for t in self.line)
+                wait = max(wait, held * dead / PROBE_BUDGET)
+            self.next_due = now + wait
         elif self.period == 0:
             self.next_due = now
         else:

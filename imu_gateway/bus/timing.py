@@ -13,6 +13,15 @@ another timeout (``hold``): one that comes then is late, but used and measured.
 The latency is the time from the request's last byte to the answer's last byte,
 less the answer's own wire time: what the sensor and the adapter added.
 
+A sensor that has not answered yet, or has gone offline, has no latency of its own
+worth trusting, and waiting for it costs the sensors that do answer.  It is probed with
+a timeout from what the line knows (``probe_timeout``): the slowest latency its live
+neighbours are expected to reach, times ``PROBE_MARGIN``, never less than ``RTO_MIN`` nor
+more than ``PROBE_MAX``, and never doubled.  The adapter's latency is the line's, so the
+neighbours measure it.  A sensor that answered before is waited for at least as long as
+its own latency asks; one never heard, and far slower than its neighbours, is still
+found by the one probe attempt in ``WIDE_EVERY`` that waits the first-answer timeout.
+
 The estimate also says when to *look* for an answer: an answer that cannot be whole
 before its usual latency needs no wake-up for its first bytes (each wake-up costs CPU;
 at a few hundred exchanges a second, most of the gateway's).  An answer found whole at
@@ -22,6 +31,7 @@ such a look came in at some unknown time before it, so it times nothing; one ans
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 #: Before a sensor has answered: a 40 ms turnaround behind a 16 ms adapter, with room.
@@ -31,6 +41,13 @@ RTO_MIN = 0.01
 #: Never more: past this a sensor is not answering, and waiting costs the others.
 RTO_MAX = 0.4
 _ALPHA, _BETA, _K = 1 / 8, 1 / 4, 4  # RFC 6298's gains and deviation factor
+#: A probe (of a sensor not answering) waits its neighbours' latency times this.
+PROBE_MARGIN = 2.0
+#: A probe never waits longer than this: a dead sensor must cost the others little.
+PROBE_MAX = 0.1
+#: One probe attempt in this many waits the first-answer timeout (a slow sensor among
+#: fast neighbours is found by it).
+WIDE_EVERY = 8
 #: One answer in this many is watched for from its request on (and times the sensor).
 LOOK_EVERY = 8
 
@@ -106,3 +123,16 @@ class AnswerTimer:
         if self.srtt is None:
             return 0.0  # unknown: assume a fast sensor, and learn
         return self.srtt + _K * self.rttvar
+
+
+def probe_timeout(neighbours: Iterable[AnswerTimer], own: AnswerTimer,
+                  wide: bool = False) -> float:
+    """The timeout (and hold) of a probe of a sensor that is not answering, from its
+    live ``neighbours``' timers: the latency the slowest of them is expected to reach,
+    times ``PROBE_MARGIN``, within ``RTO_MIN`` and ``PROBE_MAX``.  A sensor that answered
+    before (``own``) is waited for at least as long as it used to need.  With no
+    neighbour that has answered, or ``wide``: the first-answer timeout, capped."""
+    expected = [t.expected() for t in neighbours if t.srtt is not None]
+    if wide or not expected:
+        return min(RTO_INITIAL, PROBE_MAX)
+    return min(PROBE_MAX, max(RTO_MIN, max([*expected, own.expected()]) * PROBE_MARGIN))
