@@ -342,6 +342,10 @@ class EndlessHeader:
                     writer.write(self.FILLER)
                     self.sent += len(self.FILLER)
                     await writer.drain()
+                    # (drain returns without yielding while the transport is not paused:
+                    # a gateway that reads as fast as this writes would starve the loop,
+                    # the answer's read among it; the soak hung here once in three)
+                    await asyncio.sleep(0)
             try:
                 head = await asyncio.wait_for(first, TIMEOUT)
             except (OSError, TimeoutError):
