@@ -797,3 +797,22 @@ def test_a_replugged_sensor_is_found_within_the_documented_time(dead: int) -> No
     assert back.online is True and line.now - plugged <= bound
     assert len(line.notes("s2: recovered")) == 1
     assert share <= PROBE_BUDGET
+
+
+def test_a_sensor_that_stalls_is_found_again_as_soon_as_one_never_heard() -> None:
+    """The poll that finds a sensor gone waited its own learned timeouts (with its
+    retries, close to a second for a slow sensor): that is no probe, and charging it to
+    the probe budget spaced the first probe 45 s away (the soak's stalled sensor was
+    found again after 46 s).  Back at once, it is found within the documented time."""
+    line = _with_absent(3, 0, delay=0.03, poll_hz=20)
+    line.run(10.0)
+    back = line.schedule.sensors["s2"]
+    assert back.online is True
+    gone = line.sensors.pop(2)  # it stops answering
+    line.run(60.0, until=lambda: back.online is False)
+    assert back.online is False
+    plugged = line.now
+    line.sensors.append(gone)
+    bound = max(BACKOFF_MAX, LONGEST_PROBE / PROBE_BUDGET) + LONGEST_PROBE
+    line.run(bound + 1, until=lambda: back.online is True)
+    assert back.online is True and line.now - plugged <= bound, line.now - plugged

@@ -67,6 +67,7 @@ class SensorState:
     line: list[SensorState] = field(default_factory=list, repr=False)
     probes: int = 0  # probe attempts sent (one in ``WIDE_EVERY`` waits longer)
     _busy_mark: float = 0.0  # its line time when its last poll ended
+    _probing: bool = True  # its next poll is a probe (it was not answering when it was set)
     _poll: tuple[int, Exchange] | None = None
 
     @property
@@ -138,13 +139,19 @@ class SensorState:
             # (the exponent is capped: a sensor away for days fails without end, and
             # 2 ** 1024 is past a float)
             wait = min(BACKOFF_MAX, BACKOFF_MIN * 2 ** min(self.failures - 1, 32))
-            if self.dead and any(t.online for t in self.line):
+            # Only a probe is charged to the budget: the poll that found it gone waited
+            # its own learned timeouts, and charging those spaced the first probe 45 s
+            # away (a stalled sensor of the soak was found again after 46 s).
+            if self._probing and self.dead and any(t.online for t in self.line):
                 # its share of the probe budget of a line others use (one not answering
                 # yet counts as dead: at startup too, no probe takes more than its share)
                 dead = sum(t.online is not True for t in self.line)
                 wait = max(wait, held * dead / PROBE_BUDGET)
             self.next_due = now + wait
-        elif self.period == 0:
+            self._probing = self.dead
+            return
+        self._probing = False
+        if self.period == 0:
             self.next_due = now
         else:
             self.next_due += self.period
