@@ -97,7 +97,7 @@ class OpcUaServer(Frontend):
     def __init__(self, gateway: GatewayLike, config: OpcUaConfig) -> None:
         super().__init__()
         self.gateway, self.config = gateway, config
-        self.server: Server | None = None
+        self.server: GatewayUaServer | None = None
         self.certificate: Path | None = None
         self.idx = 0
         self.values: dict[str, list[tuple[str, ua.NodeId]]] = {}  # sensor -> (field, node)
@@ -268,7 +268,6 @@ class OpcUaServer(Frontend):
                         await server.write_attribute_value(nodeid, ua.DataValue(
                             variant(row.value(bus), row.datatype), SourceTimestamp=now,
                             ServerTimestamp=now))
-            if isinstance(server, GatewayUaServer):
                 server.watch.peers.flush_due()
             await asyncio.sleep(BUS_EVERY_S)
 
