@@ -133,6 +133,46 @@ class ModbusPoller:
             await asyncio.sleep(max(0.0, at + self.period - time.monotonic()))
 
 
+class ModbusWriter:
+    """A SCADA that writes a setting now and then, on a long-lived connection: one
+    FC06 write every ``period`` seconds.  ``on_sent`` is told of each write that left,
+    so that the sensor's count of what it heard can be held against it: a gateway
+    that sends a write twice (a retry after an answer lost to noise or a stall) makes
+    the sensor hear more than was asked.  ``outcomes``: what came back, by kind (``ok``,
+    ``exception 04`` for "unconfirmed: read the setting back", a failure's name)."""
+
+    def __init__(self, port: int, unit: int, register: int, value: int,
+                 on_sent: Callable[[], None], period: float = 3.0) -> None:
+        self.port, self.unit, self.register, self.value = port, unit, register, value
+        self.on_sent, self.period = on_sent, period
+        self.outcomes: dict[str, int] = {}
+
+    def _count(self, outcome: str) -> None:
+        self.outcomes[outcome] = self.outcomes.get(outcome, 0) + 1
+
+    async def run(self) -> None:
+        transaction = 0
+        connection: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
+        while True:
+            at, transaction = time.monotonic(), transaction + 1
+            try:
+                async with asyncio.timeout(TIMEOUT + 5):  # a write waits for the sensor
+                    if connection is None:
+                        connection = await asyncio.open_connection(HOST, self.port)
+                    reader, writer = connection
+                    writer.write(write_request(transaction, self.unit, self.register,
+                                               self.value))
+                    self.on_sent()
+                    _, pdu = await read_answer(reader)
+                self._count("ok" if pdu[0] == 6 else f"exception {pdu[1]:02x}")
+            except (OSError, TimeoutError, asyncio.IncompleteReadError) as exc:
+                self._count(type(exc).__name__)
+                if connection is not None:
+                    connection[1].close()
+                connection = None
+            await asyncio.sleep(max(0.0, at + self.period - time.monotonic()))
+
+
 class ModbusFlood:
     """Pipelines read requests and never reads an answer.
 

@@ -19,7 +19,9 @@ What runs, each in a process of its own as in a plant:
   the systemd unit runs it, unless ``--gateway-priority normal``.
 
 The steady load (``hostile.py``): a Modbus TCP poller, REST polling, an SSE reader,
-an MQTT subscriber counting ``seq`` gaps and an MQTT client sending a command a second.
+an MQTT subscriber counting ``seq`` gaps, an MQTT client sending a command a second, and
+a Modbus TCP client writing a setting that is not idempotent every 3 s (each write the
+sensor hears more often than it was sent is a failure: a write sent twice).
 
 Exit status: 0 when every check passed, 1 when one failed (the summary says which),
 2 when the soak could not be set up.
@@ -355,6 +357,7 @@ class Clients:
     sse: h.SseReader
     watcher: h.MqttWatcher
     mqtt: h.MqttCommander
+    writer: h.ModbusWriter
 
     def records(self) -> dict[str, h.Record]:
         return {"modbus": self.modbus.record, "mqtt": self.mqtt.record,
@@ -405,12 +408,19 @@ class Soak:
         self.clients = Clients(h.ModbusPoller(self.modbus_port, sorted(UNIT.values())),
                                h.HttpPoller(self.http_port, [s.name for s in SENSORS]),
                                h.SseReader(self.http_port), watcher,
-                               h.MqttCommander(watcher, "a1"))
+                               h.MqttCommander(watcher, "a1"),
+                               h.ModbusWriter(self.modbus_port, UNIT["a1"], 1000, 0,
+                                              self._asked_zero_type))
         for run in (self.cl.modbus.run, self.cl.http.run, self.cl.sse.run, self.cl.mqtt.run,
-                    self._sample):
+                    self.cl.writer.run, self._sample):
             self._tasks.append(asyncio.create_task(run()))
         await self.until(lambda: everything_ok(self, 0.0), 60,
                          "the sensors and front ends were not all up within 60 s")
+
+    def _asked_zero_type(self) -> None:
+        """zero type "absolute" (register 1000 = 0) to a1: not idempotent, so never
+        sent twice, however its answer was lost."""
+        self.asked["a1", "set_zero_type"] += 1
 
     async def _http_up(self) -> bool:
         if not self.gw.alive():
@@ -1085,7 +1095,7 @@ def failures(results: list[PhaseResult], trends: list[Trend], final: Final,
         out.append(f"invented stream: {final.invented_in_log} in the gateway's log, "
                    f"{stops} stream stops sent to sensors that do not stream")
     if unasked:
-        out.append(f"unasked writes: {unasked}")
+        out.append(f"unasked writes (sent twice, or asked by no one): {unasked}")
     out += [f"leak trend: {t.metric} rose {t.rise:+g} (tolerance {t.tolerance:g})"
             for t in trends if t.leak]
     out += [f"lost front end at the end: {name}"
@@ -1155,6 +1165,8 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
             f"MQTT: {mqtt['states']} states, sequence gaps {mqtt['gaps']} "
             f"({mqtt['gaps_in_broker_restarts']} of them while the broker restarted)",
             f"SSE: {sse['events']} events, {sse['drops']} drops, {sse['gaps']} sequence gaps",
+            f"Modbus TCP writer (zero type to a1, never to be sent twice): "
+            f"{summary['writer']}",
             "front ends at the end: " + ", ".join(
                 f"{n} {'answers' if ok else 'LOST'}" for n, ok in final["front_ends"].items())
             + f"; gateway {'alive' if final['alive'] else 'DEAD'}, "
@@ -1185,6 +1197,7 @@ def build_summary(soak: Soak, plan: Plan, results: list[PhaseResult], trends: li
                 "gaps": sum(n for _, _, n in sse.gaps)},
         # more than 1: the poller's one connection was lost at least once
         "modbus_poller_connections": soak.cl.modbus.reconnects,
+        "writer": soak.cl.writer.outcomes,
         "samples": [asdict(s) for s in soak.samples],
         "failures": failures(results, trends, final, soak.asked),
     }
