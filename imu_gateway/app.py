@@ -192,8 +192,8 @@ async def run_until_signalled(config: GatewayConfig, stats_interval: float = 0.0
     log.info("%s", config.summary())
     for load in line_loads(config.buses):
         log.info("%s", load.describe())
-        if load.over:
-            log.warning("%s", load.advice())
+        for warning in load.warnings():
+            log.warning("%s", warning)
     await gateway.start_frontends()  # before the task group: a StartupError stays plain
     if on_started is not None:
         on_started(gateway)

@@ -6,6 +6,11 @@ RTU: 3.5 characters, 1.75 ms above 19200 baud), plus the sensor's own answer del
 A stream frame takes its bytes x 10 / baud and nothing else.  A sensor polled flat out
 (``poll_hz: 0``) takes what is left, so it asks for nothing here.
 
+Next to a streaming sensor, every other exchange must fit the pause between two of
+its frames (the bus master never starts a poll that would meet the next frame), with
+the margin the master keeps for the frames' own wobble.  One that cannot fit is
+named: it would be polled only right after a frame, and meet the next one.
+
 The answer delay is not known before the sensor answers (``/api/v1/buses`` shows the
 learned one); ``ASSUMED_DELAY`` is the fast end of what sensors show, so a warning
 here is certain, and a line near 1 may be over once the real delays are known.
@@ -15,6 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from .bus.line import MIN_QUIET
 from .config import BusConfig, SensorConfig
 from .protocol.exchanges import adapter_for, char_time
 
@@ -36,6 +42,11 @@ class Demand:
     @property
     def load(self) -> float:
         return self.rate * (self.wire + self.delay)
+
+    @property
+    def exchange(self) -> float:
+        """One exchange (or frame) on the line, seconds."""
+        return self.wire + self.delay
 
 
 @dataclass(frozen=True, slots=True)
@@ -66,6 +77,24 @@ class LineLoad:
                 f"{self.baud} baud carries, so sensors will fall short of their rates: "
                 "lower poll_hz or stream_hz, raise the baud rate, or split the sensors "
                 "over two lines")
+
+    def warnings(self) -> list[str]:
+        """What the operator should change: an overloaded line, and exchanges that fit
+        no pause of the line's stream."""
+        out = [self.advice()] if self.over else []
+        stream = next((d for d in self.demands if d.mode == "stream"), None)
+        if stream is None:
+            return out
+        period = 1 / stream.rate
+        pause = period - stream.wire - min(0.02, period / 10) - MIN_QUIET
+        out += [f"bus {self.bus}: {d.sensor}'s exchange ({d.exchange * 1000:.1f} ms, with a "
+                f"fast sensor's answer delay) does not fit the pauses of {stream.sensor}'s "
+                f"{stream.rate:g} Hz stream ({pause * 1000:.1f} ms, after the margin for its "
+                f"frames' wobble): its polls would go right after a frame and meet the "
+                f"next; raise the baud rate, lower stream_hz, or put {d.sensor} on another "
+                f"line"
+                for d in self.demands if d is not stream and d.exchange > pause]
+        return out
 
 
 def _demand(sensor: SensorConfig, bus: BusConfig) -> Demand:

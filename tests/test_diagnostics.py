@@ -145,6 +145,29 @@ def test_a_bad_trace_bus_is_refused(tmp_path: Path) -> None:
     assert "--trace lime: no such bus (the buses: line)" in done.stderr
 
 
+def test_check_config_warns_of_a_poll_that_fits_no_pause_of_a_stream(tmp_path: Path) -> None:
+    def check(baudrate: int) -> str:
+        config = tmp_path / "gateway.yaml"
+        config.write_text(yaml.safe_dump({"buses": [{
+            "name": "boom", "port": str(tmp_path / "ttyUSB9"), "protocol": "native",
+            "baudrate": baudrate, "sensors": [
+                {"name": "tilt", "series": "AH", "address": 1, "poll_hz": 0},
+                {"name": "nav", "series": "MINS", "address": 2, "stream_hz": 100}]}]}))
+        done = subprocess.run([sys.executable, "-m", "imu_gateway", "check-config", "-c",
+                               str(config)], capture_output=True, text=True, timeout=60,
+                              check=False)
+        assert done.returncode == 0, done.stderr
+        return done.stdout
+
+    # 115200: (5 + 57 B) x 10 / 115200 + 2 ms = 7.4 ms against 10 ms - 48 B x 10 / 115200
+    # - 1 ms of wobble - 1 ms of quiet = 3.8 ms
+    out = check(115200)
+    assert "warning: bus boom: tilt's exchange (7.4 ms, with a fast sensor's answer delay) " \
+           "does not fit the pauses of nav's 100 Hz stream (3.8 ms," in out, out
+    assert "raise the baud rate, lower stream_hz, or put tilt on another line" in out
+    assert "fit the pauses" not in check(460800)  # 3.3 ms against 6.9 ms
+
+
 def test_check_config_warns_of_an_overloaded_line_and_a_missing_port(tmp_path: Path) -> None:
     config = tmp_path / "gateway.yaml"
     config.write_text(yaml.safe_dump({"buses": [{

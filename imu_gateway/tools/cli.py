@@ -471,8 +471,8 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     print(f"config OK: {config.summary()}")
     for load in line_loads(config.buses):
         print(load.describe())
-        if load.over:
-            print(f"warning: {load.advice()}")
+        for warning in load.warnings():
+            print(f"warning: {warning}")
     for bus in config.buses:
         # Not an error: the adapter may be unplugged now, and the gateway waits for it.
         if bus.port.startswith("/") and not os.path.exists(bus.port):
