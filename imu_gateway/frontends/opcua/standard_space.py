@@ -1,4 +1,5 @@
-"""asyncua's standard address space, kept on disk between starts (docs/opcua.md).
+"""asyncua's standard address space, kept on disk between starts (docs/deployment.md,
+"Small boxes").
 
 asyncua builds the OPC UA standard address space (some 20 000 nodes) in memory at each
 start: 1.2 s and 50 MB on the development VM, several times that time on a small box.
