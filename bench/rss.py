@@ -22,6 +22,16 @@ and the biggest growths by line are printed.  At the end the gateway is asked to
 
 The gateway is started through this file (``--child``), which adds a SIGUSR1 handler
 that writes those figures to a file: the gateway's own code is unchanged.
+
+    .venv/bin/python bench/rss.py --start 5 [--hold 30]
+
+**Start-up** instead (docs/deployment.md, "Small boxes"): the plain ``python -m
+imu_gateway run``, ``--start`` times bus-only and ``--start`` times with every front end
+(Modbus TCP, MQTT with Home Assistant discovery and Sparkplug B on a real mosquitto,
+HTTP, OPC UA), alternately: the time from the process's start to its first reading (the
+log's first "online"), VmRSS then, and, with every front end, VmRSS after ``--hold``
+seconds of two clients of each (Modbus TCP pollers, a REST poller and a live stream,
+MQTT subscribers, OPC UA subscriptions).
 """
 
 from __future__ import annotations
@@ -37,6 +47,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import tracemalloc
 from pathlib import Path
@@ -45,8 +56,16 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from broker import Mosquitto
-from hostile import PARTIAL_HEADERS, PARTIAL_MBAP, Swarm, trickle
+from broker import Mosquitto, Recorder
+from hostile import (
+    PARTIAL_HEADERS,
+    PARTIAL_MBAP,
+    HttpPoller,
+    ModbusPoller,
+    SseReader,
+    Swarm,
+    trickle,
+)
 
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import make_sensor, simulated
@@ -282,6 +301,92 @@ async def _until_http(port: int, gw: Gateway) -> None:
     raise RuntimeError("the gateway's HTTP did not come up")
 
 
+# ------------------------------------------------------------------ start-up
+
+
+def _front_ends_yaml(ports: dict[str, int], broker: Mosquitto, pki: Path) -> str:
+    return f"""modbus: {{listen: '{HOST}:{ports['modbus']}'}}
+mqtt: {{url: '{broker.url}', homeassistant_discovery: true, sparkplug: {{group_id: rss}}}}
+http: {{listen: '{HOST}:{ports['http']}'}}
+opcua: {{listen: '{HOST}:{ports['opcua']}', allow_none: true, pki_dir: '{pki}'}}
+"""
+
+
+def _start_once(config: Path) -> tuple[subprocess.Popen[str], float, float]:
+    """``imu-gateway run`` on ``config`` until its first reading: the process, the
+    seconds that took, and its VmRSS (MB) then."""
+    began = time.monotonic()
+    process = subprocess.Popen([sys.executable, "-m", "imu_gateway", "run", "-c", str(config)],
+                               stderr=subprocess.PIPE, text=True)
+    assert process.stderr is not None
+    for line in process.stderr:
+        if ": online" in line:
+            took = time.monotonic() - began
+            # the rest of the log is not needed, but its pipe must not fill up
+            threading.Thread(target=process.stderr.read, daemon=True).start()
+            return process, took, rss_mb(process.pid)
+    raise RuntimeError(f"the gateway exited: {process.wait()}")
+
+
+async def _clients(ports: dict[str, int], broker: Mosquitto, hold: float) -> None:
+    """Two clients of each front end, for ``hold`` seconds."""
+    from asyncua import Client, ua
+
+    async def subscriber() -> None:
+        async with Client(f"opc.tcp://{HOST}:{ports['opcua']}/") as client:
+            idx = await client.get_namespace_index("urn:imu-gateway")
+            nodes = [client.get_node(ua.NodeId(f"rss.Sensors.{s}.Angles.{f}", idx))
+                     for s in ("a1", "a2", "b1") for f in ("pitch", "roll", "yaw")]
+            subscription = await client.create_subscription(100, None)
+            await subscription.subscribe_data_change(nodes)
+            await asyncio.sleep(hold)
+
+    recorders = [Recorder(broker, "imu/#"), Recorder(broker, "spBv1.0/#")]
+    clients = [ModbusPoller(ports["modbus"], [1, 2, 3]).run(),
+               ModbusPoller(ports["modbus"], [1, 2, 3]).run(),
+               HttpPoller(ports["http"], ["a1", "a2", "b1"]).run(), SseReader(ports["http"]).run()]
+    tasks = [asyncio.create_task(c) for c in clients]
+    try:
+        await asyncio.gather(subscriber(), subscriber())
+    finally:
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        for recorder in recorders:
+            recorder.close()
+
+
+async def start_up(args: argparse.Namespace, folder: Path) -> dict[str, list[float]]:
+    from harness import free_port
+
+    sims = {"a": [make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST),
+                  make_sensor(WireProtocol.NATIVE, Series.VG, 1, baud=FAST)],
+            "b": [make_sensor(WireProtocol.MODBUS, Series.AH, 1, baud=FAST)]}
+    ports = {name: free_port() for name in ("modbus", "http", "opcua")}
+    figures: dict[str, list[float]] = {}
+    with Mosquitto(folder) as broker, simulated(sims["a"]) as a, simulated(sims["b"]) as b:
+        buses = config_yaml({"a": a.path, "b": b.path}, ports, broker, folder / "pki")
+        buses = buses[:buses.index("modbus:")]
+        configs = {"bus only": buses,
+                   "every front end": buses + _front_ends_yaml(ports, broker, folder / "pki")}
+        for _ in range(args.start):
+            for name, text in configs.items():
+                path = folder / "gateway.yaml"
+                path.write_text(text)
+                process, took, rss = _start_once(path)
+                try:
+                    figures.setdefault(f"{name}: first reading, s", []).append(took)
+                    figures.setdefault(f"{name}: VmRSS then, MB", []).append(rss)
+                    if name == "every front end":
+                        await _clients(ports, broker, args.hold)
+                        figures.setdefault(f"{name}: VmRSS after {args.hold:g} s of 2 "
+                                           "clients each, MB", []).append(rss_mb(process.pid))
+                finally:
+                    process.send_signal(signal.SIGINT)
+                    process.wait(20)
+    return figures
+
+
 def main() -> int:
     if sys.argv[1:2] == ["--child"]:
         return child(sys.argv[2], sys.argv[3], "--trace" in sys.argv)
@@ -295,7 +400,18 @@ def main() -> int:
     parser.add_argument("--env", action="append", default=[], metavar="NAME=VALUE",
                         help="for the gateway: MALLOC_ARENA_MAX=2, PYTHONMALLOC=malloc, …")
     parser.add_argument("--json", type=Path)
+    parser.add_argument("--start", type=int, default=0, metavar="N",
+                        help="instead: start-up time and VmRSS, N starts of each")
     args = parser.parse_args()
+    if args.start:
+        with tempfile.TemporaryDirectory(prefix="rss-") as folder:
+            starts = asyncio.run(start_up(args, Path(folder)))
+        for name, values in starts.items():
+            print(f"{name}: {min(values):.2f}-{max(values):.2f} "
+                  f"(median {sorted(values)[len(values) // 2]:.2f}; {len(values)} runs)")
+        if args.json:
+            args.json.write_text(json.dumps(starts, indent=2))
+        return 0
     with tempfile.TemporaryDirectory(prefix="rss-") as folder:
         samples = asyncio.run(measure(args, Path(folder)))
     for name, figures in samples.items():

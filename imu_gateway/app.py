@@ -1,7 +1,10 @@
 """The gateway process: one bus master per bus, the cache between them and the front
 ends, and the lifecycle (the gateway, not a web server, owns signals and shutdown).
 
-Only this module imports everything.
+Only this module imports everything, and a front end only when the config turns it
+on: asyncua, FastAPI with uvicorn, paho and protobuf are most of the start-up time
+and a good part of the memory, which a bus-only gateway on a small box does without
+(docs/deployment.md, "Small boxes"; ``tests/test_lean_start.py`` holds it).
 """
 
 from __future__ import annotations
@@ -15,22 +18,32 @@ import signal
 import sys
 import time
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .bus.runner import BusThread
 from .cache import Cache, Snapshot
 from .capacity import line_loads
 from .commands import CATALOGUE, CommandResult, validate
-from .config import GatewayConfig, HttpConfig, SensorConfig, config_from_dict
+from .config import (
+    GatewayConfig,
+    HttpConfig,
+    ModbusConfig,
+    MqttConfig,
+    OpcUaConfig,
+    SensorConfig,
+    config_from_dict,
+)
 from .errors import RequestFailed, StartupError, unknown_sensor
-from .frontends.modbus_tcp import ModbusTcpServer
-from .frontends.mqtt import MqttClient
-from .frontends.opcua.server import OpcUaServer
-from .frontends.rest import HttpServer, openapi_document
-from .frontends.sparkplug.client import SparkplugClient
 from .history import History
 from .stats import BusStats, FrontendCounts, SensorStats
 from .supervise import Frontend, Supervisor
+
+if TYPE_CHECKING:  # the front ends' modules are imported when configured (below)
+    from .frontends.modbus_tcp import ModbusTcpServer
+    from .frontends.mqtt import MqttClient
+    from .frontends.opcua.server import OpcUaServer
+    from .frontends.rest import HttpServer
+    from .frontends.sparkplug.client import SparkplugClient
 
 log = logging.getLogger("imu_gateway")
 
@@ -59,14 +72,14 @@ class Gateway:
         # front end shows it.
         self.history = History(self)
         self.cache.subscribe(self.history.on_cache_event)
-        self.modbus = ModbusTcpServer(self, config.modbus) if config.modbus else None
+        self.modbus = _modbus_server(self, config.modbus) if config.modbus else None
         sparkplug = config.mqtt.sparkplug if config.mqtt else None
-        self.mqtt = MqttClient(self, config.mqtt) \
+        self.mqtt = _mqtt_client(self, config.mqtt) \
             if config.mqtt and (sparkplug is None or sparkplug.plain_topics) else None
-        self.sparkplug = SparkplugClient(self, config.mqtt) \
+        self.sparkplug = _sparkplug_client(self, config.mqtt) \
             if config.mqtt and sparkplug is not None else None
-        self.http = HttpServer(self, config.http) if config.http else None
-        self.opcua = OpcUaServer(self, config.opcua) if config.opcua else None
+        self.http = _http_server(self, config.http) if config.http else None
+        self.opcua = _opcua_server(self, config.opcua) if config.opcua else None
         # the supervised front ends
         self.frontends: list[Frontend] = [
             f for f in (self.modbus, self.http, self.opcua, self.mqtt, self.sparkplug) if f]
@@ -179,6 +192,34 @@ class Gateway:
                 for name, f in running.items() if f is not None}
 
 
+# Each front end's package is imported here, when the config has it (the module's
+# docstring says why): one function each, so the types stay whole.
+
+def _modbus_server(gateway: Gateway, config: ModbusConfig) -> ModbusTcpServer:
+    from .frontends.modbus_tcp import ModbusTcpServer
+    return ModbusTcpServer(gateway, config)
+
+
+def _mqtt_client(gateway: Gateway, config: MqttConfig) -> MqttClient:
+    from .frontends.mqtt import MqttClient
+    return MqttClient(gateway, config)
+
+
+def _sparkplug_client(gateway: Gateway, config: MqttConfig) -> SparkplugClient:
+    from .frontends.sparkplug.client import SparkplugClient
+    return SparkplugClient(gateway, config)
+
+
+def _http_server(gateway: Gateway, config: HttpConfig) -> HttpServer:
+    from .frontends.rest import HttpServer
+    return HttpServer(gateway, config)
+
+
+def _opcua_server(gateway: Gateway, config: OpcUaConfig) -> OpcUaServer:
+    from .frontends.opcua.server import OpcUaServer
+    return OpcUaServer(gateway, config)
+
+
 async def run_until_signalled(config: GatewayConfig, stats_interval: float = 0.0,
                               on_started: Callable[[Gateway], None] | None = None) -> None:
     """``imu-gateway run``: the gateway until SIGINT or SIGTERM.  ``on_started`` is
@@ -217,6 +258,8 @@ def openapi_json() -> str:
     """The REST API's OpenAPI document as committed at ``openapi/openapi.json``
     (``scripts/openapi`` writes it).  The routes do not depend on the config; a
     one-sensor gateway stands in for any."""
+    from .frontends.rest import openapi_document
+
     config = config_from_dict({"gateway_id": "openapi", "buses": [{
         "name": "line", "port": "/dev/null", "protocol": "native",
         "sensors": [{"name": "sensor", "series": "AH"}]}]}, env={})

@@ -14,19 +14,20 @@ import logging
 import ssl
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
-
-from cryptography import x509
-from cryptography.hazmat.asn1 import decode_der
+from typing import TYPE_CHECKING, Any
 
 from ..config.schema import ModbusRight, ModbusTlsConfig
 from ..errors import StartupError
 from . import modbus_ident as ident
 
+if TYPE_CHECKING:  # cryptography (9 MB) is imported when a TLS client is checked
+    from cryptography import x509
+
 log = logging.getLogger("imu_gateway.modbus")
 
-#: The Modbus Role extension: its value is one ASN.1 UTF8String, the role's name.
-ROLE_OID = x509.ObjectIdentifier("1.3.6.1.4.1.50316.802.1")
+#: The Modbus Role extension (its OID, dotted): its value is one ASN.1 UTF8String, the
+#: role's name.
+ROLE_OID = "1.3.6.1.4.1.50316.802.1"
 #: A client that opened TCP must finish its handshake within this.  Until then it holds
 #: a socket and a place of ``max_connections`` (and of its address's), the first place
 #: given up to a newcomer; a real client needs milliseconds.
@@ -110,7 +111,7 @@ def handshake_problem(exc: ssl.SSLError) -> str:
         # which extension; the role's is the one a Modbus PKI adds, so it is named.
         return (f"its certificate has an extension marked critical that TLS does not "
                 f"know ({exc.verify_message}): the Modbus Role extension "
-                f"({ROLE_OID.dotted_string}) must not be critical; issue the certificate "
+                f"({ROLE_OID}) must not be critical; issue the certificate "
                 "again without 'critical' on that extension")
     if isinstance(exc, ssl.SSLCertVerificationError):
         return (f"its certificate failed verification ({exc.verify_message}): is it "
@@ -140,6 +141,8 @@ class Grant:
 def grant_of(transport: Any, config: ModbusTlsConfig) -> Grant:
     """The rights of the client at the other end of a TLS transport (its certificate
     was verified by the handshake): its role's, else ``default_role``'s, else none."""
+    from cryptography import x509
+
     ssl_object = transport.get_extra_info("ssl_object")
     der = ssl_object.getpeercert(binary_form=True) if ssl_object is not None else None
     if der is None:  # (CERT_REQUIRED: a handshake without one does not complete)
@@ -168,8 +171,11 @@ def _role(cert: x509.Certificate) -> tuple[str | None, str]:
     """The certificate's role, or None and what is wrong with its extension; raises
     ``x509.DuplicateExtension`` (two of any extension, two roles among them) or
     ``ValueError`` (extensions that do not parse): ``grant_of`` gives no rights then."""
+    from cryptography import x509
+    from cryptography.hazmat.asn1 import decode_der
+
     try:
-        extension = cert.extensions.get_extension_for_oid(ROLE_OID)
+        extension = cert.extensions.get_extension_for_oid(x509.ObjectIdentifier(ROLE_OID))
     except x509.ExtensionNotFound:
         return None, ""
     value = extension.value

@@ -28,6 +28,7 @@ from ...normalise import field_values
 from ...stats import FrontendCounts
 from ...supervise import Frontend, RepeatFilter
 from ..common import GatewayLike
+from . import standard_space
 from .guard import MAX_SUBSCRIPTIONS_PER_SESSION, GatewayUaServer
 from .history import install as install_history
 from .identity import MANUFACTURER, PRODUCT_URI, describe
@@ -129,7 +130,7 @@ class OpcUaServer(Frontend):
         gid = self.gateway.config.gateway_id
         quiet_asyncua()
         server = GatewayUaServer(user_manager=ConfigUsers(self.config))
-        await server.init()
+        await server.init(await standard_space.shelf())
         server.set_endpoint(self.endpoint)
         server.set_server_name(f"imu-gateway {gid}")
         server.product_uri, server.manufacturer_name = PRODUCT_URI, MANUFACTURER
