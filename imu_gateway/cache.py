@@ -99,6 +99,14 @@ class _Entry:
     settings: KnownSettings = field(default_factory=KnownSettings)
 
 
+def _status(e: _Entry, now: float) -> Status:
+    if not e.online:
+        return Status.OFFLINE
+    if e.reading is None or now - e.received > e.stale_after:
+        return Status.STALE
+    return Status.OK
+
+
 class Cache:
     def __init__(
         self,
@@ -129,14 +137,8 @@ class Cache:
         e = self._entry(name)
         now = self._clock()
         age = (now - e.received) * 1000 if e.reading is not None else None
-        if not e.online:
-            status = Status.OFFLINE
-        elif e.reading is None or now - e.received > e.stale_after:
-            status = Status.STALE
-        else:
-            status = Status.OK
-        return Snapshot(name, e.reading, e.seq, e.timestamp, age, status, e.online, e.busy,
-                        e.streaming, e.errors)
+        return Snapshot(name, e.reading, e.seq, e.timestamp, age, _status(e, now), e.online,
+                        e.busy, e.streaming, e.errors)
 
     def snapshots(self) -> list[Snapshot]:
         return [self.snapshot(name) for name in self._entries]
@@ -161,8 +163,9 @@ class Cache:
         e.received = self._clock() if at is None else at
         e.timestamp = datetime.now(UTC)
         e.online = True
-        self._emit(EventKind.READING, name)
-        self._check(name)
+        snap = self.snapshot(name)
+        self._notify(EventKind.READING, snap)
+        self._check(name, snap)
         return e.seq
 
     def set_state(self, name: str, *, online: bool | None = None, busy: bool | None = None,
@@ -228,13 +231,19 @@ class Cache:
         for name in self._entries:
             self._check(name)
 
-    def _check(self, name: str) -> None:
-        snap = self.snapshot(name)
-        state = (snap.status, snap.busy, snap.streaming)
+    def _check(self, name: str, made: Snapshot | None = None) -> None:
+        """A status event, if status, busy or streaming changed since the last one.
+        The state is worked out without a snapshot (this runs for every reading, and
+        every tick for every sensor); the event's is ``made`` (the one the reading's
+        listeners had), where it still shows the same reading and state."""
         e = self._entries[name]
+        state = (_status(e, self._clock()), e.busy, e.streaming)
         if state != e.reported:
             e.reported = state
-            self._notify(EventKind.STATUS, snap)
+            same = made is not None and made.seq == e.seq and \
+                (made.status, made.busy, made.streaming) == state
+            self._notify(EventKind.STATUS, made if same and made is not None
+                         else self.snapshot(name))
 
     def _emit(self, kind: EventKind, name: str) -> None:
         self._notify(kind, self.snapshot(name))

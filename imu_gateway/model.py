@@ -142,6 +142,13 @@ def _finite(value: float) -> float | None:
     return value if math.isfinite(value) else None
 
 
+#: A float32's bytes (little-endian), and the formats tried for its shortest decimal.
+_FLOAT32 = struct.Struct("<f")
+_DIGITS = {digits: f"%.{digits}g" for digits in range(6, 10)}
+#: float32s from here up have rounding intervals whose ends can be short decimals.
+_SHORT_ENDS = 2.0**24
+
+
 def shortest_float32(value: float) -> float:
     """A float32 (widened to a Python float) as the shortest decimal that is the same
     float32: 0.011224, not 0.011223999783396721; 99.9, not 99.90000152587891.
@@ -149,13 +156,26 @@ def shortest_float32(value: float) -> float:
     A float32 holds about seven digits and the rest is noise of the widening, so this
     is the number the sender meant, whether a sensor's register (Modbus RTU) or a
     client's write (Modbus TCP) carried it.
+
+    It runs for every float of every Modbus answer, so it tries two roundings, not
+    up to four: where the decimals that are the same float32 lie evenly around it
+    (not a power of two, below 2**24), a rounding to k digits that is the same float32
+    means the rounding to k + 1 digits is too (it is nearer), so 7 digits decide
+    between 6-7 and 8-9.  Elsewhere every count is tried in turn, shortest first.
     """
     if not math.isfinite(value):
         return value
-    packed = struct.pack("<f", value)
+    packed = _FLOAT32.pack(value)
+    if int.from_bytes(packed, "little") & 0x7FFFFF and abs(value) < _SHORT_ENDS:
+        seven = float(_DIGITS[7] % value)
+        if _FLOAT32.pack(seven) == packed:
+            six = float(_DIGITS[6] % value)
+            return six if _FLOAT32.pack(six) == packed else seven
+        eight = float(_DIGITS[8] % value)
+        return eight if _FLOAT32.pack(eight) == packed else float(_DIGITS[9] % value)
     for digits in range(6, 10):
-        shortest = float(f"{value:.{digits}g}")
-        if struct.pack("<f", shortest) == packed:
+        shortest = float(_DIGITS[digits] % value)
+        if _FLOAT32.pack(shortest) == packed:
             return shortest
     return value  # pragma: no cover - nine significant digits always round-trip
 

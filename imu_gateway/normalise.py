@@ -63,17 +63,27 @@ def to_reading(values: Mapping[str, Any], series: Series) -> Reading | None:
     """
     groups: dict[str, Any] = {}
     for key, cls, names in _MEASURED[series]:
-        if all(n in values for n in names):
+        try:
             groups[key] = cls(*[float(values[n]) for n in names])
+        except KeyError:
+            continue  # (a group the answer covers in part, or not at all)
     return Reading(**groups) if groups else None
+
+
+#: (reading attribute, ((per-field name, member name), …)) of every group: the table of
+#: ``field_values``, worked out once (it runs for every reading the history keeps).
+_FIELDS_OF: tuple[tuple[str, tuple[tuple[str, str], ...]], ...] = tuple(
+    (group.value, tuple((n, member_name(group, n)) for n in spec.fields))
+    for group, spec in VALUE_GROUPS.items()
+)
 
 
 def field_values(reading: Reading) -> dict[str, float]:
     """The inverse view: a reading's measured values by per-field name."""
     out: dict[str, float] = {}
-    for group, spec in VALUE_GROUPS.items():
-        value = getattr(reading, group.value)
+    for attribute, names in _FIELDS_OF:
+        value = getattr(reading, attribute)
         if value is not None:
-            for name in spec.fields:
-                out[name] = getattr(value, member_name(group, name))
+            for name, member in names:
+                out[name] = getattr(value, member)
     return out

@@ -10,6 +10,7 @@ garbage, bad-CRC and back-to-back cases as the native framer.
 from __future__ import annotations
 
 import itertools
+import math
 import random
 import struct
 from collections.abc import Iterable
@@ -30,7 +31,7 @@ from vectors import (
 )
 
 from imu_gateway.modbus_codes import READ_HOLDING, READ_INPUT
-from imu_gateway.model import Series
+from imu_gateway.model import Series, shortest_float32
 from imu_gateway.protocol import modbus_rtu as rtu
 from imu_gateway.protocol.errors import BadChecksum, BadLength, UnknownFrame, UsageError
 from imu_gateway.protocol.exchanges import NO_EFFECT, Answer, ModbusAdapter
@@ -331,6 +332,42 @@ def test_float_helpers_document_example() -> None:
 def test_float_helpers_round_trip(value: float) -> None:
     back = rtu.float_from_registers(*rtu.float_to_registers(value))
     assert f32(back) == f32(value)
+
+
+def shortest_tried_in_turn(value: float) -> float:
+    """The shortest decimal of 6-9 digits that is the same float32, each count tried."""
+    for digits in range(6, 10):
+        shortest = float(f"{value:.{digits}g}")
+        if f32(shortest) == f32(value):
+            return shortest
+    raise AssertionError(value)
+
+
+@settings(max_examples=2000)
+@given(st.integers(0, 2**32 - 1) | st.sampled_from(
+    [e << 23 | d for e in range(1, 255) for d in (0, 1, 0x7FFFFF)]))
+def test_shortest_float32_is_the_shortest_of_every_digit_count(bits: int) -> None:
+    """Two roundings where the float32's neighbours lie evenly around it; every count
+    in turn where they do not (powers of two, from 2**24 up): the same decimal as
+    trying every count, shortest first."""
+    value = struct.unpack("<f", bits.to_bytes(4, "little"))[0]
+    if math.isfinite(value):
+        got = shortest_float32(value)
+        assert got == shortest_tried_in_turn(value)
+        assert math.copysign(1, got) == math.copysign(1, value)
+
+
+@settings(max_examples=300)
+@given(st.integers(1, 247), st.sampled_from([READ_HOLDING, READ_INPUT]),
+       st.lists(st.integers(0, 0xFFFF), min_size=1, max_size=rtu.MAX_READ))
+def test_read_answers_decode_as_pymodbus_decodes_them(unit: int, function: int,
+                                                      registers: list[int]) -> None:
+    """The framer reads a read answer itself (pymodbus's decoder costs five times as
+    much): the same message as pymodbus's PDU gives."""
+    frame = rtu.encode(rtu.ReadResponse(unit, tuple(registers), function))
+    pdu = DecodePDU(is_server=False).decode(frame[1:-2])
+    assert pdu is not None
+    assert rtu.RtuFramer(requests=False).feed(frame) == [rtu._from_pdu(unit, pdu)]
 
 
 def test_float_helpers_infinity_and_nan() -> None:

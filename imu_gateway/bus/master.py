@@ -209,9 +209,10 @@ class BusMaster:
         """The timer's turn: deadlines, the next request, the events; when to wake."""
         now = self._now()
         # (asked once: the bytes reach the schedule only through _on_bytes, after this;
-        # not asked right after a read took all there was: an ioctl is a tenth of the
-        # CPU an exchange costs)
-        pending = 0 if drained else self.link.pending()
+        # not asked right after a read took all there was, nor when nothing the
+        # schedule decides now depends on it: an ioctl is a tenth of the CPU an
+        # exchange costs, and a Modbus line's turn after the silent interval needs none)
+        pending = 0 if drained or not self.schedule.needs_pending() else self.link.pending()
         self.schedule.handle_timer(now, pending)
         self._send(now, pending)
         wake = self.schedule.next_wake(self._now(), pending)
@@ -332,7 +333,9 @@ class BusMaster:
         """Carry out what the schedule says happened, in order.  A state change or a
         job's end is passed on after the counters: whoever it wakes reads them new."""
         events = self.schedule.take_events()
-        if any(isinstance(e, StateChange | Finished) for e in events):
+        if not events:
+            return
+        if any(isinstance(e, _PASSED_ON) for e in events):
             self._publish_stats()
         for event in events:
             try:
@@ -383,6 +386,10 @@ class BusMaster:
 
     def bus_stats(self) -> BusStats:
         return bus_stats_of(self, self._now())
+
+
+#: Events passed on after the counters (``_dispatch``).
+_PASSED_ON = (StateChange, Finished)
 
 
 def _learned(job: Job, outcome: Any) -> KnownSettings | None:

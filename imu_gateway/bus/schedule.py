@@ -290,6 +290,14 @@ class Schedule:
 
     # ------------------------------------------------------------ timers
 
+    def needs_pending(self) -> bool:
+        """Whether the bytes the port holds (``pending``) matter to ``handle_timer``,
+        ``next_request`` and ``next_wake`` now: with an attempt in flight, half a frame
+        in hand, or a sensor streaming.  Otherwise they read it not at all, and the
+        driver need not ask the port."""
+        return self.line.attempt is not None or bool(self.line.framer.pending) or \
+            any(s.streaming for s in self.sensors.values())
+
     def handle_timer(self, now: float, pending: int = 0) -> None:
         """Deadlines, streams that stopped, busy periods that ended.  ``pending``: bytes
         the port holds that ``receive`` has not had yet (a busy machine's timer fires
