@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import os
 import select
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -108,9 +110,15 @@ def test_a_port_that_takes_no_more_output_is_lost_at_once() -> None:
                 os.write(write_end, b"\0" * 65536)
         link = SerialLink("/dev/ttyUSB7", 115200)
         with pytest.raises(LinkError, match=r"/dev/ttyUSB7 takes no more output \(0 of 8"):
-            link._write_now(write_end, bytes(8))
+            link._write_now(write_end, bytes(8), math.inf)
         os.read(read_end, 65536)  # room again: a request goes out whole
-        link._write_now(write_end, bytes(8))
+        assert link._write_now(write_end, bytes(8), math.inf)
+        assert os.read(read_end, 65536) == bytes(8)
+        # past the latest time it was given (a thread held before the write): not sent
+        assert not link._write_now(write_end, bytes(8), time.monotonic() - 0.001)
+        os.set_blocking(read_end, False)
+        with pytest.raises(BlockingIOError):
+            os.read(read_end, 65536)
     finally:
         os.close(read_end)
         os.close(write_end)

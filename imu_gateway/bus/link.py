@@ -183,36 +183,51 @@ class SerialLink:
         except (serial.SerialException, OSError, ValueError, TypeError):
             return unseen
 
-    def write(self, data: bytes, expect: int = 0, look_after: float = 0.0) -> None:
-        """Send ``data``; ``expect`` is the length of the answer, when known, and it
-        cannot be whole sooner than ``look_after`` seconds from now."""
+    def write(self, data: bytes, expect: int = 0, look_after: float = 0.0,
+              latest: float = math.inf) -> bool:
+        """Send ``data``, unless it is later than ``latest`` (monotonic time) by then:
+        False, nothing written.  ``expect`` is the length of the answer, when known,
+        and it cannot be whole sooner than ``look_after`` seconds from now."""
         self.expect = expect
         if self._serial is None or self._reader is None:
             raise LinkError(f"{self.port} is not open")
         try:
             if isinstance(self._reader, _LoopReader):
-                self._write_now(self._reader.fd, data)
+                if not self._write_now(self._reader.fd, data, latest):
+                    return False
+            elif time.monotonic() > latest:
+                return False
             else:
                 self._serial.write(data)  # (opened with a write timeout: never for ever)
         except (serial.SerialException, OSError) as exc:
             raise LinkError(f"writing to {self.port}: {exc}") from None
         if look_after > 0:
             self._reader.look_at(time.monotonic() + look_after)
+        return True
 
-    def _write_now(self, fd: int, data: bytes) -> None:
+    def _write_now(self, fd: int, data: bytes, latest: float) -> bool:
         """Straight to the descriptor (non-blocking, as pyserial opens it).  A request
         is at most a few hundred bytes and a driver's output buffer takes thousands,
         so one that will not take it whole is stuck (hardware flow control held, a hung
         adapter): the port is lost, rather than the bus thread, which carries every
         line, waiting on it.  (pyserial's write adds a select() per request, an eighth
-        of the bus thread's system calls, and spins on a full buffer.)"""
+        of the bus thread's system calls, and spins on a full buffer.)
+
+        The deadline is checked here, the last thing before the write: a thread held
+        between the check and the write (a CPU quota that ran out, another thread
+        holding the interpreter) writes late all the same, and every line of Python
+        between the two was a place to be held (in a quarter-core cgroup, 4 requests
+        in 30 s met a stream's next frame that way)."""
         try:
+            if time.monotonic() > latest:
+                return False
             sent = os.write(fd, data)
         except BlockingIOError:
             sent = 0
         if sent < len(data):
             raise LinkError(f"{self.port} takes no more output ({sent} of {len(data)} "
                             "bytes written): flow control held, or the adapter hung")
+        return True
 
     def set_baudrate(self, baudrate: int) -> None:
         self.baudrate = baudrate

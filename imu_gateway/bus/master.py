@@ -319,12 +319,12 @@ class BusMaster:
                 # A command moved the line (native: after its answer at the old rate).
                 log.warning("bus %s: port now at %d baud", self.name, self.schedule.baud)
                 self.link.set_baudrate(self.schedule.baud)
-            if self._now() > request.latest:
+            if not self.link.write(request.data, request.expect, request.look_after,
+                                   request.latest):
                 # Kept from writing past the place next to a stream the request was
                 # given (a busy machine): it goes back, and waits for the next place.
                 self.schedule.withdraw()
                 return
-            self.link.write(request.data, request.expect, request.look_after)
             self.schedule.written(self._now())  # held in the write, it left by then
         except LinkError as exc:
             self._on_lost(exc)
