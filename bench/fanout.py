@@ -1,0 +1,233 @@
+"""The front ends' CPU per sample at a 100 Hz stream: what MQTT (with Home Assistant
+discovery), the live stream (SSE), OPC UA and Modbus TCP add to the gateway's CPU,
+each with a subscriber, against the gateway with no front end, in the same run.
+
+The gateway runs in this process on 4 AH sensors whose readings are put into its
+cache at the rate asked (``--rate``, 100 a second over the sensors by default: one
+100 Hz stream), as the bus masters would, without serial lines.  A counter process of
+its own (the same machine) subscribes to what the case turns on:
+
+* ``mqtt``: the gateway publishes to a real mosquitto (started here), Home Assistant
+  discovery on; one paho subscriber to ``imu/bench/+/state``;
+* ``sse``: one client of ``/api/v1/stream`` (every sensor's readings);
+* ``opcua``: one asyncua client, one subscription (50 ms) to every measured value of
+  every sensor (16 a sample: each sample changes 16 monitored values);
+* ``modbus``: Modbus TCP listening, no client (a PLC polls at its own pace; what a
+  sample costs there is the register image);
+* ``all``: all of them at once; ``none``: no front end (the reference).
+
+Printed per case: the messages delivered against those expected (each sample is one
+MQTT state message, one SSE event and 16 OPC UA notifications), the gateway's CPU
+(process time ÷ wall time) and per sample, and the front ends' share: the case minus
+``none`` of the same round.  The target (issue 29): ``all`` − ``none`` ≤ 0.15 ms.
+``--rounds`` repeats every case, in turn; the range over the rounds is printed last.
+
+Run: ``.venv/bin/python bench/fanout.py [--seconds 5] [--rounds 3] [--cases all,none]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import multiprocessing
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import paho.mqtt.client as paho
+from asyncua import Client, ua
+from common import FED_SENSORS, fed, fed_config, free_port
+from paho.mqtt.enums import CallbackAPIVersion
+
+from imu_gateway.app import GIL_SWITCH_INTERVAL, Gateway
+from imu_gateway.model import VALUE_GROUPS
+
+FIELDS = [f"{spec.title}.{name}" for spec in VALUE_GROUPS.values() for name in spec.fields]
+FRONT_ENDS = ("mqtt", "sse", "opcua", "modbus")
+CASES = ("none", *FRONT_ENDS, "all")
+TARGET_MS = 0.15
+#: Messages a subscriber gets per sample: one state, one event, a notification per value.
+PER_SAMPLE = {"mqtt": 1, "sse": 1, "opcua": len(FIELDS), "modbus": 0}
+
+
+@dataclass(frozen=True)
+class Ports:
+    broker: int
+    http: int
+    opcua: int
+    modbus: int
+
+
+def front_ends(case: str) -> tuple[str, ...]:
+    return FRONT_ENDS if case == "all" else () if case == "none" else (case,)
+
+
+def config_of(case: str, ports: Ports, pki: str) -> dict[str, Any]:
+    on = front_ends(case)
+    config: dict[str, Any] = {}
+    if "mqtt" in on:
+        config["mqtt"] = {"url": f"mqtt://127.0.0.1:{ports.broker}",
+                          "homeassistant_discovery": True}
+    if "sse" in on:
+        config["http"] = {"listen": f"127.0.0.1:{ports.http}"}
+    if "opcua" in on:
+        config["opcua"] = {"listen": f"127.0.0.1:{ports.opcua}", "allow_none": True,
+                           "pki_dir": pki}
+    if "modbus" in on:
+        config["modbus"] = {"listen": f"127.0.0.1:{ports.modbus}"}
+    return config
+
+
+# ------------------------------------------------------------------ the counter process
+
+
+async def _sse(port: int, counts: dict[str, int]) -> None:
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    writer.write(b"GET /api/v1/stream HTTP/1.1\r\nHost: bench\r\n\r\n")
+    try:
+        while line := await reader.readline():
+            if line.startswith(b"event: reading"):
+                counts["sse"] += 1
+    finally:
+        writer.close()
+
+
+async def _opcua(port: int, counts: dict[str, int], done: asyncio.Event) -> None:
+    class Handler:
+        def datachange_notification(self, node: object, val: object, data: object) -> None:
+            counts["opcua"] += 1
+
+    async with Client(f"opc.tcp://127.0.0.1:{port}/", timeout=30) as client:
+        idx = await client.get_namespace_index("urn:imu-gateway")
+        nodes = [client.get_node(ua.NodeId(f"bench.Sensors.s{s}.{field}", idx))
+                 for s in range(FED_SENSORS) for field in FIELDS]
+        subscription = await client.create_subscription(50, Handler())
+        await subscription.subscribe_data_change(nodes)
+        await done.wait()
+        await subscription.delete()
+
+
+def _mqtt(port: int, counts: dict[str, int]) -> paho.Client:
+    client = paho.Client(CallbackAPIVersion.VERSION2)
+    client.on_message = lambda *_: counts.__setitem__("mqtt", counts["mqtt"] + 1)
+    client.connect("127.0.0.1", port)
+    client.subscribe("imu/bench/+/state", qos=0)
+    client.loop_start()
+    return client
+
+
+def _count(case: str, ports: Ports, seconds: float, out: multiprocessing.Queue[int]) -> None:
+    """Subscribe to what ``case`` turns on; after a second (the initial values are in),
+    count for ``seconds``; put the total."""
+    logging.getLogger("asyncua").setLevel(logging.ERROR)
+    on = front_ends(case)
+    counts = dict.fromkeys(FRONT_ENDS, 0)
+
+    async def main() -> None:
+        mqtt = _mqtt(ports.broker, counts) if "mqtt" in on else None
+        done = asyncio.Event()
+        tasks = [asyncio.create_task(coro) for coro in (
+            _sse(ports.http, counts) if "sse" in on else None,
+            _opcua(ports.opcua, counts, done) if "opcua" in on else None) if coro]
+        await asyncio.sleep(1.0)
+        counts.update(dict.fromkeys(counts, 0))
+        await asyncio.sleep(seconds)
+        total = sum(counts.values())
+        done.set()
+        if mqtt is not None:
+            mqtt.loop_stop()
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        out.put(total)
+
+    asyncio.run(main())
+
+
+# ------------------------------------------------------------------ the runs
+
+
+def _ready(case: str) -> Any:
+    on = front_ends(case)
+
+    def ready(gw: Gateway) -> bool:
+        return ((gw.mqtt is not None and gw.mqtt.connected) or "mqtt" not in on) and \
+            ((gw.opcua is not None and gw.opcua.listening) or "opcua" not in on)
+    return ready
+
+
+async def run_case(case: str, ports: Ports, rate: float, seconds: float,
+                   pki: str) -> tuple[float, float]:
+    """(delivered ÷ expected, the gateway's ms of CPU per sample)."""
+    config = fed_config(**config_of(case, ports, pki))
+    delivered, cores = await fed(config, rate, seconds, _ready(case), _count,
+                                 (case, ports), settle=2.0)
+    expected = rate * seconds * sum(PER_SAMPLE[f] for f in front_ends(case))
+    return (delivered / expected if expected else 1.0), 1000 * cores / rate
+
+
+def _broker(folder: Path, port: int) -> subprocess.Popen[bytes]:
+    mosquitto = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+    conf = folder / "mosquitto.conf"
+    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\n"
+                    "max_queued_messages 100000\n")
+    return subprocess.Popen([mosquitto, "-c", str(conf)], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+
+
+def main() -> None:
+    logging.getLogger("asyncua").setLevel(logging.ERROR)
+    logging.getLogger("imu_gateway").setLevel(logging.ERROR)  # the port it cannot open
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--seconds", type=float, default=5.0)
+    parser.add_argument("--rate", type=float, default=100.0, help="samples/s, all sensors")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--cases", default=",".join(CASES),
+                        help=f"comma-separated, of {', '.join(CASES)}")
+    args = parser.parse_args()
+    cases = args.cases.split(",")
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL)  # as `imu-gateway run` does
+    ports = Ports(free_port(), free_port(), free_port(), free_port())
+    shares: dict[str, list[float]] = {case: [] for case in cases}
+    with tempfile.TemporaryDirectory() as folder:
+        broker = _broker(Path(folder), ports.broker)
+        try:
+            time.sleep(0.5)
+            print(f"{FED_SENSORS} AH sensors, {args.rate:g} samples/s in all, "
+                  f"{args.seconds:g} s per case, {args.rounds} rounds, {os.cpu_count()} CPUs")
+            print(f"{'round':>5} {'case':>6} {'delivered':>9} {'gw ms/sample':>12} "
+                  f"{'- none':>7}")
+            for n in range(args.rounds):
+                reference: float | None = None
+                for case in cases:
+                    ratio, ms = asyncio.run(run_case(case, ports, args.rate, args.seconds,
+                                                     folder))
+                    if case == "none":
+                        reference = ms
+                    extra = ""
+                    if reference is not None and case != "none":
+                        shares[case].append(ms - reference)
+                        extra = f"{ms - reference:7.3f}"
+                    print(f"{n + 1:>5} {case:>6} {ratio:>9.2f} {ms:>12.3f} {extra}",
+                          flush=True)
+        finally:
+            broker.terminate()
+            broker.wait(10)
+    print(f"\nfront ends' CPU per sample (case - none), ms, over {args.rounds} rounds:")
+    for case, values in shares.items():
+        if values:
+            verdict = "" if case != "all" else \
+                ("  target met" if max(values) <= TARGET_MS else
+                 f"  over the {TARGET_MS} ms target")
+            print(f"{case:>6} {min(values):.3f}-{max(values):.3f}{verdict}")
+
+
+if __name__ == "__main__":
+    main()
