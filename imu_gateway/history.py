@@ -28,7 +28,8 @@ from typing import Any, Protocol
 
 from .cache import EventKind, Snapshot
 from .config import SensorConfig
-from .normalise import MEASURED_FIELDS, field_values
+from .derived import values_of
+from .normalise import MEASURED_FIELDS
 
 BUCKET_S = 1  # the buckets are whole seconds (the ring's index is the second)
 KEEP_S = 600  # ten minutes
@@ -134,7 +135,7 @@ class History:
 
     def on_cache_event(self, kind: EventKind, snap: Snapshot) -> None:
         if kind is EventKind.READING and snap.reading is not None and snap.timestamp:
-            values = field_values(snap.reading)
+            values = values_of(snap)
             self.add(snap.name, snap.timestamp.timestamp(),
                      [values.get(f, math.nan) for f in self.fields[snap.name]])
 

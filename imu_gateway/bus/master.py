@@ -208,10 +208,9 @@ class BusMaster:
     def _step(self, drained: bool = False) -> float:
         """The timer's turn: deadlines, the next request, the events; when to wake."""
         now = self._now()
-        # (asked once: the bytes reach the schedule only through _on_bytes, after this;
-        # not asked right after a read took all there was, nor when nothing the
-        # schedule decides now depends on it: an ioctl is a tenth of the CPU an
-        # exchange costs, and a Modbus line's turn after the silent interval needs none)
+        # (asked once: bytes reach the schedule only through _on_bytes, after this; not
+        # after a read took all there was, nor when nothing decided now depends on it:
+        # an ioctl is a tenth of an exchange's CPU)
         pending = 0 if drained or not self.schedule.needs_pending() else self.link.pending()
         self.schedule.handle_timer(now, pending)
         self._send(now, pending)
@@ -333,9 +332,7 @@ class BusMaster:
         """Carry out what the schedule says happened, in order.  A state change or a
         job's end is passed on after the counters: whoever it wakes reads them new."""
         events = self.schedule.take_events()
-        if not events:
-            return
-        if any(isinstance(e, _PASSED_ON) for e in events):
+        if events and any(isinstance(e, _PASSED_ON) for e in events):
             self._publish_stats()
         for event in events:
             try:

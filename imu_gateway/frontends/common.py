@@ -9,6 +9,7 @@ from typing import Any, Protocol
 from ..cache import Cache, Snapshot
 from ..commands import CommandResult
 from ..config import GatewayConfig, SensorConfig
+from ..derived import json_bytes as json_bytes  # (where the front ends have it from)
 from ..errors import ErrorKind, RequestFailed
 from ..history import History
 from ..stats import BusStats, FrontendCounts, SensorStats
@@ -39,13 +40,6 @@ class GatewayLike(Protocol):
     def frontend_stats(self) -> dict[str, FrontendCounts]:
         """Each running front end's ``stats()``, by name (``modbus``, ``mqtt``, ``http``)."""
         ...
-
-
-def json_bytes(value: Any) -> bytes:
-    """Compact JSON as the front ends send it.  ``allow_nan=False``: the reading JSON
-    has no NaN (``Reading.to_json_groups`` makes it null), and nothing else should."""
-    return json.dumps(value, separators=(",", ":"), ensure_ascii=False,
-                      allow_nan=False).encode()
 
 
 def peer_json(raw: bytes | str) -> Any:

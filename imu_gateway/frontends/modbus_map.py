@@ -4,9 +4,10 @@ The server answers from it, ``docs/register-map.md`` is generated from it
 (``python -m imu_gateway.frontends.modbus_map > docs/register-map.md``; a test fails when
 the file is out of date), and nothing else describes it.
 
-Each sensor's map is kept as a ready byte image: the measured values are packed when
-a reading arrives, the status and command blocks when they are read (they change with
-time and settings).  A read is then a bounds check and a slice.
+Each sensor's map is kept as a byte image: the measured values are packed at the
+first read after a reading arrived (a 100 Hz sensor that no client reads costs no
+packing), the status and command blocks when they are read (they change with time and
+settings).  A read is then a bounds check and a slice.
 """
 
 from __future__ import annotations
@@ -169,11 +170,29 @@ class SensorImage:
         self.protocol = protocol
         self.address = address
         self.stale_after_ms = stale_after_ms
-        self.words = bytearray(2 * IMAGE_WORDS)
+        self._words = bytearray(2 * IMAGE_WORDS)
         self.has_reading = False
-        self.set_reading(None)
+        self._unpacked: Reading | None = None
+        self._pack_reading(None)
+
+    @property
+    def words(self) -> bytearray:
+        """The whole image, the latest reading's values packed."""
+        if self._unpacked is not None:
+            reading, self._unpacked = self._unpacked, None
+            self._pack_reading(reading)
+        return self._words
 
     def set_reading(self, reading: Reading | None) -> None:
+        """A new reading: packed when the image is next read."""
+        if reading is None:
+            self._unpacked = None
+            self._pack_reading(None)
+        else:
+            self._unpacked = reading
+        self.has_reading = reading is not None
+
+    def _pack_reading(self, reading: Reading | None) -> None:
         values = _measured_values(reading)
         measures = CAPABILITIES[self.series].groups
         for reg in REGISTERS:
@@ -181,8 +200,7 @@ class SensorImage:
                 continue
             name = reg.name.removesuffix("_scaled")
             value = values.get(name) if reg.group in measures else None
-            self.words[2 * reg.address: 2 * (reg.address + reg.type.words)] = _pack(reg, value)
-        self.has_reading = reading is not None
+            self._words[2 * reg.address: 2 * (reg.address + reg.type.words)] = _pack(reg, value)
 
     def refresh_status(self, snap: Snapshot) -> None:
         bits = 0
@@ -199,7 +217,7 @@ class SensorImage:
         if snap.reading is None:
             bits |= 1 << STATUS_BITS["no_reading"]
         age = 65535 if snap.age_ms is None else min(65535, int(snap.age_ms))
-        self.words[0:18] = struct.pack(">HHIIHHH", bits, age, snap.seq & 0xFFFFFFFF,
+        self._words[0:18] = struct.pack(">HHIIHHH", bits, age, snap.seq & 0xFFFFFFFF,
                                        snap.errors & 0xFFFFFFFF, self.series.value,
                                        self.protocol.value, self.address)
 
@@ -215,7 +233,7 @@ class SensorImage:
                 else known.busy_with == spec.name  # (1 while it runs, or 0)
             if isinstance(shown, str) or (shown is None and reg.type is Type.U16):
                 shown = row.codes.get(shown or "", row.unknown)
-            self.words[2 * address: 2 * (address + reg.type.words)] = _pack(reg, shown)
+            self._words[2 * address: 2 * (address + reg.type.words)] = _pack(reg, shown)
 
 
 #: Unit 255: the gateway's own diagnostics, one block of ``DIAG_STRIDE`` registers per

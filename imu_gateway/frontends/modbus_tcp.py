@@ -7,7 +7,7 @@ exception 03).  Those are the server's framing and dispatch, so this module owns
 them: the MBAP header over an ``asyncio.Protocol``, every request of a segment
 answered in order, and the exceptions docs/register-map.md lists.  pymodbus still
 decodes the write PDUs and encodes the write and exception answers.  The hot path, a
-read, is a bounds check and a slice of the sensor's ready byte image (``modbus_map``):
+read, is a bounds check and a slice of the sensor's byte image (``modbus_map``):
 a read never waits for the serial bus, so a hundred clients cost the bus nothing.
 
 Writes to the command registers become commands; the answer is sent after the sensor

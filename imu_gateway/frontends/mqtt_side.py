@@ -19,6 +19,7 @@ from typing import Any
 
 from ..cache import EventKind, Snapshot, Status
 from ..config import MqttConfig
+from ..derived import reading_json
 from .common import GatewayLike, json_bytes
 from .mqtt_topics import (
     CONTROL_QOS,
@@ -109,7 +110,7 @@ class SideTopics:
         if timer is not None:
             timer.cancel()
         self._ha_sent[snap.name] = (asyncio.get_running_loop().time(), snap.status)
-        self.send(Message(self.topics.sensor(snap.name, HA_LEAF), json_bytes(snap.to_json()),
+        self.send(Message(self.topics.sensor(snap.name, HA_LEAF), reading_json(snap),
                           CONTROL_QOS, True, self._json))
 
     def _send_diagnostics(self) -> None:

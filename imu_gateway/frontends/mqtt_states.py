@@ -16,13 +16,13 @@ import asyncio
 import json
 import math
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 from ..cache import EventKind, Snapshot, Status
 from ..config import MqttConfig
-from ..normalise import field_values
-from .common import GatewayLike, json_bytes
+from ..derived import reading_json, values_of
+from .common import GatewayLike
 from .mqtt_side import SideTopics
 from .mqtt_topics import (
     CONTROL_QOS,
@@ -41,7 +41,7 @@ class _SensorOut:
     """What was last sent for one sensor, for the throttle and the deadband."""
 
     sent_at: float = -math.inf  # loop time of the last state message
-    values: dict[str, float] | None = None  # the field values it carried
+    values: Mapping[str, float] | None = None  # the field values it carried
     status: Status | None = None
     availability: bytes | None = None
     trailing: asyncio.TimerHandle | None = None  # min_interval's deferred send
@@ -208,17 +208,17 @@ class StateDesk:
             self._publish_state(snap)
 
     def _within_deadband(self, snap: Snapshot, out: _SensorOut) -> bool:
-        return snap.reading is not None and within_deadband(
-            field_values(snap.reading), out.values, self._deadbands)
+        return bool(self._deadbands) and snap.reading is not None and within_deadband(
+            values_of(snap), out.values, self._deadbands)
 
     def _publish_state(self, snap: Snapshot) -> Message | None:
         """Sends the state (and the per-field values); returns the state message, or
         ``None`` when it was missed."""
         assert snap.reading is not None
         c = self.config
-        state = Message(self.topics.sensor(snap.name, "state"), json_bytes(snap.to_json()),
+        state = Message(self.topics.sensor(snap.name, "state"), reading_json(snap),
                         c.qos, c.retain, self._json)
-        values = field_values(snap.reading)
+        values = values_of(snap)
         fields = [Message(self.topics.sensor(snap.name, name), json.dumps(value).encode(),
                           c.qos, c.retain, self._json)
                   for name, value in values.items() if math.isfinite(value)] \

@@ -27,11 +27,12 @@ from ... import __version__
 from ...cache import Snapshot, Status, iso_time
 from ...commands import CATALOGUE, CommandSpec, commands_for, unknown_command
 from ...config import HttpConfig
+from ...derived import reading_json
 from ...errors import KINDS, ErrorKind, RequestFailed
 from ...history import KEEP_S
 from ...model import VALUE_GROUPS
 from ...stats import SensorStats
-from ..common import GatewayLike, json_bytes, peer_json
+from ..common import GatewayLike, peer_json
 from .access import (
     PAGE_POLICY,
     BodyGuard,
@@ -308,7 +309,7 @@ def _sensor_routes(app: FastAPI, routes: _Routes) -> None:
         key = (snap.seq, snap.status)
         cached = bodies.get(name)
         if cached is None or cached[0] != key:
-            cached = bodies[name] = (key, json_bytes(snap.to_json()))
+            cached = bodies[name] = (key, reading_json(snap))
         return Response(cached[1], media_type="application/json")
 
 

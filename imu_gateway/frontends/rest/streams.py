@@ -13,7 +13,8 @@ from collections.abc import AsyncGenerator, Callable
 from fastapi import Request
 
 from ...cache import EventKind, Snapshot
-from ..common import GatewayLike, json_bytes
+from ...derived import reading_json
+from ..common import GatewayLike
 from .limits import KEEPALIVE_S, STALL_S, STREAM_QUEUE
 
 log = logging.getLogger("imu_gateway.http")
@@ -109,8 +110,11 @@ class StreamHub:
             while not self.closing.is_set() and not sub.dropped:
                 if not sub.events:
                     sub.wake.clear()
+                    # (asyncio.timeout, not wait_for: wait_for wraps the wait in a task
+                    # of its own, for every event)
                     with contextlib.suppress(TimeoutError):
-                        await asyncio.wait_for(sub.wake.wait(), KEEPALIVE_S)
+                        async with asyncio.timeout(KEEPALIVE_S):
+                            await sub.wake.wait()
                     if not sub.events:
                         yield b": keep-alive\n\n"
                         continue
@@ -131,7 +135,7 @@ def _event(name: str, snap: Snapshot) -> bytes:
     each sensor's current state first, and the past from ``…/history``), and the
     combined stream's readings have no common order an id could name; the reading's
     own ``seq`` is in its data."""
-    return b"event: %s\ndata: %s\n\n" % (name.encode(), json_bytes(snap.to_json()))
+    return b"event: %s\ndata: %s\n\n" % (name.encode(), reading_json(snap))
 
 
 PEER = "imu_gateway.peer"  # the ASGI scope extension that carries a request's connection

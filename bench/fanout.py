@@ -1,0 +1,335 @@
+"""The front ends' CPU per sample at a 100 Hz stream: what MQTT (with Home Assistant
+discovery), the live stream (SSE), OPC UA and Modbus TCP add to the gateway's CPU,
+each with a subscriber, against the gateway with no front end, in the same run.
+
+The gateway runs in this process on 4 AH sensors whose readings are put into its
+cache at the rate asked (``--rate``, 100 a second over the sensors by default: one
+100 Hz stream), as the bus masters would, without serial lines.  A counter process of
+its own (the same machine) subscribes to what the case turns on:
+
+* ``mqtt``: the gateway publishes to a real mosquitto (started here), Home Assistant
+  discovery on; one paho subscriber to ``imu/bench/+/state``;
+* ``sse``: one client of ``/api/v1/stream`` (every sensor's readings);
+* ``opcua``: one asyncua client, one subscription (50 ms) to every measured value of
+  every sensor (16 a sample: each sample changes 16 monitored values; ``--items N``:
+  the first N values of each sensor);
+* ``modbus``: Modbus TCP listening, no client (a PLC polls at its own pace; what a
+  sample costs there is the register image);
+* ``all``: all of them at once; ``none``: no front end (the reference);
+* ``paho`` (a reference for MQTT): no front end, and a bare paho client (its network
+  thread, as the gateway's) publishing a message of a state's size for each sample,
+  subscribed to as ``mqtt``'s: what paho alone costs per message.
+
+Printed per case: the messages delivered against those expected (each sample is one
+MQTT state message, one SSE event and 16 OPC UA notifications), the gateway's CPU
+(process time ÷ wall time) and per sample, and the front ends' share: the case minus
+``none`` of the same round.  The target (issue 29): ``all`` − ``none`` ≤ 0.15 ms.
+``--rounds`` repeats every case, in turn; the range over the rounds is printed last.
+
+``--writes``: instead, asyncua's write paths for one value in a loop (process time per
+write), without and with a monitored item (a server-side subscription whose publish
+never comes in the loop): ``write_attribute_value`` with asyncua's DataValue, with the
+gateway's ``Sample`` (its own deep copy), and a node's ``write_value``.
+
+Run: ``.venv/bin/python bench/fanout.py [--seconds 5] [--rounds 3] [--cases none,all]
+[--items 16]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import multiprocessing
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import paho.mqtt.client as paho
+from asyncua import Client, ua
+from common import FED_SENSORS, fed, fed_config, free_port
+from paho.mqtt.enums import CallbackAPIVersion
+
+from imu_gateway.app import GIL_SWITCH_INTERVAL, Gateway
+from imu_gateway.cache import EventKind, Snapshot
+from imu_gateway.frontends.opcua.server import Sample
+from imu_gateway.model import VALUE_GROUPS
+
+FIELDS = [f"{spec.title}.{name}" for spec in VALUE_GROUPS.values() for name in spec.fields]
+FRONT_ENDS = ("mqtt", "sse", "opcua", "modbus")
+CASES = ("none", *FRONT_ENDS, "all", "paho")
+BARE_TOPIC, BARE_PAYLOAD = "bench/bare/state", b"x" * 420  # (a state message's size)
+TARGET_MS = 0.15
+
+
+@dataclass(frozen=True)
+class Ports:
+    broker: int
+    http: int
+    opcua: int
+    modbus: int
+    items: int  # OPC UA: monitored values per sensor
+
+
+def per_sample(front_end: str, items: int) -> int:
+    """Messages a subscriber gets per sample: one state, one event, a notification per
+    monitored value."""
+    return {"mqtt": 1, "paho": 1, "sse": 1, "opcua": items}.get(front_end, 0)
+
+
+def front_ends(case: str) -> tuple[str, ...]:
+    return FRONT_ENDS if case == "all" else () if case == "none" else (case,)
+
+
+class BarePaho:
+    """The ``paho`` case: a paho client publishing ``BARE_PAYLOAD`` for each sample."""
+
+    def __init__(self, port: int) -> None:
+        self.client = paho.Client(CallbackAPIVersion.VERSION2)
+        self.client.connect("127.0.0.1", port)
+        self.client.loop_start()
+
+    def on_cache_event(self, kind: EventKind, snap: Snapshot) -> None:
+        if kind is EventKind.READING:
+            self.client.publish(BARE_TOPIC, BARE_PAYLOAD, 0, False)
+
+    def close(self) -> None:
+        self.client.disconnect()
+        self.client.loop_stop()
+
+
+def config_of(case: str, ports: Ports, pki: str) -> dict[str, Any]:
+    on = front_ends(case)
+    config: dict[str, Any] = {}
+    if "mqtt" in on:
+        config["mqtt"] = {"url": f"mqtt://127.0.0.1:{ports.broker}",
+                          "homeassistant_discovery": True}
+    if "sse" in on:
+        config["http"] = {"listen": f"127.0.0.1:{ports.http}"}
+    if "opcua" in on:
+        config["opcua"] = {"listen": f"127.0.0.1:{ports.opcua}", "allow_none": True,
+                           "pki_dir": pki}
+    if "modbus" in on:
+        config["modbus"] = {"listen": f"127.0.0.1:{ports.modbus}"}
+    return config
+
+
+# ------------------------------------------------------------------ the counter process
+
+
+async def _sse(port: int, counts: dict[str, int]) -> None:
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    writer.write(b"GET /api/v1/stream HTTP/1.1\r\nHost: bench\r\n\r\n")
+    try:
+        while line := await reader.readline():
+            if line.startswith(b"event: reading"):
+                counts["sse"] += 1
+    finally:
+        writer.close()
+
+
+async def _opcua(port: int, items: int, counts: dict[str, int], done: asyncio.Event) -> None:
+    class Handler:
+        def datachange_notification(self, node: object, val: object, data: object) -> None:
+            counts["opcua"] += 1
+
+    async with Client(f"opc.tcp://127.0.0.1:{port}/", timeout=30) as client:
+        idx = await client.get_namespace_index("urn:imu-gateway")
+        nodes = [client.get_node(ua.NodeId(f"bench.Sensors.s{s}.{field}", idx))
+                 for s in range(FED_SENSORS) for field in FIELDS[:items]]
+        subscription = await client.create_subscription(50, Handler())
+        await subscription.subscribe_data_change(nodes)
+        await done.wait()
+        await subscription.delete()
+
+
+def _mqtt(port: int, topic: str, counts: dict[str, int]) -> paho.Client:
+    client = paho.Client(CallbackAPIVersion.VERSION2)
+    client.on_message = lambda *_: counts.__setitem__("mqtt", counts["mqtt"] + 1)
+    client.connect("127.0.0.1", port)
+    client.subscribe(topic, qos=0)
+    client.loop_start()
+    return client
+
+
+def _count(case: str, ports: Ports, seconds: float, out: multiprocessing.Queue[int]) -> None:
+    """Subscribe to what ``case`` turns on; after a second (the initial values are in),
+    count for ``seconds``; put the total."""
+    logging.getLogger("asyncua").setLevel(logging.ERROR)
+    on = front_ends(case)
+    counts = dict.fromkeys(FRONT_ENDS, 0)
+
+    async def main() -> None:
+        mqtt = _mqtt(ports.broker, BARE_TOPIC if case == "paho" else "imu/bench/+/state",
+                     counts) if {"mqtt", "paho"} & set(on) else None
+        done = asyncio.Event()
+        tasks = [asyncio.create_task(coro) for coro in (
+            _sse(ports.http, counts) if "sse" in on else None,
+            _opcua(ports.opcua, ports.items, counts, done) if "opcua" in on else None)
+            if coro]
+        await asyncio.sleep(1.0)
+        counts.update(dict.fromkeys(counts, 0))
+        await asyncio.sleep(seconds)
+        total = sum(counts.values())
+        done.set()
+        if mqtt is not None:
+            mqtt.loop_stop()
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        out.put(total)
+
+    asyncio.run(main())
+
+
+# ------------------------------------------------------------------ the runs
+
+
+def _ready(case: str, bare: list[BarePaho], port: int) -> Any:
+    on = front_ends(case)
+
+    def ready(gw: Gateway) -> bool:
+        if case == "paho" and not bare:
+            bare.append(BarePaho(port))
+            gw.cache.subscribe(bare[0].on_cache_event)
+        return ((gw.mqtt is not None and gw.mqtt.connected) or "mqtt" not in on) and \
+            all(server is None or server.listening for server in (gw.http, gw.opcua)) and \
+            all(b.client.is_connected() for b in bare)
+    return ready
+
+
+async def run_case(case: str, ports: Ports, rate: float, seconds: float,
+                   pki: str) -> tuple[float, float]:
+    """(delivered ÷ expected, the gateway's ms of CPU per sample)."""
+    config = fed_config(**config_of(case, ports, pki))
+    bare: list[BarePaho] = []
+    try:
+        delivered, cores = await fed(config, rate, seconds, _ready(case, bare, ports.broker),
+                                     _count, (case, ports), settle=2.0)
+    finally:
+        for client in bare:
+            client.close()
+    expected = rate * seconds * sum(per_sample(f, ports.items) for f in front_ends(case))
+    return (delivered / expected if expected else 1.0), 1000 * cores / rate
+
+
+async def write_paths(pki: str, writes: int = 300) -> None:
+    """``--writes``: µs of process time per value written, by each write path."""
+    gw = Gateway(fed_config(opcua={"listen": f"127.0.0.1:{free_port()}",
+                                   "allow_none": True, "pki_dir": pki}))
+    assert gw.opcua is not None
+    await gw.opcua.start()
+    server = gw.opcua.server
+    assert server is not None
+    ids = [ua.NodeId(f"bench.Sensors.s0.{field}", gw.opcua.idx) for field in FIELDS]
+    now = datetime.now(UTC)
+
+    def value(v: float, kind: Any = ua.DataValue) -> Any:
+        return kind(ua.Variant(v, ua.VariantType.Float), SourceTimestamp=now,
+                    ServerTimestamp=now)
+
+    paths: dict[str, Callable[[Any, float], Awaitable[None]]] = {
+        "write_attribute_value, DataValue": lambda i, v: server.write_attribute_value(
+            i, value(v)),
+        "write_attribute_value, Sample": lambda i, v: server.write_attribute_value(
+            i, value(v, Sample)),
+        "node.write_value, DataValue": lambda i, v: server.get_node(i).write_value(value(v)),
+    }
+
+    class Quiet:
+        def datachange_notification(self, *_: object) -> None: ...
+
+    print(f"{'write path':<36} {'monitored':>9} {'us/write':>8}")
+    for monitored in (False, True):
+        subscription = None
+        if monitored:
+            subscription = await server.create_subscription(100_000, Quiet())
+            await subscription.subscribe_data_change([server.get_node(i) for i in ids])
+        for name, write in paths.items():
+            c0 = time.process_time()
+            for n in range(writes):
+                for nodeid in ids:
+                    await write(nodeid, float(n))
+            per = (time.process_time() - c0) / (writes * len(ids))
+            print(f"{name:<36} {'yes' if monitored else 'no':>9} {per * 1e6:>8.1f}",
+                  flush=True)
+        if subscription is not None:
+            await subscription.delete()
+    await gw.opcua.stop()
+
+
+def _broker(folder: Path, port: int) -> subprocess.Popen[bytes]:
+    mosquitto = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+    conf = folder / "mosquitto.conf"
+    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\n"
+                    "max_queued_messages 100000\n")
+    return subprocess.Popen([mosquitto, "-c", str(conf)], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+
+
+def main() -> None:
+    logging.getLogger("asyncua").setLevel(logging.ERROR)
+    logging.getLogger("imu_gateway").setLevel(logging.ERROR)  # the port it cannot open
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--seconds", type=float, default=5.0)
+    parser.add_argument("--rate", type=float, default=100.0, help="samples/s, all sensors")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--items", type=int, default=len(FIELDS),
+                        help="OPC UA: monitored values per sensor")
+    parser.add_argument("--cases", default=",".join(CASES),
+                        help=f"comma-separated, of {', '.join(CASES)}")
+    parser.add_argument("--writes", action="store_true",
+                        help="asyncua's write paths in a loop instead (see above)")
+    args = parser.parse_args()
+    if args.writes:
+        with tempfile.TemporaryDirectory() as pki:
+            asyncio.run(write_paths(pki))
+        return
+    cases = args.cases.split(",")
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL)  # as `imu-gateway run` does
+    ports = Ports(free_port(), free_port(), free_port(), free_port(), args.items)
+    shares: dict[str, list[float]] = {case: [] for case in cases}
+    with tempfile.TemporaryDirectory() as folder:
+        broker = _broker(Path(folder), ports.broker)
+        try:
+            time.sleep(0.5)
+            print(f"{FED_SENSORS} AH sensors, {args.rate:g} samples/s in all, "
+                  f"{args.seconds:g} s per case, {args.rounds} rounds, {os.cpu_count()} CPUs; "
+                  f"OPC UA: {args.items} monitored values per sensor")
+            print(f"{'round':>5} {'case':>6} {'delivered':>9} {'gw ms/sample':>12} "
+                  f"{'- none':>7}")
+            for n in range(args.rounds):
+                reference: float | None = None
+                for case in cases:
+                    ratio, ms = asyncio.run(run_case(case, ports, args.rate, args.seconds,
+                                                     folder))
+                    if case == "none":
+                        reference = ms
+                    extra = ""
+                    if reference is not None and case != "none":
+                        shares[case].append(ms - reference)
+                        extra = f"{ms - reference:7.3f}"
+                    print(f"{n + 1:>5} {case:>6} {ratio:>9.2f} {ms:>12.3f} {extra}",
+                          flush=True)
+        finally:
+            broker.terminate()
+            broker.wait(10)
+    print(f"\nfront ends' CPU per sample (case - none), ms, over {args.rounds} rounds:")
+    for case, values in shares.items():
+        if values:
+            verdict = "" if case != "all" else \
+                ("  target met" if max(values) <= TARGET_MS else
+                 f"  over the {TARGET_MS} ms target")
+            print(f"{case:>6} {min(values):.3f}-{max(values):.3f}{verdict}")
+
+
+if __name__ == "__main__":
+    main()
