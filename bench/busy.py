@@ -123,14 +123,19 @@ def get(port: int, path: str) -> Any:
         return json.loads(answer.read())
 
 
-def config_yaml(ports: dict[str, str], http: int) -> str:
+def buses_yaml(lines: dict[str, Line], ports: dict[str, str]) -> str:
+    """The config's ``buses:``, one line of YAML a bus."""
     out = "buses:\n"
-    for name, line in LINES.items():
+    for name, line in lines.items():
         sensors = ", ".join(f"{{name: {n}, series: {series}, address: {a}, {extra}}}"
                             for n, series, a, extra in line.sensors)
         out += (f"  - {{name: {name}, port: {ports[name]}, baudrate: {line.baud}, "
                 f"protocol: {line.protocol}, sensors: [{sensors}]}}\n")
-    return out + f"http: {{listen: '127.0.0.1:{http}'}}\n"
+    return out
+
+
+def config_yaml(ports: dict[str, str], http: int) -> str:
+    return buses_yaml(LINES, ports) + f"http: {{listen: '127.0.0.1:{http}'}}\n"
 
 
 def main() -> int:

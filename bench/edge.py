@@ -45,7 +45,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import hostile as h
 from broker import Mosquitto
-from busy import Line, simulator, stopped
+from busy import Line, buses_yaml, simulator, stopped
 from common import free_port
 from soak import GatewayProcess, QuietMosquitto, favour
 
@@ -173,17 +173,11 @@ class Health:
 
 def config_yaml(ports: dict[str, str], modbus: int, http: int, mqtt: int, opcua: int,
                 pki: Path) -> str:
-    out = "gateway_id: edge\nbuses:\n"
-    for name, line in LINES.items():
-        sensors = ", ".join(f"{{name: {n}, series: {series}, address: {a}, {extra}}}"
-                            for n, series, a, extra in line.sensors)
-        out += (f"  - {{name: {name}, port: {ports[name]}, baudrate: {line.baud}, "
-                f"protocol: {line.protocol}, sensors: [{sensors}]}}\n")
-    return out + (f"modbus: {{listen: '127.0.0.1:{modbus}'}}\n"
-                  f"mqtt: {{url: 'mqtt://127.0.0.1:{mqtt}', homeassistant_discovery: true}}\n"
-                  f"http: {{listen: '127.0.0.1:{http}'}}\n"
-                  f"opcua: {{listen: '127.0.0.1:{opcua}', allow_none: true, "
-                  f"pki_dir: '{pki}'}}\n")
+    return ("gateway_id: edge\n" + buses_yaml(LINES, ports)
+            + f"modbus: {{listen: '127.0.0.1:{modbus}'}}\n"
+            f"mqtt: {{url: 'mqtt://127.0.0.1:{mqtt}', homeassistant_discovery: true}}\n"
+            f"http: {{listen: '127.0.0.1:{http}'}}\n"
+            f"opcua: {{listen: '127.0.0.1:{opcua}', allow_none: true, pki_dir: '{pki}'}}\n")
 
 
 async def counts(http: int, pid: int) -> Counts:
