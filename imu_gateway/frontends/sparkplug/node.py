@@ -37,8 +37,8 @@ from pathlib import Path
 from google.protobuf.message import DecodeError
 
 from ...cache import Snapshot
+from ...derived import values_of
 from ...errors import ErrorKind
-from ...normalise import field_values
 from ...stats import BusStats
 from ..mqtt_topics import Message
 from .metrics import BUS_ROWS, RESULT, DataType, MetricRow, Value
@@ -297,7 +297,7 @@ class EdgeNode:
         device = self.devices[snap.name]
         payload = Payload(timestamp=now_ms, seq=self._next_seq())
         values: dict[str, Value | None] = {}
-        fields = _fields(snap)
+        fields = values_of(snap)  # worked out once per sample, for every front end
         for row in device.rows:
             values[row.name] = value = row.of(snap, fields)
             metric = self._metric(payload, row.name, snap.name, row.datatype, value,
@@ -310,7 +310,7 @@ class EdgeNode:
                        DATA_QOS, False)
 
     def _data(self, snap: Snapshot, now_ms: int) -> list[Message]:
-        last, fields = self.last[snap.name], _fields(snap)
+        last, fields = self.last[snap.name], values_of(snap)
         now = [(row, row.of(snap, fields)) for row in self.devices[snap.name].rows
                if row.command is None]
         changed = [(row, value) for row, value in now if value != last.get(row.name)]
@@ -355,10 +355,6 @@ class EdgeNode:
     def _next_seq(self) -> int:
         self.seq = (self.seq + 1) % 256
         return self.seq
-
-
-def _fields(snap: Snapshot) -> dict[str, float]:
-    return field_values(snap.reading) if snap.reading is not None else {}
 
 
 def _sample_ms(snap: Snapshot, now_ms: int) -> int:
