@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .bus.line import MIN_QUIET
+from .bus.line import stream_margin
 from .config import BusConfig, SensorConfig
 from .protocol.exchanges import adapter_for, char_time
 
@@ -86,7 +86,7 @@ class LineLoad:
         if stream is None:
             return out
         period = 1 / stream.rate
-        pause = period - stream.wire - min(0.02, period / 10) - MIN_QUIET
+        pause = period - stream.wire - stream_margin(period)
         out += [f"bus {self.bus}: {d.sensor}'s exchange ({d.exchange * 1000:.1f} ms, with a "
                 f"fast sensor's answer delay) does not fit the pauses of {stream.sensor}'s "
                 f"{stream.rate:g} Hz stream ({pause * 1000:.1f} ms, after the margin for its "

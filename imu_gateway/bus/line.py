@@ -63,6 +63,13 @@ class Place(NamedTuple):
     why: str
 
 
+def stream_margin(period: float) -> float:
+    """The room kept beside a stream's frames for their own timing's wobble, and for
+    the line to be quiet before a request: what an exchange needs on top of its own
+    time to fit a pause of a stream of ``period``."""
+    return min(0.02, period / 10) + MIN_QUIET
+
+
 def stream_wait(now: float, needs: float, last_end: float, period: float,
                 frame: float, waited: float = 0.0) -> Place:
     """When an exchange of ``needs`` seconds may start next to a stream whose frames
@@ -85,7 +92,7 @@ def stream_wait(now: float, needs: float, last_end: float, period: float,
     must not keep a command from the sensor for ever (the caller passes ``waited`` 0
     for what may wait, a poll).  (Any pause after ``PATIENCE`` alone is the only rule
     that could have sent a request that met a frame in a soak beside CPU burners.)"""
-    margin = min(0.02, period / 10) + MIN_QUIET  # the frames' own timing wobbles
+    margin = stream_margin(period)
     k = max(1, math.ceil((now - last_end) / period))
     due = last_end + (k - 1) * period  # the latest frame that should have ended by now
     if k > 1 and now < due + period / 2:
