@@ -39,8 +39,8 @@ from .stats import BusStats, FrontendCounts, SensorStats
 from .supervise import Frontend, Supervisor
 
 if TYPE_CHECKING:  # the front ends' modules are imported when configured (below)
-    from .frontends.modbus_tcp import ModbusTcpServer
-    from .frontends.mqtt import MqttClient
+    from .frontends.modbus.server import ModbusTcpServer
+    from .frontends.mqtt.client import MqttClient
     from .frontends.opcua.server import OpcUaServer
     from .frontends.rest import HttpServer
     from .frontends.sparkplug.client import SparkplugClient
@@ -196,12 +196,12 @@ class Gateway:
 # docstring says why): one function each, so the types stay whole.
 
 def _modbus_server(gateway: Gateway, config: ModbusConfig) -> ModbusTcpServer:
-    from .frontends.modbus_tcp import ModbusTcpServer
+    from .frontends.modbus.server import ModbusTcpServer
     return ModbusTcpServer(gateway, config)
 
 
 def _mqtt_client(gateway: Gateway, config: MqttConfig) -> MqttClient:
-    from .frontends.mqtt import MqttClient
+    from .frontends.mqtt.client import MqttClient
     return MqttClient(gateway, config)
 
 

@@ -8,9 +8,10 @@ front ends answer with.
      ├── ProtocolError    (imu_gateway/protocol/errors.py: the protocol layer's own tree)
      │    ├── FrameError  the peer sent bytes no document allows (routine on a noisy line)
      │    └── UsageError  our caller asked for a frame the protocol cannot express
-     ├── BrokerUnreached  an MQTT broker was not reached (no connection, no answer)
-     ├── ProbeFailed      an MQTT broker answered the probe before a connect, but with a
-     │                    refusal, or not all the way
+     ├── MqttLinkError    (imu_gateway/mqtt_link/errors.py: the MQTT transport's own)
+     │    ├── BrokerUnreached  a broker was not reached (no connection, no answer)
+     │    └── ProbeFailed      a broker answered the probe before a connect, but with a
+     │                         refusal, or not all the way
      └── RequestFailed    a client's request was not carried out; ``kind`` says why
 
 A ``RequestFailed`` is what a command, an on-demand read or a pass-through ends in
@@ -32,7 +33,6 @@ import enum
 from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import TYPE_CHECKING
 
 from .modbus_codes import (
     DEVICE_BUSY,
@@ -42,9 +42,6 @@ from .modbus_codes import (
     ILLEGAL_VALUE,
     TARGET_FAILED,
 )
-
-if TYPE_CHECKING:  # (for the annotations only: config imports this module)
-    from .config import Broker
 
 
 class GatewayError(Exception):
@@ -127,26 +124,6 @@ KINDS: Mapping[ErrorKind, KindRow] = MappingProxyType({
     ErrorKind.NOT_FOUND: KindRow(404, None, "no such path"),
     ErrorKind.METHOD_NOT_ALLOWED: KindRow(405, None, "the path does not take that method"),
 })
-
-
-class BrokerUnreached(GatewayError):
-    """An MQTT broker was not reached: ``kind`` is ``"unreachable"`` (no TCP or TLS
-    connection; ``detail`` says why), ``"silent"`` (no CONNACK in time) or
-    ``"closed"`` (closed before answering).  ``broker`` names it when it is not the
-    one whose turn it was (a hedged probe's).  The MQTT client words it for the log."""
-
-    def __init__(self, kind: str, detail: str = "", broker: Broker | None = None) -> None:
-        super().__init__(kind, detail)
-        self.kind, self.detail, self.broker = kind, detail, broker
-
-
-class ProbeFailed(GatewayError):
-    """A probe ``broker`` answered, but with a refusal or not all the way (``cause``):
-    the real connect goes there, and says why."""
-
-    def __init__(self, broker: Broker, cause: Exception) -> None:
-        super().__init__(broker, cause)
-        self.broker, self.cause = broker, cause
 
 
 class RequestFailed(GatewayError):

@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 
 from imu_gateway.commands import CATALOGUE, BusEffect, commands_for, validate
-from imu_gateway.frontends import modbus_map as mm
+from imu_gateway.frontends.modbus import map as mm
 from imu_gateway.model import KnownSettings, Series, WireProtocol
 from imu_gateway.protocol.exchanges import (
     MODBUS_COMMANDS,

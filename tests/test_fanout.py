@@ -25,7 +25,7 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from imu_gateway.app import Gateway
 from imu_gateway.cache import Snapshot
-from imu_gateway.frontends import modbus_map
+from imu_gateway.frontends.modbus import map as modbus_map
 from imu_gateway.model import VALUE_GROUPS
 from imu_gateway.normalise import field_values
 from imu_gateway.simulator.motion import Motion

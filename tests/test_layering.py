@@ -76,14 +76,35 @@ def test_protocol_imports_only_allowed(path: Path) -> None:
 
 GATEWAY = PROTOCOL.parent
 FRONTENDS = GATEWAY / "frontends"
-#: the front ends proper; the other modules of the folder are their shared parts
-FRONTEND_MODULES = ("modbus_tcp", "mqtt", "rest")
+MQTT_LINK = GATEWAY / "mqtt_link"
+#: every subpackage of ``frontends/`` is a front end; beside them, only their shared parts
+FRONT_END_PACKAGES = sorted(p.parent.name for p in FRONTENDS.glob("*/__init__.py"))
+SHARED = "imu_gateway.frontends.common"
+#: what the MQTT transport may import of the gateway (and paho, and the standard library)
+MQTT_LINK_ALLOWED = ("imu_gateway.mqtt_link", "imu_gateway.config", "imu_gateway.errors",
+                     "imu_gateway.supervise")
 
 
-def frontend_imports(path: Path) -> list[str]:
-    """Like ``imported_names``, for a module of ``imu_gateway.frontends`` (or of a package
-    in it, such as ``rest``)."""
+def module_imports(path: Path) -> list[str]:
+    """``package_imports`` for any module of the gateway: its package is its folder."""
     return package_imports(path, ".".join(path.parent.relative_to(GATEWAY.parent).parts))
+
+
+def frontend_of(path: Path) -> str | None:
+    """The front end a module of ``frontends/`` belongs to (``None``: a shared part)."""
+    parts = path.relative_to(FRONTENDS).parts
+    return parts[0] if len(parts) > 1 else None
+
+
+def test_front_ends_found() -> None:
+    assert {"modbus", "mqtt", "opcua", "rest", "sparkplug"} <= set(FRONT_END_PACKAGES)
+
+
+def test_front_ends_are_packages() -> None:
+    """The front ends' folder holds front ends (each a package) and their one shared
+    module, nothing flat beside them."""
+    flat = sorted(p.name for p in FRONTENDS.glob("*.py"))
+    assert flat == ["__init__.py", "common.py"], flat
 
 
 @pytest.mark.parametrize("path", sorted(FRONTENDS.rglob("*.py")),
@@ -91,22 +112,41 @@ def frontend_imports(path: Path) -> list[str]:
 def test_front_ends_use_neither_protocol_nor_bus_nor_each_other(path: Path) -> None:
     """The layering rule (docs/architecture.md): a front end reads the cache and asks the
     gateway; it never touches the wire's code, and a change to one front end cannot
-    break another."""
-    for name in frontend_imports(path):
+    break another.  Of its siblings it uses only ``frontends/common.py``, and of the
+    transports ``mqtt_link``."""
+    own = frontend_of(path)
+    for name in module_imports(path):
         assert not _within(name, "imu_gateway.protocol"), f"{path.name} imports {name}"
         assert not _within(name, "imu_gateway.bus"), f"{path.name} imports {name}"
-        for other in FRONTEND_MODULES:
-            if other not in (path.stem, path.parent.name):
-                assert not _within(name, f"imu_gateway.frontends.{other}"), \
-                    f"{path.name} imports {name}"
+        if _within(name, "imu_gateway.frontends") and name != "imu_gateway.frontends":
+            allowed = _within(name, SHARED) or (
+                own is not None and _within(name, f"imu_gateway.frontends.{own}"))
+            assert allowed, f"{path.relative_to(FRONTENDS)} imports {name}"
 
 
 def test_frontend_resolver() -> None:
-    names = frontend_imports(FRONTENDS / "mqtt_states.py")
+    names = module_imports(FRONTENDS / "mqtt" / "states.py")
     assert "imu_gateway.cache" in names and "imu_gateway.frontends.common" in names
-    names = frontend_imports(FRONTENDS / "rest" / "server.py")
+    assert "imu_gateway.frontends.mqtt.side" in names
+    names = module_imports(FRONTENDS / "rest" / "server.py")
     assert "imu_gateway.config" in names and "imu_gateway.frontends.common" in names
     assert "imu_gateway.frontends.rest.routes" in names
+    assert frontend_of(FRONTENDS / "common.py") is None
+    assert frontend_of(FRONTENDS / "sparkplug" / "node.py") == "sparkplug"
+
+
+@pytest.mark.parametrize("path", sorted(MQTT_LINK.glob("*.py")), ids=lambda p: p.name)
+def test_the_mqtt_link_is_a_transport(path: Path) -> None:
+    """Both MQTT front ends share the transport; it knows brokers, paho and the config,
+    never a front end, the cache, the commands or a bus."""
+    for name in module_imports(path):
+        if not _within(name, "imu_gateway"):
+            top = name.split(".")[0]
+            assert top in sys.stdlib_module_names or top == "paho", \
+                f"{path.name} imports {name}"
+        else:
+            assert any(_within(name, p) for p in MQTT_LINK_ALLOWED), \
+                f"{path.name} imports {name}"
 
 
 def test_the_cache_is_a_passive_store() -> None:

@@ -33,9 +33,10 @@ from imu_gateway.simulator import make_sensor, simulated
 FAST = 115200
 #: what each front end brings with it: its own modules and its libraries
 STACKS = {
-    "modbus": ("imu_gateway.frontends.modbus_tcp",),
-    "mqtt": ("imu_gateway.frontends.mqtt", "paho"),
-    "sparkplug": ("imu_gateway.frontends.sparkplug", "paho", "google.protobuf"),
+    "modbus": ("imu_gateway.frontends.modbus",),
+    "mqtt": ("imu_gateway.frontends.mqtt", "imu_gateway.mqtt_link", "paho"),
+    "sparkplug": ("imu_gateway.frontends.sparkplug", "imu_gateway.mqtt_link", "paho",
+                  "google.protobuf"),
     "http": ("imu_gateway.frontends.rest", "fastapi", "starlette", "uvicorn",
              "prometheus_client"),
     "opcua": ("imu_gateway.frontends.opcua", "asyncua"),

@@ -20,8 +20,8 @@ from pymodbus.pdu.mei_message import ReadDeviceInformationResponse
 
 from imu_gateway import __version__
 from imu_gateway.app import Gateway
-from imu_gateway.frontends import modbus_ident as ident
-from imu_gateway.frontends.modbus_ident import Identity
+from imu_gateway.frontends.modbus import ident
+from imu_gateway.frontends.modbus.ident import Identity
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import hold, make_sensor, simulated
 from imu_gateway.simulator.motion import Motion

@@ -48,7 +48,7 @@ from pymodbus.client import AsyncModbusTlsClient
 from imu_gateway.app import Gateway
 from imu_gateway.config import config_from_dict
 from imu_gateway.errors import ConfigError, StartupError
-from imu_gateway.frontends import modbus_tls
+from imu_gateway.frontends.modbus import tls as modbus_tls
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import hold, make_sensor, simulated
 from imu_gateway.simulator.motion import Motion

@@ -40,8 +40,8 @@ from paho.mqtt.properties import Properties
 from prometheus_client import CollectorRegistry, generate_latest
 
 from imu_gateway.app import Gateway
-from imu_gateway.frontends.mqtt_states import StateDesk
-from imu_gateway.frontends.mqtt_topics import Message
+from imu_gateway.frontends.mqtt.states import StateDesk
+from imu_gateway.mqtt_link.message import Message
 from imu_gateway.frontends.rest.metrics import GatewayCollector
 from imu_gateway.model import Angles, Series, WireProtocol
 from imu_gateway.simulator import Faults, SimSensor, hold, make_sensor, simulated

@@ -19,8 +19,8 @@ from harness import running, until
 
 from imu_gateway.app import Gateway
 from imu_gateway.config import Broker
-from imu_gateway.frontends import mqtt_identity
-from imu_gateway.frontends.mqtt_failover import RECONNECT_MAX, RECONNECT_MIN, Failover
+from imu_gateway.mqtt_link import probe
+from imu_gateway.mqtt_link.failover import RECONNECT_MAX, RECONNECT_MIN, Failover
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import make_sensor, simulated
 
@@ -172,7 +172,7 @@ async def test_a_reconnect_takes_the_first_node_that_answers(
     electing) gets another probe beside it on the next node every 0.5 s; the gateway
     connects to the first that answers.  The probe's own limit is made a minute here,
     so a gateway that waited for the silent node would not be back within the test."""
-    monkeypatch.setattr(mqtt_identity, "PROBE_TIMEOUT", 60.0)
+    monkeypatch.setattr(probe, "PROBE_TIMEOUT", 60.0)
     connects: list[bytes] = []
 
     async def hold(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:

@@ -12,8 +12,8 @@ import pytest
 from broker import Mosquitto, recording
 from harness import running, until
 
-from imu_gateway.frontends import mqtt_identity
-from imu_gateway.frontends.mqtt_identity import Claim, live_rival
+from imu_gateway.frontends.mqtt import identity as mqtt_identity
+from imu_gateway.frontends.mqtt.identity import Claim, live_rival
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import make_sensor, simulated
 

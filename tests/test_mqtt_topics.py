@@ -1,4 +1,4 @@
-"""The MQTT front end's pure rules (``frontends.mqtt_topics``): topics, Home Assistant
+"""The MQTT front end's pure rules (``frontends/mqtt/topics.py``): topics, Home Assistant
 discovery configs, the deadband and the minimum interval.  On values alone."""
 
 from __future__ import annotations
@@ -6,8 +6,8 @@ from __future__ import annotations
 from typing import Any
 
 from imu_gateway.config import SensorConfig
-from imu_gateway.frontends.mqtt_discovery import Setup, discovery_configs
-from imu_gateway.frontends.mqtt_topics import Topics, send_delay, within_deadband
+from imu_gateway.frontends.mqtt.discovery import Setup, discovery_configs
+from imu_gateway.frontends.mqtt.topics import Topics, send_delay, within_deadband
 from imu_gateway.model import Series, WireProtocol
 
 TOPICS = Topics("imu", "plant.1", "homeassistant")

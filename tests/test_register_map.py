@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from imu_gateway.frontends import modbus_map as mm
+from imu_gateway.frontends.modbus import map as mm
 from imu_gateway.normalise import FIELD_NAMES
 
 DOC = Path(__file__).parent.parent / "docs" / "register-map.md"
@@ -14,7 +14,7 @@ DOC = Path(__file__).parent.parent / "docs" / "register-map.md"
 def test_register_map_document_is_up_to_date() -> None:
     assert DOC.read_text() == mm.markdown(), (
         "docs/register-map.md is out of date: run "
-        "`python -m imu_gateway.frontends.modbus_map > docs/register-map.md`")
+        "`python -m imu_gateway.frontends.modbus.map > docs/register-map.md`")
 
 
 def test_status_block_is_as_specified() -> None:

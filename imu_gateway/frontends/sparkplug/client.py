@@ -19,11 +19,11 @@ import paho.mqtt.client as paho
 from ...cache import EventKind, Snapshot
 from ...commands import CATALOGUE, CommandResult
 from ...config import Broker, MqttConfig, SparkplugConfig
+from ...mqtt_link.message import Message
+from ...mqtt_link.session import Ready, Session
 from ...stats import FrontendCounts
 from ...supervise import Frontend
 from ..common import GatewayLike
-from ..mqtt_session import Ready, Session
-from ..mqtt_topics import Message
 from .host import PrimaryHost
 from .metrics import device_rows
 from .node import BdSeq, Device, EdgeNode, Ignored, Refused, Write

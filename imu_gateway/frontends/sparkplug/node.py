@@ -39,8 +39,8 @@ from google.protobuf.message import DecodeError
 from ...cache import Snapshot
 from ...derived import values_of
 from ...errors import ErrorKind
+from ...mqtt_link.message import Message
 from ...stats import BusStats
-from ..mqtt_topics import Message
 from .metrics import BUS_ROWS, RESULT, DataType, MetricRow, Value
 from .payload_pb2 import Payload
 

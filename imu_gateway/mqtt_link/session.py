@@ -1,9 +1,9 @@
 """One MQTT session kept up: connect to the brokers of ``mqtt.url`` in turn, with a
-back-off (``mqtt_failover``), and again whenever the connection is lost.
+back-off (``failover.py``), and again whenever the connection is lost.
 
 Two front ends use it, each with a session (a client id and a last will) of its own:
-the plain topics (``mqtt``: will = status ``offline``) and Sparkplug B
-(``sparkplug_client``: will = NDEATH, whose ``bdSeq`` changes with every connection).
+the plain topics (``frontends/mqtt``: will = status ``offline``) and Sparkplug B
+(``frontends/sparkplug``: will = NDEATH, whose ``bdSeq`` changes with every connection).
 
 Threads.  paho-mqtt's network loop runs on its own thread (``loop_start``); everything
 else runs on the gateway's event loop.  paho's callbacks only hand their event over
@@ -33,12 +33,12 @@ from paho.mqtt.properties import Properties
 from paho.mqtt.reasoncodes import ReasonCode
 
 from ..config import Broker, MqttConfig
-from ..errors import BrokerUnreached
 from ..supervise import PeerLog
-from .mqtt_failover import Failover
-from .mqtt_identity import PROBE_TIMEOUT, close_sockets, reason_of
-from .mqtt_pipe import KEEPALIVE_S, WINDOW, Pipe
-from .mqtt_topics import Counters, Message
+from .errors import BrokerUnreached
+from .failover import Failover
+from .message import Counters, Message
+from .pipe import KEEPALIVE_S, WINDOW, Pipe
+from .probe import PROBE_TIMEOUT, close_sockets, reason_of
 
 #: a broker that says nothing after CONNECT (a TLS port, say); the probe's wait too
 CONNACK_TIMEOUT = PROBE_TIMEOUT

@@ -1,5 +1,6 @@
 """The way from the MQTT front ends to paho: a bounded outbox, control messages that are
-never dropped, and a window of messages in paho's hands (see ``mqtt``'s docstring)."""
+never dropped, and a window of messages in paho's hands (see the docstring of
+``frontends/mqtt/client.py``)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import paho.mqtt.client as paho
 from paho.mqtt.enums import MQTTErrorCode
 
 from ..supervise import PeerLog
-from .mqtt_topics import Counters, Message
+from .message import Counters, Message
 
 KEEPALIVE_S = 30
 WINDOW = 100  # messages handed to paho and not yet written or acknowledged

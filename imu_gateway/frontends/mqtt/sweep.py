@@ -19,7 +19,8 @@ from typing import Any
 
 import paho.mqtt.client as paho
 
-from .mqtt_topics import CONTROL_QOS, Message, Topics
+from ...mqtt_link.message import Message
+from .topics import CONTROL_QOS, Topics
 
 log = logging.getLogger("imu_gateway.mqtt")
 

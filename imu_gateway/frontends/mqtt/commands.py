@@ -20,12 +20,13 @@ from typing import Any
 import paho.mqtt.client as paho
 from paho.mqtt.properties import Properties
 
-from ..commands import CommandResult
-from ..config import MqttConfig
-from ..errors import ErrorKind, RequestFailed
-from ..supervise import PeerLog
-from .common import GatewayLike, json_bytes, peer_json
-from .mqtt_topics import CONTROL_QOS, Counters, Message, json_properties
+from ...commands import CommandResult
+from ...config import MqttConfig
+from ...errors import ErrorKind, RequestFailed
+from ...mqtt_link.message import Counters, Message, json_properties
+from ...supervise import PeerLog
+from ..common import GatewayLike, json_bytes, peer_json
+from .topics import CONTROL_QOS
 
 MAX_COMMANDS = 16  # commands carried out at once; more are answered "busy"
 MAX_COMMAND_PAYLOAD = 64 * 1024  # bytes; the largest command's arguments are a few dozen

@@ -27,12 +27,12 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from .. import __version__
-from ..commands import CATALOGUE, CommandSpec, commands_for, resolution
-from ..config import GatewayConfig, SensorConfig
-from ..model import CAPABILITIES, VALUE_GROUPS, Group, WireProtocol
-from ..normalise import member_name
-from .mqtt_topics import HA_LEAF, SETTINGS_LEAF, Topics
+from ... import __version__
+from ...commands import CATALOGUE, CommandSpec, commands_for, resolution
+from ...config import GatewayConfig, SensorConfig
+from ...model import CAPABILITIES, VALUE_GROUPS, Group, WireProtocol
+from ...normalise import member_name
+from .topics import HA_LEAF, SETTINGS_LEAF, Topics
 
 Config = dict[str, Any]
 ORIGIN = {"name": "imu-gateway", "sw_version": __version__}

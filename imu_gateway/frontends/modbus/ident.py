@@ -24,9 +24,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from .. import __version__
-from ..modbus_codes import ILLEGAL_ADDRESS, ILLEGAL_FUNCTION, ILLEGAL_VALUE
-from ..model import Series, WireProtocol
+from ... import __version__
+from ...modbus_codes import ILLEGAL_ADDRESS, ILLEGAL_FUNCTION, ILLEGAL_VALUE
+from ...model import Series, WireProtocol
 
 FUNCTION, MEI_TYPE = 0x2B, 0x0E
 CONFORMITY = 0x82  # regular identification, stream and individual access

@@ -17,17 +17,16 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from ..cache import EventKind, Snapshot, Status
-from ..config import MqttConfig
-from ..derived import reading_json
-from .common import GatewayLike, json_bytes
-from .mqtt_topics import (
+from ...cache import EventKind, Snapshot, Status
+from ...config import MqttConfig
+from ...derived import reading_json
+from ...mqtt_link.message import Message, json_properties
+from ..common import GatewayLike, json_bytes
+from .topics import (
     CONTROL_QOS,
     HA_LEAF,
     SETTINGS_LEAF,
-    Message,
     Topics,
-    json_properties,
     send_delay,
 )
 

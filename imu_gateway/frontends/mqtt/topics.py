@@ -1,66 +1,24 @@
-"""The MQTT front end's pure parts: its messages and counters, its topics, the Home
-Assistant discovery configs, and the rules of when a state is sent
-(``min_interval_ms`` and the deadbands).
+"""The MQTT front end's pure parts: its topics, which of them it retains, and the rules
+of when a state is sent (``min_interval_ms`` and the deadbands).
 
-No client, no loop, no clock: the MQTT client (``mqtt.py``) calls these with what it
-knows, and the tests check them on values alone.
+No client, no loop, no clock: the MQTT client (``client.py``) calls these with what it
+knows, and the tests check them on values alone.  (The messages and counters are the
+transport's: ``imu_gateway/mqtt_link/message.py``.)
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import NamedTuple
 
-from paho.mqtt.packettypes import PacketTypes
-from paho.mqtt.properties import Properties
-
-from ..config import MqttConfig, SensorConfig
-from ..normalise import MEASURED_FIELDS
+from ...config import MqttConfig, SensorConfig
+from ...normalise import MEASURED_FIELDS
 
 # A sensor's topics beside its state: what the gateway knows of its settings, and the
 # state again for Home Assistant (throttled apart); the gateway's counters.
 SETTINGS_LEAF, HA_LEAF, DIAGNOSTICS_LEAF = "settings", "ha", "diagnostics"
 CONTROL_QOS = 1  # status, availability, discovery, results: small and must arrive
 ONLINE, OFFLINE = b"online", b"offline"  # the status and availability payloads
-
-
-class Message(NamedTuple):
-    """One message to publish."""
-
-    topic: str
-    payload: bytes
-    qos: int
-    retain: bool
-    properties: Properties | None = None
-
-
-def json_properties(config: MqttConfig, expiry_s: int | None = None) -> Properties | None:
-    """MQTT 5's description of a JSON message: its content type, UTF-8 (payload format
-    indicator 1), and how long the broker may keep it for a subscriber (``None``
-    under 3.1.1, which has no properties)."""
-    if config.protocol != "5":
-        return None
-    properties = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
-    properties.ContentType = "application/json"
-    properties.PayloadFormatIndicator = 1
-    if expiry_s is not None:
-        properties.MessageExpiryInterval = expiry_s
-    return properties
-
-
-@dataclass(slots=True)
-class Counters:
-    """The MQTT client's running totals (its ``stats()``)."""
-
-    published: int = 0  # handed to paho
-    written: int = 0  # written (QoS 0) or acknowledged: paho's on_publish, on its thread
-    undeliverable: int = 0  # paho can never send it (a bad topic): dropped
-    ignored: int = 0  # commands not run: retained, empty, too large, bad properties
-    lost_in_flight: int = 0  # handed to paho, unwritten or unacknowledged when it went
-    commands: int = 0
-    command_errors: int = 0
-    connects: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -85,11 +43,11 @@ class Topics:
 
     @property
     def instance(self) -> str:
-        """The claim of the gateway process holding this id (``mqtt_identity``)."""
+        """The claim of the gateway process holding this id (``identity.py``)."""
         return f"{self.prefix}/instance"
 
     def client(self, client_id: str) -> str:
-        """The claim of the gateway process using an MQTT client id (``mqtt_identity``);
+        """The claim of the gateway process using an MQTT client id (``identity.py``);
         the client id's ``/ + #`` become ``_``."""
         safe = client_id.replace("/", "_").replace("+", "_").replace("#", "_")
         return f"{self.base}/_clients/{safe}"

@@ -1,7 +1,7 @@
 """The Modbus TCP register map, as one declarative table.
 
 The server answers from it, ``docs/register-map.md`` is generated from it
-(``python -m imu_gateway.frontends.modbus_map > docs/register-map.md``; a test fails when
+(``python -m imu_gateway.frontends.modbus.map > docs/register-map.md``; a test fails when
 the file is out of date), and nothing else describes it.
 
 Each sensor's map is kept as a byte image: the measured values are packed at the
@@ -19,9 +19,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
-from ..cache import Snapshot
-from ..commands import CATALOGUE, CommandSpec
-from ..model import (
+from ...cache import Snapshot
+from ...commands import CATALOGUE, CommandSpec
+from ...model import (
     CAPABILITIES,
     VALUE_GROUPS,
     Group,
@@ -31,9 +31,9 @@ from ..model import (
     WireProtocol,
     shortest_float32,
 )
-from ..normalise import field_values
-from ..stats import BusStats
-from . import modbus_ident
+from ...normalise import field_values
+from ...stats import BusStats
+from . import ident
 
 INT32_MIN = -(2**31)
 NAN32 = struct.pack(">f", math.nan)
@@ -274,8 +274,8 @@ def markdown() -> str:
     lines = [
         "# Modbus TCP register map",
         "",
-        "Generated from `imu_gateway/frontends/modbus_map.py` by "
-        "`python -m imu_gateway.frontends.modbus_map`; do not edit by hand.",
+        "Generated from `imu_gateway/frontends/modbus/map.py` by "
+        "`python -m imu_gateway.frontends.modbus.map`; do not edit by hand.",
         "",
         "One map per sensor, addressed by its `unit_id`. Protocol addresses, 0-based. "
         "FC03 and FC04 read the same values. 32-bit values are big-endian, high word "
@@ -329,7 +329,7 @@ def markdown() -> str:
         *(f"| {off if k.words == 1 else f'{off}-{off + 1}'} | {k.value[1]} | {text} |"
           for off, k, _, text, _ in DIAG_REGISTERS),
         "",
-        *modbus_ident.markdown(),
+        *ident.markdown(),
     ]
     return "\n".join(lines)
 

@@ -8,7 +8,7 @@
 * When a connection that worked is lost, the next broker in the list is tried after
   ``RECONNECT_MIN`` (the lost one may be the one that is down).
 * Before a reconnect (after a lost connection or a failed try), the plain MQTT front
-  end probes the brokers (``mqtt_identity``): a probe that has no answer after half a
+  end probes the brokers (``probe.py``): a probe that has no answer after half a
   second gets another beside it on the next broker of the list (the same one, when
   the list has one), and the connect goes to the first that answered.
 * When a try fails, the next broker is tried at once, until every broker of the list

@@ -1,7 +1,7 @@
 """Modbus/TCP Security (Modbus.org MB-TCP-Security v21, docs/modbus-tcp.md): the TLS
 port's context, the role in a client's certificate, and the right each request needs.
 
-The connections themselves are ``modbus_tcp``'s: accepted in plain TCP (so the limits
+The connections themselves are ``server.py``'s: accepted in plain TCP (so the limits
 on hostile clients reach a handshake in progress too), then upgraded by asyncio's
 ``start_tls``, so pipelining, deadlines and those limits hold on both ports.
 What this module adds is decided once per connection (the role, from the certificate
@@ -16,9 +16,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from ..config.schema import ModbusRight, ModbusTlsConfig
-from ..errors import StartupError
-from . import modbus_ident as ident
+from ...config.schema import ModbusRight, ModbusTlsConfig
+from ...errors import StartupError
+from . import ident
 
 if TYPE_CHECKING:  # cryptography (9 MB) is imported when a TLS client is checked
     from cryptography import x509

@@ -7,7 +7,7 @@ exception 03).  Those are the server's framing and dispatch, so this module owns
 them: the MBAP header over an ``asyncio.Protocol``, every request of a segment
 answered in order, and the exceptions docs/register-map.md lists.  pymodbus still
 decodes the write PDUs and encodes the write and exception answers.  The hot path, a
-read, is a bounds check and a slice of the sensor's byte image (``modbus_map``):
+read, is a bounds check and a slice of the sensor's byte image (``map.py``):
 a read never waits for the serial bus, so a hundred clients cost the bus nothing.
 
 Writes to the command registers become commands; the answer is sent after the sensor
@@ -22,7 +22,7 @@ Implementation Guide advises), so that clients who only hold sockets cannot lock
 out; every request that came before a client's FIN is answered; warnings about
 peers are rate-limited.
 
-Modbus/TCP Security (``modbus.tls``, ``modbus_tls``): a second listening socket whose
+Modbus/TCP Security (``modbus.tls``, ``tls.py``): a second listening socket whose
 connections are this module's ``_Connection``, upgraded to TLS by ``loop.start_tls``
 once admitted, so all of the above holds there too; each request is first checked
 against the rights of the role in the client's certificate (refused: exception 01).
@@ -51,11 +51,11 @@ from typing import Any
 from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 from pymodbus.pdu.register_message import WriteMultipleRegistersResponse
 
-from ..cache import EventKind, Snapshot
-from ..config import ModbusConfig, SensorConfig
-from ..config.schema import ModbusTlsConfig
-from ..errors import KINDS, ErrorKind, RequestFailed, StartupError
-from ..modbus_codes import (
+from ...cache import EventKind, Snapshot
+from ...config import ModbusConfig, SensorConfig
+from ...config.schema import ModbusTlsConfig
+from ...errors import KINDS, ErrorKind, RequestFailed, StartupError
+from ...modbus_codes import (
     DEVICE_FAILURE,
     GATEWAY_PATH,
     ILLEGAL_ADDRESS,
@@ -67,12 +67,12 @@ from ..modbus_codes import (
     WRITE_MULTIPLE,
     WRITE_SINGLE,
 )
-from ..stats import FrontendCounts
-from ..supervise import Frontend, PeerLog
-from . import modbus_ident as ident
-from . import modbus_map as mm
-from . import modbus_tls
-from .common import GatewayLike
+from ...stats import FrontendCounts
+from ...supervise import Frontend, PeerLog
+from ..common import GatewayLike
+from . import ident
+from . import map as mm
+from . import tls as modbus_tls
 
 log = logging.getLogger("imu_gateway.modbus")
 
@@ -282,7 +282,7 @@ class ModbusTcpServer(Frontend):
 
     def _identify(self, unit_id: int, pdu: bytes) -> bytes:
         """Read Device Identification: a sensor's unit (its raw unit too) says what
-        the sensor is; unit 255 what the gateway is (``modbus_ident``)."""
+        the sensor is; unit 255 what the gateway is (``ident.py``)."""
         unit = self.units.get(unit_id)
         raw = self.raw_units.get(unit_id)
         if unit is None and raw is not None:

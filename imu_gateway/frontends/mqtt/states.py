@@ -19,18 +19,17 @@ from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
-from ..cache import EventKind, Snapshot, Status
-from ..config import MqttConfig
-from ..derived import reading_json, values_of
-from .common import GatewayLike
-from .mqtt_side import SideTopics
-from .mqtt_topics import (
+from ...cache import EventKind, Snapshot, Status
+from ...config import MqttConfig
+from ...derived import reading_json, values_of
+from ...mqtt_link.message import Message, json_properties
+from ..common import GatewayLike
+from .side import SideTopics
+from .topics import (
     CONTROL_QOS,
     OFFLINE,
     ONLINE,
-    Message,
     Topics,
-    json_properties,
     send_delay,
     within_deadband,
 )

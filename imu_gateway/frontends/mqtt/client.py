@@ -1,10 +1,10 @@
 """The MQTT client: state, availability, commands and Home Assistant discovery
 (docs/mqtt.md).
 
-The connection (threads, connecting, failover) is a ``mqtt_session.Session``; the way
-to paho (outbox, control messages, window) its ``mqtt_pipe.Pipe``.  Before each
-connect, an identity probe makes sure no other gateway holds this id
-(``mqtt_identity``).
+The connection (threads, connecting, failover) is a ``mqtt_link.session.Session``; the
+way to paho (outbox, control messages, window) its ``mqtt_link.pipe.Pipe``.  Before
+each connect, an identity probe makes sure no other gateway holds this id
+(``identity``).
 
 Nothing grows while the broker is away.  States wait in ``Outbox``, a bounded queue
 that drops its oldest message (and counts it) when full.  The retained control messages
@@ -32,25 +32,25 @@ from typing import Any
 import paho.mqtt.client as paho
 from paho.mqtt.subscribeoptions import SubscribeOptions
 
-from ..config import Broker, MqttConfig
-from ..errors import BrokerUnreached
-from ..stats import FrontendCounts
-from ..supervise import Frontend
-from . import mqtt_identity
-from .common import GatewayLike, json_bytes
-from .mqtt_commands import CommandDesk
-from .mqtt_discovery import discovery_configs, setup_of
-from .mqtt_identity import Identity
-from .mqtt_session import Ready, Session
-from .mqtt_states import StateDesk
-from .mqtt_sweep import SWEEP_S, RetainedSweep
-from .mqtt_topics import (
+from ...config import Broker, MqttConfig
+from ...mqtt_link import probe
+from ...mqtt_link.errors import BrokerUnreached
+from ...mqtt_link.message import Message, json_properties
+from ...mqtt_link.session import Ready, Session
+from ...stats import FrontendCounts
+from ...supervise import Frontend
+from ..common import GatewayLike, json_bytes
+from .commands import CommandDesk
+from .discovery import discovery_configs, setup_of
+from . import identity
+from .identity import Identity
+from .states import StateDesk
+from .sweep import SWEEP_S, RetainedSweep
+from .topics import (
     CONTROL_QOS,
     OFFLINE,
     ONLINE,
-    Message,
     Topics,
-    json_properties,
     retained_leaves,
 )
 
@@ -152,7 +152,7 @@ class MqttClient(Frontend):
         id (found now, or while connected): stay away and look again later."""
         if self.identity.held_off:
             self.identity.held_off = False
-            return Ready(brokers[0], mqtt_identity.RIVAL_WAIT)
+            return Ready(brokers[0], identity.RIVAL_WAIT)
         probed = await self.identity.rival(brokers, self.session.make_client,
                                            [f"{self.prefix}/#", *self.discovery])
         # what that broker serves already need not be said again: the nodes of a
@@ -169,7 +169,7 @@ class MqttClient(Frontend):
         if probed.rival is None:
             return Ready(probed.broker, None)
         self.identity.held_off = False
-        return Ready(probed.broker, mqtt_identity.RIVAL_WAIT)
+        return Ready(probed.broker, identity.RIVAL_WAIT)
 
     def will(self) -> Message:
         return Message(self.status_topic, OFFLINE, CONTROL_QOS, True)
@@ -201,7 +201,7 @@ class MqttClient(Frontend):
                 try:
                     # (a client id of its own: a probe of the connect's may still be
                     # connecting, and a second connection with its id would take over)
-                    found = await mqtt_identity.read_retained(
+                    found = await probe.read_retained(
                         self.session.make_client, broker, f"{self.identity.probe_id}-g",
                         [status])
                 except BrokerUnreached as failed:
