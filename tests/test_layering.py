@@ -189,3 +189,74 @@ def test_the_gateway_imports_none_of_the_tools() -> None:
         package = ".".join(path.parent.relative_to(GATEWAY.parent).parts)
         for name in package_imports(path, package):
             assert not _within(name, "imu_gateway.tools"), f"{path} imports {name}"
+
+
+CONFIG = GATEWAY / "config"
+
+
+def config_graph() -> dict[str, set[str]]:
+    """Which modules of ``imu_gateway/config`` each one imports, counting imports inside
+    functions and under ``if TYPE_CHECKING:`` (a late import is a loop all the same)."""
+    modules = {p.stem for p in CONFIG.glob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for stem in modules:
+        edges: set[str] = set()
+        for name in package_imports(CONFIG / f"{stem}.py", "imu_gateway.config"):
+            if not _within(name, "imu_gateway.config"):
+                continue
+            rest = name.removeprefix("imu_gateway.config").lstrip(".").split(".")[0]
+            # ``from . import X`` of a name that is no module comes from the package itself.
+            edges.add(rest if rest in modules else "__init__")
+        graph[stem] = edges - {stem}
+    return graph
+
+
+def import_loop(graph: dict[str, set[str]]) -> list[str] | None:
+    """One loop of ``graph`` (``[a, b, a]``), or ``None``: a depth-first walk."""
+    done: set[str] = set()
+
+    def walk(node: str, trail: list[str]) -> list[str] | None:
+        if node in trail:
+            return [*trail[trail.index(node):], node]
+        if node in done:
+            return None
+        for nxt in sorted(graph.get(node, ())):
+            found = walk(nxt, [*trail, node])
+            if found:
+                return found
+        done.add(node)
+        return None
+
+    for start in sorted(graph):
+        found = walk(start, [])
+        if found:
+            return found
+    return None
+
+
+def test_import_loop_finder() -> None:
+    assert import_loop({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert import_loop({"a": {"b", "c"}, "b": {"c"}, "c": set()}) is None
+    assert config_graph()["__init__"] >= {"loading", "schema", "fields"}
+
+
+def test_config_has_no_import_loop() -> None:
+    """The schema's checks across keys live where the schema does not import them back:
+    every way of building a config (``load_config``, ``config_from_dict``,
+    ``GatewayConfig.model_validate``) runs them, and no module half-exists while
+    another reads it."""
+    loop = import_loop(config_graph())
+    assert loop is None, f"import loop in imu_gateway/config: {' -> '.join(loop or [])}"
+
+
+def test_config_modules_share_no_private_name() -> None:
+    """A name another module uses is public; one kept private (``_x``) is its module's own."""
+    crossing = [
+        f"{path.name}: from {'.' * node.level}{node.module or ''} import {alias.name}"
+        for path in sorted(CONFIG.glob("*.py"))
+        for node in ast.walk(ast.parse(path.read_text(), str(path)))
+        if isinstance(node, ast.ImportFrom) and node.level
+        for alias in node.names if alias.name.startswith("_")
+    ]
+    assert not crossing, "private names imported across imu_gateway/config:\n" + \
+        "\n".join(crossing)

@@ -4,9 +4,12 @@
 whose ``problems`` are one line each, ``<yaml path>: <message>``
 (``buses[0].sensors[1].series: must be one of IMU, VG, AH, MINS, not "XY"``).  Every
 problem in the file is listed, not only the first: field errors from pydantic are
-converted in one place (:func:`_pydantic_problem`), and the checks that span several
+converted in one place (``problems.pydantic_problem``), and the checks that span several
 fields (uniqueness, one streaming sensor per bus, what a protocol allows) run on every
-part that is valid on its own (:func:`_cross_problems`).
+part that is valid on its own (``checks.cross_problems``).
+
+The modules import one way: ``fields`` ← ``checks`` ← ``schema`` ← ``problems`` ←
+``loading`` (``tests/test_layering.py`` holds it).
 
 Defaults that depend on context are filled in before validation, so the models always
 hold final values: a sensor's ``address`` (0 on a native bus, 1 on a modbus bus) and its

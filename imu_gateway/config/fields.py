@@ -8,7 +8,7 @@ import json
 import os
 import re
 from collections.abc import Mapping
-from typing import Annotated, NamedTuple
+from typing import Annotated, Literal, NamedTuple
 from urllib.parse import urlsplit
 
 from pydantic import (
@@ -38,21 +38,20 @@ UNIT_ID_RANGE = (1, 247)
 PYSERIAL_SCHEMES = ("socket", "rfc2217", "loop", "spy", "alt", "hwgrep", "cp2110")
 _NAME = re.compile(r"[a-z0-9_-]+")
 _GATEWAY_ID = re.compile(r"[A-Za-z0-9_.-]+")
-_ENV_REF = re.compile(r"\$\$\{|\$\{([^}]*)\}|\$\{")
-_ENV_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 # Values never echoed in a message.
-_SECRET_KEYS = frozenset({"password", "token"})
+SECRET_KEYS = frozenset({"password", "token"})
 
 
 # --------------------------------------------------------------------------- messages
 
 
-def _fail(message: str) -> PydanticCustomError:
+def fail(message: str) -> PydanticCustomError:
+    """A validator's problem, to raise: pydantic reports it as ``message`` unchanged."""
     # The message travels in the context so that braces in it are never a template.
     return PydanticCustomError("config", "{message}", {"message": message})
 
 
-def _show(value: object) -> str:
+def show(value: object) -> str:
     """A short rendering of a bad value for a message: JSON-like, lists and maps by kind."""
     if isinstance(value, str | int | float | bool) or value is None:
         try:
@@ -68,11 +67,12 @@ def _show(value: object) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-def _number(value: float) -> str:
+def show_number(value: float) -> str:
+    """``10.0`` → ``10``, ``0.5`` → ``0.5``."""
     return str(int(value)) if float(value).is_integer() else repr(value)
 
 
-def _path(loc: tuple[int | str, ...]) -> str:
+def yaml_path(loc: tuple[int | str, ...]) -> str:
     """``('buses', 0, 'sensors', 1, 'series')`` → ``buses[0].sensors[1].series``."""
     out = ""
     for part in loc:
@@ -86,10 +86,10 @@ def _path(loc: tuple[int | str, ...]) -> str:
 # ------------------------------------------------------------------ field validators
 
 
-def _between(low: int, high: int) -> AfterValidator:
+def between(low: int, high: int) -> AfterValidator:
     def check(value: int) -> int:
         if not low <= value <= high:
-            raise _fail(f"must be {low}-{high}, not {value}")
+            raise fail(f"must be {low}-{high}, not {value}")
         return value
 
     return AfterValidator(check)
@@ -98,7 +98,7 @@ def _between(low: int, high: int) -> AfterValidator:
 def _at_least(low: float) -> AfterValidator:
     def check(value: float) -> float:
         if value < low:
-            raise _fail(f"must be >= {_number(low)}, not {_number(value)}")
+            raise fail(f"must be >= {show_number(low)}, not {show_number(value)}")
         return value
 
     return AfterValidator(check)
@@ -106,34 +106,34 @@ def _at_least(low: float) -> AfterValidator:
 
 def _positive(value: float) -> float:
     if value <= 0:
-        raise _fail(f"must be > 0, not {_number(value)}")
+        raise fail(f"must be > 0, not {show_number(value)}")
     return value
 
 
 def _name(value: str) -> str:
     if not _NAME.fullmatch(value):
-        raise _fail(
-            f"must match [a-z0-9_-]+ (lower-case letters, digits, _ and -), not {_show(value)}"
+        raise fail(
+            f"must match [a-z0-9_-]+ (lower-case letters, digits, _ and -), not {show(value)}"
         )
     return value
 
 
 def _gateway_id(value: str) -> str:
     if not _GATEWAY_ID.fullmatch(value):
-        raise _fail(f"must match [A-Za-z0-9_.-]+ (it is part of MQTT topics), not {_show(value)}")
+        raise fail(f"must match [A-Za-z0-9_.-]+ (it is part of MQTT topics), not {show(value)}")
     return value
 
 
 def _sparkplug_id(value: str) -> str:
     if not value or any(c in value for c in "/+#"):
-        raise _fail(f"must not be empty nor contain /, + or # (Sparkplug ids are topic "
-                    f"levels), not {_show(value)}")
+        raise fail(f"must not be empty nor contain /, + or # (Sparkplug ids are topic "
+                    f"levels), not {show(value)}")
     return value
 
 
 def _not_empty(value: str) -> str:
     if not value:
-        raise _fail("must not be empty")
+        raise fail("must not be empty")
     return value
 
 
@@ -142,7 +142,7 @@ def _series(value: object) -> Series:
         return value
     if isinstance(value, str) and value.strip().upper() in Series.__members__:
         return Series[value.strip().upper()]
-    raise _fail(f"must be one of {', '.join(s.name for s in Series)}, not {_show(value)}")
+    raise fail(f"must be one of {', '.join(s.name for s in Series)}, not {show(value)}")
 
 
 def _protocol(value: object) -> WireProtocol:
@@ -150,24 +150,33 @@ def _protocol(value: object) -> WireProtocol:
         return value
     if isinstance(value, str) and value.strip().upper() in WireProtocol.__members__:
         return WireProtocol[value.strip().upper()]
-    raise _fail(f"must be one of native, modbus, not {_show(value)}")
+    raise fail(f"must be one of native, modbus, not {show(value)}")
+
+
+def protocol_or_none(value: object) -> WireProtocol | None:
+    """The protocol ``value`` names, or ``None``: for defaults that depend on it, filled
+    in before validation (a bad protocol is reported by its own field)."""
+    try:
+        return _protocol(value)
+    except PydanticCustomError:
+        return None
 
 
 def _baudrate(value: int) -> int:
     if value not in BAUD_RATES:
-        raise _fail(f"must be one of {', '.join(map(str, BAUD_RATES))}, not {value}")
+        raise fail(f"must be one of {', '.join(map(str, BAUD_RATES))}, not {value}")
     return value
 
 
 def _serial_port(value: str) -> str:
     if not value.strip():
-        raise _fail("must not be empty")
+        raise fail("must not be empty")
     if "://" not in value:
         return value  # a device path: /dev/ttyUSB0, /dev/serial/by-id/…, COM3
     scheme = value.split("://", 1)[0].lower()
     if scheme not in PYSERIAL_SCHEMES:
-        raise _fail(
-            f"unknown URL scheme {_show(scheme)}: give a device path such as /dev/ttyUSB0 "
+        raise fail(
+            f"unknown URL scheme {show(scheme)}: give a device path such as /dev/ttyUSB0 "
             "or a pyserial URL (socket://host:port, rfc2217://host:port, loop://)"
         )
     if scheme in ("socket", "rfc2217"):
@@ -177,7 +186,7 @@ def _serial_port(value: str) -> str:
         except ValueError:
             port = None
         if not parts.hostname or port is None:
-            raise _fail(f"must be {scheme}://host:port, not {_show(value)}")
+            raise fail(f"must be {scheme}://host:port, not {show(value)}")
     return value
 
 
@@ -185,7 +194,7 @@ def _enum_name(value: Series) -> str:
     return value.name
 
 
-def _protocol_name(value: WireProtocol) -> str:
+def protocol_name(value: WireProtocol) -> str:
     return value.name.lower()
 
 
@@ -205,20 +214,20 @@ def _listen(value: object) -> ListenAddress:
         return value
     example = 'must be "host:port", e.g. "0.0.0.0:502" or "[::]:502"'
     if not isinstance(value, str):
-        raise _fail(f"{example}, not {_show(value)}")
+        raise fail(f"{example}, not {show(value)}")
     host, sep, port = value.strip().rpartition(":")
     if not sep or not host or not port.isdigit():
-        raise _fail(f"{example}, not {_show(value)}")
+        raise fail(f"{example}, not {show(value)}")
     if host.startswith("[") and host.endswith("]"):
         host = host[1:-1]
         try:
             ipaddress.IPv6Address(host)
         except ValueError:
-            raise _fail(f"{_show(host)} in brackets is not an IPv6 address") from None
+            raise fail(f"{show(host)} in brackets is not an IPv6 address") from None
     elif ":" in host:
-        raise _fail(f'an IPv6 host goes in brackets, e.g. "[::]:502", not {_show(value)}')
+        raise fail(f'an IPv6 host goes in brackets, e.g. "[::]:502", not {show(value)}')
     if int(port) > 65535:
-        raise _fail(f"port must be 0-65535, not {port}")
+        raise fail(f"port must be 0-65535, not {port}")
     return ListenAddress(host, int(port))
 
 
@@ -233,7 +242,7 @@ def _network(value: object) -> IPNetwork:
             return ipaddress.ip_network(value.strip(), strict=False)
         except ValueError:
             pass
-    raise _fail(f"must be an IPv4 or IPv6 network such as 10.0.0.0/8, not {_show(value)}")
+    raise fail(f"must be an IPv4 or IPv6 network such as 10.0.0.0/8, not {show(value)}")
 
 
 def _network_text(value: IPNetwork) -> str:
@@ -243,17 +252,17 @@ def _network_text(value: IPNetwork) -> str:
 def _mqtt_url(value: str) -> str:
     parts = urlsplit(value)
     if parts.scheme not in ("mqtt", "mqtts"):
-        raise _fail(f"must be mqtt://host[:port] or mqtts://host[:port], not {_show(value)}")
+        raise fail(f"must be mqtt://host[:port] or mqtts://host[:port], not {show(value)}")
     if "@" in parts.netloc:
-        raise _fail("must not hold credentials: use the username and password keys")
+        raise fail("must not hold credentials: use the username and password keys")
     try:
         port = parts.port
     except ValueError:
-        raise _fail(f"port must be 0-65535, not {_show(value)}") from None
+        raise fail(f"port must be 0-65535, not {show(value)}") from None
     if not parts.hostname:
-        raise _fail(f"has no host: {_show(value)}")
+        raise fail(f"has no host: {show(value)}")
     if parts.path not in ("", "/") or parts.query or parts.fragment or port == 0:
-        raise _fail(f"must be {parts.scheme}://host[:port] and nothing more, not {_show(value)}")
+        raise fail(f"must be {parts.scheme}://host[:port] and nothing more, not {show(value)}")
     return value
 
 
@@ -263,14 +272,14 @@ def _mqtt_urls(value: str | list[str]) -> str | list[str]:
     if isinstance(value, str):
         return _mqtt_url(value)
     if not value:
-        raise _fail("must name at least one broker")
+        raise fail("must name at least one broker")
     for url in value:
         _mqtt_url(url)
     if len({urlsplit(url).scheme for url in value}) > 1:
-        raise _fail("must use one scheme for every broker, all mqtt:// or all mqtts:// "
+        raise fail("must use one scheme for every broker, all mqtt:// or all mqtts:// "
                     "(they share the TLS settings)")
     if len(set(value)) < len(value):
-        raise _fail("names a broker twice")
+        raise fail("names a broker twice")
     return value
 
 
@@ -279,35 +288,35 @@ def _mqtt_protocol(value: object) -> str:
         return "5"
     if isinstance(value, str) and value.strip() in ("3.1.1", "5", "5.0"):
         return "3.1.1" if value.strip() == "3.1.1" else "5"
-    raise _fail(f'must be "3.1.1" or 5, not {_show(value)}')
+    raise fail(f'must be "3.1.1" or 5, not {show(value)}')
 
 
 def _base_topic(value: str) -> str:
     if not value:
-        raise _fail("must not be empty")
+        raise fail("must not be empty")
     if any(c in value for c in "+#\0"):
-        raise _fail(f"must not contain the MQTT wildcards + or #, not {_show(value)}")
+        raise fail(f"must not contain the MQTT wildcards + or #, not {show(value)}")
     if value.startswith("/") or value.endswith("/"):
-        raise _fail(f"must not start or end with /, not {_show(value)}")
+        raise fail(f"must not start or end with /, not {show(value)}")
     return value
 
 
 def _existing_file(value: str) -> str:
     if not os.path.isfile(value):
-        raise _fail(f"no such file: {value}")
+        raise fail(f"no such file: {value}")
     return value
 
 
 def _in_existing_folder(value: str) -> str:
     folder = os.path.dirname(value) or "."
     if not value or not os.path.isdir(folder):
-        raise _fail(f"no such folder: {folder} (for {value}); create it first")
+        raise fail(f"no such folder: {folder} (for {value}); create it first")
     return value
 
 
 Name = Annotated[str, AfterValidator(_name)]
 NonEmpty = Annotated[str, AfterValidator(_not_empty)]
-UnitId = Annotated[int, _between(*UNIT_ID_RANGE)]
+UnitId = Annotated[int, between(*UNIT_ID_RANGE)]
 PositiveInt = Annotated[int, AfterValidator(_positive)]
 NonNegativeInt = Annotated[int, _at_least(0)]
 NonNegative = Annotated[float, _at_least(0)]
@@ -315,7 +324,7 @@ SeriesField = Annotated[
     Series, PlainValidator(_series), PlainSerializer(_enum_name, when_used="json")
 ]
 ProtocolField = Annotated[
-    WireProtocol, PlainValidator(_protocol), PlainSerializer(_protocol_name, when_used="json")
+    WireProtocol, PlainValidator(_protocol), PlainSerializer(protocol_name, when_used="json")
 ]
 Listen = Annotated[ListenAddress, PlainValidator(_listen), PlainSerializer(str, when_used="json")]
 Network = Annotated[
@@ -323,3 +332,11 @@ Network = Annotated[
 ]
 ExistingFile = Annotated[str, AfterValidator(_existing_file)]
 FileToKeep = Annotated[str, AfterValidator(_in_existing_folder)]
+SerialPort = Annotated[str, AfterValidator(_serial_port)]
+BaudRate = Annotated[int, AfterValidator(_baudrate)]
+GatewayId = Annotated[str, AfterValidator(_gateway_id)]
+SparkplugId = Annotated[str, AfterValidator(_sparkplug_id)]
+MqttUrls = Annotated[str | list[str], AfterValidator(_mqtt_urls)]
+MqttProtocol = Annotated[Literal["3.1.1", "5"], PlainValidator(_mqtt_protocol)]
+#: an MQTT topic prefix (``base_topic``, ``discovery_prefix``)
+TopicPrefix = Annotated[str, AfterValidator(_base_topic)]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -15,14 +16,13 @@ from pydantic import (
 )
 
 from ..errors import ConfigError
-from .fields import (
-    _ENV_NAME,
-    _ENV_REF,
-    _path,
-    _show,
-)
-from .problems import _cross_problems, _pydantic_problem, _salvage
+from .checks import cross_problems
+from .fields import show, yaml_path
+from .problems import pydantic_problem, salvage
 from .schema import GatewayConfig
+
+_ENV_REF = re.compile(r"\$\$\{|\$\{([^}]*)\}|\$\{")
+_ENV_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 # ------------------------------------------------------------------------- loading
 
@@ -40,7 +40,7 @@ def _expand_env(
                 for i, v in enumerate(node)]
     if not isinstance(node, str) or "${" not in node:
         return node
-    path = _path(loc)
+    path = yaml_path(loc)
     out: list[str] = []
     pos = 0
     ok = True
@@ -54,7 +54,7 @@ def _expand_env(
             problems.append(f"{path}: unterminated ${{ (write $${{ for a literal ${{)")
             ok = False
         elif not _ENV_NAME.fullmatch(name):
-            problems.append(f"{path}: {_show('${' + name + '}')} is not an environment "
+            problems.append(f"{path}: {show('${' + name + '}')} is not an environment "
                             "variable reference (a name is letters, digits and _)")
             ok = False
         elif name not in env:
@@ -82,11 +82,11 @@ def config_from_dict(
         config = GatewayConfig.model_validate(expanded)
     except ValidationError as exc:
         for error in exc.errors():
-            if _path(error["loc"]) not in unresolved:
-                problems.append(_pydantic_problem(error))
+            if yaml_path(error["loc"]) not in unresolved:
+                problems.append(pydantic_problem(error))
         # Best effort on a config already known to be bad: never let it hide those problems.
         with contextlib.suppress(Exception):
-            problems += _cross_problems(_salvage(expanded))
+            problems += cross_problems(salvage(expanded))
     except ConfigError as exc:
         problems += exc.problems
     else:
@@ -111,7 +111,7 @@ def _construct_mapping(loader: _Loader, node: yaml.MappingNode) -> dict[Any, Any
             continue
         if first != key_node.start_mark.line:
             raise yaml.constructor.ConstructorError(
-                None, None, f"duplicate key {_show(key)} (first given on line {first + 1})",
+                None, None, f"duplicate key {show(key)} (first given on line {first + 1})",
                 key_node.start_mark,
             )
     return loader.construct_mapping(node)

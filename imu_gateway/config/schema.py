@@ -11,20 +11,18 @@ from typing import Annotated, Any, Literal, Self
 from urllib.parse import urlsplit
 
 from pydantic import (
-    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
-    PlainValidator,
     ValidationInfo,
     field_validator,
     model_validator,
 )
-from pydantic_core import PydanticCustomError
 
 from ..errors import ConfigError
 from ..model import VALUE_GROUPS, Group, Series, WireProtocol
 from ..normalise import FIELD_NAMES
+from .checks import BusView, SensorView, cross_problems
 from .fields import (
     ADDRESS_RANGE,
     BAUD_RATES,
@@ -33,10 +31,14 @@ from .fields import (
     NATIVE_STREAM_HZ,
     PYSERIAL_SCHEMES,
     UNIT_ID_RANGE,
+    BaudRate,
     ExistingFile,
     FileToKeep,
+    GatewayId,
     Listen,
     ListenAddress,
+    MqttProtocol,
+    MqttUrls,
     Name,
     Network,
     NonEmpty,
@@ -44,19 +46,15 @@ from .fields import (
     NonNegativeInt,
     PositiveInt,
     ProtocolField,
+    SerialPort,
     SeriesField,
+    SparkplugId,
+    TopicPrefix,
     UnitId,
-    _base_topic,
-    _baudrate,
-    _between,
-    _fail,
-    _gateway_id,
-    _mqtt_protocol,
-    _mqtt_urls,
-    _protocol,
-    _serial_port,
-    _show,
-    _sparkplug_id,
+    between,
+    fail,
+    protocol_or_none,
+    show,
 )
 
 # ------------------------------------------------------------------------ the models
@@ -122,11 +120,11 @@ class BusConfig(_Model):
     """One serial line and the sensors on it; the bus master owns it alone."""
 
     name: Name = Field(description="`[a-z0-9_-]+`, unique among buses")
-    port: Annotated[str, AfterValidator(_serial_port)] = Field(description=(
+    port: SerialPort = Field(description=(
         "a device path (`/dev/ttyUSB0`, `/dev/serial/by-id/…`) or a pyserial URL: "
         "`socket://host:port`, `rfc2217://host:port`, `loop://` (also "
         f"{', '.join(f'`{s}://`' for s in PYSERIAL_SCHEMES[3:])}). Unique among buses"))
-    baudrate: Annotated[int, AfterValidator(_baudrate)] = Field(default=9600, description=(
+    baudrate: BaudRate = Field(default=9600, description=(
         f"{_or_list(map(str, BAUD_RATES))}: the rates the sensors have a code for. 9600 is "
         "the sensors' factory rate"))
     protocol: ProtocolField = Field(description="`native` or `modbus` (any case)")
@@ -135,7 +133,7 @@ class BusConfig(_Model):
         "request and the answer, for every sensor of the bus. Leave it out: each "
         "sensor's timeout is then learned from its answers"),
         json_schema_extra={_SHOWN_DEFAULT: "null: learned per sensor (below)"})
-    retries: Annotated[int, _between(0, 10)] = Field(default=1, description=(
+    retries: Annotated[int, between(0, 10)] = Field(default=1, description=(
         "0-10; attempts after the first before an exchange counts as failed"))
     trace: bool = Field(default=False, description=(
         "log one line per exchange on this bus (the bytes out and in, the time, the "
@@ -190,7 +188,7 @@ class ModbusTlsConfig(_Model):
     @model_validator(mode="after")
     def _default_role_is_a_role(self) -> Self:
         if self.default_role is not None and self.default_role not in self.roles:
-            raise _fail(f"default_role: {_show(self.default_role)} is not in roles "
+            raise fail(f"default_role: {show(self.default_role)} is not in roles "
                         f"({', '.join(self.roles) or 'none'}); name one of them, or null")
         return self
 
@@ -227,7 +225,7 @@ class ModbusConfig(_Model):
     @model_validator(mode="after")
     def _serves_somewhere(self) -> Self:
         if self.listen is None and self.tls is None:
-            raise _fail("listen: null turns the plain port off, and there is no tls "
+            raise fail("listen: null turns the plain port off, and there is no tls "
                         "section: nothing would serve; give a listen address, add "
                         "modbus.tls, or leave the modbus section out")
         return self
@@ -264,13 +262,13 @@ class SparkplugConfig(_Model):
     """Sparkplug B on the brokers of ``mqtt.url``: the gateway an edge node, each sensor
     a device (docs/sparkplug.md)."""
 
-    group_id: Annotated[str, AfterValidator(_sparkplug_id)] = Field(description=(
+    group_id: SparkplugId = Field(description=(
         "the Sparkplug group id; not empty, no `/`, `+` or `#`"))
     plain_topics: bool = Field(default=True, description=(
         "keep the plain topics (`{base}/{gateway_id}/…`) too; false: Sparkplug only"))
     allow_commands: bool = Field(default=False, description=(
         "run the catalogue's commands written as DCMD metrics (`Commands/…`)"))
-    primary_host_id: Annotated[str, AfterValidator(_sparkplug_id)] | None = Field(
+    primary_host_id: SparkplugId | None = Field(
         default=None, description=(
             "the primary host application whose `spBv1.0/STATE/{id}` must say online "
             "before the gateway is born; null: none is waited for"))
@@ -284,7 +282,7 @@ class SparkplugConfig(_Model):
 class MqttConfig(_Model):
     """The MQTT client."""
 
-    url: Annotated[str | list[str], AfterValidator(_mqtt_urls)] = Field(
+    url: MqttUrls = Field(
         default="mqtt://localhost:1883", description=(
             "`mqtt://host[:port]` (default port 1883) or `mqtts://host[:port]` for TLS "
             "(default 8883); no credentials, path or query in it. Or a list of them, the "
@@ -300,9 +298,9 @@ class MqttConfig(_Model):
         "client certificate; an existing file; needs `mqtts://`"))
     keyfile: ExistingFile | None = Field(default=None, description=(
         "client key; an existing file; needs `mqtts://` and `certfile`"))
-    base_topic: Annotated[str, AfterValidator(_base_topic)] = Field(default="imu", description=(
+    base_topic: TopicPrefix = Field(default="imu", description=(
         "first level of every topic; not empty, no `+` or `#`, no leading or trailing `/`"))
-    qos: Annotated[int, _between(0, 2)] = Field(default=0, description=(
+    qos: Annotated[int, between(0, 2)] = Field(default=0, description=(
         "0-2; QoS of state and per-field messages"))
     retain: bool = Field(default=True, description="retain state and per-field messages")
     per_field_topics: bool = Field(default=False, description=(
@@ -321,7 +319,7 @@ class MqttConfig(_Model):
         json_schema_extra={_SHOWN_DEFAULT: "null: from `http.listen` and the host name"})
     allow_commands: bool = Field(default=False, description=(
         "accept commands on `{base}/{gateway_id}/{sensor}/cmd/{command}`"))
-    protocol: Annotated[Literal["3.1.1", "5"], PlainValidator(_mqtt_protocol)] = Field(
+    protocol: MqttProtocol = Field(
         default="3.1.1", description='`"3.1.1"` or `5` (MQTT 5)',
         json_schema_extra={_SHOWN_TYPE: "string or number", _SHOWN_DEFAULT: '`"3.1.1"`'})
     client_id: NonEmpty | None = Field(default=None, description="not empty", json_schema_extra={
@@ -345,7 +343,7 @@ class MqttConfig(_Model):
     state_expiry_s: Annotated[int, Field(gt=0)] | None = Field(default=None, description=(
         "> 0; MQTT 5: the message expiry of state and per-field messages, so that a broker "
         "stops serving a retained state this old; null: none"))
-    discovery_prefix: Annotated[str, AfterValidator(_base_topic)] = Field(
+    discovery_prefix: TopicPrefix = Field(
         default="homeassistant", description=(
             "Home Assistant's discovery prefix; rules as for `base_topic`"))
     sparkplug: SparkplugConfig | None = Field(default=None, description=(
@@ -357,7 +355,7 @@ class MqttConfig(_Model):
         known = {*FIELD_NAMES, *(g.value for g in Group)}
         unknown = sorted(set(value) - known)
         if unknown:
-            raise _fail(f"unknown field {', '.join(map(_show, unknown))} (fields: "
+            raise fail(f"unknown field {', '.join(map(show, unknown))} (fields: "
                         f"{' '.join(FIELD_NAMES)}; or a group: {' '.join(g.value for g in Group)})")
         return value
 
@@ -375,14 +373,14 @@ class MqttConfig(_Model):
     @classmethod
     def _password_needs_username(cls, value: str | None, info: ValidationInfo) -> str | None:
         if value is not None and info.data.get("username", "") is None:
-            raise _fail("needs a username")
+            raise fail("needs a username")
         return value
 
     @field_validator("state_expiry_s")
     @classmethod
     def _needs_mqtt5(cls, value: int | None, info: ValidationInfo) -> int | None:
         if value is not None and info.data.get("protocol") == "3.1.1":
-            raise _fail("needs protocol: 5 (MQTT 3.1.1 has no message expiry)")
+            raise fail("needs protocol: 5 (MQTT 3.1.1 has no message expiry)")
         return value
 
     @field_validator("ca_file", "certfile", "keyfile")
@@ -391,10 +389,10 @@ class MqttConfig(_Model):
         url = info.data.get("url")
         first = url if isinstance(url, str) else (url or [None])[0]
         if value is not None and first is not None and not first.startswith("mqtts://"):
-            raise _fail("needs an mqtts:// url (TLS)")
+            raise fail("needs an mqtts:// url (TLS)")
         if info.field_name == "keyfile" and value is not None and \
                 info.data.get("certfile", "") is None:
-            raise _fail("needs a certfile")
+            raise fail("needs a certfile")
         return value
 
     @property
@@ -432,14 +430,14 @@ class OpcUaConfig(_Model):
     @model_validator(mode="after")
     def _access_rules(self) -> Self:
         if self.listen.port == 0:
-            raise _fail("listen: port 0 is not for OPC UA: the server advertises its "
+            raise fail("listen: port 0 is not for OPC UA: the server advertises its "
                         "endpoint URL with its port, and clients connect to that; give "
                         "a port (4840 is OPC UA's)")
         if self.allow_commands and self.anonymous:
-            raise _fail("anonymous: true with allow_commands: true lets anyone run "
+            raise fail("anonymous: true with allow_commands: true lets anyone run "
                         "commands; set anonymous: false and list users")
         if not self.anonymous and not self.users:
-            raise _fail("anonymous: false needs users, or nobody can log in")
+            raise fail("anonymous: false needs users, or nobody can log in")
         return self
 
 
@@ -460,14 +458,14 @@ class HttpConfig(_Model):
     @classmethod
     def _needs_token(cls, value: bool, info: ValidationInfo) -> bool:
         if value and info.data.get("token", "") is None:
-            raise _fail("needs http.token (the bearer token clients must send)")
+            raise fail("needs http.token (the bearer token clients must send)")
         return value
 
 
 class GatewayConfig(_Model):
     """The whole file.  A section left out (``None``) is an interface turned off."""
 
-    gateway_id: Annotated[str, AfterValidator(_gateway_id)] = Field(
+    gateway_id: GatewayId = Field(
         default_factory=socket.gethostname,
         description="`[A-Za-z0-9_.-]+`; part of every MQTT topic",
         json_schema_extra={_SHOWN_DEFAULT: "the host name"},
@@ -486,14 +484,12 @@ class GatewayConfig(_Model):
     @model_validator(mode="before")
     @classmethod
     def _context_defaults(cls, data: Any) -> Any:
-        return _fill_defaults(data)
+        return fill_defaults(data)
 
     @model_validator(mode="after")
     def _cross_check(self) -> Self:
         # Not a ValueError on purpose: it carries several problems, each with its path.
-        from .problems import _cross_problems, _views  # (problems reads these models)
-
-        problems = _cross_problems(_views(self))
+        problems = cross_problems(_views(self))
         if problems:
             raise ConfigError(problems)
         return self
@@ -520,6 +516,18 @@ class GatewayConfig(_Model):
         )
 
 
+def _views(config: GatewayConfig) -> list[BusView]:
+    """The config as the checks across keys read it (``checks.py``)."""
+    return [
+        BusView(f"buses[{i}]", bus.name, bus.port, bus.protocol, [
+            SensorView(f"buses[{i}].sensors[{j}]", s.name, s.address, s.unit_id,
+                       s.raw_unit_id, s.stream_hz)
+            for j, s in enumerate(bus.sensors)
+        ])
+        for i, bus in enumerate(config.buses)
+    ]
+
+
 # ------------------------------------------------------------ defaults from context
 
 
@@ -530,13 +538,6 @@ def _plain(item: Any) -> Any:
     if isinstance(item, Mapping):
         return dict(item)
     return item
-
-
-def _protocol_or_none(value: object) -> WireProtocol | None:
-    try:
-        return _protocol(value)
-    except PydanticCustomError:
-        return None
 
 
 def _int_or_none(value: object) -> int | None:
@@ -552,7 +553,7 @@ def _fill_bus_defaults(data: Any) -> Any:
     if not isinstance(data, Mapping):
         return data
     bus = dict(data)
-    protocol = _protocol_or_none(bus.get("protocol"))
+    protocol = protocol_or_none(bus.get("protocol"))
     sensors = bus.get("sensors")
     if isinstance(sensors, list | tuple):
         filled = []
@@ -565,7 +566,7 @@ def _fill_bus_defaults(data: Any) -> Any:
     return bus
 
 
-def _fill_defaults(data: Any) -> Any:
+def fill_defaults(data: Any) -> Any:
     """The gateway mapping with addresses and unit ids filled in where not given."""
     if not isinstance(data, Mapping) or not isinstance(data.get("buses"), list | tuple):
         return data
