@@ -194,20 +194,35 @@ def test_the_gateway_imports_none_of_the_tools() -> None:
 CONFIG = GATEWAY / "config"
 
 
-def config_graph() -> dict[str, set[str]]:
-    """Which modules of ``imu_gateway/config`` each one imports, counting imports inside
-    functions and under ``if TYPE_CHECKING:`` (a late import is a loop all the same)."""
-    modules = {p.stem for p in CONFIG.glob("*.py")}
+def _modules() -> dict[str, Path]:
+    """Every module of the gateway by dotted name (a package by its ``__init__``)."""
+    out = {}
+    for path in GATEWAY.rglob("*.py"):
+        parts = path.relative_to(GATEWAY.parent).with_suffix("").parts
+        out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    return out
+
+
+def _ancestors(name: str) -> set[str]:
+    parts = name.split(".")
+    return {".".join(parts[:k]) for k in range(1, len(parts))}
+
+
+def package_graph() -> dict[str, set[str]]:
+    """Which modules of the gateway each one imports, counting imports inside functions
+    and under ``if TYPE_CHECKING:`` (a late import is a loop all the same).  Importing
+    ``a.b.c`` runs the ``__init__`` of ``a`` and ``a.b`` too, unless the importer is
+    inside them (its packages are already being imported)."""
+    modules = _modules()
     graph: dict[str, set[str]] = {}
-    for stem in modules:
+    for name, path in modules.items():
+        own = _ancestors(name) | ({name} if path.name == "__init__.py" else set())
         edges: set[str] = set()
-        for name in package_imports(CONFIG / f"{stem}.py", "imu_gateway.config"):
-            if not _within(name, "imu_gateway.config"):
-                continue
-            rest = name.removeprefix("imu_gateway.config").lstrip(".").split(".")[0]
-            # ``from . import X`` of a name that is no module comes from the package itself.
-            edges.add(rest if rest in modules else "__init__")
-        graph[stem] = edges - {stem}
+        for target in module_imports(path):
+            while target not in modules and "." in target:  # ``from m import attr``
+                target = target.rsplit(".", 1)[0]
+            edges |= {m for m in _ancestors(target) | {target} if m in modules} - own
+        graph[name] = edges - {name}
     return graph
 
 
@@ -237,16 +252,21 @@ def import_loop(graph: dict[str, set[str]]) -> list[str] | None:
 def test_import_loop_finder() -> None:
     assert import_loop({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
     assert import_loop({"a": {"b", "c"}, "b": {"c"}, "c": set()}) is None
-    assert config_graph()["__init__"] >= {"loading", "schema", "fields"}
+    graph = package_graph()
+    assert graph["imu_gateway.config"] >= {"imu_gateway.config.loading",
+                                           "imu_gateway.config.schema"}
+    # an import of a module runs its packages' ``__init__`` first; not its own packages'
+    assert "imu_gateway.frontends" in graph["imu_gateway.app"]
+    assert "imu_gateway.config" not in graph["imu_gateway.config.schema"]
 
 
-def test_config_has_no_import_loop() -> None:
-    """The schema's checks across keys live where the schema does not import them back:
-    every way of building a config (``load_config``, ``config_from_dict``,
-    ``GatewayConfig.model_validate``) runs them, and no module half-exists while
-    another reads it."""
-    loop = import_loop(config_graph())
-    assert loop is None, f"import loop in imu_gateway/config: {' -> '.join(loop or [])}"
+def test_no_import_loop_in_the_package() -> None:
+    """No module of the gateway half-exists while another reads it: the error tree
+    imports no config, the config's checks across keys live where the schema does not
+    import them back (every way of building a config runs them), and a late import
+    inside a function counts as much as one at the top."""
+    loop = import_loop(package_graph())
+    assert loop is None, f"import loop: {' -> '.join(loop or [])}"
 
 
 def test_config_modules_share_no_private_name() -> None:
