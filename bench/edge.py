@@ -44,10 +44,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import hostile as h
-from broker import Mosquitto
 from busy import Line, buses_yaml, simulator, stopped
 from common import free_port
 from soak import GatewayProcess, QuietMosquitto, favour
+from support.broker import Mosquitto
 
 QUOTA_US, PERIOD_US = 2500, 10000
 GOAL_RATE, GOAL_HEALTH_S = 0.8, 1.0

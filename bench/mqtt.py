@@ -41,8 +41,8 @@ import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from broker import Mosquitto
-from harness import fields_of
+from support.broker import Mosquitto
+from support.harness import fields_of
 
 from imu_gateway.app import GIL_SWITCH_INTERVAL, Gateway
 from imu_gateway.config import config_from_dict

@@ -20,7 +20,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from harness import running
+from support.harness import running
 
 from imu_gateway.bus.link import SerialLink
 from imu_gateway.model import Series, WireProtocol

@@ -56,7 +56,6 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from broker import Mosquitto, Recorder
 from hostile import (
     PARTIAL_HEADERS,
     PARTIAL_MBAP,
@@ -66,6 +65,7 @@ from hostile import (
     Swarm,
     trickle,
 )
+from support.broker import Mosquitto, Recorder
 
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import make_sensor, simulated
@@ -231,7 +231,7 @@ async def garbage(port: int, total: int, workers: int = 20) -> int:
 
 
 async def measure(args: argparse.Namespace, folder: Path) -> dict[str, Any]:
-    from harness import free_port
+    from support.harness import free_port
 
     sims = {"a": [make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST),
                   make_sensor(WireProtocol.NATIVE, Series.VG, 1, baud=FAST)],
@@ -357,7 +357,7 @@ async def _clients(ports: dict[str, int], broker: Mosquitto, hold: float) -> Non
 
 
 async def start_up(args: argparse.Namespace, folder: Path) -> dict[str, list[float]]:
-    from harness import free_port
+    from support.harness import free_port
 
     sims = {"a": [make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST),
                   make_sensor(WireProtocol.NATIVE, Series.VG, 1, baud=FAST)],

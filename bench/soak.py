@@ -53,8 +53,8 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import hostile as h
-from broker import Mosquitto
-from harness import free_port
+from support.broker import Mosquitto
+from support.harness import free_port
 
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import PtyBus, make_sensor
@@ -263,7 +263,7 @@ def favour(pid: int = 0) -> None:
 
 
 class QuietMosquitto(Mosquitto):
-    """tests/broker.py's broker logs every packet: over a long soak that is a large
+    """tests/support/broker.py's broker logs every packet: over a long soak that is a large
     file of nothing.  Here it logs what went wrong and who connected."""
 
     def _config(self) -> Path:

@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from pathlib import Path
 from typing import Any
 
 import pytest
+from support import ROOT
 
 from imu_gateway.commands import CATALOGUE, BusEffect, commands_for, validate
 from imu_gateway.frontends.modbus import map as mm
@@ -30,7 +30,7 @@ from imu_gateway.protocol.exchanges import (
 from imu_gateway.simulator.sensor import SimSensor, make_sensor
 from imu_gateway.tools import command_reference
 
-DOC = Path(__file__).parent.parent / "docs" / "commands.md"
+DOC = ROOT / "docs" / "commands.md"
 WIRES = tuple(WireProtocol)
 
 
@@ -170,7 +170,7 @@ def _busy_snapshot() -> Any:
 
 
 def test_rest_has_one_route_per_command() -> None:
-    """(The committed OpenAPI document is what the app serves: tests/test_rest.py.)"""
+    """(The committed OpenAPI document is what the app serves: tests/frontends/rest/test_rest.py.)"""
     document = json.loads((DOC.parent.parent / "openapi" / "openapi.json").read_text())
     commands = {path.rsplit("/", 1)[1] for path in document["paths"]
                 if path.startswith("/api/v1/sensors/{name}/commands/")}

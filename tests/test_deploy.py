@@ -28,10 +28,10 @@ from typing import Any
 import paho.mqtt.client as paho
 import pytest
 import yaml
-from broker import Mosquitto
-from harness import free_port
 from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.reasoncodes import ReasonCode
+from support.broker import Mosquitto
+from support.harness import free_port
 
 from imu_gateway.config import GatewayConfig, load_config
 from imu_gateway.tools.cli import build_parser

@@ -18,9 +18,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from broker import Received, Recorder, recording
-from harness import running, until
-from nats_cluster import NatsCluster, NatsNode
+from support.broker import Received, Recorder, recording
+from support.harness import running, until
+from support.nats_cluster import NatsCluster, NatsNode
 
 from imu_gateway.app import Gateway
 from imu_gateway.model import Series, WireProtocol

@@ -21,8 +21,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from broker import Mosquitto
-from harness import free_port
+from support.broker import Mosquitto
+from support.harness import free_port
 
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import SimulatorThread, make_sensor

@@ -17,7 +17,7 @@ from __future__ import annotations
 from typing import Any
 
 import pytest
-from harness import running, until
+from support.harness import running, until
 
 from imu_gateway.errors import ErrorKind
 from imu_gateway.model import Series, WireProtocol

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from harness import free_port
+from support.harness import free_port
 
 from imu_gateway import __version__
 

@@ -24,8 +24,8 @@ from typing import Any
 import pytest
 import yaml
 from asyncua import Client, ua
-from broker import Mosquitto
-from harness import free_port
+from support.broker import Mosquitto
+from support.harness import free_port
 
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import make_sensor, simulated

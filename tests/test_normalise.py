@@ -9,7 +9,7 @@ in docs/mqtt.md.
 from __future__ import annotations
 
 import pytest
-from vectors import ANSWER, NATIVE_VECTORS, Vector
+from support.vectors import ANSWER, NATIVE_VECTORS, Vector
 
 from imu_gateway.model import CAPABILITIES, Angles, Group, Quaternion, Reading, Series, Vector3
 from imu_gateway.normalise import FIELD_NAMES, group_values, to_reading

@@ -6,7 +6,7 @@ import asyncio
 import logging
 
 import pytest
-from harness import until
+from support.harness import until
 
 from imu_gateway import supervise
 from imu_gateway.supervise import Frontend, PeerLog, RepeatFilter, Supervisor

@@ -4,7 +4,7 @@
 Every key of every section, with its type, default and rule, is read from the pydantic
 models: a field's ``description`` is its rule, and ``json_schema_extra`` may say what
 default (``shown_default``) or type (``shown_type``) to show where pydantic's would
-mislead.  ``scripts/config-reference`` writes the file; ``tests/test_config_reference.py``
+mislead.  ``scripts/config-reference`` writes the file; ``tests/config/test_config_reference.py``
 fails while the committed file differs from :func:`markdown`.
 
 Run ``python -m imu_gateway.tools.config_reference`` to print it.

@@ -1,4 +1,4 @@
-// node-opcua's client against the gateway's OPC UA server, for tests/test_opcua_node.py:
+// node-opcua's client against the gateway's OPC UA server, for tests/frontends/opcua/test_opcua_node.py:
 // an independent client that knows the server only from docs/opcua.md.
 //   node opcua.js ENDPOINT GATEWAY_ID SENSOR [USER PASSWORD]
 // The environment gives the client's certificate and key (UA_CERT, UA_KEY, PEM) and

@@ -1,4 +1,4 @@
-// node-opcua's client reads what an integrator reads first, for tests/test_opcua_node.py:
+// node-opcua's client reads what an integrator reads first, for tests/frontends/opcua/test_opcua_node.py:
 //   node opcua_model.js ENDPOINT GATEWAY_ID SENSOR USER PASSWORD
 // The environment gives the client's certificate and key (UA_CERT, UA_KEY, PEM); the
 // session is Basic256Sha256 SignAndEncrypt with the user.  Prints one JSON object:

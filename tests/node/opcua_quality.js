@@ -1,5 +1,5 @@
 // node-opcua watches one value's quality:
-//   node opcua_quality.js ENDPOINT NODE_ID   (for tests/test_opcua_node.py)
+//   node opcua_quality.js ENDPOINT NODE_ID   (for tests/frontends/opcua/test_opcua_node.py)
 // Subscribes (mode None, anonymous) and prints "STATUS <name> <sourceTimestamp ms>"
 // for every notification, one line each, as they come; the test reads them as they
 // arrive and ends the process when it has seen what it waits for.

@@ -1,6 +1,6 @@
 """``docs/opcua.md``, generated from the address space's rows (``space``) and the
 command catalogue: ``python -m imu_gateway.frontends.opcua.docs > docs/opcua.md``.
-``tests/test_opcua_docs.py`` fails while the committed file differs."""
+``tests/frontends/opcua/test_opcua_docs.py`` fails while the committed file differs."""
 
 from __future__ import annotations
 

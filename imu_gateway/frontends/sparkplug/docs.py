@@ -1,6 +1,6 @@
 """``docs/sparkplug.md``, generated from the metric rows (``metrics``) and the node's
 rules (``node``): ``python -m imu_gateway.frontends.sparkplug.docs > docs/sparkplug.md``.
-``tests/test_sparkplug_docs.py`` fails while the committed file differs."""
+``tests/frontends/sparkplug/test_sparkplug_docs.py`` fails while the committed file differs."""
 
 from __future__ import annotations
 
