@@ -170,7 +170,8 @@ def _busy_snapshot() -> Any:
 
 
 def test_rest_has_one_route_per_command() -> None:
-    """(The committed OpenAPI document is what the app serves: tests/frontends/rest/test_rest.py.)"""
+    """(The committed OpenAPI document is what the app serves:
+    tests/frontends/rest/test_rest.py.)"""
     document = json.loads((DOC.parent.parent / "openapi" / "openapi.json").read_text())
     commands = {path.rsplit("/", 1)[1] for path in document["paths"]
                 if path.startswith("/api/v1/sensors/{name}/commands/")}

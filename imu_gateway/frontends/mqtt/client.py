@@ -40,9 +40,9 @@ from ...mqtt_link.session import Ready, Session
 from ...stats import FrontendCounts
 from ...supervise import Frontend
 from ..common import GatewayLike, json_bytes
+from . import identity
 from .commands import CommandDesk
 from .discovery import discovery_configs, setup_of
-from . import identity
 from .identity import Identity
 from .states import StateDesk
 from .sweep import SWEEP_S, RetainedSweep
