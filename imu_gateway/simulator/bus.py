@@ -20,6 +20,7 @@ modelled here:
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import functools
 import math
@@ -35,7 +36,7 @@ import tty
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 from ..protocol.exchanges import char_time
 from ..threads import tighten_timers
@@ -63,6 +64,8 @@ HELD, WATCH_TICK = 0.02, 0.01
 #: request read late, or a frame sent late, affects the exchange it belongs to, which
 #: is over within a sensor's longest answer timeout (0.4 s).
 SHADOW = 0.5
+
+T = TypeVar("T")
 
 _SPEEDS = {
     getattr(termios, f"B{rate}"): rate
@@ -461,10 +464,22 @@ class SimulatorThread:
             self._error = exc
             self._ready.set()
 
-    def call(self, fn: Callable[..., object], *args: object) -> None:
-        """Run ``fn(*args)`` on the simulator's loop (for unplug/replug)."""
+    def call(self, fn: Callable[..., T], *args: object) -> concurrent.futures.Future[T]:
+        """Run ``fn(*args)`` on the simulator's loop, between its handling of the line's
+        bytes (unplug/replug, a sensor's ``lean``).  The future is done once it has run:
+        ``.result(5)`` waits for that and gives what ``fn`` returned, or raises what it
+        raised."""
         assert self._loop is not None
-        self._loop.call_soon_threadsafe(fn, *args)
+        done: concurrent.futures.Future[T] = concurrent.futures.Future()
+
+        def run() -> None:
+            try:
+                done.set_result(fn(*args))
+            except Exception as exc:  # the caller's to see, not the loop's
+                done.set_exception(exc)
+
+        self._loop.call_soon_threadsafe(run)
+        return done
 
     def __enter__(self) -> SimulatorThread:
         self._thread.start()

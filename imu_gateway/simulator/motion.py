@@ -17,6 +17,8 @@ from typing import Protocol
 from imu_gateway.model import Angles, Quaternion, Reading, Vector3
 
 TAU = 2.0 * math.pi
+#: The Earth's field (gauss): north, and dipping down, as in mid-northern latitudes.
+MAG_NORTH, MAG_DOWN = 0.2, 0.42
 
 
 class Source(Protocol):
@@ -51,8 +53,8 @@ class Motion:
     pitch_phase: float = 0.0
     yaw0: float = 0.0
     yaw_rate: float = 6.0
-    mag_north: float = 0.2
-    mag_down: float = 0.42
+    mag_north: float = MAG_NORTH
+    mag_down: float = MAG_DOWN
 
     @classmethod
     def from_seed(cls, seed: int) -> Motion:
@@ -69,35 +71,42 @@ class Motion:
             yaw_rate=rng.choice((-1.0, 1.0)) * rng.uniform(2.0, 10.0),
         )
 
+    def yaw(self, t: float) -> float:
+        """The heading at ``t``, wrapped to [0, 360)."""
+        yaw = (self.yaw0 + self.yaw_rate * t) % 360.0
+        return 0.0 if yaw >= 360.0 else yaw  # a tiny negative value rounds up to 360.0 under %
+
     def sample(self, t: float) -> Reading:
         wr, wp = TAU * self.roll_freq, TAU * self.pitch_freq
         roll = self.roll_amp * math.sin(wr * t + self.roll_phase)
         pitch = self.pitch_amp * math.sin(wp * t + self.pitch_phase)
-        yaw = (self.yaw0 + self.yaw_rate * t) % 360.0
-        if yaw >= 360.0:  # a tiny negative value rounds up to 360.0 under %
-            yaw = 0.0
-        # Analytic Euler-angle rates (deg/s); the trigonometry below works in radians.
+        # Analytic Euler-angle rates (deg/s).
         droll = self.roll_amp * wr * math.cos(wr * t + self.roll_phase)
         dpitch = self.pitch_amp * wp * math.cos(wp * t + self.pitch_phase)
-        dyaw = self.yaw_rate
-        f, th, ps = math.radians(roll), math.radians(pitch), math.radians(yaw)
-        cf, sf, ct, st = math.cos(f), math.sin(f), math.cos(th), math.sin(th)
-        gyro = Vector3(  # body rates p, q, r from the ZYX kinematic equations
-            droll - dyaw * st,
-            dpitch * cf + dyaw * ct * sf,
-            -dpitch * sf + dyaw * ct * cf,
-        )
-        # The sensors report gravity's direction in their own frame, +1 g on z when level
-        # (the documents' examples), i.e. the NED "down" unit vector in body axes.
-        accel = _to_body((0.0, 0.0, 1.0), f, th, ps)
-        mag = _to_body((self.mag_north, 0.0, self.mag_down), f, th, ps)
-        return Reading(
-            angles=Angles(pitch=pitch, roll=roll, yaw=yaw),
-            accel=accel,
-            gyro=gyro,
-            mag=mag,
-            quaternion=_quaternion(f, th, ps),
-        )
+        return attitude(Angles(pitch, roll, self.yaw(t)), (droll, dpitch, self.yaw_rate),
+                        (self.mag_north, self.mag_down))
+
+
+def attitude(angles: Angles, rates: tuple[float, float, float],
+             field: tuple[float, float] = (MAG_NORTH, MAG_DOWN)) -> Reading:
+    """The whole reading of a sensor at ``angles`` whose roll, pitch and yaw change at
+    ``rates`` (deg/s), in an Earth field of ``field`` (north, down; gauss): every group
+    from the same three angles."""
+    droll, dpitch, dyaw = rates
+    # The trigonometry works in radians.
+    f, th, ps = math.radians(angles.roll), math.radians(angles.pitch), math.radians(angles.yaw)
+    cf, sf, ct, st = math.cos(f), math.sin(f), math.cos(th), math.sin(th)
+    gyro = Vector3(  # body rates p, q, r from the ZYX kinematic equations
+        droll - dyaw * st,
+        dpitch * cf + dyaw * ct * sf,
+        -dpitch * sf + dyaw * ct * cf,
+    )
+    # The sensors report gravity's direction in their own frame, +1 g on z when level
+    # (the documents' examples), i.e. the NED "down" unit vector in body axes.
+    accel = _to_body((0.0, 0.0, 1.0), f, th, ps)
+    mag = _to_body((field[0], 0.0, field[1]), f, th, ps)
+    return Reading(angles=angles, accel=accel, gyro=gyro, mag=mag,
+                   quaternion=_quaternion(f, th, ps))
 
 
 def _quaternion(roll: float, pitch: float, yaw: float) -> Quaternion:
@@ -127,3 +136,37 @@ class Fixed:
 
 def hold(reading: Reading) -> Fixed:
     return Fixed(reading)
+
+
+#: The lean's limits (degrees).  Pitch stops short of ±90°, where roll and yaw become
+#: one rotation (gimbal lock) and the Euler angles a sensor reports lose their meaning.
+PITCH_LIMIT, ROLL_LIMIT = 89.0, 180.0
+
+
+@dataclass(frozen=True, slots=True)
+class Leaned:
+    """``base`` held at a fixed pitch and roll (degrees), exactly: a machine leaning
+    and standing still there.  The heading goes on as ``base`` has it (a ``Motion``
+    keeps turning at its yaw rate, and the gyro shows that turn at the lean), and
+    every group is worked out from the same three angles, as ``Motion``'s are."""
+
+    base: Source
+    pitch: float
+    roll: float
+
+    def __post_init__(self) -> None:
+        for name, value, limit in (("pitch", self.pitch, PITCH_LIMIT),
+                                   ("roll", self.roll, ROLL_LIMIT)):
+            if not -limit <= value <= limit:  # NaN fails this too
+                raise ValueError(f"a lean's {name} is a number of degrees from {-limit:g} "
+                                 f"to {limit:g}, not {value!r}")
+
+    def sample(self, t: float) -> Reading:
+        if isinstance(self.base, Motion):
+            yaw, rate = self.base.yaw(t), self.base.yaw_rate
+            field = (self.base.mag_north, self.base.mag_down)
+        else:  # a still source: its heading, if it has one
+            angles = self.base.sample(t).angles
+            yaw, rate, field = (angles.yaw if angles else 0.0), 0.0, (MAG_NORTH, MAG_DOWN)
+        return attitude(Angles(float(self.pitch), float(self.roll), yaw), (0.0, 0.0, rate),
+                        field)

@@ -26,7 +26,7 @@ from ..protocol import bcd, native
 from ..protocol import modbus_rtu as rtu
 from ..protocol.errors import FrameError
 from ..protocol.exchanges import Framer, char_time, rtu_silence
-from .motion import Motion, Source
+from .motion import Leaned, Motion, Source
 
 
 @dataclass(slots=True)
@@ -85,6 +85,8 @@ class SimSensor(ABC):
     #: what lets a test say the gateway wrote nothing nobody asked for
     writes_heard: Counter[str] = field(default_factory=Counter)
     last_answer_end: float = 0.0  # when this sensor's latest answer leaves the wire
+    #: the (pitch, roll) the sensor is held at (``lean``), or None: its source's motion
+    leaning: tuple[float, float] | None = None
     rng: random.Random = field(init=False)
 
     protocol: WireProtocol = field(init=False)
@@ -139,11 +141,32 @@ class SimSensor(ABC):
 
     # ------------------------------------------------------------ the measured values
 
+    def lean(self, pitch: float | None, roll: float = 0.0) -> None:
+        """Hold the sensor at ``pitch`` and ``roll`` (degrees) from its next sample on,
+        or (``None``) let it follow its source's motion again.  Every group follows the
+        lean (``motion.Leaned``); the heading goes on as the source has it.  A
+        ``ValueError`` names a lean out of range, and the sensor stays as it was.
+
+        From another thread, run it on the simulator's loop:
+        ``sim.call(sensor.lean, 7.5, 0.0).result(5)``."""
+        if pitch is None:
+            self.leaning = None
+            return
+        Leaned(self.source, pitch, roll)  # checks the range
+        self.leaning = (float(pitch), float(roll))
+
+    @property
+    def attitude(self) -> Source:
+        """The source with the lean, if any, applied: what every value comes from."""
+        if self.leaning is None:
+            return self.source
+        return Leaned(self.source, *self.leaning)
+
     def measure(self, now: float, *, every_group: bool = False) -> Reading:
         """What the sensor reports at ``now``: its source through the zero type and the
         heading settings, limited to what the series measures (``every_group``: not
         limited, for the native reads any series answers, such as an IMU's 2.3)."""
-        raw = self.source.sample(now)
+        raw = self.attitude.sample(now)
         reading = raw if every_group else raw.only(CAPABILITIES[self.series].groups)
         if reading.angles is not None:
             a = reading.angles
@@ -161,14 +184,14 @@ class SimSensor(ABC):
     def apply_zero_type(self, zero_type: str, now: float) -> None:
         self.settings.zero_type = zero_type
         if zero_type == "relative":
-            angles = self.source.sample(now).angles
+            angles = self.attitude.sample(now).angles
             self.zero_offset = (angles.pitch, angles.roll) if angles else (0.0, 0.0)
         else:
             self.zero_offset = (0.0, 0.0)
 
     def set_heading(self, degrees: float, now: float) -> None:
         """Make the yaw read ``degrees`` from now on (clear heading is ``0``)."""
-        angles = self.source.sample(now).angles
+        angles = self.attitude.sample(now).angles
         raw_yaw = angles.yaw if angles else 0.0
         self.heading_offset = raw_yaw + self.settings.declination - degrees
 

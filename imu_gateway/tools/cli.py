@@ -25,6 +25,8 @@ from .decode import decode_all, to_json_line
 
 if TYPE_CHECKING:
     from ..config import GatewayConfig
+    from ..simulator import PtyBus, SimSensor
+    from ..simulator.control import ControlSocket
 
 EXIT_BAD_INPUT = 2
 
@@ -129,6 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
     _demo_parser(commands)
     _scan_parser(commands)
     _simulate_parser(commands)
+    _simulate_control_parser(commands)
     _check_config_parser(commands)
     return parser
 
@@ -263,7 +266,22 @@ def _simulate_parser(commands: Subcommands) -> None:
                      help="bursts of line noise per second, while the line is idle")
     sim.add_argument("--seed", type=int, default=0, help="seed of motion and faults")
     sim.add_argument("--link", help="also make the pty reachable at this path (a symlink)")
+    sim.add_argument("--control", metavar="PATH", help="take commands (lean ADDRESS PITCH "
+                     "ROLL, lean ADDRESS off) on a Unix socket at PATH: see simulate-control")
     sim.add_argument("-v", "--verbose", action="store_true", help="log every frame to stderr")
+
+
+def _simulate_control_parser(commands: Subcommands) -> None:
+    control = commands.add_parser(
+        "simulate-control",
+        help="send a command to a running simulator",
+        description="Send one command to the control socket of 'imu-gateway simulate "
+        "--control PATH' and print its answer: 'ok' (exit 0), or the error (exit 2). "
+        "Commands: lean ADDRESS PITCH ROLL (degrees; ADDRESS may be native:N or modbus:N), "
+        "lean ADDRESS off.",
+    )
+    control.add_argument("path", metavar="PATH", help="the simulator's --control socket")
+    control.add_argument("words", nargs="+", metavar="WORD", help="the command, e.g. lean 1 7.5 0")
 
 
 def _check_config_parser(commands: Subcommands) -> None:
@@ -443,10 +461,15 @@ def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
             print(f"imu-gateway simulate: error: --link {args.link}: {exc.strerror or exc}",
                   file=sys.stderr)
             raise SystemExit(EXIT_BAD_INPUT) from None
+        control = await _open_control(args.control, sensors, bus)  # before PTY: ready then
         print(f"PTY {path}", flush=True)
         for sensor in sensors:
             print(f"sensor {sensor.name} at {sensor.baud} baud", file=sys.stderr, flush=True)
-        await bus.serve(stop)
+        try:
+            await bus.serve(stop)
+        finally:
+            if control is not None:
+                control.close()
         # What the line saw, for whoever drove it (a benchmark, a test, a curious user).
         stats = bus.stats
         summary = {"requests_bytes": stats.requests_bytes, "answer_frames": stats.answer_frames,
@@ -459,6 +482,37 @@ def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
         print(f"simulate: stopped: {json.dumps(summary)}", file=sys.stderr, flush=True)
 
     asyncio.run(main())
+    return 0
+
+
+async def _open_control(path: str | None, sensors: Sequence[SimSensor],
+                        bus: PtyBus) -> ControlSocket | None:
+    from ..simulator.control import open_control
+
+    if path is None:
+        return None
+    try:
+        return await open_control(path, sensors)
+    except OSError as exc:
+        bus.close()
+        print(f"imu-gateway simulate: error: --control {path}: {exc.strerror or exc}",
+              file=sys.stderr)
+        raise SystemExit(EXIT_BAD_INPUT) from None
+
+
+def cmd_simulate_control(args: argparse.Namespace) -> int:
+    from ..simulator.control import OK, send
+
+    try:
+        answer = send(args.path, " ".join(args.words))
+    except OSError as exc:
+        print(f"imu-gateway simulate-control: error: {args.path}: {exc.strerror or exc} (is "
+              f"'imu-gateway simulate --control {args.path}' running?)", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if answer != OK:
+        print(f"imu-gateway simulate-control: {answer or 'error: no answer'}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(answer)
     return 0
 
 
@@ -489,7 +543,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return cmd_simulate(args, parser)
     handlers: dict[str, Callable[[argparse.Namespace], int]] = {
         "decode": cmd_decode, "check-config": cmd_check_config, "run": cmd_run,
-        "scan": cmd_scan, "demo": cmd_demo,
+        "scan": cmd_scan, "demo": cmd_demo, "simulate-control": cmd_simulate_control,
     }
     return handlers[args.command](args)
 

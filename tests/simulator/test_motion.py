@@ -9,7 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from imu_gateway.model import Quaternion, Reading, Vector3
-from imu_gateway.simulator.motion import Fixed, Motion, Source, hold
+from imu_gateway.simulator.motion import Fixed, Leaned, Motion, Source, hold
 
 Q = tuple[float, float, float, float]
 times = st.floats(min_value=0.0, max_value=600.0)
@@ -154,3 +154,65 @@ def test_hold_returns_the_fixed_reading() -> None:
     source: Source = hold(reading)
     assert isinstance(source, Fixed)
     assert source.sample(0.0) is reading and source.sample(99.0) is reading
+
+
+# ---------------------------------------------------------------- a lean (Leaned)
+
+pitches = st.floats(min_value=-89.0, max_value=89.0)
+rolls = st.floats(min_value=-180.0, max_value=180.0)
+
+
+@given(seeds, times, pitches, rolls)
+def test_a_lean_holds_pitch_and_roll_and_the_motion_s_heading(seed: int, t: float,
+                                                              pitch: float, roll: float) -> None:
+    m = Motion.from_seed(seed)
+    r = Leaned(m, pitch, roll).sample(t)
+    assert r.angles is not None and (r.angles.pitch, r.angles.roll) == (pitch, roll)
+    assert r.angles.yaw == m.yaw(t) == m.sample(t).angles.yaw  # type: ignore[union-attr]
+
+
+@given(seeds, times, pitches, rolls)
+def test_a_lean_s_quaternion_accel_and_mag_match_its_angles(seed: int, t: float, pitch: float,
+                                                            roll: float) -> None:
+    m = Motion.from_seed(seed)
+    r = Leaned(m, pitch, roll).sample(t)
+    q = tup(r.quaternion)
+    q0, q1, q2, q3 = q
+    assert q0 >= 0 and math.isclose(q0**2 + q1**2 + q2**2 + q3**2, 1.0, abs_tol=1e-12)
+    assert math.degrees(math.asin(2 * (q0 * q2 - q3 * q1))) == pytest.approx(pitch, abs=1e-9)
+    qroll = math.degrees(math.atan2(2 * (q0 * q1 + q2 * q3), 1 - 2 * (q1 * q1 + q2 * q2)))
+    assert abs((qroll - roll + 180.0) % 360.0 - 180.0) < 1e-9  # ±180° are one roll
+    assert close(vec(r.accel), to_body(q, (0.0, 0.0, 1.0)), 1e-12)
+    assert close(vec(r.mag), to_body(q, (m.mag_north, 0.0, m.mag_down)), 1e-12)
+
+
+@given(seeds, times, pitches, rolls)
+def test_a_lean_s_gyro_is_the_turn_of_its_heading(seed: int, t: float, pitch: float,
+                                                  roll: float) -> None:
+    """Held at the lean, the sensor still turns with the motion's yaw: integrating the
+    gyro over dt gives the next sample's quaternion (as for the motion itself)."""
+    lean, dt = Leaned(Motion.from_seed(seed), pitch, roll), 1e-3
+    w = tuple(math.radians(c) for c in vec(lean.sample(t + dt / 2).gyro))
+    norm = math.sqrt(sum(c * c for c in w))
+    half = norm * dt / 2
+    k = math.sin(half) / norm if norm else 0.0
+    step = (math.cos(half), w[0] * k, w[1] * k, w[2] * k)
+    integrated = mul(tup(lean.sample(t).quaternion), step)
+    assert same_rotation(integrated, tup(lean.sample(t + dt).quaternion), 1e-9)
+
+
+def test_a_lean_on_a_still_source_keeps_its_heading_and_stands_still() -> None:
+    still = hold(Motion(yaw0=123.0, yaw_rate=0.0, roll_amp=0.0, pitch_amp=0.0).sample(0.0))
+    r = Leaned(still, 0.0, 0.0).sample(5.0)
+    assert r.angles is not None and r.angles.yaw == 123.0
+    assert close(vec(r.gyro), (0.0, 0.0, 0.0), 1e-15)
+    assert close(vec(r.accel), (0.0, 0.0, 1.0), 1e-15)
+    nose_up = Leaned(still, 10.0, 0.0).sample(0.0)  # gravity shifts towards -x
+    assert vec(nose_up.accel)[0] == pytest.approx(-math.sin(math.radians(10.0)))
+
+
+@pytest.mark.parametrize(("pitch", "roll"), [(math.nan, 0.0), (0.0, math.inf), (89.5, 0.0),
+                                             (-90.0, 0.0), (0.0, 180.5), (0.0, -200.0)])
+def test_a_lean_out_of_range_is_refused(pitch: float, roll: float) -> None:
+    with pytest.raises(ValueError, match=r"a lean's (pitch|roll) is a number of degrees"):
+        Leaned(Motion(), pitch, roll)
