@@ -280,3 +280,122 @@ def test_config_modules_share_no_private_name() -> None:
     ]
     assert not crossing, "private names imported across imu_gateway/config:\n" + \
         "\n".join(crossing)
+
+
+# ------------------------------------------------------------------ the bus core is sans-IO
+
+BUS = GATEWAY / "bus"
+#: The bus's decisions: no clock, no port, no thread, no loop (time is an argument, as
+#: in the protocol package).  ``line`` is one of them: the wire as the schedule sees it
+#: (the schedule and its outcomes import it).  The edge that does the I/O is
+#: ``master``, ``link``, ``reactor`` and ``runner``.
+BUS_CORE = ("schedule", "jobs", "phase", "timing", "sensor_state", "outcomes",
+            "diagnosis", "events", "trace", "line")
+BUS_FORBIDDEN = FORBIDDEN | {"select"}
+#: What the core may import of the project besides itself: the protocol, the model,
+#: the exception tree, Modbus's numbers and the command catalogue; and two stores of
+#: plain data: ``config`` (the frozen settings a schedule runs by) and ``stats`` (the
+#: running totals it keeps).  Neither does I/O on import or in what the core uses.
+BUS_CORE_ALLOWED = ("imu_gateway.protocol", "imu_gateway.model", "imu_gateway.errors",
+                    "imu_gateway.modbus_codes", "imu_gateway.commands", "imu_gateway.config",
+                    "imu_gateway.stats", *(f"imu_gateway.bus.{m}" for m in BUS_CORE))
+
+
+@pytest.mark.parametrize("module", BUS_CORE)
+def test_the_bus_core_does_no_io(module: str) -> None:
+    path = BUS / f"{module}.py"
+    for name in package_imports(path, "imu_gateway.bus"):
+        top = name.split(".")[0]
+        assert top not in BUS_FORBIDDEN, \
+            f"bus/{path.name} imports {name}: the bus core does no I/O; time is an argument"
+        if top == "imu_gateway":
+            assert any(_within(name, p) for p in BUS_CORE_ALLOWED), \
+                f"bus/{path.name} imports {name}"
+        else:
+            assert top in sys.stdlib_module_names, f"bus/{path.name} imports {name}"
+
+
+def test_bus_core_resolver() -> None:
+    names = package_imports(BUS / "schedule.py", "imu_gateway.bus")
+    assert "imu_gateway.bus.line" in names and "imu_gateway.protocol.exchanges" in names
+
+
+def _assigned(tree: ast.AST) -> list[ast.expr]:
+    """Everything a module assigns to, augments or deletes (the targets)."""
+    found: list[ast.expr] = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Assign | ast.Delete):
+            found += node.targets
+        elif isinstance(node, ast.AugAssign | ast.AnnAssign):
+            found.append(node.target)
+    return found
+
+
+def _through_schedule(target: ast.expr) -> bool:
+    """Whether ``target`` is state reached through a schedule (``x.schedule.port_open``,
+    ``schedule.outcomes.tracing``, ``schedule.sensors["a"].address``); ``x.schedule``
+    itself is its holder's own attribute."""
+    for node in ast.walk(target):
+        if isinstance(node, ast.Attribute | ast.Subscript):
+            inner = node.value
+            if (isinstance(inner, ast.Name) and inner.id == "schedule") or \
+                    (isinstance(inner, ast.Attribute) and inner.attr == "schedule"):
+                return True
+    return False
+
+
+def test_only_the_schedule_changes_its_state() -> None:
+    """The schedule's state changes through its own methods, named for what they mean
+    (``start``, ``close``, ``count_reading``, …), so that every change of it is found in
+    ``bus/schedule.py``.  (Aliases, ``s = schedule.sensors["a"]; s.x = 1``, are not
+    followed: the rule is checked where it is written plainly.)"""
+    assert [_through_schedule(t) for t in _assigned(ast.parse(
+        "self.schedule.port_open = 1; schedule.sensors['a'].x += 1; self.schedule = 1"))] \
+        == [True, True, False]
+    found = []
+    for path in sorted(GATEWAY.rglob("*.py")):
+        if path == BUS / "schedule.py":
+            continue
+        found += [f"{path.relative_to(GATEWAY)}:{t.lineno} {ast.unparse(t)}"
+                  for t in _assigned(ast.parse(path.read_text(), str(path)))
+                  if _through_schedule(t)]
+    assert found == []
+
+
+def test_frames_are_told_apart_by_their_type() -> None:
+    """The frames the protocol hands the bus are a union (``exchanges.Frame``): the bus
+    matches on it, never duck-types a frame with ``getattr``."""
+    for path in (BUS / "outcomes.py", BUS / "diagnosis.py", PROTOCOL / "exchanges.py"):
+        calls = [n for n in ast.walk(ast.parse(path.read_text(), str(path)))
+                 if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)
+                 and n.func.id == "getattr"]
+        assert calls == [], f"{path.name}:{calls[0].lineno} duck-types with getattr"
+
+
+def _parts(hint: object) -> list[object]:
+    """A type hint and every type inside it (``Callable[[Any], None]``: ``Any`` too)."""
+    from typing import get_args
+
+    inner = hint if isinstance(hint, list) else get_args(hint)  # (a Callable's arguments)
+    return [hint, *(p for arg in inner for p in _parts(arg))]
+
+
+def test_frames_and_outcomes_cross_typed() -> None:
+    """No ``Any`` where a frame crosses from the protocol to the bus, nor in what a bus
+    master tells whoever asked (``Done``)."""
+    from typing import Any, get_type_hints
+
+    from imu_gateway.bus import line, master, outcomes
+    from imu_gateway.protocol import exchanges
+
+    hints = {
+        "Exchange.match": get_type_hints(exchanges.Exchange)["match"],
+        "Framer.feed": get_type_hints(exchanges.Framer.feed)["return"],
+        "Framer.expire": get_type_hints(exchanges.Framer.expire)["return"],
+        "ProtocolAdapter.unsolicited": get_type_hints(
+            exchanges.ProtocolAdapter.unsolicited)["frame"],
+        "Line.on_frame": get_type_hints(line.Line.__init__)["on_frame"],
+        "Outcomes.frame": get_type_hints(outcomes.Outcomes.frame)["frame"],
+        "master.Done": master.Done,
+    }
+    assert [where for where, hint in hints.items() if Any in _parts(hint)] == []

@@ -16,11 +16,11 @@ Nothing here writes to a sensor: it only reads what the line brings anyway.
 from __future__ import annotations
 
 from collections import Counter
-from typing import Any
 
 from ..model import Series, WireProtocol
 from ..protocol import modbus_rtu as rtu
 from ..protocol import native
+from ..protocol.exchanges import Frame, sender
 
 #: Raw bytes kept to look for frames of the other protocol in (the last of them).
 KEPT_BYTES = 512
@@ -57,16 +57,14 @@ class Diagnosis:
         self.recent += data
         del self.recent[:-KEPT_BYTES]
 
-    def frame(self, frame: Any) -> None:
+    def frame(self, frame: Frame) -> None:
         """Any whole frame of this line's protocol (counted only: which senders are
         strangers is asked when a sensor goes offline, the rare case, not here)."""
         self.frames_in += 1
-        sender = getattr(frame, "unit", getattr(frame, "address", None))
-        if isinstance(sender, int):
-            self.senders[sender] += 1
+        self.senders[sender(frame)] += 1
 
     @staticmethod
-    def misfit(frame: Any, series: Series) -> str | None:
+    def misfit(frame: Frame, series: Series) -> str | None:
         """What is wrong when a native frame from a sensor has the shape of another
         series' answer to the poll (None: it has not)."""
         if not isinstance(frame, native.NativeFrame):

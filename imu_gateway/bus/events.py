@@ -106,13 +106,17 @@ class ErrorCounted:
     sensor: str
 
 
+#: What a job someone waits for ends with: a command's result (success or not), a
+#: pass-through's answer PDU, or None (a read: its reading is in the cache by then).
+Outcome = CommandResult | bytes | None
+
+
 @dataclass(frozen=True, slots=True)
 class Finished:
-    """A job someone waits for is done: a command's result (success or not), a
-    pass-through answer PDU, or a read's reading (in the cache by now); or ``error``."""
+    """A job someone waits for is done: its ``outcome``, or ``error``."""
 
     job: Job
-    outcome: CommandResult | bytes | None
+    outcome: Outcome
     error: RequestFailed | None = None
 
 

@@ -26,7 +26,7 @@ from ..errors import ErrorKind, RequestFailed
 from ..protocol.errors import UsageError
 from ..protocol.exchanges import Exchange, ProtocolAdapter, Unsupported
 from ..stats import Counters
-from .events import Event, Finished, Job, Kind, Note
+from .events import Event, Finished, Job, Kind, Note, Outcome
 from .sensor_state import STREAM_RETRY, SensorState
 
 MAX_QUEUED_PER_SENSOR = 16  # commands waiting for one sensor before more are refused (busy)
@@ -87,7 +87,7 @@ class JobQueue:
         for job in list(self.reads.values()):
             self.finish(job, error=RequestFailed(kind, message))
 
-    def finish(self, job: Job, outcome: CommandResult | bytes | None = None,
+    def finish(self, job: Job, outcome: Outcome = None,
                error: RequestFailed | None = None) -> None:
         """The job is over: whoever waits for it is told (a command always gets a
         ``CommandResult``; a read or a pass-through gets its outcome or ``error``)."""

@@ -23,9 +23,9 @@ from __future__ import annotations
 import enum
 import math
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
-from ..protocol.exchanges import Exchange, ProtocolAdapter, char_time
+from ..protocol.exchanges import Exchange, Frame, ProtocolAdapter, char_time
 from ..stats import Counters
 from .events import Attempt, Job, Request
 
@@ -117,7 +117,7 @@ class Line:
     """One serial line's timing; ``on_frame(frame, at)`` is told of every frame."""
 
     def __init__(self, adapter: ProtocolAdapter, baud: int, stats: Counters,
-                 on_frame: Callable[[Any, float], None]) -> None:
+                 on_frame: Callable[[Frame, float], None]) -> None:
         self.adapter = adapter
         self.baud = baud
         self.stats = stats

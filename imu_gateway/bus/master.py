@@ -25,7 +25,7 @@ import math
 import time
 import typing
 from collections.abc import Callable, Mapping
-from typing import Any, TypeVar
+from typing import TypeVar
 
 from ..commands import CATALOGUE, Command, CommandResult
 from ..config import BusConfig
@@ -41,6 +41,7 @@ from .events import (
     Job,
     Kind,
     Note,
+    Outcome,
     Publish,
     StateChange,
     Trace,
@@ -64,7 +65,7 @@ BUG_PAUSE = 0.1
 STATS_EVERY = 0.25
 T = TypeVar("T")
 #: Told on the bus thread how a job ended: its outcome, or the error.
-Done = Callable[[Any, RequestFailed | None], None]
+Done = Callable[[Outcome, RequestFailed | None], None]
 
 
 class BusToCache(typing.Protocol):
@@ -101,7 +102,7 @@ class BusMaster:
         self._finished = False
         self.trace_log = TraceLog(self.name)
         if logging.getLogger("imu_gateway").isEnabledFor(logging.DEBUG):
-            self.schedule.outcomes.tracing = True  # --log-level debug: every bus
+            self.schedule.trace_all()  # --log-level debug: every bus
 
     @property
     def sensors(self) -> dict[str, SensorState]:
@@ -170,9 +171,7 @@ class BusMaster:
         """Join the bus thread's loop (called on that thread)."""
         self.reactor = reactor
         now = self._now()
-        self.schedule.started = self.stats.rate.started = now
-        for s in self.sensors.values():
-            s.stats.rate.started = now
+        self.schedule.start(now)
         self._stats_at = now + STATS_EVERY
         self._reopen_at = now
         reactor.clients.append(self)
@@ -226,9 +225,7 @@ class BusMaster:
         self._finished = True
         self._wake = self._stats_at = self._reopen_at = math.inf
         self.link.close()
-        self.schedule.port_open = False
-        self.schedule.abort(self._now(), "the gateway is stopping")
-        self.schedule.fail_pending(ErrorKind.OFFLINE, "the gateway is stopping")
+        self.schedule.close(self._now(), "the gateway is stopping")
         self._dispatch()
         self._publish_stats()
 
@@ -346,8 +343,7 @@ class BusMaster:
                 reading = to_reading(answer.values, self.sensors[name].config.series)
                 if reading is not None:
                     self.cache.publish(name, reading, at)
-                    self.sensors[name].stats.readings += 1
-                    self.sensors[name].stats.rate.add(at)
+                    self.schedule.count_reading(name, at)
             case StateChange(name, online, busy, streaming):
                 self.cache.set_state(name, online=online, busy=busy, streaming=streaming)
             case ErrorCounted(name):
@@ -361,7 +357,7 @@ class BusMaster:
             case Trace():
                 self.trace_log.write(event, self._now())
 
-    def _resolve(self, job: Job, outcome: Any, error: RequestFailed | None) -> None:
+    def _resolve(self, job: Job, outcome: Outcome, error: RequestFailed | None) -> None:
         # (each job's error is its own: made when it ended)
         for done in self._waiters.pop(job, ()):
             done(outcome, error)
@@ -389,7 +385,7 @@ class BusMaster:
 _PASSED_ON = (StateChange, Finished)
 
 
-def _learned(job: Job, outcome: Any) -> KnownSettings | None:
+def _learned(job: Job, outcome: Outcome) -> KnownSettings | None:
     """The settings a read the bus asked for itself (after an absence) found: nobody
     else is there to learn them."""
     if job.kind is Kind.SETTINGS and isinstance(outcome, CommandResult) and outcome.ok:

@@ -8,13 +8,19 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
-from typing import Any
 
 from ..commands import CATALOGUE, CommandResult
 from ..config import BusConfig
 from ..errors import ErrorKind, RequestFailed
 from ..model import WireProtocol
-from ..protocol.exchanges import GYRO_CAL_SECONDS, Answer, Effect, ProtocolAdapter
+from ..protocol.exchanges import (
+    GYRO_CAL_SECONDS,
+    Answer,
+    Effect,
+    Frame,
+    ProtocolAdapter,
+    sender,
+)
 from ..stats import Counters
 from .diagnosis import Diagnosis
 from .events import (
@@ -63,7 +69,7 @@ class Outcomes:
         self.diagnosis = diagnosis
         self.tracing = config.trace  # emit a Trace per exchange (the driver may turn it on)
 
-    def frame(self, frame: Any, at: float) -> None:
+    def frame(self, frame: Frame, at: float) -> None:
         """A whole frame came in at ``at``: the answer in flight, a stream frame, a
         late answer, or evidence of a stream nobody asked for."""
         self.diagnosis.frame(frame)
@@ -89,9 +95,9 @@ class Outcomes:
         self.stats.errors["unexpected_frame"] += 1
         # Some other frame from one of ours (a sensor left streaming its angles alone,
         # say): evidence of a stream, though not a reading of what it is polled for.
-        sender = getattr(frame, "unit", getattr(frame, "address", None))
+        address = sender(frame)
         for s in self.sensors.values():
-            if s.address != sender or s.streaming:
+            if s.address != address or s.streaming:
                 continue
             misfit = self.diagnosis.misfit(frame, s.config.series)
             if misfit is None:

@@ -35,6 +35,7 @@ from ..config import BusConfig
 from ..errors import ErrorKind, RequestFailed
 from ..model import KnownSettings, Reading
 from ..stats import BusStats, SensorStats
+from .events import Outcome
 from .master import BusMaster, Done
 from .reactor import Reactor
 
@@ -105,7 +106,8 @@ def _run_all(batch: list[Callable[[], None]]) -> None:
             log.exception("internal error handing a bus's update to the cache")
 
 
-def _settle(future: asyncio.Future[Any], outcome: Any, error: RequestFailed | None) -> None:
+def _settle(future: asyncio.Future[Outcome], outcome: Outcome,
+            error: RequestFailed | None) -> None:
     if future.done():
         return  # the asker has gone (cancelled)
     if error is None:
@@ -140,13 +142,13 @@ class BusRunner:
             raise self._not_running()
         return await asyncio.wrap_future(self.reactor.call(fn))
 
-    async def _job(self, start: Callable[[Done], None]) -> Any:
+    async def _job(self, start: Callable[[Done], None]) -> Outcome:
         """Start a job on the bus thread; its outcome, after the cache writes before it."""
         if not self.reactor.running:
             raise self._not_running()
-        future = asyncio.get_running_loop().create_future()
+        future: asyncio.Future[Outcome] = asyncio.get_running_loop().create_future()
 
-        def done(outcome: Any, error: RequestFailed | None) -> None:
+        def done(outcome: Outcome, error: RequestFailed | None) -> None:
             self.writer.hand(_settle, future, outcome, error)
 
         def begin() -> None:
@@ -162,15 +164,16 @@ class BusRunner:
         return await future
 
     async def submit(self, sensor: str, command: Command) -> CommandResult:
-        result: CommandResult = await self._job(
-            functools.partial(self.master.submit, sensor, command))
+        result = await self._job(functools.partial(self.master.submit, sensor, command))
+        assert isinstance(result, CommandResult)  # (a command's job ends with one)
         return result
 
     async def read_now(self, sensor: str) -> None:
         await self._job(functools.partial(self.master.read_now, sensor))
 
     async def passthrough(self, sensor: str, pdu: bytes) -> bytes:
-        answer: bytes = await self._job(functools.partial(self.master.passthrough, sensor, pdu))
+        answer = await self._job(functools.partial(self.master.passthrough, sensor, pdu))
+        assert isinstance(answer, bytes)  # (a pass-through's ends with the answer PDU)
         return answer
 
     def stop(self) -> None:

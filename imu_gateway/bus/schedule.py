@@ -6,6 +6,7 @@ timing (``timing``), the evidence that a sensor streams unasked (``sensor_state`
 and the line's timing rules (``line``).  It has no clock, no port, no threads and no
 asyncio.  Its driver (``master.BusMaster``) owns the port and does only this::
 
+    schedule.start(now)                      # the driver begins (rates count from now)
     schedule.open(now)                       # the port is open
     request = schedule.next_request(now)     # None: nothing may go out now
     port.write(request.data)
@@ -13,13 +14,16 @@ asyncio.  Its driver (``master.BusMaster``) owns the port and does only this::
     schedule.handle_timer(now, pending)      # at schedule.next_wake(now); pending:
                                              # bytes the port holds, not yet received
     for event in schedule.take_events(): ... # readings, state changes, results, notes
+    schedule.close(now, reason)              # the driver stops for good
+
+The driver changes the schedule's state only through its methods
+(tests/test_layering.py checks it).
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from typing import Any
 
 from ..commands import Command
 from ..config import BusConfig
@@ -27,6 +31,7 @@ from ..errors import ErrorKind, RequestFailed
 from ..protocol.exchanges import (
     Answer,
     Exchange,
+    Frame,
     ProtocolAdapter,
     char_time,
 )
@@ -73,6 +78,22 @@ class Schedule:
         """The line's rate now (a command may have moved it)."""
         return self.line.baud
 
+    def start(self, now: float) -> None:
+        """The driver begins: the bus's and its sensors' rates count from ``now``."""
+        self.started = self.stats.rate.started = now
+        for s in self.sensors.values():
+            s.stats.rate.started = now
+
+    def trace_all(self) -> None:
+        """A ``Trace`` event for every exchange from now on (``--log-level debug``)."""
+        self.outcomes.tracing = True
+
+    def count_reading(self, name: str, at: float) -> None:
+        """A reading of ``name`` reached the cache (the driver normalises answers)."""
+        stats = self.sensors[name].stats
+        stats.readings += 1
+        stats.rate.add(at)
+
     def take_events(self) -> list[Event]:
         events = self._events[:]
         self._events.clear()  # the same list: the job queue appends to it too
@@ -110,9 +131,6 @@ class Schedule:
 
     def queue_depth(self) -> int:
         return len(self.jobs)
-
-    def fail_pending(self, kind: ErrorKind, message: str) -> None:
-        self.jobs.fail_all(kind, message)
 
     # ------------------------------------------------------------ the port
 
@@ -172,6 +190,13 @@ class Schedule:
         self.line.flush(now)
         if self.jobs.current is not None:
             self.outcomes.fail_job(self.jobs.current, now, "internal", message)
+
+    def close(self, now: float, reason: str) -> None:
+        """The driver closed the port for good: the exchange in flight and every job
+        waiting fail (as offline, not against their sensors)."""
+        self.port_open = False
+        self.abort(now, reason)
+        self.jobs.fail_all(ErrorKind.OFFLINE, reason)
 
     @property
     def finished(self) -> bool:
@@ -321,5 +346,5 @@ class Schedule:
                 s.busy_until = 0.0
                 self._events.append(StateChange(s.name, busy=False))
 
-    def _frame(self, frame: Any, at: float) -> None:
+    def _frame(self, frame: Frame, at: float) -> None:
         self.outcomes.frame(frame, at)

@@ -21,7 +21,7 @@ reading of unsolicited (streamed) frames.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, Protocol
@@ -37,6 +37,16 @@ from .errors import FrameError, UsageError
 SAVE_SECONDS = 5.0
 #: How long a Modbus gyro calibration may take before we stop waiting for "done".
 GYRO_CAL_SECONDS = 10.0
+
+
+#: A whole frame as a framer hands it to the bus: a native frame, or a Modbus RTU
+#: message.  What crosses from the protocol to the bus is one of these, never ``Any``.
+Frame = native.NativeFrame | rtu.RtuMessage
+
+
+def sender(frame: Frame) -> int:
+    """The address a frame came from (a native address, a Modbus unit)."""
+    return frame.address if isinstance(frame, native.NativeFrame) else frame.unit
 
 
 def char_time(baud: int) -> float:
@@ -79,6 +89,10 @@ class Answer:
     effect: Effect | None = None
 
 
+#: An exchange's rule for recognising its answer: the frame's ``Answer``, or None.
+Match = Callable[[Frame], Answer | None]
+
+
 @dataclass(frozen=True, slots=True)
 class Exchange:
     label: str
@@ -86,14 +100,14 @@ class Exchange:
     #: the answer's length in bytes (for the wire-time budget); 0: no answer comes
     answer_bytes: int
     #: frame -> its Answer when it answers this request, else None (someone else's)
-    match: Callable[[Any], Answer | None] = field(repr=False)
+    match: Match = field(repr=False)
     effect: Effect = Effect()
 
 
 class Framer(Protocol):
-    def feed(self, data: bytes) -> list[Any]: ...
+    def feed(self, data: bytes) -> Sequence[Frame]: ...
 
-    def expire(self) -> list[Any]: ...
+    def expire(self) -> Sequence[Frame]: ...
 
     @property
     def pending(self) -> int: ...
@@ -125,7 +139,7 @@ class ProtocolAdapter(Protocol):
 
     def stream_stop(self, series: Series, address: int) -> list[Exchange]: ...
 
-    def unsolicited(self, frame: Any, series: Series, address: int) -> Answer | None:
+    def unsolicited(self, frame: Frame, series: Series, address: int) -> Answer | None:
         """A frame nobody asked for, if it is this sensor's data (auto-output) or its
         "done" (Modbus gyro calibration, values ``{"done": True}``)."""
         ...
@@ -138,10 +152,10 @@ class Unsupported(UsageError):
 # --------------------------------------------------------------------------- native
 
 
-def _native_match(shape: native.Shape, address: int) -> Callable[[Any], Answer | None]:
+def _native_match(shape: native.Shape, address: int) -> Match:
     command, data_size = shape.command, shape.data_size
 
-    def match(frame: Any) -> Answer | None:
+    def match(frame: Frame) -> Answer | None:
         if not isinstance(frame, native.NativeFrame) or frame.address != address:
             return None
         if frame.command != command or len(frame.data) != data_size:
@@ -247,7 +261,7 @@ class NativeAdapter:
     def stream_stop(self, series: Series, address: int) -> list[Exchange]:
         return [self._exchange(series, address, "set_output_rate", rate_hz=0)]
 
-    def unsolicited(self, frame: Any, series: Series, address: int) -> Answer | None:
+    def unsolicited(self, frame: Frame, series: Series, address: int) -> Answer | None:
         shape = native.COMMANDS_BY_NAME["read_all"].answer_for(series)
         assert shape is not None
         return _native_match(shape, address)(frame)
@@ -268,9 +282,9 @@ def _exception_answer(msg: rtu.ExceptionAnswer) -> Answer:
     return Answer({"exception": msg.code}, ok=False, detail=f"Modbus exception {msg.code:02X}")
 
 
-def _rtu_read_match(unit: int, start: int, count: int) -> Callable[[Any], Answer | None]:
-    def match(msg: Any) -> Answer | None:
-        if getattr(msg, "unit", None) != unit:
+def _rtu_read_match(unit: int, start: int, count: int) -> Match:
+    def match(msg: Frame) -> Answer | None:
+        if isinstance(msg, native.NativeFrame) or msg.unit != unit:
             return None
         if isinstance(msg, rtu.ReadResponse) and len(msg.registers) == count:
             return Answer(rtu.read_values(start, msg.registers))
@@ -292,9 +306,9 @@ def _write_answer(reg: rtu.SensorRegister, raw: int) -> Answer:
     return answer
 
 
-def _rtu_write_match(unit: int, register: int) -> Callable[[Any], Answer | None]:
-    def match(msg: Any) -> Answer | None:
-        if getattr(msg, "unit", None) != unit:
+def _rtu_write_match(unit: int, register: int) -> Match:
+    def match(msg: Frame) -> Answer | None:
+        if isinstance(msg, native.NativeFrame) or msg.unit != unit:
             return None
         if isinstance(msg, rtu.WriteRegister) and msg.address == register:
             return _write_answer(rtu.REGISTERS_BY_ADDRESS[register], msg.value)
@@ -305,7 +319,7 @@ def _rtu_write_match(unit: int, register: int) -> Callable[[Any], Answer | None]
     return match
 
 
-def _never(_: Any) -> Answer | None:
+def _never(_: Frame) -> Answer | None:
     return None
 
 
@@ -350,7 +364,7 @@ class ModbusAdapter:
         reads = function in (READ_HOLDING, READ_INPUT)
         answer_bytes = 5 + 2 * quantity if reads else 8
 
-        def answers_this(msg: Any) -> bool:
+        def answers_this(msg: rtu.RtuMessage) -> bool:
             """Only the answer to *this* request: a late answer to an earlier one (other
             registers, another count) must not be passed off as it."""
             match msg:
@@ -364,8 +378,9 @@ class ModbusAdapter:
                     return function == WRITE_MULTIPLE and (addr, count) == (address, quantity)
             return False
 
-        def match(msg: Any) -> Answer | None:
-            if getattr(msg, "unit", None) != unit or not answers_this(msg):
+        def match(msg: Frame) -> Answer | None:
+            if isinstance(msg, native.NativeFrame) or msg.unit != unit or \
+                    not answers_this(msg):
                 return None
             return Answer({"pdu": rtu.encode(msg)[1:-2]})
 
@@ -394,8 +409,8 @@ class ModbusAdapter:
     def stream_stop(self, series: Series, address: int) -> list[Exchange]:
         return [self.write(series, address, "output_interval_ms", 0)]
 
-    def unsolicited(self, frame: Any, series: Series, address: int) -> Answer | None:
-        if getattr(frame, "unit", None) != address:
+    def unsolicited(self, frame: Frame, series: Series, address: int) -> Answer | None:
+        if isinstance(frame, native.NativeFrame) or frame.unit != address:
             return None
         if isinstance(frame, rtu.WriteRegister) and frame.address == \
                 rtu.WRITABLE["calibrate_gyro"].address and frame.value == rtu.GYRO_CAL_COMPLETE:

@@ -90,7 +90,7 @@ class VirtualLine:
     def __post_init__(self) -> None:
         self.schedule = Schedule(self.config, adapter_for(self.config.protocol))
         self.schedule.open(self.now)
-        self.schedule.started = self.now
+        self.schedule.start(self.now)
 
     # ------------------------------------------------------------ user side
 
