@@ -349,7 +349,7 @@ async def test_exceptions_of_reads_functions_and_units_with_writes_off() -> None
                 await expect_exception(raw, 1, read(function, 9, 1), ILLEGAL_ADDRESS)
                 await expect_exception(raw, 1, read(function, 50, 2), ILLEGAL_ADDRESS)
                 await expect_exception(raw, 1, read(function, 0, 10), ILLEGAL_ADDRESS)
-                await expect_exception(raw, 1, read(function, 130, 4), ILLEGAL_ADDRESS)
+                await expect_exception(raw, 1, read(function, 136, 4), ILLEGAL_ADDRESS)
                 await expect_exception(raw, 2, read(function, 100, 125), ILLEGAL_ADDRESS)
                 await expect_exception(raw, 1, read(function, 1009, 1), ILLEGAL_ADDRESS)
                 await expect_exception(raw, 1, read(function, 65535, 1), ILLEGAL_ADDRESS)

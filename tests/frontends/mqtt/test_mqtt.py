@@ -28,6 +28,7 @@ from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 from prometheus_client import CollectorRegistry, generate_latest
 from support.broker import Mosquitto, Recorder, Tls, make_tls, recording
+from support.derived import tilt
 from support.harness import (
     FIELDS,
     GROUP_OF,
@@ -52,8 +53,9 @@ READING = Motion.from_seed(3).sample(10.0)
 GID = "test"
 BASE = f"imu/{GID}"
 # Which groups each series' state JSON carries (an AH measures all five, a VG no mag).
-GROUPS = {Series.AH: {"angles", "accel", "gyro", "mag", "quaternion"},
-          Series.VG: {"angles", "accel", "gyro", "quaternion"}}
+GROUPS = {Series.AH: {"angles", "accel", "gyro", "mag", "quaternion", "tilt", "vibration"},
+          Series.VG: {"angles", "accel", "gyro", "quaternion", "tilt", "vibration"}}
+DERIVED = {"tilt", "tilt_direction", "vibration"}
 
 
 def sensor(protocol: WireProtocol, series: Series, **options: Any) -> SimSensor:
@@ -131,6 +133,11 @@ async def test_state_json_carries_the_simulators_values(tmp_path: Path) -> None:
             for field_name, value in fields_of(got).items():
                 assert abs(value - want[field_name]) <= tolerance(protocol, field_name, value), \
                     (name, field_name, value, want[field_name])
+            # the derived values, from the values the same message carries
+            angles = got["angles"]
+            assert (got["tilt"]["tilt"], got["tilt"]["tilt_direction"]) == \
+                tilt(angles["pitch"], angles["roll"])
+            assert got["vibration"]["vibration"] in (None, 0.0)  # held still: 0 once known
             assert message.retain is False  # live delivery; retained copies are checked below
             assert "online" in [m.text for m in rec.on(f"{BASE}/{name}/availability")]
         assert [m.text for m in rec.on(f"{BASE}/status")] == ["online", "offline"]
@@ -343,8 +350,9 @@ async def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
         for topic, c in every.items():
             assert c["state_topic"] in others, topic
         # One entity per measured field: AH all 16, VG all but the magnetometer.
-        fields = {"boom": set(FIELDS),
-                  "arm": {f for f in FIELDS if GROUP_OF[f] != "mag"}}
+        # And one per derived field (docs/alarms.md).
+        fields = {"boom": set(FIELDS) | DERIVED,
+                  "arm": {f for f in FIELDS if GROUP_OF[f] != "mag"} | DERIVED}
         want = {f"homeassistant/sensor/{GID}_{s}_{f}/config"
                 for s, names in fields.items() for f in names}
         assert set(configs) == want

@@ -91,8 +91,8 @@ def test_history_keeps_each_seconds_lowest_highest_and_last() -> None:
     gateway = SimpleNamespace(sensors={"s": SensorConfig(name="s", series=Series.IMU,
                                                           address=0)})
     history = History(gateway)
-    n = len(history.fields["s"])  # an IMU: accel and gyro, 6 fields
-    assert n == 6
+    n = len(history.fields["s"])  # an IMU: accel and gyro, 6 fields, and the vibration
+    assert n == 7
     for at, v in ((100.1, 1.0), (100.5, -2.0), (100.9, 0.5), (101.2, math.nan),
                   (99.0, 7.0), (102.0, 3.0)):
         history.add("s", at, [v] * n)
@@ -186,7 +186,9 @@ async def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
         history = (await http.get(f"{API}/sensors/boom/history", params={"seconds": 60}))
         assert history.status_code == 200
         past = history.json()
-        assert past["t"] and len(past["fields"]) == 16  # an AH measures 16 fields
+        # an AH measures 16 fields; 3 more are derived from them
+        assert past["t"] and len(past["fields"]) == 19
+        assert {"tilt", "tilt_direction", "vibration"} <= set(past["fields"])
         pitch = past["fields"]["pitch"]
         assert all(lo <= last <= hi for lo, last, hi in
                    zip(pitch["min"], pitch["last"], pitch["max"], strict=True))
