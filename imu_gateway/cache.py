@@ -27,6 +27,7 @@ from typing import Any
 
 from .errors import unknown_sensor
 from .model import KnownSettings, Reading
+from .normalise import Derivation
 from .stats import BusStats, SensorStats
 
 log = logging.getLogger("imu_gateway.cache")
@@ -97,6 +98,7 @@ class _Entry:
     errors: int = 0
     reported: tuple[Status, bool, bool] | None = None  # last status event sent
     settings: KnownSettings = field(default_factory=KnownSettings)
+    derivation: Derivation = field(default_factory=Derivation)  # its derived values
 
 
 def _status(e: _Entry, now: float) -> Status:
@@ -156,11 +158,13 @@ class Cache:
     # ------------------------------------------------------------ writing (bus masters)
 
     def publish(self, name: str, reading: Reading, at: float | None = None) -> int:
-        """A new sample, received at monotonic time ``at``; returns its sequence number."""
+        """A new sample, received at monotonic time ``at``; returns its sequence number.
+        Its derived values (tilt, vibration) are worked out here, once for every
+        listener, on the main loop rather than the bus thread."""
         e = self._entry(name)
-        e.reading = reading
         e.seq += 1
         e.received = self._clock() if at is None else at
+        e.reading = e.derivation.complete(reading, e.received)
         e.timestamp = datetime.now(UTC)
         e.online = True
         snap = self.snapshot(name)

@@ -3,6 +3,10 @@
 Units: degrees for angles, g for acceleration, deg/s for angular rate, gauss for the
 magnetic field, a unit quaternion (q0 the scalar part).  Those are the sensors' own
 units in both protocols, so no conversion happens between the wire and a client.
+
+Two groups are derived, never decoded from a frame: the tilt (from the angles' pitch
+and roll) and the vibration (from the acceleration), worked out by the cache as a
+reading enters it (``normalise.Derivation``; docs/alarms.md, "Derived values").
 """
 
 from __future__ import annotations
@@ -40,6 +44,8 @@ class Group(enum.Enum):
     GYRO = "gyro"
     MAG = "mag"
     QUATERNION = "quaternion"
+    TILT = "tilt"  # derived (from ANGLES)
+    VIBRATION = "vibration"  # derived (from ACCEL)
 
 
 @dataclass(frozen=True, slots=True)
@@ -64,6 +70,23 @@ class Quaternion:
     q3: float
 
 
+@dataclass(frozen=True, slots=True)
+class Tilt:
+    """The inclination from vertical and the azimuth of the lean (docs/alarms.md);
+    ``tilt_direction`` is NaN (null in JSON) where the tilt is 0 and it has none."""
+
+    tilt: float
+    tilt_direction: float
+
+
+@dataclass(frozen=True, slots=True)
+class Vibration:
+    """The RMS of the acceleration magnitude's deviation from its mean over the last
+    second; NaN (null in JSON) while that second holds too few samples to tell."""
+
+    vibration: float
+
+
 _XYZ = ("x", "y", "z")
 
 
@@ -77,19 +100,25 @@ class ValueGroup:
     which is also the integer registers' scale (``10 ** digits``).  ``title`` names
     the group where a tree shows it (Sparkplug's metric folders, OPC UA's); ``span``
     is the largest magnitude the native protocol's format can carry (OPC UA's
-    EURange)."""
+    EURange).  ``derived_from``: the groups a derived group is worked out from (empty
+    for a measured one): a series has it when it measures all of them."""
 
-    type: type[Angles | Vector3 | Quaternion]
+    type: type[Angles | Vector3 | Quaternion | Tilt | Vibration]
     fields: tuple[str, ...]
     symbol: str
     name: str
     digits: int
     title: str
     span: float
+    derived_from: frozenset[Group] = frozenset()
 
     @property
     def scale(self) -> int:
         return int(10**self.digits)
+
+    @property
+    def derived(self) -> bool:
+        return bool(self.derived_from)
 
 
 #: The value groups, one row each.  The units are the sensors' own in both protocols
@@ -105,7 +134,17 @@ VALUE_GROUPS: Mapping[Group, ValueGroup] = MappingProxyType({
                           "MagneticField", 0.99999),
     Group.QUATERNION: ValueGroup(Quaternion, ("q0", "q1", "q2", "q3"), "", "unitless", 6,
                                  "Quaternion", 9.999999),
+    # Derived (docs/alarms.md): the tilt is 0-180°, its direction 0-360°; the vibration
+    # is at most the largest magnitude three accelerations of 9.9999 g make.
+    Group.TILT: ValueGroup(Tilt, ("tilt", "tilt_direction"), "°", "degrees", 2, "Tilt",
+                           360.0, frozenset({Group.ANGLES})),
+    Group.VIBRATION: ValueGroup(Vibration, ("vibration",), "g", "standard gravity (g)", 4,
+                                "Vibration", 17.3203, frozenset({Group.ACCEL})),
 })
+
+#: The groups decoded from frames, and those the cache works out from them.
+MEASURED_GROUPS = frozenset(g for g, spec in VALUE_GROUPS.items() if not spec.derived)
+DERIVED_GROUPS = frozenset(g for g, spec in VALUE_GROUPS.items() if spec.derived)
 
 
 @dataclass(frozen=True, slots=True)
@@ -117,6 +156,8 @@ class Reading:
     gyro: Vector3 | None = None
     mag: Vector3 | None = None
     quaternion: Quaternion | None = None
+    tilt: Tilt | None = None  # derived: filled by the cache (``normalise.Derivation``)
+    vibration: Vibration | None = None  # derived likewise
 
     def groups(self) -> frozenset[Group]:
         return frozenset(g for g in Group if getattr(self, g.value) is not None)
@@ -182,20 +223,32 @@ def shortest_float32(value: float) -> float:
 
 @dataclass(frozen=True, slots=True)
 class Capabilities:
-    """What a series measures.  (Which commands it has is the command catalogue's
-    business: ``commands.CATALOGUE``, one row per command.)"""
+    """What a series gives: ``groups``, the groups it measures and those derived from
+    them.  (Which commands it has is the command catalogue's business:
+    ``commands.CATALOGUE``, one row per command.)"""
 
     groups: frozenset[Group]
+
+    @classmethod
+    def measuring(cls, *measured: Group) -> Capabilities:
+        """The series that measures ``measured``, with every group derived from them."""
+        have = frozenset(measured)
+        return cls(have | {g for g in DERIVED_GROUPS if VALUE_GROUPS[g].derived_from <= have})
+
+    @property
+    def measured(self) -> frozenset[Group]:
+        """The groups its frames carry."""
+        return self.groups & MEASURED_GROUPS
 
 
 # The one table of per-series capabilities.  The native document says which series
 # answer which data command (2.13-2.15, 2.19-2.26); the Modbus map is the same for all
 # series, and a series simply leaves the registers it lacks at zero.
 CAPABILITIES: Mapping[Series, Capabilities] = MappingProxyType({
-    Series.IMU: Capabilities(frozenset({Group.ACCEL, Group.GYRO})),
-    Series.VG: Capabilities(frozenset({Group.ANGLES, Group.ACCEL, Group.GYRO, Group.QUATERNION})),
-    Series.AH: Capabilities(frozenset(Group)),
-    Series.MINS: Capabilities(frozenset({Group.ANGLES, Group.ACCEL, Group.GYRO, Group.QUATERNION})),
+    Series.IMU: Capabilities.measuring(Group.ACCEL, Group.GYRO),
+    Series.VG: Capabilities.measuring(Group.ANGLES, Group.ACCEL, Group.GYRO, Group.QUATERNION),
+    Series.AH: Capabilities.measuring(*MEASURED_GROUPS),
+    Series.MINS: Capabilities.measuring(Group.ANGLES, Group.ACCEL, Group.GYRO, Group.QUATERNION),
 })
 
 

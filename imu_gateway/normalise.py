@@ -3,16 +3,32 @@
 Both protocol modules name the values they decode with the per-field names of the
 reading JSON (``pitch``, ``accel_x``, ``q0`` …; ``model.VALUE_GROUPS``), so normalising
 is one table from field name to (group, member) and no per-command code.
+
+The derived groups (the tilt, the vibration) are worked out here too, but not on the
+bus thread: the cache completes each reading as it enters it (``Derivation``), on the
+main loop, once for every front end.  Sans-IO: time is an argument.
 """
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from collections.abc import Mapping
 from typing import Any
 
-from .model import CAPABILITIES, VALUE_GROUPS, Group, Reading, Series
+from .model import (
+    CAPABILITIES,
+    VALUE_GROUPS,
+    Angles,
+    Group,
+    Reading,
+    Series,
+    Tilt,
+    Vector3,
+    Vibration,
+)
 
-#: every per-field name, in the reading JSON's order
+#: every per-field name, measured and derived, in the reading JSON's order
 FIELD_NAMES: tuple[str, ...] = tuple(n for group in VALUE_GROUPS.values() for n in group.fields)
 
 
@@ -40,15 +56,17 @@ def group_values(values: Mapping[str, Any]) -> dict[str, dict[str, float]]:
 #: series measures: ``to_reading``'s table, worked out once (it runs for every answer).
 _MEASURED: dict[Series, tuple[tuple[str, type, tuple[str, ...]], ...]] = {
     series: tuple((group.value, spec.type, spec.fields) for group, spec in VALUE_GROUPS.items()
-                  if group in caps.groups)
+                  if group in caps.measured)
     for series, caps in CAPABILITIES.items()
 }
 
 
-#: series -> the per-field names it measures, in the reading JSON's order.
+#: series -> the per-field names it gives (measured, and derived from those), in the
+#: reading JSON's order.
 MEASURED_FIELDS: dict[Series, tuple[str, ...]] = {
-    series: tuple(n for _, _, names in groups for n in names)
-    for series, groups in _MEASURED.items()
+    series: tuple(n for group, spec in VALUE_GROUPS.items() if group in caps.groups
+                  for n in spec.fields)
+    for series, caps in CAPABILITIES.items()
 }
 
 
@@ -87,3 +105,107 @@ def field_values(reading: Reading) -> dict[str, float]:
             for name, member in names:
                 out[name] = getattr(value, member)
     return out
+
+
+# ------------------------------------------------------------------ derived values
+
+_NAN = math.nan
+_TILT_DIGITS = VALUE_GROUPS[Group.TILT].digits
+_VIBRATION_DIGITS = VALUE_GROUPS[Group.VIBRATION].digits
+
+
+def tilt_of(angles: Angles) -> Tilt:
+    """The tilt from vertical, ``acos(cos(pitch)·cos(roll))``, and the azimuth of the
+    lean in the sensor's frame: the direction of gravity's component in its x-y plane
+    (body axes x forward, y right, z down; gravity there is (-sin θ, sin φ·cos θ,
+    cos φ·cos θ)), 0° toward +x, 90° toward +y.  Where the tilt rounds to 0 there is
+    no lean to point at: the direction is NaN (null), not a made-up 0."""
+    pitch, roll = math.radians(angles.pitch), math.radians(angles.roll)
+    if not (math.isfinite(pitch) and math.isfinite(roll)):
+        return Tilt(_NAN, _NAN)  # (a Modbus float register can hold NaN)
+    cos_pitch = math.cos(pitch)
+    # clamped: a product of rounded cosines may stray past 1 by an ulp (acos then fails)
+    level = max(-1.0, min(1.0, cos_pitch * math.cos(roll)))
+    tilt = round(math.degrees(math.acos(level)), _TILT_DIGITS)
+    if tilt == 0.0:
+        return Tilt(0.0, _NAN)
+    azimuth = math.degrees(math.atan2(math.sin(roll) * cos_pitch, -math.sin(pitch)))
+    direction = round(azimuth % 360.0, _TILT_DIGITS)
+    return Tilt(tilt, 0.0 if direction >= 360.0 else direction)  # (359.999 rounds to 360)
+
+
+class VibrationWindow:
+    """One sensor's acceleration magnitudes of the last ``SPAN_S`` (by receive time),
+    and the RMS of their deviation from their mean (g): NaN while the window holds
+    fewer than ``LEAST`` samples, too few for an RMS that means anything.
+
+    The sums are kept as samples come and go (a 100 Hz sensor's window is 100 samples:
+    summing them anew for each would cost more than everything else a sample costs), of
+    each magnitude minus ``_shift`` (a recent magnitude: the deviations are small, so
+    the sum of squares loses no digits), and are made again exactly every
+    ``_EXACT_EVERY`` samples so rounding errors cannot pile up over a long run.
+    """
+
+    SPAN_S = 1.0
+    LEAST = 10
+    _EXACT_EVERY = 1000
+
+    def __init__(self) -> None:
+        self._kept: deque[tuple[float, float]] = deque()  # (at, magnitude)
+        self._shift = 0.0
+        self._sum = 0.0
+        self._squares = 0.0
+        self._added = 0
+
+    def add(self, at: float, accel: Vector3) -> float:
+        """A sample received at ``at`` (seconds, monotonic); returns the vibration now."""
+        kept = self._kept
+        if kept and at < kept[-1][0]:
+            kept.clear()  # the clock went back: what was kept is of another time line
+        magnitude = math.sqrt(accel.x * accel.x + accel.y * accel.y + accel.z * accel.z)
+        if math.isfinite(magnitude):  # (NaN in a Modbus float register: no sample)
+            if not kept:
+                self._shift, self._sum, self._squares = magnitude, 0.0, 0.0
+            kept.append((at, magnitude))
+            d = magnitude - self._shift
+            self._sum += d
+            self._squares += d * d
+        cut = at - self.SPAN_S
+        while kept and kept[0][0] < cut:
+            d = kept.popleft()[1] - self._shift
+            self._sum -= d
+            self._squares -= d * d
+        self._added += 1
+        if self._added >= self._EXACT_EVERY:
+            self._exact()
+        n = len(kept)
+        if n < self.LEAST:
+            return _NAN
+        mean = self._sum / n
+        return round(math.sqrt(max(0.0, self._squares / n - mean * mean)), _VIBRATION_DIGITS)
+
+    def _exact(self) -> None:
+        self._added = 0
+        if self._kept:
+            self._shift = self._kept[-1][1]
+            self._sum = math.fsum(m - self._shift for _, m in self._kept)
+            self._squares = math.fsum((m - self._shift) ** 2 for _, m in self._kept)
+
+
+class Derivation:
+    """One sensor's derived values: ``complete`` adds them to each of its readings."""
+
+    def __init__(self) -> None:
+        self.window = VibrationWindow()
+
+    def complete(self, reading: Reading, at: float) -> Reading:
+        """``reading`` with its derived groups, received at ``at`` (monotonic seconds):
+        the tilt where it has angles, the vibration where it has accelerations."""
+        angles, accel = reading.angles, reading.accel
+        if angles is None and accel is None:
+            return reading
+        return Reading(
+            angles=angles, accel=accel, gyro=reading.gyro, mag=reading.mag,
+            quaternion=reading.quaternion,
+            tilt=tilt_of(angles) if angles is not None else None,
+            vibration=Vibration(self.window.add(at, accel)) if accel is not None else None)

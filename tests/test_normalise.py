@@ -8,13 +8,37 @@ in docs/mqtt.md.
 
 from __future__ import annotations
 
+import math
+import random
+
 import pytest
 from support.vectors import ANSWER, NATIVE_VECTORS, Vector
 
-from imu_gateway.model import CAPABILITIES, Angles, Group, Quaternion, Reading, Series, Vector3
-from imu_gateway.normalise import FIELD_NAMES, group_values, to_reading
+from imu_gateway.cache import Cache, EventKind, Snapshot
+from imu_gateway.model import (
+    CAPABILITIES,
+    MEASURED_GROUPS,
+    VALUE_GROUPS,
+    Angles,
+    Group,
+    Quaternion,
+    Reading,
+    Series,
+    Tilt,
+    Vector3,
+    Vibration,
+)
+from imu_gateway.normalise import (
+    FIELD_NAMES,
+    Derivation,
+    VibrationWindow,
+    group_values,
+    tilt_of,
+    to_reading,
+)
 from imu_gateway.protocol import modbus_rtu as rtu
 from imu_gateway.protocol import native
+from imu_gateway.simulator.motion import Motion
 
 # The reading JSON's value groups of the AH example of native 2.15 (as in docs/mqtt.md).
 SPEC_JSON_GROUPS = {
@@ -42,7 +66,7 @@ def decoded(section: str) -> dict[str, object]:
 def test_native_read_all_gives_the_series_groups(section: str, series: Series) -> None:
     reading = to_reading(decoded(section), series)
     assert reading is not None
-    assert reading.groups() == CAPABILITIES[series].groups
+    assert reading.groups() == CAPABILITIES[series].measured
 
 
 def test_native_imu_reading_values() -> None:
@@ -65,11 +89,11 @@ def test_modbus_float_block_for_vg_drops_mag() -> None:
     start, count = rtu.FLOAT_BLOCK_START, rtu.FLOAT_BLOCK_COUNT
     assert (start, count) == (0x22, 32)
     read = rtu.read_values(start, [image[a] for a in range(start, start + count)])
-    assert set(read) == set(FIELD_NAMES)
+    assert set(read) == {n for g in MEASURED_GROUPS for n in VALUE_GROUPS[g].fields}
     vg = to_reading(read, Series.VG)
     assert vg is not None
     assert vg.mag is None
-    assert vg.groups() == CAPABILITIES[Series.VG].groups
+    assert vg.groups() == CAPABILITIES[Series.VG].measured
     assert vg.angles == Angles(-13.15, 25.58, 251.87)
     ah = to_reading(read, Series.AH)
     assert ah is not None and ah.mag == Vector3(0.15962, 0.16391, -0.41458)
@@ -124,3 +148,135 @@ def test_group_values_partial() -> None:
 def test_group_values_whole() -> None:
     assert group_values(decoded("2.15")) == SPEC_JSON_GROUPS
     assert group_values(decoded("2.23")) == {"mag": {"x": -0.15525, "y": 0.03452, "z": -0.34616}}
+
+
+# ------------------------------------------------------------------ derived values
+
+
+@pytest.mark.parametrize(("pitch", "roll", "tilt", "direction"), [
+    (10.0, 0.0, 10.0, 180.0),  # x raised: the top leans back (-x)
+    (-10.0, 0.0, 10.0, 0.0),  # x lowered: forward
+    (0.0, 10.0, 10.0, 90.0),  # right side down: leans right (+y)
+    (0.0, -10.0, 10.0, 270.0),
+    (179.0, 0.0, 179.0, 180.0),  # nearly upside down
+    (90.0, 33.0, 90.0, 180.0),  # gimbal lock: the roll changes nothing
+])
+def test_tilt_and_its_direction_on_the_axes(pitch: float, roll: float, tilt: float,
+                                            direction: float) -> None:
+    assert tilt_of(Angles(pitch, roll, 123.0)) == Tilt(tilt, direction)
+
+
+def test_tilt_agrees_with_the_gravity_the_simulator_gives() -> None:
+    """The simulator's accelerations are gravity in the sensor's frame (x forward, y
+    right, z down), made from the same pitch and roll by its own rotation: the tilt is
+    z's angle from gravity, the direction gravity's heading in the x-y plane."""
+    rng = random.Random(31)
+    for _ in range(500):
+        pitch, roll = rng.uniform(-89.0, 89.0), rng.uniform(-179.0, 179.0)
+        # (at t = 0 with a phase of 90°, the sway is at its amplitude)
+        still = Motion(roll_amp=roll, pitch_amp=pitch, roll_phase=math.pi / 2,
+                       pitch_phase=math.pi / 2, yaw_rate=0.0).sample(0.0)
+        assert still.angles is not None and still.accel is not None
+        assert still.angles.pitch == pytest.approx(pitch)
+        assert still.angles.roll == pytest.approx(roll)
+        accel = still.accel
+        got = tilt_of(Angles(pitch, roll, 0.0))
+        assert got.tilt == pytest.approx(math.degrees(math.acos(accel.z)), abs=0.005)
+        if got.tilt > 0.01:
+            want = math.degrees(math.atan2(accel.y, accel.x)) % 360.0
+            gap = abs(got.tilt_direction - want)
+            assert min(gap, 360.0 - gap) <= 0.005 + 1e-9, (pitch, roll, got, want)
+
+
+def test_tilt_is_rounded_and_has_no_direction_when_level() -> None:
+    level = tilt_of(Angles(0.0, 0.0, 45.0))
+    assert level.tilt == 0.0 and math.isnan(level.tilt_direction)
+    almost = tilt_of(Angles(0.001, 0.002, 0.0))  # 0.0022°: 0.00 at two digits
+    assert almost.tilt == 0.0 and math.isnan(almost.tilt_direction)
+    # a direction of 359.999° is 0.00 at two digits, not 360.00
+    assert tilt_of(Angles(-1.0, -0.00002, 0.0)).tilt_direction == 0.0
+    assert tilt_of(Angles(3.0, 4.0, 0.0)) == Tilt(5.0, 126.92)
+    nan = tilt_of(Angles(math.nan, 1.0, 0.0))  # a Modbus float register's NaN
+    assert math.isnan(nan.tilt) and math.isnan(nan.tilt_direction)
+
+
+def test_vibration_needs_ten_samples_in_the_last_second() -> None:
+    window = VibrationWindow()
+    still = Vector3(0.0, 0.0, 1.0)
+    got = [window.add(i * 0.1, still) for i in range(12)]  # 10 Hz
+    assert all(math.isnan(v) for v in got[:9])  # 9 samples: too few
+    assert got[9:] == [0.0, 0.0, 0.0]  # a still sensor: 0, not NaN
+    # a gap of more than a second empties the window: too few again
+    assert math.isnan(window.add(5.0, still))
+    slow = VibrationWindow()  # 5 Hz never has ten
+    assert all(math.isnan(slow.add(i * 0.2, still)) for i in range(50))
+
+
+def test_vibration_is_the_rms_of_the_magnitude_about_its_mean() -> None:
+    window = VibrationWindow()
+    got = math.nan
+    for i in range(300):  # 100 Hz, the magnitude 1 ± 0.01 in turn, tilted to and fro
+        m = 1.01 if i % 2 else 0.99
+        tilt = math.radians(20.0 * math.sin(i / 10))
+        got = window.add(i / 100, Vector3(m * math.sin(tilt), 0.0, m * math.cos(tilt)))
+    assert got == 0.01  # the direction does not count, only the magnitude
+    for i in range(300, 400):  # a step to 1.5 g: the window holds both sides of it
+        got = window.add(i / 100, Vector3(0.0, 0.0, 1.5))
+    assert got > 0.01
+    got = window.add(4.0, Vector3(0.0, 0.0, 1.5))  # a second later, only the 1.5 g
+    assert got == 0.0
+    # NaN in a register is no sample; a clock that steps back starts again
+    assert window.add(4.005, Vector3(math.nan, 0.0, 1.0)) == 0.0
+    assert math.isnan(window.add(1.0, Vector3(0.0, 0.0, 1.0)))
+
+
+def test_vibration_stays_exact_over_a_long_run() -> None:
+    """The running sums are made again every thousand samples: after a day's worth of
+    100 Hz noise the value equals the one summed from scratch."""
+    rng = random.Random(7)
+    window = VibrationWindow()
+    kept: list[tuple[float, float]] = []
+    got = math.nan
+    for i in range(30_000):
+        at, m = i / 100, 1.0 + rng.gauss(0.0, 0.02) + (5.0 if i % 997 == 0 else 0.0)
+        got = window.add(at, Vector3(0.0, 0.0, m))
+        kept = [(t, v) for t, v in kept if t >= at - 1.0] + [(at, m)]
+    values = [v for _, v in kept]
+    mean = sum(values) / len(values)
+    assert got == round(math.sqrt(sum((v - mean) ** 2 for v in values) / len(values)), 4)
+
+
+def test_derived_groups_follow_the_groups_of_the_reading() -> None:
+    derive = Derivation()
+    full = derive.complete(Reading(angles=Angles(3.0, 4.0, 0.0), accel=Vector3(0, 0, 1),
+                                   gyro=Vector3(1, 2, 3)), at=1.0)
+    assert full.tilt == Tilt(5.0, 126.92)
+    assert full.vibration is not None and math.isnan(full.vibration.vibration)
+    assert full.gyro == Vector3(1, 2, 3)
+    imu = derive.complete(Reading(accel=Vector3(0, 0, 1)), at=1.01)  # no angles: no tilt
+    assert imu.tilt is None and imu.vibration is not None
+    gyro_only = Reading(gyro=Vector3(1, 2, 3))
+    assert derive.complete(gyro_only, at=1.02) is gyro_only
+    # each series has the derived groups of the groups it measures
+    assert Group.TILT not in CAPABILITIES[Series.IMU].groups
+    assert {Group.TILT, Group.VIBRATION} <= CAPABILITIES[Series.VG].groups
+    assert CAPABILITIES[Series.AH].measured == MEASURED_GROUPS
+
+
+def test_the_cache_completes_each_reading_once_for_every_listener() -> None:
+    clock = [0.0]
+    cache = Cache([("s", 1000.0)], clock=lambda: clock[0])
+    seen: list[Snapshot] = []
+    cache.subscribe(lambda kind, snap: seen.append(snap) if kind is EventKind.READING
+                    else None)
+    for i in range(12):  # 12 samples at 100 Hz of a still, tilted sensor
+        cache.publish("s", Reading(angles=Angles(0.0, -30.0, 0.0),
+                                   accel=Vector3(0.0, -0.5, 0.866)), at=i / 100)
+    first, tenth = seen[0].reading, seen[9].reading
+    assert first is not None and tenth is not None
+    assert first.tilt == Tilt(30.0, 270.0)
+    assert first.vibration is not None and math.isnan(first.vibration.vibration)
+    assert tenth.vibration == Vibration(0.0)
+    assert cache.snapshot("s").reading == seen[-1].reading
+    assert seen[-1].to_json()["tilt"] == {"tilt": 30.0, "tilt_direction": 270.0}
+    assert seen[0].to_json()["vibration"] == {"vibration": None}  # null, not 0

@@ -37,8 +37,9 @@
       GROUPS.push({
         key: g.group, label: LABELS[g.group] || g.group, unit: UNIT_SHOWN[g.unit] || g.unit,
         digits: g.digits,
-        // a field's member in the group: accel_x -> x, pitch -> pitch, q0 -> q0
-        members: g.fields.map((f) => [f.includes("_") ? f.split("_").pop() : f, f]),
+        // a field's member in the group (the gateway says: accel_x -> x, tilt -> tilt,
+        // tilt_direction -> tilt_direction)
+        members: g.fields.map((f, i) => [g.members[i], f]),
       });
     }
   }
@@ -235,7 +236,9 @@
         const values = r[group.key];
         if (!values) continue;
         for (const [member, field] of group.members) {
-          s.cells[field].textContent = values[member].toFixed(group.digits);
+          // null: no value now (a derived one: the vibration before a second of samples)
+          const v = values[member];
+          s.cells[field].textContent = v === null || v === undefined ? "–" : v.toFixed(group.digits);
         }
       }
     }

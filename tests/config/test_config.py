@@ -400,8 +400,8 @@ RULES: list[tuple[str, dict[str, Any], str]] = [
      "discovery_prefix, sparkplug); did you mean base_topic?"),
     ("mqtt deadband of an unknown field", base(mqtt={"deadband": {"pich": 0.1}}),
      'mqtt.deadband: unknown field "pich" (fields: pitch roll yaw accel_x accel_y accel_z '
-     "gyro_x gyro_y gyro_z mag_x mag_y mag_z q0 q1 q2 q3; or a group: angles accel gyro mag "
-     "quaternion)"),
+     "gyro_x gyro_y gyro_z mag_x mag_y mag_z q0 q1 q2 q3 tilt tilt_direction vibration; or a "
+     "group: angles accel gyro mag quaternion tilt vibration)"),
     ("mqtt negative deadband", base(mqtt={"deadband": {"angles": -1}}),
      "mqtt.deadband.angles: input should be greater than or equal to 0"),
     ("http commands need a token", base(http={"allow_commands": True}),

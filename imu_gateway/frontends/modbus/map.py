@@ -70,8 +70,10 @@ def _command_type(spec: CommandSpec) -> Type:
     return Type.F32 if name and spec.args.model_fields[name].annotation is float else Type.U16
 
 
-#: The sixteen measured values in the map's order (the reading JSON's): name, group,
-#: the i32 copy's scale (it holds round(value × scale): the group's resolution), unit.
+#: The values in the map's order (the reading JSON's): the sixteen measured, then the
+#: derived (appended, so no measured value's address moved when they came): name,
+#: group, the i32 copy's scale (it holds round(value × scale): the group's resolution),
+#: unit.
 _MEASURED: tuple[tuple[str, Group, int, str], ...] = tuple(
     (name, group, spec.scale, spec.symbol)
     for group, spec in VALUE_GROUPS.items() for name in spec.fields
@@ -99,7 +101,8 @@ REGISTERS: tuple[Register, ...] = (
 )
 
 #: Contiguous blocks of the map: a read must lie inside one.
-BLOCKS: tuple[range, ...] = (range(0, 9), range(100, 132), range(200, 232), range(1000, 1009))
+BLOCKS: tuple[range, ...] = (range(0, 9), range(FLOAT_BASE, FLOAT_BASE + 2 * len(_MEASURED)),
+                             range(INT_BASE, INT_BASE + 2 * len(_MEASURED)), range(1000, 1009))
 BY_ADDRESS: Mapping[int, Register] = {r.address: r for r in REGISTERS}
 IMAGE_WORDS = BLOCKS[-1].stop
 
@@ -279,8 +282,10 @@ def markdown() -> str:
         "",
         "One map per sensor, addressed by its `unit_id`. Protocol addresses, 0-based. "
         "FC03 and FC04 read the same values. 32-bit values are big-endian, high word "
-        "first (ABCD). A value the series does not measure reads NaN (f32) or "
-        "-2147483648 (i32). A read must lie inside one block "
+        "first (ABCD). A value the series does not measure, or that has none now, reads "
+        "NaN (f32) or -2147483648 (i32). `tilt`, `tilt_direction` and `vibration` are "
+        "derived from the measured values (docs/alarms.md, \"Derived values\"). A read "
+        "must lie inside one block "
         f"({', '.join(f'{b.start}-{b.stop - 1}' for b in BLOCKS)}); other addresses answer "
         "exception 02.",
         "",

@@ -179,10 +179,15 @@ def _identity() -> list[str]:
 
 def _values() -> list[str]:
     lines = ["### Measured values", "",
-             "Each an `AnalogItemType` variable of type Float, with `EURange` (the largest "
-             "value the sensor's native format carries) and `EngineeringUnits` (UNECE "
+             "Each an `AnalogItemType` variable of type Double (the value as the sensor "
+             "gave it: 32.52 reads 32.52, not the 32.52000045776367 a Float would widen "
+             "to), with `EURange` (the largest value the sensor's native format carries) "
+             "and `EngineeringUnits` (UNECE "
              f"Recommendation 20, namespace `{UNECE}`). Only the groups a series measures "
-             "are there.", "",
+             "are there, and the groups derived from them (Tilt and Vibration: "
+             "[alarms.md](alarms.md#derived-values)); a derived value that has none now "
+             "(the vibration before a second of ten samples, the direction of no tilt) is "
+             "NaN.", "",
              "| folder | variables | unit (UNECE code, UnitId) | EURange | series |",
              "|---|---|---|---|---|"]
     for group, spec in VALUE_GROUPS.items():

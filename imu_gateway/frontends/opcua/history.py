@@ -238,7 +238,7 @@ class GatewayHistory(HistoryManager):  # type: ignore[misc]  # (asyncua is Any t
                            bounds=details.ReturnBounds, first_bound=first_bound)
         limit = details.NumValuesPerNode or len(picked)
         more = picked[limit].at if limit < len(picked) else None
-        values = [_value(p.at, p.value, "Float", ua.StatusCodes.Good, "BadBoundNotFound")
+        values = [_value(p.at, p.value, "Double", ua.StatusCodes.Good, "BadBoundNotFound")
                   for p in picked[:limit]]
         return ua.HistoryReadResult(
             HistoryData=ua.HistoryData(DataValues=values),
@@ -263,8 +263,7 @@ class GatewayHistory(HistoryManager):  # type: ignore[misc]  # (asyncua is Any t
             first = int(resume)
         intervals, more = processed(kind, seconds, start, end, step, first)
         kind_bits = _INTERPOLATED if kind is Aggregate.INTERPOLATIVE else _CALCULATED
-        datatype = "Double" if kind is Aggregate.AVERAGE else "Float"
-        values = [_value(x.start, x.value, datatype,
+        values = [_value(x.start, x.value, "Double",
                          _DATA_VALUE | kind_bits | (_PARTIAL if x.partial else 0), "BadNoData")
                   for x in intervals]
         return ua.HistoryReadResult(
@@ -321,13 +320,14 @@ Every measured variable (`…Sensors.{{sensor}}.{{Group}}.{{field}}`) has
 minutes) of every sensor, one bucket per second of wire time: per field the
 second's lowest, highest and last value, the sum and the count of its values, and
 the wire time of the second's last sample.  Nothing is kept across a restart.  NaN
-values (a Modbus float register) are no values.  About 330 KB per 16-field sensor,
-fixed from the start.
+values (a Modbus float register, a derived value that has none) are no values.
+About 400 KB per sensor of 19 fields (an AH's 16 measured and 3 derived), fixed from
+the start.
 
 **HistoryReadRaw** (`ReadRawModifiedDetails`, `IsReadModified = false`) returns
 each kept second's last value: `SourceTimestamp` and `ServerTimestamp` are both that
 sample's wire time (the gateway stamps a sample when its answer comes off the bus),
-StatusCode Good, DataType Float.  Where a second's last sample had no value of a
+StatusCode Good, DataType Double (the variable's).  Where a second's last sample had no value of a
 field (NaN), the field's last value of that second is returned, stamped with the
 time of the second's last sample.
 
@@ -354,9 +354,9 @@ object's `AggregateFunctions`:
 - Intervals start at `StartTime`; each value is stamped with its interval's start.
   Each second's bucket counts in the interval it begins in, so the values are exact
   when `StartTime` is on a whole second.
-- Minimum and Maximum are the lowest and highest value of the interval (Float),
-  Average the mean of all its values (Double; exact, from each second's sum and
-  count).  StatusCode Good with InfoType DataValue and the historian bit
+- Minimum and Maximum are the lowest and highest value of the interval,
+  Average the mean of all its values (exact, from each second's sum and count); all
+  three Double.  StatusCode Good with InfoType DataValue and the historian bit
   `Calculated` (`0x00000401`), plus `Partial` (`0x4`) for a last interval cut short
   by `EndTime`.
 - Interpolative is the value at the interval's start, linear between the kept raw

@@ -29,6 +29,8 @@ from .space import IDENTITY_VARS, SENSOR_VARS, UNECE, UNITS
 TYPE_NAME = "ImuSensorType"
 #: The groups every series measures: Mandatory in the type; the others are Optional.
 COMMON_GROUPS = frozenset(g for g in Group if all(g in CAPABILITIES[s].groups for s in Series))
+#: The VariantType of every measured and derived value.
+VALUE_TYPE = "Double"
 #: What a measured value's access level says: read now, and read its history.
 VALUE_ACCESS = ua.AccessLevel.CurrentRead.mask | ua.AccessLevel.HistoryRead.mask
 #: A method's caller, made for its command once the node it belongs to is known.
@@ -143,12 +145,13 @@ async def _variable(parent: Node, ids: Ids, name: str, kind: str, description: s
 
 async def _analog(parent: Node, ids: Ids, path: str, name: str, group: Group,
                   declare: bool) -> Node:
-    """An AnalogItemType variable (Float) with its EURange and EngineeringUnits, its
-    history readable (docs/opcua.md, "History")."""
+    """An AnalogItemType variable (Double: a sensor's 32.52 reads 32.52, where a Float
+    would widen to 32.52000045776367 in the client) with its EURange and
+    EngineeringUnits, its history readable (docs/opcua.md, "History")."""
     attrs = ua.VariableAttributes()
     attrs.Description = ua.LocalizedText(f"{name} ({VALUE_GROUPS[group].name})")
-    attrs.DataType = ua.NodeId(ua.ObjectIds.Float)
-    attrs.Value = variant(None, "Float")  # until the first reading
+    attrs.DataType = ua.NodeId(ua.ObjectIds.Double)
+    attrs.Value = variant(None, VALUE_TYPE)  # until the first reading
     attrs.ValueRank = ua.ValueRank.Scalar
     attrs.AccessLevel = attrs.UserAccessLevel = VALUE_ACCESS
     attrs.Historizing = True

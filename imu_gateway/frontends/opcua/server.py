@@ -33,7 +33,7 @@ from .guard import MAX_SUBSCRIPTIONS_PER_SESSION, GatewayUaServer
 from .history import install as install_history
 from .identity import MANUFACTURER, PRODUCT_URI, describe
 from .methods import Caller, instance_caller, type_caller
-from .nodes import Callers, Ids, build_sensor, build_type, variant
+from .nodes import VALUE_TYPE, Callers, Ids, build_sensor, build_type, variant
 from .security import ConfigUsers, secure
 from .space import BUS_VARS, NAMESPACE, quality
 
@@ -266,7 +266,7 @@ class OpcUaServer(Frontend):
         fields = values_of(snap)
         for name, nodeid in self.values[snap.name]:
             await server.write_attribute_value(nodeid, Sample(
-                variant(fields.get(name), "Float"), StatusCode=code, SourceTimestamp=source,
+                variant(fields.get(name), VALUE_TYPE), StatusCode=code, SourceTimestamp=source,
                 ServerTimestamp=now))
         for row, nodeid in self.status_nodes[snap.name]:
             await server.write_attribute_value(nodeid, Sample(

@@ -3,9 +3,10 @@ docs/opcua.md is generated from them.
 
     Objects/IMU Gateway/{gateway_id}/
         Sensors/{sensor}/               an object per sensor
-            Angles/pitch …              AnalogItemType (Float), per value group the
+            Angles/pitch …              AnalogItemType (Double), per value group the
             Acceleration/ …             series measures, with EngineeringUnits (UNECE)
             AngularRate/ … MagneticField/ … Quaternion/ …   and EURange
+            Tilt/ … Vibration/ …        (derived: docs/alarms.md)
             Status, Sequence, Errors, Series, Protocol, Address
             (methods: the catalogue's commands, with ``allow_commands``)
         Buses/{bus}/                    the line's counters
@@ -52,6 +53,8 @@ UNITS: dict[Group, Unit | None] = {
     Group.GYRO: Unit("E96", "°/s", "degree per second"),
     Group.MAG: Unit("76", "Gs", "gauss"),
     Group.QUATERNION: None,
+    Group.TILT: Unit("DD", "°", "degree [unit of angle]"),
+    Group.VIBRATION: Unit("K40", "gn", "standard acceleration of free fall"),
 }
 
 SensorValue = str | float | int | None

@@ -44,7 +44,20 @@ class QuaternionOut(_Out):
     q3: float | None
 
 
-_GROUPS = ("angles", "accel", "gyro", "mag", "quaternion")
+class TiltOut(_Out):
+    tilt: float | None = Field(description="from vertical, 0-180°")
+    tilt_direction: float | None = Field(
+        description="the azimuth of the lean in the sensor's frame, 0-360° (0 toward +x, "
+        "90 toward +y); null where the tilt is 0")
+
+
+class VibrationOut(_Out):
+    vibration: float | None = Field(
+        description="RMS of the acceleration magnitude's deviation from its mean over the "
+        "last second; null while that second holds fewer than 10 samples")
+
+
+_GROUPS = tuple(g.value for g in Group)
 
 
 def _groups_never_null(schema: dict[str, Any]) -> None:
@@ -58,7 +71,8 @@ def _groups_never_null(schema: dict[str, Any]) -> None:
 
 
 class ReadingOut(_Out):
-    """The reading JSON (as on MQTT); groups the series does not measure are absent."""
+    """The reading JSON (as on MQTT); groups the series does not measure are absent.
+    ``tilt`` and ``vibration`` are derived from the measured values (docs/alarms.md)."""
 
     model_config = ConfigDict(extra="forbid", json_schema_extra=_groups_never_null)
     sensor: str
@@ -71,6 +85,9 @@ class ReadingOut(_Out):
     mag: VectorOut | None = Field(None, description=VALUE_GROUPS[Group.MAG].name)
     quaternion: QuaternionOut | None = Field(
         None, description=VALUE_GROUPS[Group.QUATERNION].name)
+    tilt: TiltOut | None = Field(None, description=VALUE_GROUPS[Group.TILT].name)
+    vibration: VibrationOut | None = Field(
+        None, description=VALUE_GROUPS[Group.VIBRATION].name)
 
 
 class GroupOut(_Out):
@@ -78,9 +95,13 @@ class GroupOut(_Out):
 
     group: str = Field(description="the group's key in the reading JSON")
     fields: list[str] = Field(description="its fields, as in per-field topics and registers")
+    members: list[str] = Field(description="each field's key within the group's object in "
+                               "the reading JSON (accel_x: x), in the same order")
     unit: str = Field(description="the unit's symbol (empty: none)")
     unit_name: str = Field(description="the unit in words")
     digits: int = Field(description="decimals of the sensors' resolution")
+    derived_from: list[str] = Field(description="the groups it is worked out from (empty: "
+                                    "measured by the sensor)")
 
 
 class SensorOut(_Out):

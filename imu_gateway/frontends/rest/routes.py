@@ -30,7 +30,8 @@ from ...config import HttpConfig
 from ...derived import reading_json
 from ...errors import KINDS, ErrorKind, RequestFailed
 from ...history import KEEP_S
-from ...model import VALUE_GROUPS
+from ...model import VALUE_GROUPS, Group
+from ...normalise import member_name
 from ...stats import SensorStats
 from ..common import GatewayLike, peer_json
 from .access import (
@@ -217,8 +218,10 @@ def _status_routes(app: FastAPI, routes: _Routes) -> None:
     @app.get(f"{API}/groups", response_model=list[GroupOut], dependencies=routes.reads,
              responses=_errors(401), summary="the value groups and their units")
     async def groups() -> list[dict[str, Any]]:
-        return [{"group": group.value, "fields": list(spec.fields), "unit": spec.symbol,
-                 "unit_name": spec.name, "digits": spec.digits}
+        return [{"group": group.value, "fields": list(spec.fields),
+                 "members": [member_name(group, f) for f in spec.fields],
+                 "unit": spec.symbol, "unit_name": spec.name, "digits": spec.digits,
+                 "derived_from": [g.value for g in Group if g in spec.derived_from]}
                 for group, spec in VALUE_GROUPS.items()]
 
     @app.get(f"{API}/health", response_model=HealthOut, dependencies=routes.reads,

@@ -8,7 +8,15 @@ from ...commands import CATALOGUE
 from ...config import SensorConfig
 from ...model import CAPABILITIES, VALUE_GROUPS, Series, WireProtocol
 from .client import NODE_DATA_EVERY_S, REBIRTH_HOLD_S
-from .metrics import BUS_ROWS, STATUS_ROWS, DataType, command_rows, command_type, identity_rows
+from .metrics import (
+    BUS_ROWS,
+    STATUS_ROWS,
+    VALUE_TYPE,
+    DataType,
+    command_rows,
+    command_type,
+    identity_rows,
+)
 from .node import BDSEQ, NAMESPACE, REBIRTH
 
 INTRO = """# Sparkplug B
@@ -163,12 +171,17 @@ def markdown() -> str:
                for row in BUS_ROWS), ""]
     lines += ["## Device metrics",
              "", "The measured values, one folder per value group; only the groups a "
-             "series measures are in its births:", "",
+             "series measures are in its births, and the groups derived from them (Tilt, "
+             "Vibration: [alarms.md](alarms.md#derived-values)). Double, as the sensor "
+             "gave them (32.52, not a float32's 32.52000045776367); a value that has none "
+             "now (the vibration before a second of ten samples, the direction of no "
+             "tilt) is null:", "",
              "| metric | datatype | engUnit | series |", "|---|---|---|---|"]
     for group, spec in VALUE_GROUPS.items():
         who = ", ".join(s.name for s in Series if group in CAPABILITIES[s].groups)
         for name in spec.fields:
-            lines.append(f"| `{spec.title}/{name}` | Float | {spec.symbol or '(none)'} | "
+            lines.append(f"| `{spec.title}/{name}` | {VALUE_TYPE.spelled} | "
+                         f"{spec.symbol or '(none)'} | "
                          f"{who} |")
     lines += ["", "Status and identity, every series:", "",
               "| metric | datatype | what it says |", "|---|---|---|",

@@ -1,16 +1,19 @@
 """What a Sparkplug B device (one sensor) and the edge node (the gateway) carry: one
 row per metric.  The births, the data and docs/sparkplug.md all come from these rows.
 
-A sensor's metrics are its series' measured values (``model.VALUE_GROUPS``: one folder
-per group, the value's unit as its ``engUnit`` property), a few status and identity
-metrics, and, when commands are allowed, one metric per command of the catalogue the
-series and protocol have (``commands.CATALOGUE``).  The edge node's own metrics are
-each bus's counters (``BUS_ROWS``: ``Buses/{bus}/…``, from ``Gateway.stats()``).
+A sensor's metrics are its series' measured values and those derived from them
+(``model.VALUE_GROUPS``: one folder per group, the value's unit as its ``engUnit``
+property; Double, so a sensor's 32.52 is 32.52 in the host, not a float32's
+widening), a few status and identity metrics, and, when commands are allowed, one
+metric per command of the catalogue the series and protocol have
+(``commands.CATALOGUE``).  The edge node's own metrics are each bus's counters
+(``BUS_ROWS``: ``Buses/{bus}/…``, from ``Gateway.stats()``).
 """
 
 from __future__ import annotations
 
 import enum
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
@@ -42,6 +45,10 @@ class DataType(enum.IntEnum):
         return self.name.title().replace("Uint", "UInt")
 
 
+#: The datatype of every measured and derived value.
+VALUE_TYPE = DataType.DOUBLE
+
+
 @dataclass(frozen=True, slots=True)
 class MetricRow:
     """One metric: its name (``/`` makes folders), type, unit, what it says, and its
@@ -57,13 +64,18 @@ class MetricRow:
 
     def of(self, snap: Snapshot, fields: Mapping[str, float]) -> Value | None:
         """The value now; ``fields``: the snapshot's reading by field, worked out once
-        for all the rows (a reading has 16 values, and a row each)."""
-        return fields.get(self.field) if self.field is not None else self.value(snap)
+        for all the rows (a reading has 19 values, and a row each).  A value that is not
+        a finite number (a derived value that has none now, a Modbus float register's
+        NaN) is no value: null."""
+        if self.field is None:
+            return self.value(snap)
+        value = fields.get(self.field)
+        return value if value is not None and math.isfinite(value) else None
 
 
 def value_rows(series: Series) -> list[MetricRow]:
-    """The measured values of ``series``: ``{Group title}/{field}``, float32."""
-    return [MetricRow(f"{spec.title}/{name}", DataType.FLOAT, f"{name} ({spec.name})",
+    """The measured and derived values of ``series``: ``{Group title}/{field}``."""
+    return [MetricRow(f"{spec.title}/{name}", VALUE_TYPE, f"{name} ({spec.name})",
                       lambda s: None, spec.symbol or None, field=name)
             for group, spec in VALUE_GROUPS.items() if group in CAPABILITIES[series].groups
             for name in spec.fields]

@@ -24,6 +24,7 @@ from typing import Any
 import pytest
 from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.exceptions import ModbusException
+from support.derived import tilt
 from support.harness import FIELDS, GROUP_OF, expected, running, tolerance, until
 
 from imu_gateway.app import Gateway
@@ -301,6 +302,29 @@ async def test_every_register_equals_the_simulator_on_both_protocols() -> None:
 
 
 @pytest.mark.anyio
+async def test_derived_values_follow_the_measured_registers() -> None:
+    """tilt, tilt_direction and vibration at 132-137 (f32) and 232-237 (i32 × 100,
+    × 100, × 10000), after the measured values (docs/register-map.md): the tilt from
+    the pitch and roll the same unit serves, the vibration of a sensor held still at
+    20 Hz 0 once a second of samples is in (NaN before)."""
+    async with two_protocols() as (gw, _, _), pymodbus_client(port_of(gw)) as client:
+        for unit, _, _, _ in UNITS:
+            async def steady(unit: int = unit) -> bool:
+                return floats(client, await registers(client, unit, 136, 2))[0] == 0.0
+            await until(steady)
+            measured = floats(client, await registers(client, unit, 100, 32, 4))
+            pitch, roll = measured[0], measured[1]
+            got = floats(client, await registers(client, unit, 132, 6, 4))
+            scaled = int32s(client, await registers(client, unit, 232, 6, 3))
+            want_tilt, want_direction = tilt(pitch, roll)  # (float32 pitch and roll)
+            assert want_direction is not None
+            assert got == pytest.approx([want_tilt, want_direction, 0.0], abs=0.011)
+            assert scaled[2] == 0
+            assert abs(scaled[0] - want_tilt * 100) <= 1.1
+            assert abs(scaled[1] - want_direction * 100) <= 1.1
+
+
+@pytest.mark.anyio
 async def test_mbpoll_reads_the_same_values_as_the_simulator() -> None:
     mbpoll_path()  # fails (not skips) when it is missing
 
@@ -349,7 +373,7 @@ async def test_exceptions_of_reads_functions_and_units_with_writes_off() -> None
                 await expect_exception(raw, 1, read(function, 9, 1), ILLEGAL_ADDRESS)
                 await expect_exception(raw, 1, read(function, 50, 2), ILLEGAL_ADDRESS)
                 await expect_exception(raw, 1, read(function, 0, 10), ILLEGAL_ADDRESS)
-                await expect_exception(raw, 1, read(function, 130, 4), ILLEGAL_ADDRESS)
+                await expect_exception(raw, 1, read(function, 136, 4), ILLEGAL_ADDRESS)
                 await expect_exception(raw, 2, read(function, 100, 125), ILLEGAL_ADDRESS)
                 await expect_exception(raw, 1, read(function, 1009, 1), ILLEGAL_ADDRESS)
                 await expect_exception(raw, 1, read(function, 65535, 1), ILLEGAL_ADDRESS)

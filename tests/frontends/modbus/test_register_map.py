@@ -30,10 +30,12 @@ def test_measured_values_in_the_specified_order_and_scales() -> None:
     floats = [r for r in mm.REGISTERS if mm.FLOAT_BASE <= r.address < mm.INT_BASE]
     ints = [r for r in mm.REGISTERS if mm.INT_BASE <= r.address < mm.COMMAND_BASE]
     assert [r.name for r in floats] == list(FIELD_NAMES)
-    assert [r.address for r in floats] == list(range(100, 132, 2))
-    assert [r.address for r in ints] == list(range(200, 232, 2))
+    # the sixteen measured values where they always were, the derived appended after them
+    assert [r.address for r in floats] == list(range(100, 138, 2))
+    assert [r.address for r in ints] == list(range(200, 238, 2))
+    assert [r.name for r in floats[16:]] == ["tilt", "tilt_direction", "vibration"]
     assert [r.scale for r in ints] == [100] * 3 + [10000] * 3 + [100] * 3 + [100000] * 3 + \
-        [1000000] * 4
+        [1000000] * 4 + [100, 100, 10000]
 
 
 def test_command_registers_as_specified() -> None:

@@ -28,6 +28,7 @@ from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 from prometheus_client import CollectorRegistry, generate_latest
 from support.broker import Mosquitto, Recorder, Tls, make_tls, recording
+from support.derived import tilt
 from support.harness import (
     FIELDS,
     GROUP_OF,
@@ -52,8 +53,9 @@ READING = Motion.from_seed(3).sample(10.0)
 GID = "test"
 BASE = f"imu/{GID}"
 # Which groups each series' state JSON carries (an AH measures all five, a VG no mag).
-GROUPS = {Series.AH: {"angles", "accel", "gyro", "mag", "quaternion"},
-          Series.VG: {"angles", "accel", "gyro", "quaternion"}}
+GROUPS = {Series.AH: {"angles", "accel", "gyro", "mag", "quaternion", "tilt", "vibration"},
+          Series.VG: {"angles", "accel", "gyro", "quaternion", "tilt", "vibration"}}
+DERIVED = {"tilt", "tilt_direction", "vibration"}
 
 
 def sensor(protocol: WireProtocol, series: Series, **options: Any) -> SimSensor:
@@ -131,6 +133,11 @@ async def test_state_json_carries_the_simulators_values(tmp_path: Path) -> None:
             for field_name, value in fields_of(got).items():
                 assert abs(value - want[field_name]) <= tolerance(protocol, field_name, value), \
                     (name, field_name, value, want[field_name])
+            # the derived values, from the values the same message carries
+            angles = got["angles"]
+            assert (got["tilt"]["tilt"], got["tilt"]["tilt_direction"]) == \
+                tilt(angles["pitch"], angles["roll"])
+            assert got["vibration"]["vibration"] in (None, 0.0)  # held still: 0 once known
             assert message.retain is False  # live delivery; retained copies are checked below
             assert "online" in [m.text for m in rec.on(f"{BASE}/{name}/availability")]
         assert [m.text for m in rec.on(f"{BASE}/status")] == ["online", "offline"]
@@ -339,12 +346,15 @@ async def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
         configs = {t: c for t, c in every.items() if c.get("state_class") == "measurement"
                    and c["state_topic"].endswith("/ha")}
         others = {m.topic: m for m in kept}
+        # the derived values have their per-field topics too
+        assert {f"{BASE}/arm/tilt", f"{BASE}/boom/tilt_direction"} <= set(others)
         # every entity's template reads a topic the gateway really publishes
         for topic, c in every.items():
             assert c["state_topic"] in others, topic
         # One entity per measured field: AH all 16, VG all but the magnetometer.
-        fields = {"boom": set(FIELDS),
-                  "arm": {f for f in FIELDS if GROUP_OF[f] != "mag"}}
+        # And one per derived field (docs/alarms.md).
+        fields = {"boom": set(FIELDS) | DERIVED,
+                  "arm": {f for f in FIELDS if GROUP_OF[f] != "mag"} | DERIVED}
         want = {f"homeassistant/sensor/{GID}_{s}_{f}/config"
                 for s, names in fields.items() for f in names}
         assert set(configs) == want
@@ -358,7 +368,8 @@ async def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
             # The template points into the state JSON that is really published.
             group, member = c["value_template"].strip("{} ").split(".")[1:]
             published = state(others[c["state_topic"]])
-            assert isinstance(published[group][member], float)
+            # (the vibration is null while the last second holds under ten samples)
+            assert isinstance(published[group][member], float) or member == "vibration"
             for a in c["availability"]:
                 if "value_template" in a:  # the reading's status: a JSON topic
                     assert state(others[a["topic"]])["status"] == "ok"
@@ -367,7 +378,8 @@ async def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
             unit = c.get("unit_of_measurement")
             field_name = topic.split("/")[2].split("_", 2)[2]
             assert unit == {"angles": "°", "accel": "g", "gyro": "°/s", "mag": "G",
-                            "quaternion": None}[GROUP_OF[field_name]]
+                            "quaternion": None, "tilt": "°", "vibration": "g"}[
+                GROUP_OF.get(field_name, field_name.removesuffix("_direction"))]
 
         # Restart with the AH sensor gone and per-field topics off: the AH's entities,
         # state, availability and values are removed, and the VG's values; the VG's
@@ -376,7 +388,8 @@ async def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
         cfg["mqtt"]["per_field_topics"] = False
         gone = {t for t in every if "_boom_" in t} | \
             {m.topic for m in kept if m.topic.startswith(f"{BASE}/boom/")} | \
-            {f"{BASE}/arm/{f}" for f in fields["arm"]}
+            {f"{BASE}/arm/{f}" for f in fields["arm"]
+             if f"{BASE}/arm/{f}" in others}  # (a vibration of no value is never sent)
         async with running(cfg) as gateway:
             mqtt = gateway.mqtt
             assert mqtt is not None

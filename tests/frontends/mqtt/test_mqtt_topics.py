@@ -35,7 +35,15 @@ def _sensors(configs: dict[str, Any], sensor: str) -> list[dict[str, Any]]:
 def test_one_entity_per_measured_field_with_its_unit_and_precision() -> None:
     configs = discovery_configs(_setup())
     ah, imu = _sensors(configs, "boom"), _sensors(configs, "arm")
-    assert len(ah) == 16 and len(imu) == 6  # an IMU measures no angles, field or quaternion
+    # an IMU measures no angles, field or quaternion, so it has no tilt; both have the
+    # derived values of what they measure
+    assert len(ah) == 16 + 3 and len(imu) == 6 + 1
+    tilt = configs["homeassistant/sensor/plant_1_boom_tilt_direction/config"]
+    assert tilt["unit_of_measurement"] == "°" and tilt["suggested_display_precision"] == 2
+    assert tilt["value_template"] == "{{ value_json.tilt.tilt_direction }}"
+    shake = configs["homeassistant/sensor/plant_1_arm_vibration/config"]
+    assert shake["unit_of_measurement"] == "g" and shake["suggested_display_precision"] == 4
+    assert shake["value_template"] == "{{ value_json.vibration.vibration }}"
     pitch = configs["homeassistant/sensor/plant_1_boom_pitch/config"]
     assert pitch["unit_of_measurement"] == "°" and pitch["suggested_display_precision"] == 2
     assert pitch["value_template"] == "{{ value_json.angles.pitch }}"

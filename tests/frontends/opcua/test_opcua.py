@@ -17,6 +17,7 @@ from asyncua import Client, ua
 from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
+from support.derived import EXACT, exact_tilt
 from support.harness import expected, free_port, running, tolerance, until
 
 from imu_gateway.errors import StartupError
@@ -135,6 +136,45 @@ async def test_browse_read_and_units(tmp_path: Path, lines: Lines) -> None:
             await until(lambda: gw.stats()[0].transactions > 0)
             transactions = node(client, idx, "Buses.a.Transactions")
             await until(_is_positive(transactions), 5)
+
+
+@pytest.mark.anyio
+async def test_values_are_doubles_as_the_sensor_gave_them_with_the_derived(
+        tmp_path: Path) -> None:
+    """A native sensor's 32.52 reads 32.52 (Double), not the 32.52000045776367 of a
+    Float; the Tilt and Vibration folders carry the derived values, with their units."""
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200, source=hold(EXACT))
+    vg = make_sensor(WireProtocol.MODBUS, Series.VG, 1, baud=115200, source=hold(EXACT))
+    port = free_port()
+    with simulated([ah]) as a, simulated([vg]) as b:
+        cfg = _config(port, tmp_path / "pki", a.path, b.path, allow_none=True)
+        async with running(cfg) as gw, Client(f"opc.tcp://127.0.0.1:{port}/") as client:
+            await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+            idx = await client.get_namespace_index(NS)
+            pitch = node(client, idx, "Sensors.boom.Angles.pitch")
+            assert await pitch.read_data_type() == ua.NodeId(ua.ObjectIds.Double)
+            value = (await pitch.read_data_value()).Value
+            assert (value.Value, value.VariantType) == (32.52, ua.VariantType.Double)
+            want_tilt, want_direction = exact_tilt()
+            for sensor in ("boom", "mast"):
+                tilt = node(client, idx, f"Sensors.{sensor}.Tilt.tilt")
+                direction = node(client, idx, f"Sensors.{sensor}.Tilt.tilt_direction")
+                assert await tilt.read_data_type() == ua.NodeId(ua.ObjectIds.Double)
+                got = (await tilt.read_value(), await direction.read_value())
+                # the Modbus VG's pitch is a float32: its tilt may differ in the last digit
+                assert got == pytest.approx((want_tilt, want_direction), abs=0.011), sensor
+                shake = node(client, idx, f"Sensors.{sensor}.Vibration.vibration")
+                await until(_reads(shake, 0.0))  # still, at 20 Hz: 0 once a second is in
+            units = await (await tilt.get_child(["0:EngineeringUnits"])).read_value()
+            assert units.UnitId == DEGREE
+            units = await (await shake.get_child(["0:EngineeringUnits"])).read_value()
+            assert units.UnitId == int.from_bytes(b"K40", "big")
+
+
+def _reads(item: Any, want: float) -> Any:
+    async def check() -> bool:
+        return bool(await item.read_value() == want)
+    return check
 
 
 def _is_positive(item: Any) -> Any:

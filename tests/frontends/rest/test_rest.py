@@ -25,6 +25,7 @@ import httpx
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 from support import ROOT
+from support.derived import EXACT, exact_tilt
 from support.harness import expected, fields_of, running, tolerance, until
 
 from imu_gateway import __version__
@@ -91,8 +92,8 @@ def test_history_keeps_each_seconds_lowest_highest_and_last() -> None:
     gateway = SimpleNamespace(sensors={"s": SensorConfig(name="s", series=Series.IMU,
                                                           address=0)})
     history = History(gateway)
-    n = len(history.fields["s"])  # an IMU: accel and gyro, 6 fields
-    assert n == 6
+    n = len(history.fields["s"])  # an IMU: accel and gyro, 6 fields, and the vibration
+    assert n == 7
     for at, v in ((100.1, 1.0), (100.5, -2.0), (100.9, 0.5), (101.2, math.nan),
                   (99.0, 7.0), (102.0, 3.0)):
         history.add("s", at, [v] * n)
@@ -186,7 +187,9 @@ async def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
         history = (await http.get(f"{API}/sensors/boom/history", params={"seconds": 60}))
         assert history.status_code == 200
         past = history.json()
-        assert past["t"] and len(past["fields"]) == 16  # an AH measures 16 fields
+        # an AH measures 16 fields; 3 more are derived from them
+        assert past["t"] and len(past["fields"]) == 19
+        assert {"tilt", "tilt_direction", "vibration"} <= set(past["fields"])
         pitch = past["fields"]["pitch"]
         assert all(lo <= last <= hi for lo, last, hi in
                    zip(pitch["min"], pitch["last"], pitch["max"], strict=True))
@@ -197,10 +200,18 @@ async def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
         # the value groups and their units, from the gateway's one table (the
         # dashboard labels its values with these)
         groups = {g["group"]: g for g in (await http.get(f"{API}/groups")).json()}
-        assert list(groups) == ["angles", "accel", "gyro", "mag", "quaternion"]
+        assert list(groups) == ["angles", "accel", "gyro", "mag", "quaternion", "tilt",
+                                "vibration"]
         assert groups["gyro"] == {"group": "gyro", "fields": ["gyro_x", "gyro_y", "gyro_z"],
-                                  "unit": "°/s", "unit_name": "degrees per second",
-                                  "digits": 2}
+                                  "members": ["x", "y", "z"], "unit": "°/s",
+                                  "unit_name": "degrees per second", "digits": 2,
+                                  "derived_from": []}
+        assert groups["tilt"] == {"group": "tilt", "fields": ["tilt", "tilt_direction"],
+                                  "members": ["tilt", "tilt_direction"], "unit": "°",
+                                  "unit_name": "degrees", "digits": 2,
+                                  "derived_from": ["angles"]}
+        assert groups["vibration"]["derived_from"] == ["accel"]
+        assert groups["vibration"]["unit"] == "g" and groups["vibration"]["digits"] == 4
 
         buses_out = {b["name"]: b for b in (await http.get(f"{API}/buses")).json()}
         assert buses_out["a"]["protocol"] == "native" and buses_out["b"]["protocol"] == "modbus"
@@ -225,7 +236,7 @@ async def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
         # a VG measures no magnetic field: the group is absent, never null, in the
         # detail's reading as in the reading itself
         assert set(detail["reading"]) == {"sensor", "ts", "seq", "status", "angles",
-                                          "accel", "gyro", "quaternion"}
+                                          "accel", "gyro", "quaternion", "tilt", "vibration"}
         assert "age_ms" in detail and "settings" in detail  # the route's own fields
 
         for name, sim, protocol in (("boom", ah, WireProtocol.NATIVE),
@@ -589,9 +600,40 @@ def test_busy_with_is_shown_only_while_the_sensor_is_busy() -> None:
     assert cache.settings("boom").to_json() == {"zero_type": "relative"}
 
 
+@pytest.mark.anyio
+async def test_readings_carry_the_derived_values() -> None:
+    """The reading JSON's tilt from its own pitch and roll (a native sensor's exact
+    32.52 and -3.5: to the last digit), the vibration null until the last second holds
+    10 samples, then 0 for a sensor held still; the same in the sensor's detail."""
+    ah = sensor(WireProtocol.NATIVE, Series.AH, source=hold(EXACT))
+    imu = sensor(WireProtocol.NATIVE, Series.IMU, address=1, source=hold(EXACT))
+    with simulated([ah, imu]) as line:
+        cfg = config([bus("a", line.path, "native", [
+            {"name": "boom", "series": "AH", "poll_hz": 15},
+            {"name": "base", "series": "IMU", "address": 1, "poll_hz": 5}])])
+        async with running(cfg) as gateway, client(gateway) as http:
+            await until(lambda: gateway.cache.snapshot("boom").seq >= 1)
+            first = (await http.get(f"{API}/sensors/boom/reading")).json()
+            want_tilt, want_direction = exact_tilt()
+            assert first["tilt"] == {"tilt": want_tilt, "tilt_direction": want_direction}
+            if gateway.cache.snapshot("boom").seq < 10:
+                assert first["vibration"] == {"vibration": None}  # null, not 0
+
+            async def still() -> bool:
+                got = (await http.get(f"{API}/sensors/boom/reading")).json()
+                return bool(got["vibration"] == {"vibration": 0.0})
+            await until(still)
+            detail = (await http.get(f"{API}/sensors/boom")).json()
+            assert detail["reading"]["tilt"] == first["tilt"]
+            # an IMU has no angles, so no tilt; at 5 Hz never ten samples in a second
+            await until(lambda: gateway.cache.snapshot("base").seq >= 12)
+            base = (await http.get(f"{API}/sensors/base/reading")).json()
+            assert "tilt" not in base and base["vibration"] == {"vibration": None}
+
+
 def test_reading_groups_are_optional_and_never_null_in_the_openapi_schema() -> None:
     schema = json.loads(openapi_json())["components"]["schemas"]["ReadingOut"]
-    groups = ("angles", "accel", "gyro", "mag", "quaternion")
+    groups = ("angles", "accel", "gyro", "mag", "quaternion", "tilt", "vibration")
     assert not set(groups) & set(schema["required"])
     for name in groups:
         assert "anyOf" not in schema["properties"][name], name

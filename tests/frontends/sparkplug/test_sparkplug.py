@@ -16,7 +16,8 @@ from typing import Any
 import pytest
 import yaml
 from support.broker import Mosquitto, Received, Recorder, recording
-from support.harness import expected, running, tolerance, until
+from support.derived import tilt
+from support.harness import GROUP_OF, expected, running, tolerance, until
 from support.tahu import Tahu
 
 from imu_gateway.config import SensorConfig
@@ -29,6 +30,8 @@ from imu_gateway.simulator.motion import Motion
 
 GROUP, NODE = "plant", "gw1"
 READING = Motion.from_seed(5).sample(3.0)
+#: The decimals of the native sensors' BCD per group (the protocol document).
+DIGITS = {"angles": 2, "accel": 4, "gyro": 2, "mag": 5, "quaternion": 6}
 SP = "spBv1.0"
 
 
@@ -103,13 +106,21 @@ async def test_births_data_aliases_and_values_as_tahu_reads_them(
              if "properties" in m}
     assert units["Angles/pitch"] == "°" and units["Acceleration/accel_x"] == "g"
     assert units["AngularRate/gyro_z"] == "°/s" and units["MagneticField/mag_x"] == "G"
-    # values: the simulator's, at float32 resolution
+    # values: the simulator's, as the sensor gave them (Double: no float32 widening)
     want = expected(ah)
     for name, value in want.items():
         (m,) = [m for m in dbirth["metrics"] if m["name"].endswith(f"/{name}")]
-        assert m["type"] == "Float", m
-        slack = tolerance(WireProtocol.NATIVE, name, value) + 1e-6 * abs(value)  # float32
-        assert abs(m["value"] - value) <= slack, (name, m["value"], value)
+        assert m["type"] == "Double", m
+        digits = DIGITS[GROUP_OF[name]]
+        assert m["value"] == round(m["value"], digits), (name, m["value"])  # 32.52, exactly
+        assert abs(m["value"] - value) <= tolerance(WireProtocol.NATIVE, name, value)
+    # the derived values, from the pitch and roll the same birth carries
+    pitch, roll = metric(dbirth, "Angles/pitch")["value"], metric(dbirth, "Angles/roll")["value"]
+    assert (metric(dbirth, "Tilt/tilt")["value"], metric(dbirth, "Tilt/tilt_direction")[
+        "value"]) == tilt(pitch, roll)
+    assert metric(dbirth, "Tilt/tilt")["type"] == "Double"
+    assert units["Tilt/tilt"] == "°" and units["Vibration/vibration"] == "g"
+    assert metric(dbirth, "Vibration/vibration").get("value") in (None, 0.0)
     assert metric(dbirth, "Properties/Series")["value"] == "AH"
     # data: by alias only, known from the births, stamped with the sample's time
     for _, p in got[2:-1]:
