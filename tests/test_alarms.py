@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -326,3 +327,41 @@ def test_a_full_disk_is_one_warning_and_a_count(caplog: pytest.LogCaptureFixture
     assert file.errors == 3 and file.written == 0
     warnings = [r for r in caplog.records if "cannot write" in r.getMessage()]
     assert len(warnings) == 1 and "No space left" in warnings[0].getMessage()
+
+
+# ------------------------------------------------------------------ the cache's ALARM event
+
+
+def test_alarm_events_reach_those_who_ask_in_order_after_the_reading() -> None:
+    """An alarm raised while the listeners hear a reading reaches every listener after
+    that reading; a listener that did not ask for ``ALARM`` events never gets one."""
+    from imu_gateway.alarms import AlarmEvent
+    from imu_gateway.cache import ALL_EVENTS, Cache, EventKind, Snapshot
+    from imu_gateway.model import Angles, Reading
+
+    cache = Cache([("boom", 1000.0)], clock=lambda: 0.0)
+    alarms = Alarms([AlarmRow("boom", "boom_lean", "pitch", above=5.0)], ["boom"])
+    heard: dict[str, list[EventKind]] = {"first": [], "later": [], "plain": []}
+
+    def evaluate(kind: EventKind, snap: Snapshot) -> None:  # as the gateway does
+        if kind is EventKind.READING and snap.reading and snap.reading.angles:
+            for change in alarms.sample("boom", {"pitch": snap.reading.angles.pitch}, 0, WALL):
+                state = alarms.evaluator("boom", change.alarm).snapshot()
+                cache.publish_alarm(AlarmEvent(change, state))
+
+    def record(name: str) -> Callable[[EventKind, Snapshot], None]:
+        def listener(kind: EventKind, snap: Snapshot) -> None:
+            heard[name].append(kind)
+            if kind is EventKind.ALARM:
+                assert snap.alarm is not None and snap.alarm.state.state is AU
+                assert snap.name == "boom" and snap.seq == 1
+        return listener
+
+    cache.subscribe(record("first"), kinds=ALL_EVENTS)
+    cache.subscribe(evaluate)
+    cache.subscribe(record("later"), kinds=ALL_EVENTS)
+    cache.subscribe(record("plain"))
+    cache.publish("boom", Reading(angles=Angles(9.0, 0.0, 0.0)))
+    reading, status, alarm = EventKind.READING, EventKind.STATUS, EventKind.ALARM
+    assert heard["first"] == heard["later"] == [reading, alarm, status]
+    assert heard["plain"] == [reading, status]
