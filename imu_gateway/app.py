@@ -20,8 +20,9 @@ import time
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
+from .alarms import AlarmCounts, AlarmEvent, Alarms, AlarmState, Transition
 from .bus.runner import BusThread
-from .cache import Cache, Snapshot
+from .cache import Cache, EventKind, Snapshot, Status
 from .capacity import line_loads
 from .commands import CATALOGUE, CommandResult, validate
 from .config import (
@@ -33,8 +34,10 @@ from .config import (
     SensorConfig,
     config_from_dict,
 )
+from .derived import values_of
 from .errors import RequestFailed, StartupError, unknown_sensor
 from .history import History
+from .journal import JournalFile
 from .stats import BusStats, FrontendCounts, SensorStats
 from .supervise import Frontend, Supervisor
 
@@ -72,6 +75,7 @@ class Gateway:
         # front end shows it.
         self.history = History(self)
         self.cache.subscribe(self.history.on_cache_event)
+        self._alarms_setup(config)
         self.modbus = _modbus_server(self, config.modbus) if config.modbus else None
         sparkplug = config.mqtt.sparkplug if config.mqtt else None
         self.mqtt = _mqtt_client(self, config.mqtt) \
@@ -85,6 +89,57 @@ class Gateway:
             f for f in (self.modbus, self.http, self.opcua, self.mqtt, self.sparkplug) if f]
         self.supervisor = Supervisor()
         self.started = time.monotonic()
+
+    # ------------------------------------------------------------ alarms
+
+    def _alarms_setup(self, config: GatewayConfig) -> None:
+        """Every alarm, evaluated here on each sample whichever front ends are on (they
+        hear the transitions as the cache's ``ALARM`` events), and the journal's file,
+        whose last transitions give the alarms the states they had."""
+        self.journal_file = JournalFile(config.alarm_journal) if config.alarm_journal else None
+        self.alarms = Alarms([a.row(s.name) for _, s in config.iter_sensors() for a in s.alarms],
+                             self.sensors, self.journal_file.read() if self.journal_file else ())
+        self._evaluating = True  # off once stopping: a sensor going then is no alarm
+        self.cache.subscribe(self._on_sample)
+
+    def _on_sample(self, kind: EventKind, snap: Snapshot) -> None:
+        if kind is EventKind.READING and self._evaluating and snap.timestamp is not None:
+            for change in self.alarms.sample(snap.name, values_of(snap), time.monotonic(),
+                                             snap.timestamp.timestamp()):
+                self._publish(change)
+
+    def _check_communication(self) -> None:
+        """The communication alarms, at each staleness tick.  A sensor its bus has not
+        tried yet is no alarm: at start every sensor is "offline" until then."""
+        at, wall = time.monotonic(), time.time()
+        for name in self.sensors:
+            if self.cache.reached(name):
+                ok = self.cache.snapshot(name).status is Status.OK
+                change = self.alarms.communication(name, ok, at, wall)
+                if change is not None:
+                    self._publish(change)
+
+    def _publish(self, change: Transition) -> None:
+        if self.journal_file is not None:
+            self.journal_file.append(change)
+        state = self.alarms.evaluator(change.sensor, change.alarm).snapshot()
+        self.cache.publish_alarm(AlarmEvent(change, state))
+
+    def alarm_states(self) -> list[AlarmState]:
+        return self.alarms.states()
+
+    def alarm_journal(self, since: float | None = None) -> list[Transition]:
+        return self.alarms.since(since)
+
+    def acknowledge(self, sensor: str, alarm: str, who: str) -> AlarmState:
+        change = self.alarms.acknowledge(sensor, alarm, who, time.time())
+        self._publish(change)
+        return self.alarms.evaluator(sensor, alarm).snapshot()
+
+    def alarm_counts(self) -> AlarmCounts:
+        file = self.journal_file
+        return AlarmCounts(dict(self.alarms.transitions), file.written if file else 0,
+                           file.errors if file else 0)
 
     async def command(self, sensor: str, name: str,
                       args: Mapping[str, Any] | None = None) -> CommandResult:
@@ -141,6 +196,9 @@ class Gateway:
             try:
                 await self._watch_staleness(stop)
             finally:
+                self._evaluating = False
+                if self.journal_file is not None:
+                    stopping.push_async_callback(asyncio.to_thread, self.journal_file.close)
                 for watcher in watchers:
                     watcher.cancel()
                 await asyncio.gather(*watchers, return_exceptions=True)
@@ -152,6 +210,8 @@ class Gateway:
     async def _watch_staleness(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
             self.cache.check_staleness()
+            if self._evaluating:
+                self._check_communication()
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), STALENESS_TICK)
 

@@ -20,11 +20,13 @@ from __future__ import annotations
 import enum
 import logging
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections import deque
+from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from typing import Any
 
+from .alarms import AlarmEvent
 from .errors import unknown_sensor
 from .model import KnownSettings, Reading
 from .normalise import Derivation
@@ -53,6 +55,7 @@ class Snapshot:
     busy: bool  # a save or calibration is running
     streaming: bool  # the sensor's own auto-output feeds this reading
     errors: int  # timeouts, bad checksums, bad frames
+    alarm: AlarmEvent | None = None  # only in an ``ALARM`` event: the transition
 
     @property
     def has_reading(self) -> bool:
@@ -79,7 +82,12 @@ class EventKind(enum.Enum):
     READING = "reading"  # a new sample
     STATUS = "status"  # status, busy or streaming changed
     SETTINGS = "settings"  # the known settings changed (``Cache.settings``)
+    ALARM = "alarm"  # an alarm's state changed: ``Snapshot.alarm`` says how
 
+
+#: What a listener hears unless it asks for more (``Cache.subscribe``).
+SENSOR_EVENTS = frozenset({EventKind.READING, EventKind.STATUS, EventKind.SETTINGS})
+ALL_EVENTS = frozenset(EventKind)
 
 Listener = Callable[[EventKind, Snapshot], None]
 ErrorHook = Callable[[BaseException], None]
@@ -97,6 +105,7 @@ class _Entry:
     streaming: bool = False
     errors: int = 0
     reported: tuple[Status, bool, bool] | None = None  # last status event sent
+    reached: bool = False  # the bus has said what the sensor is: online, offline or a sample
     settings: KnownSettings = field(default_factory=KnownSettings)
     derivation: Derivation = field(default_factory=Derivation)  # its derived values
 
@@ -119,7 +128,11 @@ class Cache:
         bus masters time their readings with (the event loop's, by default monotonic)."""
         self._entries = {name: _Entry(stale_ms / 1000) for name, stale_ms in sensors}
         self._clock = clock
-        self._listeners: list[tuple[Listener, ErrorHook | None]] = []
+        self._listeners: list[tuple[Listener, ErrorHook | None, Collection[EventKind]]] = []
+        # Events made while listeners hear another (an alarm a reading raised) wait for
+        # it to reach them all: every listener hears every event in the same order.
+        self._waiting: deque[tuple[EventKind, Snapshot]] = deque()
+        self._delivering = False
         self._buses: dict[str, BusStats] = {}
         self._sensor_stats: dict[str, SensorStats] = {}
 
@@ -145,13 +158,14 @@ class Cache:
     def snapshots(self) -> list[Snapshot]:
         return [self.snapshot(name) for name in self._entries]
 
-    def subscribe(self, listener: Listener,
-                  on_error: ErrorHook | None = None) -> Callable[[], None]:
-        """Call ``listener(kind, snapshot)`` on every change; returns the unsubscriber.
-        Listeners run in the event loop and must not block.  An exception in one goes
-        to its ``on_error`` (its front end's supervisor), or is logged: it never
-        reaches the bus that published, nor the other listeners."""
-        entry = (listener, on_error)
+    def subscribe(self, listener: Listener, on_error: ErrorHook | None = None,
+                  kinds: Collection[EventKind] = SENSOR_EVENTS) -> Callable[[], None]:
+        """Call ``listener(kind, snapshot)`` on every change of ``kinds``; returns the
+        unsubscriber.  ``ALARM`` events come only to a listener that asks for them
+        (``kinds=ALL_EVENTS``).  Listeners run in the event loop and must not block.  An
+        exception in one goes to its ``on_error`` (its front end's supervisor), or is
+        logged: it never reaches the bus that published, nor the other listeners."""
+        entry = (listener, on_error, frozenset(kinds))
         self._listeners.append(entry)
         return lambda: self._listeners.remove(entry) if entry in self._listeners else None
 
@@ -166,7 +180,7 @@ class Cache:
         e.received = self._clock() if at is None else at
         e.reading = e.derivation.complete(reading, e.received)
         e.timestamp = datetime.now(UTC)
-        e.online = True
+        e.online = e.reached = True
         snap = self.snapshot(name)
         self._notify(EventKind.READING, snap)
         self._check(name, snap)
@@ -177,6 +191,7 @@ class Cache:
         e = self._entry(name)
         if online is not None:
             e.online = online
+            e.reached = True
             if not online:
                 self._forget_settings(name, e)
         if busy is not None:
@@ -231,6 +246,17 @@ class Cache:
         """The sensor's settings as far as the gateway knows them."""
         return self._entry(name).settings
 
+    def reached(self, name: str) -> bool:
+        """Whether the bus has said what the sensor is (online, offline, or a sample):
+        until then its "offline" only means "not tried yet"."""
+        return self._entry(name).reached
+
+    def publish_alarm(self, event: AlarmEvent) -> None:
+        """An alarm's transition, to the listeners of ``ALARM`` events, with its
+        sensor's snapshot."""
+        snap = replace(self.snapshot(event.state.sensor), alarm=event)
+        self._notify(EventKind.ALARM, snap)
+
     def check_staleness(self) -> None:
         for name in self._entries:
             self._check(name)
@@ -253,7 +279,22 @@ class Cache:
         self._notify(kind, self.snapshot(name))
 
     def _notify(self, kind: EventKind, snap: Snapshot) -> None:
-        for listener, on_error in list(self._listeners):
+        if self._delivering:  # (a listener's doing, while it hears an event)
+            self._waiting.append((kind, snap))
+            return
+        self._delivering = True
+        try:
+            self._deliver(kind, snap)
+            while self._waiting:
+                self._deliver(*self._waiting.popleft())
+        finally:
+            self._delivering = False
+            self._waiting.clear()
+
+    def _deliver(self, kind: EventKind, snap: Snapshot) -> None:
+        for listener, on_error, kinds in list(self._listeners):
+            if kind not in kinds:
+                continue
             try:
                 listener(kind, snap)
             except Exception as exc:  # one listener's fault stays its own

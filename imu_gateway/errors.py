@@ -85,6 +85,8 @@ class ErrorKind(enum.Enum):
     HEADERS_TOO_LARGE = "headers_too_large"
     NOT_FOUND = "not_found"
     METHOD_NOT_ALLOWED = "method_not_allowed"
+    UNKNOWN_ALARM = "unknown_alarm"
+    NOTHING_TO_ACKNOWLEDGE = "nothing_to_acknowledge"
 
 
 
@@ -123,6 +125,12 @@ KINDS: Mapping[ErrorKind, KindRow] = MappingProxyType({
     ErrorKind.HEADERS_TOO_LARGE: KindRow(431, None, "the request line and headers are too large"),
     ErrorKind.NOT_FOUND: KindRow(404, None, "no such path"),
     ErrorKind.METHOD_NOT_ALLOWED: KindRow(405, None, "the path does not take that method"),
+    ErrorKind.UNKNOWN_ALARM: KindRow(404, ILLEGAL_ADDRESS, "the sensor has no alarm of that name"),
+    # Acknowledging an alarm that is normal, or acknowledged already: nothing was done,
+    # and the client's picture of the alarm is out of date (a conflict, as for busy).
+    ErrorKind.NOTHING_TO_ACKNOWLEDGE: KindRow(
+        409, ILLEGAL_VALUE, "the alarm is normal or acknowledged already: nothing to "
+        "acknowledge"),
 })
 
 

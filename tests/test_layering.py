@@ -399,3 +399,15 @@ def test_frames_and_outcomes_cross_typed() -> None:
         "master.Done": master.Done,
     }
     assert [where for where, hint in hints.items() if Any in _parts(hint)] == []
+
+
+@pytest.mark.parametrize("module", ["alarms.py"])
+def test_the_alarms_are_sans_io(module: str) -> None:
+    """The alarms' state model (docs/alarms.md) takes time as an argument, as the
+    protocol does: no clock, thread, loop or file, so every transition is tested in
+    virtual time (tests/test_alarms.py).  Of the gateway it knows only the errors."""
+    for name in package_imports(GATEWAY / module, "imu_gateway"):
+        top = name.split(".")[0]
+        assert top not in FORBIDDEN, f"{module} imports {name}"
+        assert top in sys.stdlib_module_names or _within(name, "imu_gateway.errors"), \
+            f"{module} imports {name}"

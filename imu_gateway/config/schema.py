@@ -4,6 +4,7 @@ context (a bus's protocol gives its sensors' timeouts)."""
 from __future__ import annotations
 
 import ipaddress
+import re
 import socket
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
@@ -11,17 +12,21 @@ from typing import Annotated, Any, Literal, Self
 from urllib.parse import urlsplit
 
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
+    PlainSerializer,
+    PlainValidator,
     ValidationInfo,
     field_validator,
     model_validator,
 )
 
+from ..alarms import COMMUNICATION, AlarmRow, Severity
 from ..errors import ConfigError
 from ..model import VALUE_GROUPS, Group, Series, WireProtocol
-from ..normalise import FIELD_NAMES
+from ..normalise import FIELD_NAMES, MEASURED_FIELDS
 from .checks import BusView, SensorView, cross_problems
 from .fields import (
     ADDRESS_RANGE,
@@ -55,6 +60,7 @@ from .fields import (
     fail,
     protocol_or_none,
     show,
+    show_number,
 )
 
 # ------------------------------------------------------------------------ the models
@@ -80,6 +86,80 @@ class _Model(BaseModel):
     model_config = ConfigDict(
         extra="forbid", frozen=True, allow_inf_nan=False, coerce_numbers_to_str=True
     )
+
+
+def _alarm_name(value: str) -> str:
+    if not re.fullmatch(r"[a-z0-9_]+", value):
+        raise fail(f"must match [a-z0-9_]+ (lower-case letters, digits and _: it is a "
+                    f"topic level and a metric name), not {show(value)}")
+    if value == COMMUNICATION:
+        raise fail(f"{COMMUNICATION} is the built-in alarm of every sensor (stale or "
+                    "offline); give this one another name")
+    return value
+
+
+def _severity(value: object) -> Severity:
+    if isinstance(value, Severity):
+        return value
+    if isinstance(value, str) and value.strip().lower() in {s.value for s in Severity}:
+        return Severity(value.strip().lower())
+    raise fail(f"must be one of {', '.join(s.value for s in Severity)}, not {show(value)}")
+
+
+AlarmName = Annotated[str, AfterValidator(_alarm_name)]
+SeverityField = Annotated[Severity, PlainValidator(_severity),
+                          PlainSerializer(lambda s: s.value, when_used="json")]
+
+
+class AlarmConfig(_Model):
+    """One alarm of a sensor (docs/alarms.md): a field beyond a limit."""
+
+    name: AlarmName = Field(description=(
+        f"`[a-z0-9_]+`, unique per sensor, not `{COMMUNICATION}` (every sensor's built-in "
+        "alarm)"))
+    field: NonEmpty = Field(description=(
+        "a field the sensor's series measures (`pitch`, `accel_z`, …; the derived ones "
+        "too, where the series has them)"))
+    above: float | None = Field(default=None, description=(
+        "active while the value is above this (strictly)"))
+    below: float | None = Field(default=None, description=(
+        "active while the value is below this (strictly); with `above` too: active "
+        "outside the band, and `below` < `above`. One of the two is required"))
+    hysteresis: NonNegative = Field(default=0.0, description=(
+        ">= 0; an active alarm clears only at `above - hysteresis` or lower (at "
+        "`below + hysteresis` or higher)"))
+    on_delay_s: NonNegative = Field(default=0.0, description=(
+        ">= 0; the value must stay beyond the limit this long before the alarm is active"))
+    off_delay_s: NonNegative = Field(default=0.0, description=(
+        ">= 0; the value must stay back within the limit this long before it clears"))
+    severity: SeverityField = Field(default=Severity.WARNING, description=(
+        f"{_or_list(f'`{s.value}`' for s in Severity)}"),
+        json_schema_extra={_SHOWN_DEFAULT: "`warning`", _SHOWN_TYPE: "string"})
+    latch: bool = Field(default=False, description=(
+        "true: once active, it stays active until acknowledged, even when the value "
+        "returns"))
+
+    @model_validator(mode="after")
+    def _limits(self) -> Self:
+        if self.above is None and self.below is None:
+            raise fail("needs above, below or both (a band): the limit it raises at")
+        if self.above is not None and self.below is not None:
+            if self.below >= self.above:
+                raise fail(f"below ({show_number(self.below)}) must be less than above "
+                            f"({show_number(self.above)}): the alarm is active outside "
+                            "the band between them")
+            if self.below + self.hysteresis >= self.above - self.hysteresis:
+                raise fail(f"hysteresis {show_number(self.hysteresis)} closes the band "
+                            f"{show_number(self.below)}..{show_number(self.above)}: an "
+                            "active alarm could never clear; make it smaller than half "
+                            "the band")
+        return self
+
+    def row(self, sensor: str) -> AlarmRow:
+        """The alarm as ``imu_gateway.alarms`` evaluates it."""
+        return AlarmRow(sensor, self.name, self.field, self.above, self.below,
+                        self.hysteresis, self.on_delay_s, self.off_delay_s, self.severity,
+                        self.latch)
 
 
 class SensorConfig(_Model):
@@ -114,6 +194,25 @@ class SensorConfig(_Model):
         f"{_span(UNIT_ID_RANGE)}; only for sensors on a modbus bus: a Modbus TCP unit id "
         "whose requests pass through to the sensor unchanged. Unique, and different from "
         "every `unit_id`"))
+    # (a tuple: a sensor's config stays hashable)
+    alarms: tuple[AlarmConfig, ...] = Field(default=(), description=(
+        "the sensor's alarms (`buses[].sensors[].alarms[]`, [alarms.md](alarms.md)); the "
+        f"built-in `{COMMUNICATION}` alarm is there without a row"),
+        json_schema_extra={_SHOWN_DEFAULT: "`[]`"})
+
+    @model_validator(mode="after")
+    def _alarms_fit(self) -> Self:
+        measured = MEASURED_FIELDS[self.series]
+        seen: dict[str, int] = {}
+        for i, alarm in enumerate(self.alarms):
+            if alarm.name in seen:
+                raise fail(f"alarms[{i}].name: {show(alarm.name)} is already used by "
+                            f"alarms[{seen[alarm.name]}]")
+            seen[alarm.name] = i
+            if alarm.field not in measured:
+                raise fail(f"alarms[{i}].field: series {self.series.name} does not measure "
+                            f"{show(alarm.field)} (its fields: {' '.join(measured)})")
+        return self
 
 
 class BusConfig(_Model):
@@ -480,6 +579,10 @@ class GatewayConfig(_Model):
         "the REST API and dashboard (`http`); left out: off"))
     opcua: OpcUaConfig | None = Field(default=None, description=(
         "the OPC UA server (`opcua`); left out: off"))
+    alarm_journal: FileToKeep | None = Field(default=None, description=(
+        "a file the alarms' transitions are appended to (JSON lines; its folder must "
+        "exist), read back at start: the alarms take up the states it last recorded "
+        "([alarms.md](alarms.md#the-journal)); null: the journal is kept in memory only"))
 
     @model_validator(mode="before")
     @classmethod

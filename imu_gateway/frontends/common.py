@@ -6,6 +6,7 @@ import json
 from collections.abc import Mapping
 from typing import Any, Protocol
 
+from ..alarms import AlarmCounts, AlarmState, Transition
 from ..cache import Cache, Snapshot
 from ..commands import CommandResult
 from ..config import GatewayConfig, SensorConfig
@@ -39,6 +40,30 @@ class GatewayLike(Protocol):
 
     def frontend_stats(self) -> dict[str, FrontendCounts]:
         """Each running front end's ``stats()``, by name (``modbus``, ``mqtt``, ``http``)."""
+        ...
+
+    # The alarms (docs/alarms.md).  A transition reaches a front end as the cache's
+    # ``ALARM`` event (``cache.subscribe(…, kinds=ALL_EVENTS)``; ``Snapshot.alarm``).
+
+    def alarm_states(self) -> list[AlarmState]:
+        """Every alarm with its state: sensor by sensor in config order, each sensor's
+        configured alarms in config order, then its ``communication`` alarm."""
+        ...
+
+    def alarm_journal(self, since: float | None = None) -> list[Transition]:
+        """The journal's transitions (the last 1000) at or after ``since`` (epoch
+        seconds; ``None``: all), oldest first."""
+        ...
+
+    def acknowledge(self, sensor: str, alarm: str, who: str) -> AlarmState:
+        """Acknowledge as ``who`` (the front end checked the client's rights; ``who``
+        says who it is: ``rest 10.0.0.5``); returns the state after.  Raises
+        ``RequestFailed``: ``unknown_sensor``, ``unknown_alarm`` (404),
+        ``nothing_to_acknowledge`` (409: the alarm is normal or acknowledged already)."""
+        ...
+
+    def alarm_counts(self) -> AlarmCounts:
+        """Transitions per alarm since start, and the journal file's counters."""
         ...
 
 

@@ -32,7 +32,7 @@ from ..config import (
     SensorConfig,
     SparkplugConfig,
 )
-from ..config.schema import ModbusTlsConfig
+from ..config.schema import AlarmConfig, ModbusTlsConfig
 
 #: (heading, model, what the section is): the order of the document.
 SECTIONS: tuple[tuple[str, type[BaseModel], str], ...] = (
@@ -41,6 +41,9 @@ SECTIONS: tuple[tuple[str, type[BaseModel], str], ...] = (
      "it is `null`) turns its interface off; `http: {}` turns it on with every default."),
     ("buses[]", BusConfig, "One serial line each; one bus master owns it."),
     ("buses[].sensors[]", SensorConfig, "The sensors on a line."),
+    ("buses[].sensors[].alarms[]", AlarmConfig,
+     "A sensor's alarms ([alarms.md](alarms.md)); `name`, `field` and `above` or "
+     "`below` are required."),
     ("modbus", ModbusConfig, "The Modbus TCP server ([modbus-tcp.md](modbus-tcp.md))."),
     ("modbus.tls", ModbusTlsConfig,
      "Modbus/TCP Security: mutual TLS, rights by the role in the client's certificate "
@@ -77,8 +80,8 @@ def type_name(annotation: Any) -> str:
             return "network"
         named = [type_name(a) for a in args if a is not type(None)]
         return " or ".join([*named, "null"] if type(None) in args else named)
-    if origin is list:
-        (item,) = get_args(annotation)
+    if origin in (list, tuple):  # (a tuple of any length: ``tuple[X, ...]``)
+        item = get_args(annotation)[0]
         inner = type_name(item)
         return f"list of {'mappings' if inner == 'mapping' else inner + 's'}"
     if origin is dict:

@@ -281,6 +281,21 @@ def test_built_in_python_gets_the_same_defaults() -> None:
         GatewayConfig(buses=[config.buses[0], config.buses[1].model_copy(update={"name": "a"})])
 
 
+def test_an_alarm_as_the_issue_writes_it() -> None:
+    """docs/alarms.md's example, into the row the alarms evaluate."""
+    from imu_gateway.alarms import AlarmRow, Severity
+
+    config = config_from_dict(with_sensor(0, 0, alarms=[{
+        "name": "boom_lean", "field": "pitch", "above": 5.0, "hysteresis": 0.5,
+        "on_delay_s": 2, "off_delay_s": 0, "severity": "Warning", "latch": False}]), env={})
+    (alarm,) = config.buses[0].sensors[0].alarms
+    assert alarm.row("boom") == AlarmRow("boom", "boom_lean", "pitch", 5.0, None, 0.5, 2.0,
+                                         0.0, Severity.WARNING, False)
+    assert config.buses[1].sensors[0].alarms == () and config.alarm_journal is None
+    dumped = config.buses[0].sensors[0].model_dump(mode="json")["alarms"][0]
+    assert dumped["severity"] == "warning"
+
+
 # -------------------------------------------------------------- one rule each
 
 RULES: list[tuple[str, dict[str, Any], str]] = [
@@ -356,13 +371,52 @@ RULES: list[tuple[str, dict[str, Any], str]] = [
      'buses[0].sensors[0]: must be a mapping (key: value), not "boom"'),
     ("unknown sensor key", with_sensor(0, 0, pol_hz=5),
      "buses[0].sensors[0].pol_hz: unknown key (allowed: name, series, address, unit_id, "
-     "poll_hz, stream_hz, stale_after_ms, raw_unit_id); did you mean poll_hz?"),
+     "poll_hz, stream_hz, stale_after_ms, raw_unit_id, alarms); did you mean poll_hz?"),
     ("unknown top key", base(mqqt={}),
-     "mqqt: unknown key (allowed: gateway_id, buses, modbus, mqtt, http, opcua); "
+     "mqqt: unknown key (allowed: gateway_id, buses, modbus, mqtt, http, opcua, alarm_journal); "
      "did you mean mqtt?"),
     ("unknown bus key", with_bus(0, baud=9600),
      "buses[0].baud: unknown key (allowed: name, port, baudrate, protocol, timeout_ms, "
      "retries, trace, rs485, sensors); did you mean baudrate?"),
+    ("alarm name", with_sensor(0, 0, alarms=[{"name": "Lean", "field": "pitch", "above": 5}]),
+     "buses[0].sensors[0].alarms[0].name: must match [a-z0-9_]+ (lower-case letters, digits "
+     'and _: it is a topic level and a metric name), not "Lean"'),
+    ("alarm named communication", with_sensor(0, 0, alarms=[
+        {"name": "communication", "field": "pitch", "above": 5}]),
+     "buses[0].sensors[0].alarms[0].name: communication is the built-in alarm of every "
+     "sensor (stale or offline); give this one another name"),
+    ("alarm name twice", with_sensor(0, 0, alarms=[
+        {"name": "lean", "field": "pitch", "above": 5},
+        {"name": "lean", "field": "roll", "above": 5}]),
+     'buses[0].sensors[0]: alarms[1].name: "lean" is already used by alarms[0]'),
+    ("alarm field the series lacks", with_sensor(1, 0, alarms=[
+        {"name": "north", "field": "mag_x", "above": 0.5}]),
+     'buses[1].sensors[0]: alarms[0].field: series VG does not measure "mag_x" (its fields: '
+     "pitch roll yaw accel_x accel_y accel_z gyro_x gyro_y gyro_z q0 q1 q2 q3)"),
+    ("alarm without a limit", with_sensor(0, 0, alarms=[{"name": "lean", "field": "pitch"}]),
+     "buses[0].sensors[0].alarms[0]: needs above, below or both (a band): the limit it "
+     "raises at"),
+    ("alarm band upside down", with_sensor(0, 0, alarms=[
+        {"name": "lean", "field": "pitch", "above": -5, "below": 5}]),
+     "buses[0].sensors[0].alarms[0]: below (5) must be less than above (-5): the alarm is "
+     "active outside the band between them"),
+    ("alarm band closed by hysteresis", with_sensor(0, 0, alarms=[
+        {"name": "lean", "field": "pitch", "above": 5, "below": -5, "hysteresis": 5}]),
+     "buses[0].sensors[0].alarms[0]: hysteresis 5 closes the band -5..5: an active alarm "
+     "could never clear; make it smaller than half the band"),
+    ("alarm hysteresis", with_sensor(0, 0, alarms=[
+        {"name": "lean", "field": "pitch", "above": 5, "hysteresis": -0.5}]),
+     "buses[0].sensors[0].alarms[0].hysteresis: must be >= 0, not -0.5"),
+    ("alarm delay", with_sensor(0, 0, alarms=[
+        {"name": "lean", "field": "pitch", "above": 5, "off_delay_s": -1}]),
+     "buses[0].sensors[0].alarms[0].off_delay_s: must be >= 0, not -1"),
+    ("alarm severity", with_sensor(0, 0, alarms=[
+        {"name": "lean", "field": "pitch", "above": 5, "severity": "fatal"}]),
+     'buses[0].sensors[0].alarms[0].severity: must be one of info, warning, critical, '
+     'not "fatal"'),
+    ("alarm journal folder", base(alarm_journal="/nonexistent/alarms.jsonl"),
+     "alarm_journal: no such folder: /nonexistent (for /nonexistent/alarms.jsonl); create "
+     "it first"),
     ("listen no port", base(modbus={"listen": "0.0.0.0"}),
      'modbus.listen: must be "host:port", e.g. "0.0.0.0:502" or "[::]:502", not "0.0.0.0"'),
     ("listen port range", base(http={"listen": "0.0.0.0:65536"}),

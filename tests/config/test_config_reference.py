@@ -21,12 +21,12 @@ from imu_gateway.config import (
     SparkplugConfig,
     config_from_dict,
 )
-from imu_gateway.config.schema import ModbusTlsConfig
+from imu_gateway.config.schema import AlarmConfig, ModbusTlsConfig
 from imu_gateway.tools import config_reference as ref
 
 DOC = ROOT / "docs" / "config-reference.md"
-MODELS = (GatewayConfig, BusConfig, SensorConfig, ModbusConfig, ModbusTlsConfig, MqttConfig,
-          SparkplugConfig, HttpConfig, OpcUaConfig)
+MODELS = (GatewayConfig, BusConfig, SensorConfig, AlarmConfig, ModbusConfig, ModbusTlsConfig,
+          MqttConfig, SparkplugConfig, HttpConfig, OpcUaConfig)
 
 
 def test_config_reference_document_is_up_to_date() -> None:

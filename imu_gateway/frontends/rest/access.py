@@ -112,6 +112,17 @@ def command_refusal(config: HttpConfig, token: str | None) -> RequestFailed | No
     return None
 
 
+def ack_refusal(config: HttpConfig, token: str | None) -> RequestFailed | None:
+    """Why acknowledging an alarm with this bearer token is refused, if it is: it
+    needs the token (an operator's right), whether or not commands are allowed."""
+    if config.token is None:
+        return RequestFailed(ErrorKind.FORBIDDEN, "acknowledging needs http.token (the "
+                             "bearer token operators send); none is set")
+    if token is None or not token_matches(token, config.token):
+        return RequestFailed(ErrorKind.UNAUTHORISED, "a valid bearer token is required")
+    return None
+
+
 def error_response(exc: RequestFailed) -> JSONResponse:
     """Every failed request's answer: ``{"error", "kind"}`` with the kind's status
     (``imu_gateway.errors.KINDS``), and the challenge with a 401."""

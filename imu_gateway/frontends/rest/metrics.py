@@ -55,7 +55,23 @@ class GatewayCollector:
         self._buses(family)
         self._sensors(family)
         self._frontends(family)
+        self._alarms(family)
         return out
+
+    def _alarms(self, family: Family) -> None:
+        active = family(GaugeMetricFamily, "alarm_active", "1 while the alarm is active",
+                        ["sensor", "alarm", "severity"])
+        moved = family(CounterMetricFamily, "alarm_transitions", "changes of the alarm's "
+                       "state since start (acknowledgements too)", ["sensor", "alarm"])
+        counts = self.gateway.alarm_counts()
+        for state in self.gateway.alarm_states():
+            active.add_metric([state.sensor, state.name, state.severity.value],
+                              1.0 if state.active else 0.0)
+            moved.add_metric([state.sensor, state.name],
+                             counts.transitions.get((state.sensor, state.name), 0))
+        family(CounterMetricFamily, "alarm_journal_errors", "transitions the journal's file "
+               "could not take (a full or read-only disk)", []).add_metric(
+                   [], counts.journal_errors)
 
     def _buses(self, family: Family) -> None:
         tx = family(CounterMetricFamily, "bus_transactions", "exchanges on the line", ["bus"])

@@ -220,3 +220,40 @@ class HistoryOut(_Out):
     fields: dict[str, ColumnsOut] = Field(description=(
         "per measured field, its lowest, highest and last value in each bucket (null: "
         "no finite value in that second)"))
+
+
+_STATES = Literal["normal", "active_unacked", "active_acked", "rtn_unacked"]
+_SEVERITIES = Literal["info", "warning", "critical"]
+
+
+class AlarmOut(_Out):
+    """An alarm and its state (docs/alarms.md)."""
+
+    sensor: str
+    alarm: str
+    field: str | None = Field(description="the field it watches; null: the communication "
+                                          "alarm")
+    severity: _SEVERITIES
+    state: _STATES = Field(description="ISA-18.2's state")
+    active: bool
+    acked: bool
+    value: float | None = Field(description="the value of its latest transition")
+    limit: float | None = Field(description="the limit that value was judged by")
+    since: str | None = Field(description="the time of its latest transition (UTC); null: "
+                                          "none since start")
+    latch: bool
+
+
+class TransitionOut(_Out):
+    """One change of an alarm's state, as the journal keeps it."""
+
+    sensor: str
+    alarm: str
+    ts: str = Field(description="when (UTC)")
+    from_: _STATES = Field(alias="from")
+    to: _STATES
+    value: float | None = Field(description="the value that caused it; null for an "
+                                            "acknowledgement and the communication alarm")
+    limit: float | None
+    severity: _SEVERITIES
+    by: str | None = Field(description="who acknowledged (an acknowledgement only)")

@@ -9,6 +9,7 @@ import re
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from importlib import resources
 from typing import Annotated, Any
 
@@ -40,6 +41,7 @@ from .access import (
     CountRequests,
     Credentials,
     SecurityHeaders,
+    ack_refusal,
     command_refusal,
     error_response,
     json_error,
@@ -48,6 +50,7 @@ from .access import (
 from .limits import API, MAX_STREAMS
 from .metrics import GatewayCollector
 from .models import (
+    AlarmOut,
     ApiIndexOut,
     BusOut,
     CommandOut,
@@ -58,6 +61,7 @@ from .models import (
     ReadingOut,
     SensorDetailOut,
     SensorOut,
+    TransitionOut,
 )
 from .streams import StreamHub, stream_peer
 
@@ -79,6 +83,7 @@ class _Routes:
     reads: list[Any]  # the dependencies of a read
     streams: list[Any]  # of a stream (the token may come in the query)
     commands: Callable[..., Awaitable[None]]  # the dependency of a command
+    acks: Callable[..., Awaitable[None]]  # of an alarm's acknowledgement
 
     def sensor_or_404(self, name: str) -> Snapshot:
         """(The cache refuses a sensor it does not know: ``unknown_sensor``, 404.)"""
@@ -102,6 +107,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     _status_routes(app, routes)
     _sensor_routes(app, routes)
     _stream_routes(app, routes, hub if hub is not None else StreamHub(gateway))
+    _alarm_routes(app, routes)
     for spec in CATALOGUE.values():
         _command_route(app, routes, spec)
     _metrics_route(app, routes)
@@ -208,7 +214,13 @@ def _access(gateway: GatewayLike, config: HttpConfig) -> _Routes:
                 access_token is not None and token_matches(access_token, config.token)):
             authorised(credentials)
 
-    return _Routes(gateway, [Depends(read_access)], [Depends(stream_access)], command_access)
+    async def ack_access(credentials: Credentials) -> None:
+        refusal = ack_refusal(config, credentials.credentials if credentials else None)
+        if refusal is not None:
+            raise refusal
+
+    return _Routes(gateway, [Depends(read_access)], [Depends(stream_access)], command_access,
+                   ack_access)
 
 
 def _status_routes(app: FastAPI, routes: _Routes) -> None:
@@ -327,8 +339,10 @@ def _stream_routes(app: FastAPI, routes: _Routes, hub: StreamHub) -> None:
                                  headers={"X-Accel-Buffering": "no"})  # (no-store: SecurityHeaders)
 
     sse = {"content": {"text/event-stream": {}},
-           "description": "`event: reading` (or `status`) and `data:` the "
-                          "reading JSON; a `: keep-alive` comment when idle"}
+           "description": "`event: reading` (or `status`) and `data:` the reading JSON; "
+                          "`event: alarm` and `data:` the alarm's state after a transition "
+                          "(as in `GET /api/v1/alarms`) with `from` and `by`; a "
+                          "`: keep-alive` comment when idle"}
 
     @app.get(f"{API}/sensors/{{name}}/stream", dependencies=routes.streams,
              response_class=StreamingResponse, responses={200: sse, **_errors(401, 404, 503)},
@@ -351,6 +365,39 @@ def _stream_routes(app: FastAPI, routes: _Routes, hub: StreamHub) -> None:
              summary="Server-Sent Events of every sensor")
     async def stream_all(request: Request) -> StreamingResponse:
         return stream_response(None, request)
+
+
+def _alarm_routes(app: FastAPI, routes: _Routes) -> None:
+    """The alarms (docs/alarms.md): their states, the journal, acknowledgement."""
+    gateway = routes.gateway
+
+    @app.get(f"{API}/alarms", response_model=list[AlarmOut], dependencies=routes.reads,
+             responses=_errors(401), tags=["alarms"],
+             summary="every alarm with its state (each sensor's communication alarm last)")
+    async def alarms() -> list[dict[str, Any]]:
+        return [state.to_json() for state in gateway.alarm_states()]
+
+    @app.get(f"{API}/alarms/journal", response_model=list[TransitionOut],
+             dependencies=routes.reads, responses=_errors(401, 422), tags=["alarms"],
+             summary="the alarms' transitions, oldest first (the last 1000)")
+    async def journal(since: Annotated[float | datetime | None, Query(
+            description="only those at or after this time: epoch seconds, or ISO 8601 "
+                        "(`2026-11-22T03:40:00Z`; without a zone: UTC)")] = None,
+                      ) -> list[dict[str, Any]]:
+        wall = since if not isinstance(since, datetime) else (
+            since.timestamp() if since.tzinfo else since.replace(tzinfo=UTC).timestamp())
+        return [change.to_json() for change in gateway.alarm_journal(wall)]
+
+    @app.post(f"{API}/alarms/{{sensor}}/{{alarm}}/ack", response_model=AlarmOut,
+              dependencies=[Depends(routes.acks)], responses=_errors(401, 403, 404, 409),
+              tags=["alarms"], summary="acknowledge an alarm (needs the token); its state "
+                                       "after")
+    async def acknowledge(sensor: str, alarm: str, request: Request, by: Annotated[
+            str | None, Query(min_length=1, max_length=64, pattern=r"^[^\x00-\x1f\x7f]+$",
+                              description="who acknowledges, for the journal")] = None,
+                          ) -> dict[str, Any]:
+        who = f"rest {request.client.host if request.client else 'unknown'}"
+        return gateway.acknowledge(sensor, alarm, f"{by} ({who})" if by else who).to_json()
 
 
 def _metrics_route(app: FastAPI, routes: _Routes) -> None:

@@ -12,8 +12,8 @@ from collections.abc import AsyncGenerator, Callable
 
 from fastapi import Request
 
-from ...cache import EventKind, Snapshot
-from ...derived import reading_json
+from ...cache import ALL_EVENTS, EventKind, Snapshot
+from ...derived import json_bytes, reading_json
 from ..common import GatewayLike
 from .limits import KEEPALIVE_S, STALL_S, STREAM_QUEUE
 
@@ -67,12 +67,16 @@ class StreamHub:
         self.skipped = 0  # events skipped for subscribers whose queue was full
         self.closing = asyncio.Event()
         self.history = gateway.history  # the gateway's, shared with the other front ends
-        self._unsubscribe = gateway.cache.subscribe(self._on_cache_event, on_error)
+        self._unsubscribe = gateway.cache.subscribe(self._on_cache_event, on_error,
+                                                    ALL_EVENTS)
 
     def _on_cache_event(self, kind: EventKind, snap: Snapshot) -> None:
         if not self.subscribers or kind is EventKind.SETTINGS:  # (not in the stream)
             return
-        event = _event("reading" if kind is EventKind.READING else "status", snap)
+        if snap.alarm is not None:  # (an ALARM event)
+            event = b"event: alarm\ndata: %s\n\n" % json_bytes(snap.alarm.to_json())
+        else:
+            event = _event("reading" if kind is EventKind.READING else "status", snap)
         for sub in list(self.subscribers):
             if sub.sensor is not None and sub.sensor != snap.name:
                 continue
