@@ -12,7 +12,9 @@ front ends answer with.
      │    ├── BrokerUnreached  a broker was not reached (no connection, no answer)
      │    └── ProbeFailed      a broker answered the probe before a connect, but with a
      │                         refusal, or not all the way
-     └── RequestFailed    a client's request was not carried out; ``kind`` says why
+     ├── RequestFailed    a client's request was not carried out; ``kind`` says why
+     └── BadCommand       (imu_gateway/simulator/control.py) a simulator control command
+                          that cannot be carried out
 
 A ``RequestFailed`` is what a command, an on-demand read or a pass-through ends in
 when it cannot be done, whichever front end asked.  Its ``kind`` is one row of

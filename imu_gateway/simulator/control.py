@@ -19,6 +19,7 @@ import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from ..errors import GatewayError
 from ..model import WireProtocol
 from .motion import PITCH_LIMIT, ROLL_LIMIT
 from .sensor import SimSensor
@@ -29,8 +30,9 @@ COMMANDS = "lean ADDRESS PITCH ROLL, lean ADDRESS off"
 OK = "ok"
 
 
-class BadCommand(ValueError):
-    """A command the simulator cannot carry out; its text is the answer's reason."""
+class BadCommand(GatewayError, ValueError):
+    """A command the simulator cannot carry out; its text is the answer's reason (a
+    leaf of ``imu_gateway.errors``'s tree)."""
 
 
 def _number(text: str, name: str, limit: float) -> float:

@@ -84,9 +84,11 @@ async def test_readings_reach_the_cache_with_the_series_groups(protocol: str) ->
             ah, imu = gw.cache.snapshot("ah"), gw.cache.snapshot("imu")
             assert ah.status is Status.OK and imu.status is Status.OK
             assert ah.reading is not None and imu.reading is not None
+            # (with the values derived from them: tilt from the angles, vibration from
+            # the accelerations)
             assert {g.value for g in ah.reading.groups()} == {
-                "angles", "accel", "gyro", "mag", "quaternion"}
-            assert {g.value for g in imu.reading.groups()} == {"accel", "gyro"}
+                "angles", "accel", "gyro", "mag", "quaternion", "tilt", "vibration"}
+            assert {g.value for g in imu.reading.groups()} == {"accel", "gyro", "vibration"}
         no_overlap(sim)
 
 
@@ -228,8 +230,11 @@ async def test_dead_address_costs_the_live_sensors_little_and_comes_back() -> No
             {"name": "dead", "series": "VG", "address": 2, "poll_hz": 0},
         ])) as gw:
             m = master(gw)
+            # (a probe of the dead sensor comes when the line can spare it: at most 2 % of
+            # its time, so a busy machine, whose learned timeouts are longer, spaces them
+            # further apart; one probe after it went offline is enough here)
             await until(lambda: gw.cache.snapshot("dead").status is Status.OFFLINE
-                        and m.sensors["dead"].failures >= OFFLINE_AFTER + 2, 30)
+                        and m.sensors["dead"].failures >= OFFLINE_AFTER + 1, 60)
             # (its share of the bus once backed off: tests/bus/test_schedule.py)
             seq = gw.cache.snapshot("ah").seq
             await until(lambda: gw.cache.snapshot("ah").seq > seq + 10)

@@ -392,7 +392,8 @@ RULES: list[tuple[str, dict[str, Any], str]] = [
     ("alarm field the series lacks", with_sensor(1, 0, alarms=[
         {"name": "north", "field": "mag_x", "above": 0.5}]),
      'buses[1].sensors[0]: alarms[0].field: series VG does not measure "mag_x" (its fields: '
-     "pitch roll yaw accel_x accel_y accel_z gyro_x gyro_y gyro_z q0 q1 q2 q3)"),
+     "pitch roll yaw accel_x accel_y accel_z gyro_x gyro_y gyro_z q0 q1 q2 q3 tilt "
+     "tilt_direction vibration)"),
     ("alarm without a limit", with_sensor(0, 0, alarms=[{"name": "lean", "field": "pitch"}]),
      "buses[0].sensors[0].alarms[0]: needs above, below or both (a band): the limit it "
      "raises at"),
