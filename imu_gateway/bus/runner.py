@@ -35,6 +35,7 @@ from ..config import BusConfig
 from ..errors import ErrorKind, RequestFailed
 from ..model import KnownSettings, Reading
 from ..stats import BusStats, SensorStats
+from .frames import Frame
 from .master import BusMaster, Done
 from .reactor import Reactor
 
@@ -172,6 +173,14 @@ class BusRunner:
     async def passthrough(self, sensor: str, pdu: bytes) -> bytes:
         answer: bytes = await self._job(functools.partial(self.master.passthrough, sensor, pdu))
         return answer
+
+    async def frames(self) -> list[Frame]:
+        """The line's recent frames (event capture), copied on the bus thread; none
+        when they are not kept or the bus is not running."""
+        ring = self.master.frames
+        if ring is None or not self.reactor.running:
+            return []
+        return await self.call(ring.copy)
 
     def stop(self) -> None:
         """Ask the master to finish its exchange in flight and stop."""

@@ -4,6 +4,7 @@ context (a bus's protocol gives its sensors' timeouts)."""
 from __future__ import annotations
 
 import ipaddress
+import re
 import socket
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
@@ -11,9 +12,11 @@ from typing import Annotated, Any, Literal, Self
 from urllib.parse import urlsplit
 
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
+    PlainValidator,
     ValidationInfo,
     field_validator,
     model_validator,
@@ -462,6 +465,67 @@ class HttpConfig(_Model):
         return value
 
 
+#: An alarm's name as ``capture.on_alarms`` lists it (the alarms' own rule).
+_ALARM_NAME = re.compile(r"[a-z0-9_]+")
+#: The longest pre- and post-trigger windows: the ring's memory grows with ``pre_s``.
+CAPTURE_MAX_S = 300
+
+
+def _capture_span(low: float) -> AfterValidator:
+    def check(value: float) -> float:
+        if not low <= value <= CAPTURE_MAX_S:
+            raise fail(f"must be {low:g}-{CAPTURE_MAX_S} seconds, not {value:g}")
+        return value
+
+    return AfterValidator(check)
+
+
+def _positive_mb(value: float) -> float:
+    if value <= 0:
+        raise fail(f"must be > 0 (megabytes), not {value:g}")
+    return value
+
+
+def _alarm_names(value: object) -> Literal["all"] | tuple[str, ...]:
+    if value == "all":
+        return "all"
+    if value is None:
+        return ()
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise fail(f"must be \"all\" or a list of alarm names, not {show(value)}")
+    for name in value:
+        if not _ALARM_NAME.fullmatch(name):
+            raise fail(f"an alarm name matches [a-z0-9_]+, not {show(name)}")
+    return tuple(dict.fromkeys(value))
+
+
+class CaptureConfig(_Model):
+    """Event capture (docs/alarms.md, "Captures"): every sample and frame kept for
+    ``pre_s``, written to a ZIP around each trigger."""
+
+    dir: NonEmpty = Field(default="captures", description=(
+        "the folder the captures go to (made at start if missing; a full or read-only "
+        "one is a warning and a counter, never a stop)"))
+    pre_s: Annotated[float, _capture_span(0.1)] = Field(default=10.0, description=(
+        f"0.1-{CAPTURE_MAX_S}; seconds kept before a trigger (every sample of every "
+        "sensor, every frame of every line: the ring in memory)"))
+    post_s: Annotated[float, _capture_span(0.0)] = Field(default=10.0, description=(
+        f"0-{CAPTURE_MAX_S}; seconds recorded after a trigger before the capture is "
+        "written"))
+    on_alarms: Annotated[Literal["all"] | tuple[str, ...],
+                         PlainValidator(_alarm_names)] = Field(
+        default=(), description=(
+            "`all`, or a list of alarm names: an alarm of that name becoming active (on "
+            "any sensor) triggers a capture. Empty: on demand only "
+            "(`POST /api/v1/captures`)"),
+        json_schema_extra={_SHOWN_TYPE: "\"all\" or list of names"})
+    max_files: PositiveInt = Field(default=100, description=(
+        "> 0; the most captures kept: the oldest are deleted first"))
+    max_mb: Annotated[float, AfterValidator(_positive_mb)] = Field(default=500.0, description=(
+        "> 0; the most megabytes (10^6 bytes) the captures take: the oldest are deleted "
+        "first"))
+
+
 class GatewayConfig(_Model):
     """The whole file.  A section left out (``None``) is an interface turned off."""
 
@@ -480,6 +544,8 @@ class GatewayConfig(_Model):
         "the REST API and dashboard (`http`); left out: off"))
     opcua: OpcUaConfig | None = Field(default=None, description=(
         "the OPC UA server (`opcua`); left out: off"))
+    capture: CaptureConfig | None = Field(default=None, description=(
+        "event capture (`capture`); left out: off, and no ring is kept"))
 
     @model_validator(mode="before")
     @classmethod

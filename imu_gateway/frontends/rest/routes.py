@@ -44,6 +44,7 @@ from .access import (
     json_error,
     token_matches,
 )
+from .captures import capture_routes
 from .limits import API, MAX_STREAMS
 from .metrics import GatewayCollector
 from .models import (
@@ -103,6 +104,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     _stream_routes(app, routes, hub if hub is not None else StreamHub(gateway))
     for spec in CATALOGUE.values():
         _command_route(app, routes, spec)
+    capture_routes(app, gateway, routes.reads, routes.commands)
     _metrics_route(app, routes)
     app.add_middleware(BodyGuard, config=config)
     app.openapi = _openapi_of(app)  # type: ignore[method-assign]
