@@ -213,7 +213,7 @@ def _captures(gateway: Gateway) -> Captures:
     config = gateway.config.capture
     assert config is not None
     for bus in gateway.config.buses:
-        gateway.runners[bus.name].master.record_frames(
+        gateway.runners[bus.name].record_frames(
             ring_size(config.pre_s + config.post_s, bus.baudrate))
     captures = Captures(config, gateway.config, gateway.bus_frames)
     gateway.cache.subscribe(captures.on_cache_event)

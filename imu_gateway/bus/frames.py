@@ -1,23 +1,30 @@
 """A line's recent frames, for event capture (docs/alarms.md, "Captures").
 
-Kept only when the config has ``capture:``.  The bus master appends each request it
-wrote and each piece of bytes it read, on the bus thread, to a ``deque`` with a fixed
-``maxlen``: one append per write and per read, no lock, no copy, and memory that
-cannot grow.  The capture reads it through the bus runner's call (``BusRunner.frames``),
-which copies it on the bus thread: a deque iterated while another thread appends to it
-fails, so it is never read from the main loop.
+Kept only when the config has ``capture:``: the bus master's link is then a
+``RecordingLink``, which notes each request written and each piece of bytes read, on
+the bus thread, in a ``deque`` with a fixed ``maxlen``: one append per write and per
+read, no lock, no copy, and memory that cannot grow.  The capture reads it through the
+bus runner's call (``BusRunner.frames``), which copies it on the bus thread: a deque
+iterated while another thread appends to it fails, so it is never read from the main
+loop.
 
-Each entry is ``(monotonic time, direction, bytes)``.  The direction says what the bus
-knew when the bytes came in: ``rx`` while one of its requests was waiting for its answer
-(the answer, garbage and all), ``rx-unasked`` otherwise (a stream frame, a late answer,
-noise).  A replay answers each request with the ``rx`` after it and plays the unasked
-ones at their times (``imu_gateway/simulator/replay.py``).
+Each entry is ``(monotonic time, direction, bytes)``, the times the bus master's own
+(a request's when its write returned, bytes' when they were read).  The direction says
+what the bus knew when bytes came in: ``rx`` while one of its requests was waiting for
+its answer (the answer, garbage and all), ``rx-unasked`` otherwise (a stream frame, a
+late answer, noise).  A replay answers each request with the ``rx`` after it and plays
+the unasked ones at their times (``imu_gateway/simulator/replay.py``).
 """
 
 from __future__ import annotations
 
 import math
+import time
 from collections import deque
+from collections.abc import Callable
+
+from .link import OnBytes, OnLost, OnOpen, SerialLink
+from .reactor import Reactor
 
 TX, RX, RX_UNASKED = "tx", "rx", "rx-unasked"
 #: (monotonic time, TX | RX | RX_UNASKED, the bytes)
@@ -32,12 +39,33 @@ def ring_size(seconds: float, baudrate: int) -> int:
     return max(64, math.ceil(seconds * baudrate * _ENTRIES_PER_BAUD))
 
 
-class FrameRing:
-    """The frames of one line, the newest ``size`` (appended on the bus thread only)."""
+class RecordingLink(SerialLink):
+    """A ``SerialLink`` that keeps its last ``size`` frames.  ``asked()`` says, on the
+    bus thread, whether a request is waiting for its answer."""
 
-    def __init__(self, size: int) -> None:
-        self.entries: deque[Frame] = deque(maxlen=size)
+    def __init__(self, port: str, baudrate: int, *, rs485: bool, size: int,
+                 asked: Callable[[], bool]) -> None:
+        super().__init__(port, baudrate, rs485=rs485)
+        self.frames: deque[Frame] = deque(maxlen=size)
+        self._asked = asked
+
+    def open(self, reactor: Reactor, on_bytes: OnBytes, on_lost: OnLost,
+             on_open: OnOpen) -> None:
+        frames, asked = self.frames, self._asked
+
+        def heard(data: bytes, at: float) -> None:
+            frames.append((at, RX if asked() else RX_UNASKED, data))
+            on_bytes(data, at)
+
+        super().open(reactor, heard, on_lost, on_open)
+
+    def write(self, data: bytes, expect: int = 0, look_after: float = 0.0,
+              latest: float = math.inf) -> bool:
+        if not super().write(data, expect, look_after, latest):
+            return False
+        self.frames.append((time.monotonic(), TX, data))
+        return True
 
     def copy(self) -> list[Frame]:
         """(On the bus thread: the runner's call.)"""
-        return list(self.entries)
+        return list(self.frames)

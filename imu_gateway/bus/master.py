@@ -45,7 +45,6 @@ from .events import (
     StateChange,
     Trace,
 )
-from .frames import RX, RX_UNASKED, TX, FrameRing
 from .link import SerialLink
 from .reactor import Reactor
 from .schedule import Schedule
@@ -101,8 +100,6 @@ class BusMaster:
         self._port_problem_logged = False
         self._finished = False
         self.trace_log = TraceLog(self.name)
-        #: the line's recent frames, for event capture (``record_frames``; None: off)
-        self.frames: FrameRing | None = None
         if logging.getLogger("imu_gateway").isEnabledFor(logging.DEBUG):
             self.schedule.outcomes.tracing = True  # --log-level debug: every bus
 
@@ -306,16 +303,9 @@ class BusMaster:
 
     # ------------------------------------------------------------ bytes in, bytes out
 
-    def record_frames(self, size: int) -> None:
-        """Keep the line's last ``size`` frames for event capture (before ``start``)."""
-        self.frames = FrameRing(size)
-
     def _on_bytes(self, data: bytes, at: float) -> None:
         """From the link, on the bus thread; ``at``: when the bytes came in.  The turn
         that follows sends the next request before the answer is published."""
-        if self.frames is not None:
-            asked = self.schedule.line.attempt is not None
-            self.frames.entries.append((at, RX if asked else RX_UNASKED, data))
         self._guarded(lambda: self.schedule.receive(data, at))
         self._turn(drained=self.link.watched)
 
@@ -334,10 +324,7 @@ class BusMaster:
                 # given (a busy machine): it goes back, and waits for the next place.
                 self.schedule.withdraw()
                 return
-            written = self._now()
-            self.schedule.written(written)  # held in the write, it left by then
-            if self.frames is not None:
-                self.frames.entries.append((written, TX, request.data))
+            self.schedule.written(self._now())  # held in the write, it left by then
         except LinkError as exc:
             self._on_lost(exc)
 

@@ -518,7 +518,7 @@ class CaptureConfig(_Model):
             "`all`, or a list of alarm names: an alarm of that name becoming active (on "
             "any sensor) triggers a capture. Empty: on demand only "
             "(`POST /api/v1/captures`)"),
-        json_schema_extra={_SHOWN_TYPE: "\"all\" or list of names"})
+        json_schema_extra={_SHOWN_TYPE: "\"all\" or list of names", _SHOWN_DEFAULT: "`[]`"})
     max_files: PositiveInt = Field(default=100, description=(
         "> 0; the most captures kept: the oldest are deleted first"))
     max_mb: Annotated[float, AfterValidator(_positive_mb)] = Field(default=500.0, description=(

@@ -358,7 +358,7 @@ RULES: list[tuple[str, dict[str, Any], str]] = [
      "buses[0].sensors[0].pol_hz: unknown key (allowed: name, series, address, unit_id, "
      "poll_hz, stream_hz, stale_after_ms, raw_unit_id); did you mean poll_hz?"),
     ("unknown top key", base(mqqt={}),
-     "mqqt: unknown key (allowed: gateway_id, buses, modbus, mqtt, http, opcua); "
+     "mqqt: unknown key (allowed: gateway_id, buses, modbus, mqtt, http, opcua, capture); "
      "did you mean mqtt?"),
     ("unknown bus key", with_bus(0, baud=9600),
      "buses[0].baud: unknown key (allowed: name, port, baudrate, protocol, timeout_ms, "
