@@ -180,6 +180,10 @@ def _error_handlers(app: FastAPI) -> None:
         kind = {404: ErrorKind.NOT_FOUND, 405: ErrorKind.METHOD_NOT_ALLOWED}.get(exc.status_code)
         response = json_error(exc.status_code, kind.value if kind else "http", str(exc.detail))
         response.headers.update(exc.headers or {})  # 405's Allow
+        if exc.status_code == 405:  # every route of the path's (Starlette names one's)
+            response.headers["Allow"] = ", ".join(sorted({
+                method for route in request.app.routes if isinstance(route, APIRoute)
+                and route.path_regex.match(request.url.path) for method in route.methods or ()}))
         return response
 
 

@@ -237,3 +237,6 @@ async def test_retention_deletes_the_oldest_first(two_lines: Any, tmp_path: Path
         assert sorted(p.name for p in folder.iterdir()) == [f"{i}.zip" for i in taken[1:]]
         gone = await http.get(f"{API}/captures/{taken[0]}")
         assert gone.status_code == 404
+        # the list and the trigger share a path: a 405 names both methods
+        other = await http.put(f"{API}/captures", headers=AUTH)
+        assert other.status_code == 405 and other.headers["allow"] == "GET, POST"
