@@ -20,7 +20,7 @@ One gateway carries all the lines.  Printed per protocol and line count:
   per exchange costs on this machine.
 
 Run: ``.venv/bin/python bench/lines.py [--seconds 5] [--lines 1 --lines 8]
-[--protocol native]``.
+[--protocol native] [--capture]`` (``--capture``: with event capture's rings filled).
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ import os
 import select
 import statistics
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -77,11 +78,15 @@ def first_address(protocol: str) -> int:
     return 0 if protocol == "native" else 1
 
 
-async def gateway(protocol: str, ports: list[str], seconds: float) -> Figures:
+async def gateway(protocol: str, ports: list[str], seconds: float,
+                  capture: bool = False) -> Figures:
+    """``capture``: with event capture on (its rings filled, nothing written)."""
     config = config_from_dict({"buses": [{
         "name": f"line{i}", "port": port, "baudrate": BAUD, "protocol": protocol,
         "sensors": [{"name": f"s{i}", "series": "AH", "address": first_address(protocol),
-                     "poll_hz": 0}]} for i, port in enumerate(ports)]}, env={})
+                     "poll_hz": 0}]} for i, port in enumerate(ports)],
+        **({"capture": {"dir": tempfile.mkdtemp(prefix="bench-captures-")}}
+           if capture else {})}, env={})
     gw = Gateway(config)
     stop = asyncio.Event()
     task = asyncio.create_task(gw.run(stop))
@@ -157,6 +162,9 @@ def main() -> None:
                         help="run only this line count (repeatable; default 1, 2, 4, 8)")
     parser.add_argument("--protocol", choices=("native", "modbus"), action="append",
                         help="run only this protocol (repeatable; default: both)")
+    parser.add_argument("--capture", action="store_true",
+                        help="with event capture on (capture: with its defaults): the "
+                        "cost of its rings")
     args = parser.parse_args()
     sys.setswitchinterval(GIL_SWITCH_INTERVAL)  # as `imu-gateway run` does
     counts = sorted(set(args.lines or (1, 2, 4, 8)) | {1})  # 1: the reference
@@ -170,7 +178,7 @@ def main() -> None:
         for lines in counts:
             with simulators(protocol, lines) as ports:
                 ref = bare(protocol, ports, args.seconds)
-                got = asyncio.run(gateway(protocol, ports, args.seconds))
+                got = asyncio.run(gateway(protocol, ports, args.seconds, args.capture))
             if lines == 1:
                 single = got.utilisation[0]
             low = min(got.utilisation)

@@ -42,6 +42,8 @@ from .stats import BusStats, FrontendCounts, SensorStats
 from .supervise import Frontend, Supervisor
 
 if TYPE_CHECKING:  # the front ends' modules are imported when configured (below)
+    from .bus.frames import Frame
+    from .capture import Captures
     from .frontends.modbus.server import ModbusTcpServer
     from .frontends.mqtt.client import MqttClient
     from .frontends.opcua.server import OpcUaServer
@@ -76,6 +78,8 @@ class Gateway:
         self.history = History(self)
         self.cache.subscribe(self.history.on_cache_event)
         self._alarms_setup(config)
+        # Event capture: every sample into its ring, every frame into its line's ring
+        self.captures = _captures(self) if config.capture else None
         self.modbus = _modbus_server(self, config.modbus) if config.modbus else None
         sparkplug = config.mqtt.sparkplug if config.mqtt else None
         self.mqtt = _mqtt_client(self, config.mqtt) \
@@ -124,6 +128,9 @@ class Gateway:
             self.journal_file.append(change)
         state = self.alarms.evaluator(change.sensor, change.alarm).snapshot()
         self.cache.publish_alarm(AlarmEvent(change, state))
+        if change.to_state.active and not change.from_state.active and \
+                self.captures is not None:  # (``capture.on_alarms`` decides)
+            self.captures.alarm_active(change.sensor, change.alarm, change.at)
 
     def alarm_states(self) -> list[AlarmState]:
         return self.alarms.states()
@@ -181,12 +188,16 @@ class Gateway:
         Each step runs even if one before it failed.  A front end that fails on the
         way is restarted by the supervisor; nothing a peer does ends this."""
         await self.start_frontends()
+        if self.captures is not None:
+            await self.captures.start()
         async with contextlib.AsyncExitStack() as stopping:  # unwinds last in, first out
             stopping.push_async_callback(self._stop_buses)
             self.buses.start()
             for frontend in (self.modbus, self.http, self.opcua, self.mqtt, self.sparkplug):
                 if frontend is not None:
                     stopping.push_async_callback(frontend.stop)
+            if self.captures is not None:  # the one being collected, while MQTT is up
+                stopping.push_async_callback(self.captures.stop)
             # (they connect in the background, retrying: never fail)
             for client in (self.mqtt, self.sparkplug):
                 if client is not None:
@@ -239,6 +250,10 @@ class Gateway:
         self.cache.learn(sensor, settings_shown(pdu, answer))
         return answer
 
+    async def bus_frames(self) -> dict[str, list[Frame]]:
+        """Every line's recent frames (event capture), copied on the bus thread."""
+        return {name: await runner.frames() for name, runner in self.runners.items()}
+
     def stats(self) -> list[BusStats]:
         return self.cache.bus_stats()
 
@@ -250,6 +265,22 @@ class Gateway:
                    "sparkplug": self.sparkplug, "opcua": self.opcua}
         return {name: {**f.stats(), "restarts": self.supervisor.restarts[name]}
                 for name, f in running.items() if f is not None}
+
+
+def _captures(gateway: Gateway) -> Captures:
+    """Event capture, when configured: the buses keep their frames (enough of a full
+    line for the whole window), the cache's events fill the sensors' rings."""
+    from .bus.frames import ring_size
+    from .capture import Captures
+
+    config = gateway.config.capture
+    assert config is not None
+    for bus in gateway.config.buses:
+        gateway.runners[bus.name].record_frames(
+            ring_size(config.pre_s + config.post_s, bus.baudrate))
+    captures = Captures(config, gateway.config, gateway.bus_frames)
+    gateway.cache.subscribe(captures.on_cache_event)
+    return captures
 
 
 # Each front end's package is imported here, when the config has it (the module's

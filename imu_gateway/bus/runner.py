@@ -36,6 +36,7 @@ from ..errors import ErrorKind, RequestFailed
 from ..model import KnownSettings, Reading
 from ..stats import BusStats, SensorStats
 from .events import Outcome
+from .frames import Frame, RecordingLink
 from .master import BusMaster, Done
 from .reactor import Reactor
 
@@ -175,6 +176,21 @@ class BusRunner:
         answer = await self._job(functools.partial(self.master.passthrough, sensor, pdu))
         assert isinstance(answer, bytes)  # (a pass-through's ends with the answer PDU)
         return answer
+
+    def record_frames(self, size: int) -> None:
+        """Keep the line's last ``size`` frames (event capture; before ``start``)."""
+        config, master = self.master.config, self.master
+        master.link = RecordingLink(config.port, config.baudrate, rs485=config.rs485,
+                                    size=size,
+                                    asked=lambda: master.schedule.line.attempt is not None)
+
+    async def frames(self) -> list[Frame]:
+        """The line's recent frames (event capture), copied on the bus thread; none
+        when they are not kept or the bus is not running."""
+        link = self.master.link
+        if not isinstance(link, RecordingLink) or not self.reactor.running:
+            return []
+        return await self.call(link.copy)
 
     def stop(self) -> None:
         """Ask the master to finish its exchange in flight and stop."""

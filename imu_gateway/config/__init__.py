@@ -28,6 +28,7 @@ from .loading import config_from_dict, load_config, load_config_text
 from .schema import (
     Broker,
     BusConfig,
+    CaptureConfig,
     GatewayConfig,
     HttpConfig,
     ModbusConfig,
@@ -40,6 +41,7 @@ from .schema import (
 __all__ = [
     "Broker",
     "BusConfig",
+    "CaptureConfig",
     "GatewayConfig",
     "HttpConfig",
     "ListenAddress",

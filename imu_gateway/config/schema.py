@@ -561,6 +561,67 @@ class HttpConfig(_Model):
         return value
 
 
+#: An alarm's name as ``capture.on_alarms`` lists it (the alarms' own rule).
+_ALARM_NAME = re.compile(r"[a-z0-9_]+")
+#: The longest pre- and post-trigger windows: the ring's memory grows with ``pre_s``.
+CAPTURE_MAX_S = 300
+
+
+def _capture_span(low: float) -> AfterValidator:
+    def check(value: float) -> float:
+        if not low <= value <= CAPTURE_MAX_S:
+            raise fail(f"must be {low:g}-{CAPTURE_MAX_S} seconds, not {value:g}")
+        return value
+
+    return AfterValidator(check)
+
+
+def _positive_mb(value: float) -> float:
+    if value <= 0:
+        raise fail(f"must be > 0 (megabytes), not {value:g}")
+    return value
+
+
+def _alarm_names(value: object) -> Literal["all"] | tuple[str, ...]:
+    if value == "all":
+        return "all"
+    if value is None:
+        return ()
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise fail(f"must be \"all\" or a list of alarm names, not {show(value)}")
+    for name in value:
+        if not _ALARM_NAME.fullmatch(name):
+            raise fail(f"an alarm name matches [a-z0-9_]+, not {show(name)}")
+    return tuple(dict.fromkeys(value))
+
+
+class CaptureConfig(_Model):
+    """Event capture (docs/alarms.md, "Captures"): every sample and frame kept for
+    ``pre_s``, written to a ZIP around each trigger."""
+
+    dir: NonEmpty = Field(default="captures", description=(
+        "the folder the captures go to (made at start if missing; a full or read-only "
+        "one is a warning and a counter, never a stop)"))
+    pre_s: Annotated[float, _capture_span(0.1)] = Field(default=10.0, description=(
+        f"0.1-{CAPTURE_MAX_S}; seconds kept before a trigger (every sample of every "
+        "sensor, every frame of every line: the ring in memory)"))
+    post_s: Annotated[float, _capture_span(0.0)] = Field(default=10.0, description=(
+        f"0-{CAPTURE_MAX_S}; seconds recorded after a trigger before the capture is "
+        "written"))
+    on_alarms: Annotated[Literal["all"] | tuple[str, ...],
+                         PlainValidator(_alarm_names)] = Field(
+        default=(), description=(
+            "`all`, or a list of alarm names: an alarm of that name becoming active (on "
+            "any sensor) triggers a capture. Empty: on demand only "
+            "(`POST /api/v1/captures`)"),
+        json_schema_extra={_SHOWN_TYPE: "\"all\" or list of names", _SHOWN_DEFAULT: "`[]`"})
+    max_files: PositiveInt = Field(default=100, description=(
+        "> 0; the most captures kept: the oldest are deleted first"))
+    max_mb: Annotated[float, AfterValidator(_positive_mb)] = Field(default=500.0, description=(
+        "> 0; the most megabytes (10^6 bytes) the captures take: the oldest are deleted "
+        "first"))
+
+
 class GatewayConfig(_Model):
     """The whole file.  A section left out (``None``) is an interface turned off."""
 
@@ -584,6 +645,9 @@ class GatewayConfig(_Model):
         "exist), read back at start: the alarms take up the states it last recorded "
         "([alarms.md](alarms.md#the-journal)); null: the journal is kept in memory only"))
 
+    capture: CaptureConfig | None = Field(default=None, description=(
+        "event capture (`capture`); left out: off, and no ring is kept"))
+
     @model_validator(mode="before")
     @classmethod
     def _context_defaults(cls, data: Any) -> Any:
@@ -592,10 +656,20 @@ class GatewayConfig(_Model):
     @model_validator(mode="after")
     def _cross_check(self) -> Self:
         # Not a ValueError on purpose: it carries several problems, each with its path.
-        problems = cross_problems(_views(self))
+        problems = cross_problems(_views(self)) + self._unknown_capture_alarms()
         if problems:
             raise ConfigError(problems)
         return self
+
+    def _unknown_capture_alarms(self) -> list[str]:
+        """``capture.on_alarms`` names alarms some sensor has (a typo would never
+        trigger, silently)."""
+        if self.capture is None or self.capture.on_alarms == "all":
+            return []
+        known = {a.name for _, s in self.iter_sensors() for a in s.alarms} | {"communication"}
+        return [f"capture.on_alarms[{i}]: no sensor has an alarm {name!r} (its alarms: "
+                f"{', '.join(sorted(known))})"
+                for i, name in enumerate(self.capture.on_alarms) if name not in known]
 
     def iter_sensors(self) -> Iterator[tuple[BusConfig, SensorConfig]]:
         """Every sensor with its bus, in file order."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from ..alarms import AlarmCounts, AlarmState, Transition
 from ..cache import Cache, Snapshot
@@ -15,6 +15,9 @@ from ..errors import ErrorKind, RequestFailed
 from ..history import History
 from ..stats import BusStats, FrontendCounts, SensorStats
 
+if TYPE_CHECKING:  # (imported by the app only when capture is configured)
+    from ..capture import Captures
+
 
 class GatewayLike(Protocol):
     """What the front ends need of the gateway (``app.Gateway``)."""
@@ -23,6 +26,7 @@ class GatewayLike(Protocol):
     cache: Cache
     sensors: dict[str, SensorConfig]
     history: History  # every sensor's last minutes, one for all front ends
+    captures: Captures | None  # event capture (``capture:``; None: off)
     started: float  # time.monotonic() at start
 
     async def command(self, sensor: str, name: str,

@@ -265,9 +265,13 @@ def _simulate_parser(commands: Subcommands) -> None:
     sim.add_argument("--noise", type=_non_negative, default=0.0,
                      help="bursts of line noise per second, while the line is idle")
     sim.add_argument("--seed", type=int, default=0, help="seed of motion and faults")
-    sim.add_argument("--link", help="also make the pty reachable at this path (a symlink)")
+    sim.add_argument("--link", help="also make the pty reachable at this path (a symlink); "
+                     "with --replay of several lines, PATH.<bus> for each")
     sim.add_argument("--control", metavar="PATH", help="take commands (lean ADDRESS PITCH "
                      "ROLL, lean ADDRESS off) on a Unix socket at PATH: see simulate-control")
+    sim.add_argument("--replay", metavar="CAPTURE.zip",
+                     help="play a capture's lines back, one pty each (docs/simulator.md, "
+                     "Replay); the sensor options do not apply")
     sim.add_argument("-v", "--verbose", action="store_true", help="log every frame to stderr")
 
 
@@ -416,7 +420,40 @@ def cmd_scan(args: argparse.Namespace) -> int:
     return 0 if found else 1
 
 
+def cmd_replay(args: argparse.Namespace) -> int:
+    """``simulate --replay``: a pty per line of the capture, ``PTY <path> <bus>`` each."""
+    from ..simulator.replay import Replay, load
+
+    try:
+        replay = Replay(load(args.replay), link=args.link)
+        paths = replay.open()
+    except (OSError, ValueError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        print(f"imu-gateway simulate: error: --replay {args.replay}: {reason}",
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+    async def main() -> None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        for bus, path in paths.items():
+            print(f"PTY {path} {bus}", flush=True)
+        await replay.serve(stop)
+
+    try:
+        asyncio.run(main())
+    finally:
+        print(f"simulate: replay stopped: {json.dumps(replay.summary())}", file=sys.stderr,
+              flush=True)
+        replay.close()
+    return 0
+
+
 def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    if args.replay:
+        return cmd_replay(args)
     from ..simulator import Faults, PtyBus, make_sensor
     from ..simulator.motion import Motion
 

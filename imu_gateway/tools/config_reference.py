@@ -23,6 +23,7 @@ from pydantic.fields import FieldInfo
 from ..bus.timing import RTO_INITIAL, RTO_MAX, RTO_MIN
 from ..config import (
     BusConfig,
+    CaptureConfig,
     GatewayConfig,
     HttpConfig,
     ListenAddress,
@@ -58,6 +59,7 @@ SECTIONS: tuple[tuple[str, type[BaseModel], str], ...] = (
      "required."),
     ("http", HttpConfig, "The REST API and dashboard ([rest.md](rest.md))."),
     ("opcua", OpcUaConfig, "The OPC UA server ([opcua.md](opcua.md))."),
+    ("capture", CaptureConfig, "Event capture ([alarms.md](alarms.md#captures))."),
 )
 
 _NETWORK = (ipaddress.IPv4Network, ipaddress.IPv6Network)

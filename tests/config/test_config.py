@@ -373,7 +373,8 @@ RULES: list[tuple[str, dict[str, Any], str]] = [
      "buses[0].sensors[0].pol_hz: unknown key (allowed: name, series, address, unit_id, "
      "poll_hz, stream_hz, stale_after_ms, raw_unit_id, alarms); did you mean poll_hz?"),
     ("unknown top key", base(mqqt={}),
-     "mqqt: unknown key (allowed: gateway_id, buses, modbus, mqtt, http, opcua, alarm_journal); "
+     "mqqt: unknown key (allowed: gateway_id, buses, modbus, mqtt, http, opcua, alarm_journal, "
+     "capture); "
      "did you mean mqtt?"),
     ("unknown bus key", with_bus(0, baud=9600),
      "buses[0].baud: unknown key (allowed: name, port, baudrate, protocol, timeout_ms, "
@@ -389,6 +390,10 @@ RULES: list[tuple[str, dict[str, Any], str]] = [
         {"name": "lean", "field": "pitch", "above": 5},
         {"name": "lean", "field": "roll", "above": 5}]),
      'buses[0].sensors[0]: alarms[1].name: "lean" is already used by alarms[0]'),
+    ("capture on an alarm nobody has", {**with_sensor(0, 0, alarms=[
+        {"name": "lean", "field": "pitch", "above": 5}]),
+        "capture": {"dir": "/tmp", "on_alarms": ["lean", "laen"]}},
+     "capture.on_alarms[1]: no sensor has an alarm 'laen' (its alarms: communication, lean)"),
     ("alarm field the series lacks", with_sensor(1, 0, alarms=[
         {"name": "north", "field": "mag_x", "above": 0.5}]),
      'buses[1].sensors[0]: alarms[0].field: series VG does not measure "mag_x" (its fields: '

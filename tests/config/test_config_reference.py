@@ -12,6 +12,7 @@ from support import ROOT
 
 from imu_gateway.config import (
     BusConfig,
+    CaptureConfig,
     GatewayConfig,
     HttpConfig,
     ModbusConfig,
@@ -26,7 +27,7 @@ from imu_gateway.tools import config_reference as ref
 
 DOC = ROOT / "docs" / "config-reference.md"
 MODELS = (GatewayConfig, BusConfig, SensorConfig, AlarmConfig, ModbusConfig, ModbusTlsConfig,
-          MqttConfig, SparkplugConfig, HttpConfig, OpcUaConfig)
+          MqttConfig, SparkplugConfig, HttpConfig, OpcUaConfig, CaptureConfig)
 
 
 def test_config_reference_document_is_up_to_date() -> None:

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import paho.mqtt.client as paho
 from paho.mqtt.subscribeoptions import SubscribeOptions
@@ -53,6 +53,9 @@ from .topics import (
     Topics,
     retained_leaves,
 )
+
+if TYPE_CHECKING:
+    from ...capture import CaptureInfo
 
 log = logging.getLogger("imu_gateway.mqtt")
 
@@ -84,6 +87,7 @@ class MqttClient(Frontend):
         self._loop: asyncio.AbstractEventLoop | None = None
         self._runner: asyncio.Task[None] | None = None
         self._unsubscribe: Any = None
+        self._unannounce: Any = None
         self.sweep = RetainedSweep(
             self.topics, config.discovery_prefix if config.homeassistant_discovery else None,
             self.discovery, retained_leaves(config, gateway.sensors), self._send_control)
@@ -124,8 +128,15 @@ class MqttClient(Frontend):
         self._loop = asyncio.get_running_loop()
         self.desk.cancel()
         self._unsubscribe = self.gateway.cache.subscribe(self.states.on_cache_event, self.fail)
+        captures = self.gateway.captures
+        self._unannounce = captures.subscribe(self._announce_capture) if captures else None
         self._runner = self.session.run()
         self.guarded(self._runner)
+
+    def _announce_capture(self, info: CaptureInfo) -> None:
+        """A new capture (docs/mqtt.md): queued like a result, each one its own."""
+        self.pipe.send_control(Message(self.topics.captures, json_bytes(info.to_json()),
+                                       CONTROL_QOS, False), f"capture {info.id}")
 
     @property
     def client_id(self) -> str:
@@ -136,6 +147,8 @@ class MqttClient(Frontend):
         disconnect; or, when that is not acknowledged in time, leave it to the will."""
         if self._unsubscribe is not None:
             self._unsubscribe()
+        if self._unannounce is not None:
+            self._unannounce()
         if self._checker is not None:
             self._checker.cancel()
         self.states.cancel()

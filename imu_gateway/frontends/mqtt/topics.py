@@ -56,6 +56,11 @@ class Topics:
         return Topics(self.base, gateway_id, self.discovery_prefix)
 
     @property
+    def captures(self) -> str:
+        """Each new capture, announced (not retained: ``GET /api/v1/captures`` lists them)."""
+        return f"{self.prefix}/captures"
+
+    @property
     def diagnostics(self) -> str:
         return f"{self.prefix}/{DIAGNOSTICS_LEAF}"
 

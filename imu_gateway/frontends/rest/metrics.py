@@ -29,6 +29,13 @@ HTTP_COUNTERS = (  # the HTTP server's own: metric, its key in HttpServer.stats(
      "behind, the oldest first"),
 )
 
+CAPTURE_COUNTERS = (  # event capture's (docs/alarms.md, "Captures"): metric, key, help
+    ("capture_triggers", "triggers", "capture triggers (manual and alarms)"),
+    ("capture_written", "written", "captures written"),
+    ("capture_failures", "failed", "captures not written, or a capture folder not made: "
+     "a full or read-only disk"),
+)
+
 
 #: makes a metric family and collects it: (its class, name, help, labels)
 Family = Callable[[type[GaugeMetricFamily] | type[CounterMetricFamily], str, str, list[str]], Any]
@@ -56,6 +63,7 @@ class GatewayCollector:
         self._sensors(family)
         self._frontends(family)
         self._alarms(family)
+        self._captures(family)
         return out
 
     def _alarms(self, family: Family) -> None:
@@ -72,6 +80,14 @@ class GatewayCollector:
         family(CounterMetricFamily, "alarm_journal_errors", "transitions the journal's file "
                "could not take (a full or read-only disk)", []).add_metric(
                    [], counts.journal_errors)
+
+
+    def _captures(self, family: Family) -> None:
+        captures = self.gateway.captures
+        if captures is None:
+            return
+        for name, key, doc in CAPTURE_COUNTERS:
+            family(CounterMetricFamily, name, doc, []).add_metric([], captures.counts[key])
 
     def _buses(self, family: Family) -> None:
         tx = family(CounterMetricFamily, "bus_transactions", "exchanges on the line", ["bus"])

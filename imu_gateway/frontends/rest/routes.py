@@ -47,6 +47,7 @@ from .access import (
     json_error,
     token_matches,
 )
+from .captures import capture_routes
 from .limits import API, MAX_STREAMS
 from .metrics import GatewayCollector
 from .models import (
@@ -110,6 +111,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     _alarm_routes(app, routes)
     for spec in CATALOGUE.values():
         _command_route(app, routes, spec)
+    capture_routes(app, gateway, routes.reads, routes.commands)
     _metrics_route(app, routes)
     app.add_middleware(BodyGuard, config=config)
     app.openapi = _openapi_of(app)  # type: ignore[method-assign]
@@ -185,6 +187,10 @@ def _error_handlers(app: FastAPI) -> None:
         kind = {404: ErrorKind.NOT_FOUND, 405: ErrorKind.METHOD_NOT_ALLOWED}.get(exc.status_code)
         response = json_error(exc.status_code, kind.value if kind else "http", str(exc.detail))
         response.headers.update(exc.headers or {})  # 405's Allow
+        if exc.status_code == 405:  # every route of the path's (Starlette names one's)
+            response.headers["Allow"] = ", ".join(sorted({
+                method for route in request.app.routes if isinstance(route, APIRoute)
+                and route.path_regex.match(request.url.path) for method in route.methods or ()}))
         return response
 
 
