@@ -32,13 +32,14 @@ REGISTER_WORDS = 3 + 2 * MASK_WORDS
 
 
 class UnitAlarms:
-    """One sensor unit's alarms as bits, kept as each transition comes."""
+    """One sensor unit's alarms as bits, kept as each transition comes: two integers,
+    bit i of each alarm i's (Python's integers: as many alarms as configured)."""
 
     def __init__(self, states: Sequence[AlarmState]) -> None:
         self.names = tuple(s.name for s in states)
         self._index = {name: i for i, name in enumerate(self.names)}
-        self.active = bytearray(len(self.names))  # 1 while active (discrete inputs)
-        self.unacked = bytearray(len(self.names))  # 1 while unacknowledged (coils)
+        self.active = 0  # the discrete inputs: 1 while active
+        self.unacked = 0  # the coils: 1 while unacknowledged
         for state in states:
             self.update(state)
 
@@ -48,24 +49,27 @@ class UnitAlarms:
     def update(self, state: AlarmState) -> None:
         """The alarm's state after a transition."""
         i = self._index.get(state.name)
-        if i is not None:  # (every alarm of the sensor is known from the start)
-            self.active[i], self.unacked[i] = state.active, not state.acked
+        if i is None:  # (every alarm of the sensor is known from the start)
+            return
+        bit = 1 << i
+        self.active = self.active | bit if state.active else self.active & ~bit
+        self.unacked = self.unacked & ~bit if state.acked else self.unacked | bit
 
     def bits(self, function: int, start: int, count: int) -> bytes:
         """The answer's data of an FC 01/02 read inside the alarms: the bits packed
-        eight a byte, the first in the lowest bit (the Modbus order)."""
+        eight a byte, the first in the lowest bit (the Modbus order: little-endian)."""
         source = self.unacked if function == READ_COILS else self.active
-        return _packed(source[start: start + count])
+        return ((source >> start) & ((1 << count) - 1)).to_bytes((count + 7) // 8, "little")
 
     def registers(self) -> bytes:
         """The alarm registers' words (docs/register-map.md): the count, how many are
         active and unacknowledged, then the two masks, each word k holding alarms 16k
         to 16k + 15 (bit b of it: alarm 16k + b)."""
-        def mask(bits: bytearray) -> bytes:
-            return _packed(bits[:MASK_BITS].ljust(MASK_BITS, b"\0"), word_order=True)
+        def mask(bits: int) -> list[int]:
+            return [(bits >> (16 * k)) & 0xFFFF for k in range(MASK_WORDS)]
 
-        return struct.pack(">HHH", len(self.names), sum(self.active), sum(self.unacked)) \
-            + mask(self.active) + mask(self.unacked)
+        return struct.pack(f">HHH{2 * MASK_WORDS}H", len(self.names), self.active.bit_count(),
+                           self.unacked.bit_count(), *mask(self.active), *mask(self.unacked))
 
 
 def read(alarms: UnitAlarms, pdu: bytes) -> bytes:
@@ -103,18 +107,6 @@ def write(alarms: UnitAlarms, pdu: bytes, acknowledge: Callable[[str], AlarmStat
 
 def _exception(function: int, code: int) -> bytes:
     return bytes((function | 0x80, code))
-
-
-def _packed(bits: bytes | bytearray, word_order: bool = False) -> bytes:
-    """Bits (one byte each, 0 or 1) packed eight a byte, bit 0 first.  ``word_order``:
-    as 16-bit big-endian words (the register masks), else as Modbus packs coils."""
-    out = bytearray((len(bits) + 7) // 8)
-    for i, bit in enumerate(bits):
-        if bit:
-            out[i // 8] |= 1 << (i % 8)
-    if word_order:  # a register's low byte (bits 0-7) is its second byte on the wire
-        out[0::2], out[1::2] = out[1::2], out[0::2]
-    return bytes(out)
 
 
 def markdown() -> list[str]:

@@ -276,3 +276,21 @@ async def test_illegal_addresses_quantities_and_values_get_their_exceptions() ->
             finally:
                 await raw.close()
             assert gw.alarm_journal() == []
+
+
+def test_bits_past_the_first_byte_and_word_are_where_the_map_says() -> None:
+    """20 alarms, 9 and 17 active, 17 unacknowledged: FC 02's bytes (bit 0 of byte 0
+    is alarm 0) and the masks (word 303 + k holds alarms 16k to 16k + 15)."""
+    from imu_gateway.alarms import AlarmState, Severity, State
+    from imu_gateway.frontends.modbus.alarms import UnitAlarms
+
+    def state(i: int) -> AlarmState:
+        now = {9: State.ACTIVE_ACKED, 17: State.ACTIVE_UNACKED}.get(i, State.NORMAL)
+        return AlarmState("s", f"a{i}", "pitch", Severity.WARNING, now, None, None, None,
+                          False)
+    bits = UnitAlarms([state(i) for i in range(20)])
+    assert bits.bits(2, 0, 20) == bytes((0, 0b10, 0b10))
+    assert bits.bits(2, 9, 9) == bytes((0b1, 0b1))  # alarms 9 and 17 from address 9
+    assert bits.bits(1, 0, 20) == bytes((0, 0, 0b10))
+    assert struct.unpack(">11H", bits.registers()) == (
+        20, 2, 1, 1 << 9, 1 << 1, 0, 0, 0, 1 << 1, 0, 0)
