@@ -33,7 +33,7 @@ from ...model import (
 )
 from ...normalise import field_values
 from ...stats import BusStats
-from . import ident
+from . import alarms, ident
 
 INT32_MIN = -(2**31)
 NAN32 = struct.pack(">f", math.nan)
@@ -44,6 +44,7 @@ class Type(enum.Enum):
     U32 = (2, "u32")
     I32 = (2, "i32")
     F32 = (2, "f32")
+    MASK = (alarms.MASK_WORDS, f"{alarms.MASK_WORDS} × u16")  # bits, 16 a word
 
     @property
     def words(self) -> int:
@@ -78,7 +79,7 @@ _MEASURED: tuple[tuple[str, Group, int, str], ...] = tuple(
     (name, group, spec.scale, spec.symbol)
     for group, spec in VALUE_GROUPS.items() for name in spec.fields
 )
-FLOAT_BASE, INT_BASE, COMMAND_BASE = 100, 200, 1000
+FLOAT_BASE, INT_BASE, ALARM_BASE, COMMAND_BASE = 100, 200, 300, 1000
 MINS, AH = frozenset({Series.MINS}), frozenset({Series.AH})
 
 REGISTERS: tuple[Register, ...] = (
@@ -95,6 +96,18 @@ REGISTERS: tuple[Register, ...] = (
     *(Register(INT_BASE + 2 * i, Type.I32, f"{name}_scaled",
                f"{name} × {scale}" + (f" ({unit})" if unit else ""), group, scale)
       for i, (name, group, scale, unit) in enumerate(_MEASURED)),
+    # The alarms (docs/alarms.md, the bits themselves in discrete inputs and coils):
+    # after the values' blocks, so that nothing there moved when they came.
+    Register(ALARM_BASE, Type.U16, "alarm_count", "alarms of this sensor, its "
+             "communication alarm included: the discrete inputs and coils 0 to count - 1"),
+    Register(ALARM_BASE + 1, Type.U16, "alarms_active", "how many are active"),
+    Register(ALARM_BASE + 2, Type.U16, "alarms_unacked", "how many wait for an "
+             "acknowledgement"),
+    Register(ALARM_BASE + 3, Type.MASK, "alarm_active_mask", "active alarms: word "
+             f"{ALARM_BASE + 3} + k holds alarms 16k to 16k + 15, bit b of it alarm 16k + b "
+             f"(discrete input 16k + b); the first {alarms.MASK_BITS} alarms"),
+    Register(ALARM_BASE + 3 + alarms.MASK_WORDS, Type.MASK, "alarm_unacked_mask",
+             "alarms waiting for an acknowledgement (the coils), as the active mask"),
     *(Register(spec.register.address, _command_type(spec), spec.register.name,
                spec.register.description, command=spec.name, series=spec.series)
       for spec in CATALOGUE.values() if spec.register is not None),
@@ -102,7 +115,9 @@ REGISTERS: tuple[Register, ...] = (
 
 #: Contiguous blocks of the map: a read must lie inside one.
 BLOCKS: tuple[range, ...] = (range(0, 9), range(FLOAT_BASE, FLOAT_BASE + 2 * len(_MEASURED)),
-                             range(INT_BASE, INT_BASE + 2 * len(_MEASURED)), range(1000, 1009))
+                             range(INT_BASE, INT_BASE + 2 * len(_MEASURED)),
+                             range(ALARM_BASE, ALARM_BASE + alarms.REGISTER_WORDS),
+                             range(1000, 1009))
 BY_ADDRESS: Mapping[int, Register] = {r.address: r for r in REGISTERS}
 IMAGE_WORDS = BLOCKS[-1].stop
 
@@ -204,6 +219,10 @@ class SensorImage:
             name = reg.name.removesuffix("_scaled")
             value = values.get(name) if reg.group in measures else None
             self._words[2 * reg.address: 2 * (reg.address + reg.type.words)] = _pack(reg, value)
+
+    def set_alarms(self, words: bytes) -> None:
+        """The alarm registers (``alarms.UnitAlarms.registers``), at a transition."""
+        self._words[2 * ALARM_BASE: 2 * ALARM_BASE + len(words)] = words
 
     def refresh_status(self, snap: Snapshot) -> None:
         bits = 0
@@ -311,7 +330,7 @@ def markdown() -> str:
         "| exception | when |",
         "|---|---|",
         "| 01 | writes not allowed (`allow_writes: false`), or a function code other than "
-        "03, 04, 06, 16, 43 (MEI 14) |",
+        "01, 02, 03, 04, 05, 06, 16, 43 (MEI 14) |",
         "| 02 | an address outside the map, a read across blocks, a command this series "
         "or protocol lacks |",
         "| 03 | a quantity outside 1-125 (read) or 1-123 (write), a bad value, half a "
@@ -324,6 +343,7 @@ def markdown() -> str:
         "| 0B | the sensor did not answer; or a read of measured values before the first "
         "reading |",
         "",
+        *alarms.markdown(),
         f"## Unit {DIAG_UNIT}: gateway diagnostics",
         "",
         f"One block of {DIAG_STRIDE} registers per bus, in the order of the config file "

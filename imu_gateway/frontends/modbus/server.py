@@ -51,7 +51,8 @@ from typing import Any
 from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 from pymodbus.pdu.register_message import WriteMultipleRegistersResponse
 
-from ...cache import EventKind, Snapshot
+from ...alarms import AlarmState
+from ...cache import ALL_EVENTS, EventKind, Snapshot
 from ...config import ModbusConfig, SensorConfig
 from ...config.schema import ModbusTlsConfig
 from ...errors import KINDS, ErrorKind, RequestFailed, StartupError
@@ -70,6 +71,7 @@ from ...modbus_codes import (
 from ...stats import FrontendCounts
 from ...supervise import Frontend, PeerLog
 from ..common import GatewayLike
+from . import alarms as alarm_bits
 from . import ident
 from . import map as mm
 from . import tls as modbus_tls
@@ -100,12 +102,24 @@ def _pdu(pdu: ModbusPDU) -> bytes:
 
 
 class _Unit:
-    """One unit id of the map: a sensor and its byte image."""
+    """One unit id of the map: a sensor, its byte image and its alarms' bits."""
 
-    def __init__(self, sensor: SensorConfig, protocol: Any) -> None:
+    def __init__(self, sensor: SensorConfig, protocol: Any,
+                 alarms: list[AlarmState]) -> None:
         self.sensor = sensor
         self.image = mm.SensorImage(sensor.series, protocol, sensor.address,
                                     sensor.stale_after_ms)
+        self.alarms = alarm_bits.UnitAlarms(alarms)
+        self.image.set_alarms(self.alarms.registers())
+        if len(alarms) > alarm_bits.MASK_BITS:
+            log.warning("Modbus TCP: sensor %s has %d alarms; registers %d-%d carry the "
+                        "first %d, its discrete inputs and coils all of them", sensor.name,
+                        len(alarms), mm.ALARM_BASE, mm.BLOCKS[-2].stop - 1,
+                        alarm_bits.MASK_BITS)
+
+    def alarm_changed(self, state: AlarmState) -> None:
+        self.alarms.update(state)
+        self.image.set_alarms(self.alarms.registers())
 
 
 class ModbusTcpServer(Frontend):
@@ -117,7 +131,11 @@ class ModbusTcpServer(Frontend):
         self.config = config
         protocols = {s.name: b.protocol for b, s in gateway.config.iter_sensors()}
         self._protocols = protocols
-        self.units = {s.unit_id: _Unit(s, protocols[s.name]) for s in gateway.sensors.values()}
+        alarms: dict[str, list[AlarmState]] = {name: [] for name in gateway.sensors}
+        for state in gateway.alarm_states():  # (in order: the communication alarm last)
+            alarms[state.sensor].append(state)
+        self.units = {s.unit_id: _Unit(s, protocols[s.name], alarms[s.name])
+                      for s in gateway.sensors.values()}
         self._by_name = {u.sensor.name: u for u in self.units.values()}
         self.raw_units = {s.raw_unit_id: s.name for s in gateway.sensors.values()
                           if s.raw_unit_id is not None}
@@ -129,13 +147,16 @@ class ModbusTcpServer(Frontend):
         self.tls_context: ssl.SSLContext | None = None  # the TLS port's, once it listens
         self.peers = PeerLog(log)
         self._housekeeping: asyncio.TimerHandle | None = None
-        gateway.cache.subscribe(self._on_cache_event, self.fail)
+        # ALARM events too: the alarms' bits change only at a transition.
+        gateway.cache.subscribe(self._on_cache_event, self.fail, kinds=ALL_EVENTS)
         for name, unit in self._by_name.items():
             unit.image.set_reading(gateway.cache.snapshot(name).reading)
 
     def _on_cache_event(self, kind: EventKind, snap: Snapshot) -> None:
         if kind is EventKind.READING:
             self._by_name[snap.name].image.set_reading(snap.reading)
+        elif kind is EventKind.ALARM and snap.alarm is not None:
+            self._by_name[snap.name].alarm_changed(snap.alarm.state)
 
     async def start(self) -> None:
         """Listen on the plain port and the TLS port, those configured; raises
@@ -236,10 +257,12 @@ class ModbusTcpServer(Frontend):
 
     # ------------------------------------------------------------ requests
 
-    def handle(self, unit_id: int, pdu: bytes, writes: bool) -> bytes | Awaitable[bytes]:
+    def handle(self, unit_id: int, pdu: bytes, writes: bool,
+               who: str = "modbus") -> bytes | Awaitable[bytes]:
         """The answer PDU to a request PDU: at once for reads, later for writes.
         ``writes``: whether the connection may write (``allow_writes``, or on the TLS
-        port true, its role's rights having been checked)."""
+        port true, its role's rights having been checked); ``who``: the client, as an
+        acknowledgement's journal line names it."""
         function = pdu[0]
         self.counts["requests"] += 1
         if function == ident.FUNCTION:  # answered here, raw units too: no bus traffic
@@ -253,6 +276,11 @@ class ModbusTcpServer(Frontend):
             return exception(function, GATEWAY_PATH)
         if function in (READ_HOLDING, READ_INPUT):
             return self._read(unit, pdu)
+        if function in (alarm_bits.READ_COILS, alarm_bits.READ_DISCRETE):
+            return alarm_bits.read(unit.alarms, pdu)
+        if function == alarm_bits.WRITE_COIL:
+            return self._acknowledge(unit, pdu, who) if writes \
+                else exception(function, ILLEGAL_FUNCTION)
         if function in (WRITE_SINGLE, WRITE_MULTIPLE):
             problem = self._check_write(pdu, writes)
             if problem:
@@ -270,7 +298,9 @@ class ModbusTcpServer(Frontend):
         if block is None:
             return exception(function, ILLEGAL_ADDRESS)
         image = unit.image
-        if block.start == 0 or block.start == mm.COMMAND_BASE:
+        if block.start == mm.ALARM_BASE:
+            pass  # kept up to date at each transition
+        elif block.start == 0 or block.start == mm.COMMAND_BASE:
             snap = self.gateway.cache.snapshot(unit.sensor.name)
             if block.start == 0:
                 image.refresh_status(snap)
@@ -279,6 +309,18 @@ class ModbusTcpServer(Frontend):
         elif not image.has_reading:
             return exception(function, TARGET_FAILED)  # no reading yet
         return bytes((function, 2 * count)) + image.words[2 * start: 2 * (start + count)]
+
+    def _acknowledge(self, unit: _Unit, pdu: bytes, who: str) -> bytes:
+        """FC 05: acknowledge the alarm at the coil's address (``alarms.write``)."""
+        def acknowledge(alarm: str) -> AlarmState:
+            state = self.gateway.acknowledge(unit.sensor.name, alarm, who)
+            self.counts["acknowledged"] += 1
+            return state
+
+        try:
+            return alarm_bits.write(unit.alarms, pdu, acknowledge)
+        except RequestFailed as exc:  # nothing to acknowledge: 03 (errors.KINDS)
+            return exception(pdu[0], exception_for(exc.kind))
 
     def _identify(self, unit_id: int, pdu: bytes) -> bytes:
         """Read Device Identification: a sensor's unit (its raw unit too) says what
@@ -400,6 +442,14 @@ class _Connection(asyncio.Protocol):
         self.address = "?"
         self.requests = 0
         self.last_request = time.monotonic()  # or the connect, before the first
+
+    @property
+    def who(self) -> str:
+        """The client as the alarm journal names who acknowledged (REST's form):
+        ``modbus 10.0.0.5``; on the TLS port its certificate's subject first,
+        ``CN=hmi-1 (modbus 10.0.0.5)``."""
+        where = f"modbus {self.address}"
+        return where if self.grant is None else f"{self.grant.who} ({where})"
 
     def idle_rank(self) -> tuple[bool, bool, float]:
         """Sorts first the connection to close for room: an unfinished TLS handshake,
@@ -605,7 +655,7 @@ class _Connection(asyncio.Protocol):
         self.last_request = time.monotonic()  # (the idle watch reads it)
         try:
             answer = exception(pdu[0], ILLEGAL_FUNCTION) if self._refuses(unit, pdu[0]) \
-                else self.server.handle(unit, pdu, self.writes)
+                else self.server.handle(unit, pdu, self.writes, self.who)
         except Exception:  # a fault of ours must not cost the client its connection
             log.exception("Modbus TCP: a request from %s failed", self.peer)
             answer = exception(pdu[0], DEVICE_FAILURE)

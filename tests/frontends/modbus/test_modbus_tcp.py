@@ -364,7 +364,7 @@ async def test_exceptions_of_reads_functions_and_units_with_writes_off() -> None
             # 01: writes not allowed; functions the map lacks
             await expect_exception(raw, 1, write1(1000, 1), ILLEGAL_FUNCTION)
             await expect_exception(raw, 1, write_n(1006, float_words(2.0)), ILLEGAL_FUNCTION)
-            await expect_exception(raw, 1, bytes.fromhex("0100000001"), ILLEGAL_FUNCTION)
+            await expect_exception(raw, 1, bytes.fromhex("0f00000001010f"), ILLEGAL_FUNCTION)
             await expect_exception(raw, 1, bytes.fromhex("050000ff00"), ILLEGAL_FUNCTION)
             await expect_exception(raw, 2, bytes.fromhex("2b0d0100"), ILLEGAL_FUNCTION)
             assert ah.settings.zero_type == "absolute"  # nothing reached the sensor

@@ -200,14 +200,16 @@ def tls_section(pki: Pki, **extra: Any) -> dict[str, Any]:
 
 
 @contextlib.asynccontextmanager
-async def gateway(tls: dict[str, Any], **modbus: Any) -> AsyncIterator[Gateway]:
+async def gateway(tls: dict[str, Any], alarms: tuple[dict[str, Any], ...] = (),
+                  **modbus: Any) -> AsyncIterator[Gateway]:
     """A Modbus-RTU VG on unit 1, its own registers on unit 50, holding a reading."""
     vg = make_sensor(WireProtocol.MODBUS, Series.VG, 1, baud=FAST, source=hold(READING))
     with simulated([vg]) as line:
         config = {"gateway_id": "tls-test", "buses": [{
             "name": "line", "port": line.path, "baudrate": FAST, "protocol": "modbus",
             "timeout_ms": 300, "sensors": [{"name": "vg", "series": "VG", "address": 1,
-                                            "unit_id": UNIT, "raw_unit_id": RAW_UNIT}]}],
+                                            "unit_id": UNIT, "raw_unit_id": RAW_UNIT,
+                                            "alarms": list(alarms)}]}],
             "modbus": {"listen": None, "tls": tls, **modbus}}
         async with running(config) as gw:
             await until(lambda: gw.cache.snapshot("vg").seq >= 1)
@@ -306,6 +308,37 @@ async def test_allow_writes_is_the_plain_ports_and_the_role_decides_on_tls(pki: 
             async with pymodbus_tls(gw, pki, "operator") as operator:
                 assert await answer_of(operator.write_register(
                     ZERO_TYPE, 1, device_id=UNIT)) is None
+
+
+@pytest.mark.anyio
+async def test_a_viewer_reads_the_alarms_bits_and_only_a_writer_acknowledges(pki: Pki) -> None:
+    """Alarms (docs/register-map.md): FC 01 and 02 need ``read``, FC 05 (acknowledge)
+    ``write``; a Viewer sees the alarm and its acknowledgement is refused with 01,
+    whatever allow_writes says; an Operator's is journalled under its certificate."""
+    beyond = {"name": "always", "field": "pitch", "above": -89.0}  # active at once
+    async with gateway(tls_section(pki), alarms=(beyond,), allow_writes=True) as gw:
+        async with pymodbus_tls(gw, pki, "viewer") as viewer:
+            async def bits() -> tuple[list[bool], list[bool]]:
+                inputs = await viewer.read_discrete_inputs(0, count=2, device_id=UNIT)
+                coils = await viewer.read_coils(0, count=2, device_id=UNIT)
+                assert not inputs.isError() and not coils.isError(), (inputs, coils)
+                return list(inputs.bits[:2]), list(coils.bits[:2])
+
+            async def raised() -> bool:
+                return await bits() == ([True, False], [True, False])
+            await until(raised)  # "always", then communication: active, unacknowledged
+            assert await answer_of(viewer.write_coil(0, True, device_id=UNIT)) == \
+                ILLEGAL_FUNCTION
+            assert await bits() == ([True, False], [True, False])
+        assert [t.to_state.value for t in gw.alarm_journal()] == ["active_unacked"]
+        assert gw.modbus is not None and gw.modbus.stats()["refused_role"] == 1
+        async with pymodbus_tls(gw, pki, "operator") as operator:
+            assert await answer_of(operator.write_coil(0, True, device_id=UNIT)) is None
+            coils = await operator.read_coils(0, count=2, device_id=UNIT)
+            assert list(coils.bits[:2]) == [False, False]
+        acked = gw.alarm_journal()[-1]
+        assert (acked.to_state.value, acked.by) == ("active_acked",
+                                                    "CN=operator (modbus 127.0.0.1)")
 
 
 @pytest.mark.anyio

@@ -28,7 +28,7 @@ def test_status_block_is_as_specified() -> None:
 
 def test_measured_values_in_the_specified_order_and_scales() -> None:
     floats = [r for r in mm.REGISTERS if mm.FLOAT_BASE <= r.address < mm.INT_BASE]
-    ints = [r for r in mm.REGISTERS if mm.INT_BASE <= r.address < mm.COMMAND_BASE]
+    ints = [r for r in mm.REGISTERS if mm.INT_BASE <= r.address < mm.ALARM_BASE]
     assert [r.name for r in floats] == list(FIELD_NAMES)
     # the sixteen measured values where they always were, the derived appended after them
     assert [r.address for r in floats] == list(range(100, 138, 2))
@@ -36,6 +36,15 @@ def test_measured_values_in_the_specified_order_and_scales() -> None:
     assert [r.name for r in floats[16:]] == ["tilt", "tilt_direction", "vibration"]
     assert [r.scale for r in ints] == [100] * 3 + [10000] * 3 + [100] * 3 + [100000] * 3 + \
         [1000000] * 4 + [100, 100, 10000]
+
+
+def test_alarm_registers_after_the_values_as_specified() -> None:
+    alarms = [(r.address, r.type.words, r.name) for r in mm.REGISTERS
+              if 300 <= r.address < mm.COMMAND_BASE]
+    assert alarms == [(300, 1, "alarm_count"), (301, 1, "alarms_active"),
+                      (302, 1, "alarms_unacked"), (303, 4, "alarm_active_mask"),
+                      (307, 4, "alarm_unacked_mask")]
+    assert range(300, 311) in mm.BLOCKS
 
 
 def test_command_registers_as_specified() -> None:
