@@ -3,7 +3,9 @@ NDEATH as its will) on the brokers of ``mqtt.url``, carrying the ``EdgeNode``'s
 messages.  It reads the cache like every front end and adds no bus traffic; commands
 go through the gateway's command path (``Gateway.command``), so through the bus
 master's queue.  The buses' counters (``Gateway.stats()``) go out as node metrics, in
-an NDATA every ``NODE_DATA_EVERY_S`` when they changed."""
+an NDATA every ``NODE_DATA_EVERY_S`` when they changed.  Each alarm transition (the
+cache's ``ALARM`` event) goes out as a DDATA of its own; a DCMD acknowledges an alarm
+through the gateway (``Gateway.acknowledge``), when commands are allowed."""
 
 from __future__ import annotations
 
@@ -16,9 +18,10 @@ from typing import Any
 
 import paho.mqtt.client as paho
 
-from ...cache import EventKind, Snapshot
+from ...cache import ALL_EVENTS, EventKind, Snapshot
 from ...commands import CATALOGUE, CommandResult
 from ...config import Broker, MqttConfig, SparkplugConfig
+from ...errors import RequestFailed
 from ...mqtt_link.message import Message
 from ...mqtt_link.session import Ready, Session
 from ...stats import FrontendCounts
@@ -26,7 +29,7 @@ from ...supervise import Frontend
 from ..common import GatewayLike
 from .host import PrimaryHost
 from .metrics import device_rows
-from .node import BdSeq, Device, EdgeNode, Ignored, Refused, Write
+from .node import Acknowledge, BdSeq, Device, EdgeNode, Ignored, Refused, Write
 
 log = logging.getLogger("imu_gateway.sparkplug")
 
@@ -36,6 +39,9 @@ log = logging.getLogger("imu_gateway.sparkplug")
 REBIRTH_HOLD_S = 3.0
 #: the buses' counters go out as an NDATA at most this often (and only what changed)
 NODE_DATA_EVERY_S = 3.0
+#: who acknowledged, in the alarm journal, for an acknowledgement by DCMD (the MQTT
+#: broker does not say who published it)
+ACK_BY = "sparkplug DCMD"
 
 
 def _now_ms() -> int:
@@ -53,7 +59,11 @@ class SparkplugClient(Frontend):
         self.gateway, self.config = gateway, mqtt.sparkplug
         sp: SparkplugConfig = mqtt.sparkplug
         protocols = {s.name: b.protocol for b, s in gateway.config.iter_sensors()}
-        devices = [Device(s.name, tuple(device_rows(s, protocols[s.name], sp.allow_commands)))
+        alarms: dict[str, list[str]] = {name: [] for name in gateway.sensors}
+        for state in gateway.alarm_states():  # (in the gateway's order)
+            alarms[state.sensor].append(state.name)
+        devices = [Device(s.name, tuple(device_rows(s, protocols[s.name], sp.allow_commands)),
+                          tuple(alarms[s.name]))
                    for s in gateway.sensors.values()]
         gid = gateway.config.gateway_id
         kept = Path(sp.bdseq_file) if sp.bdseq_file else None
@@ -81,7 +91,8 @@ class SparkplugClient(Frontend):
         return self.host is None or self.host.online
 
     async def start(self) -> None:
-        self._unsubscribe = self.gateway.cache.subscribe(self._on_cache_event, self.fail)
+        self._unsubscribe = self.gateway.cache.subscribe(self._on_cache_event, self.fail,
+                                                         kinds=ALL_EVENTS)
         self._runner = self.session.run()
         self.guarded(self._runner)
         self._node_data = asyncio.create_task(self._send_node_data(), name="sparkplug ndata")
@@ -123,7 +134,7 @@ class SparkplugClient(Frontend):
     def _birth(self) -> None:
         self._last_birth = time.monotonic()
         for message in self.node.birth(self.gateway.cache.snapshots(), self.gateway.stats(),
-                                       _now_ms()):
+                                       _now_ms(), self.gateway.alarm_states()):
             self.pipe.send(message)
 
     def on_message(self, message: paho.MQTTMessage) -> None:
@@ -144,6 +155,9 @@ class SparkplugClient(Frontend):
             self._ignore("a DCMD, and commands are not allowed (mqtt.sparkplug.allow_commands)")
         elif isinstance(outcome, list):
             for write in outcome:
+                if isinstance(write, Acknowledge):
+                    self._acknowledge(write)
+                    continue
                 if isinstance(write, Refused):
                     self.counters.commands += 1
                     self.counters.command_errors += 1
@@ -210,6 +224,19 @@ class SparkplugClient(Frontend):
             self.counters.command_errors += 1
         self._answer(write.device, result_text(result))
 
+    def _acknowledge(self, ack: Acknowledge) -> None:
+        """Acknowledge an alarm; its transition goes out (the ``ALARM`` event) before
+        the answer in ``Commands/Result``: ``Alarms/{alarm}/Acked: ok``, or
+        ``…: nothing_to_acknowledge: …``."""
+        self.counters.commands += 1
+        try:
+            self.gateway.acknowledge(ack.device, ack.alarm, ACK_BY)
+        except RequestFailed as exc:
+            self.counters.command_errors += 1
+            self._answer(ack.device, f"{ack.metric}: {exc.kind.value}: {exc}")
+        else:
+            self._answer(ack.device, f"{ack.metric}: ok")
+
     def _answer(self, device: str, text: str) -> None:
         for message in self.node.result(device, text, _now_ms()):
             self.pipe.send(message)
@@ -226,8 +253,13 @@ class SparkplugClient(Frontend):
 
     def _on_cache_event(self, kind: EventKind, snap: Snapshot) -> None:
         if kind is EventKind.SETTINGS or not self.connected or not self.host_online:
-            return
-        for message in self.node.update(snap, _now_ms()):
+            return  # (the next births carry what is missed meanwhile, alarms too)
+        if kind is EventKind.ALARM:
+            assert snap.alarm is not None
+            messages = self.node.alarm(snap.alarm, _now_ms())
+        else:
+            messages = self.node.update(snap, _now_ms())
+        for message in messages:
             self.pipe.send(message)
 
     def stats(self) -> FrontendCounts:

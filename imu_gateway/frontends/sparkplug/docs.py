@@ -7,8 +7,9 @@ from __future__ import annotations
 from ...commands import CATALOGUE
 from ...config import SensorConfig
 from ...model import CAPABILITIES, VALUE_GROUPS, Series, WireProtocol
-from .client import NODE_DATA_EVERY_S, REBIRTH_HOLD_S
+from .client import ACK_BY, NODE_DATA_EVERY_S, REBIRTH_HOLD_S
 from .metrics import (
+    ALARM_ROWS,
     BUS_ROWS,
     STATUS_ROWS,
     VALUE_TYPE,
@@ -47,6 +48,7 @@ mqtt:
 
 - **Supported:** the edge node and its devices (NBIRTH, NDEATH, DBIRTH, DDEATH,
   NDATA, DDATA), aliases, seq and bdSeq, NCMD `Node Control/Rebirth`, DCMD commands,
+  the alarms' states as metrics and their acknowledgement by DCMD,
   one primary host's STATE (3.0's JSON on `spBv1.0/STATE/{{host}}`, and 2.2's
   `STATE/{{host}}`), broker failover across `mqtt.url`.
 - **Not supported:** templates and DataSets, metric properties other than `engUnit`,
@@ -95,6 +97,8 @@ mqtt:
   (`{{metric}}: unknown_command: …`), a value of the wrong datatype
   (`set_address: bad_arguments: Commands/set_address is Int32; the DCMD wrote a String`;
   an Int32 command takes a whole Float or Double too), no value, or false.
+- Writing true to an alarm's `Alarms/{{alarm}}/Acked` acknowledges it (below,
+  [Alarms](#alarms)).
 - Anything else (not a Sparkplug payload, an unknown device, a DCMD while commands
   are not allowed) is ignored, counted and logged (rate-limited); the node goes on.
 
@@ -135,9 +139,10 @@ MESSAGES = (
      "after the NBIRTH for each sensor that is online; when a sensor answers again",
      "every metric of the device below: name, alias, datatype, value, the sample's time; "
      "measured values with an `engUnit` property"),
-    ("DDATA", "DDATA/{gateway_id}/{sensor}", "each new reading, status or counter change",
+    ("DDATA", "DDATA/{gateway_id}/{sensor}", "each new reading, status or counter change; "
+     "each alarm transition, in a DDATA of its own",
      "only the metrics that changed, by alias (with their datatype: Tahu's decoder needs "
-     "it), stamped with the sample's wire time"),
+     "it), stamped with the sample's wire time (an alarm's, with its transition's time)"),
     ("DDEATH", "DDEATH/{gateway_id}/{sensor}", "the sensor went offline", "seq only"),
     ("NDATA", "NDATA/{gateway_id}", "a bus's counters changed (checked every few seconds)",
      "the node metrics that changed, by alias"),
@@ -157,6 +162,48 @@ def _device_table(series: Series, protocol: WireProtocol) -> list[str]:
     sensor = SensorConfig(name="boom", series=series, address=0)
     rows = [*STATUS_ROWS, *identity_rows(sensor, protocol)]
     return [f"| `{r.name}` | {r.datatype.spelled} | {r.description} |" for r in rows]
+
+
+ALARMS = """## Alarms
+
+Each alarm of a sensor ([alarms.md](alarms.md)), its built-in `communication` alarm
+last, is a folder of its device's metrics, `Alarms/{{alarm}}/…`, in the DBIRTH (every
+alarm, with its state at that moment):
+
+{table}
+
+- **Each transition is a DDATA of its own**, sent as the gateway makes it (raised
+  after its on-delay, cleared through its hysteresis after its off-delay,
+  acknowledged), with the alarm's metrics that changed (`State` always, `Active`
+  and/or `Acked`), each stamped with the transition's time. Not merged with a
+  reading's DDATA nor with another transition: a host sees every transition, even
+  a raise and its acknowledgement in the same millisecond. A reading that raises an
+  alarm comes first, in its own DDATA.
+- **A device that is not born** (offline: after its DDEATH; or while the node waits
+  for its primary host, or for the broker) gets no DDATA: its next DBIRTH carries
+  the states then. So a sensor that goes offline has its DDEATH, and its
+  `communication` alarm, raised after it, is in the DBIRTH when the sensor answers
+  again, still active: it clears at the gateway's next staleness check (within
+  0.1 s), and that transition follows in a DDATA (`rtn_unacked` until acknowledged).
+  A sensor that is only stale is still born: its `communication` alarm goes out in
+  DDATA like the others.
+- **Acknowledging** (with `allow_commands: true`, as the commands are): a DCMD
+  writing `Alarms/{{alarm}}/Acked` = true (Boolean). The DDATA of the transition comes
+  first, then the answer in `Commands/Result`: `Alarms/{{alarm}}/Acked: ok`, or
+  `Alarms/{{alarm}}/Acked: nothing_to_acknowledge: boom/boom_lean is acknowledged
+  already: nothing to acknowledge` (also for an alarm that is `normal`). False, no
+  value or another datatype is refused with `bad_arguments`, and acknowledges nothing.
+  The journal records the acknowledgement `by` `"{by}"` (the broker does not say who
+  published the DCMD). With `allow_commands: false` such a DCMD is ignored, counted
+  and logged like any command, and the alarm stays unacknowledged: give the
+  operator's right to acknowledge only with the right to run commands.
+"""
+
+
+def _alarm_table() -> str:
+    rows = [f"| `{row.metric('{alarm}')}` | {row.datatype.spelled} | {row.description} |"
+            for row in ALARM_ROWS]
+    return "\n".join(["| metric | datatype | what it says |", "|---|---|---|", *rows])
 
 
 def markdown() -> str:
@@ -200,6 +247,7 @@ def markdown() -> str:
                      f"{' / '.join(where)} | {command.summary} |")
     lines += [f"| `Commands/Result` | {DataType.STRING.spelled} | all | the outcome of "
               "the last command written as a DCMD |", ""]
+    lines += [ALARMS.format(table=_alarm_table(), by=ACK_BY)]
     return "\n".join(lines)
 
 

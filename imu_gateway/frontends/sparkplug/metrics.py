@@ -6,8 +6,9 @@ A sensor's metrics are its series' measured values and those derived from them
 property; Double, so a sensor's 32.52 is 32.52 in the host, not a float32's
 widening), a few status and identity metrics, and, when commands are allowed, one
 metric per command of the catalogue the series and protocol have
-(``commands.CATALOGUE``).  The edge node's own metrics are each bus's counters
-(``BUS_ROWS``: ``Buses/{bus}/…``, from ``Gateway.stats()``).
+(``commands.CATALOGUE``); and each of its alarms' state (``ALARM_ROWS``:
+``Alarms/{alarm}/…``, from the gateway's alarms, docs/alarms.md).  The edge node's
+own metrics are each bus's counters (``BUS_ROWS``: ``Buses/{bus}/…``, from ``Gateway.stats()``).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
+from ...alarms import AlarmState
 from ...cache import Snapshot, Status
 from ...commands import CATALOGUE, CommandSpec, argument_type, commands_for
 from ...config import SensorConfig
@@ -132,6 +134,37 @@ def device_rows(sensor: SensorConfig, protocol: WireProtocol,
     """Every metric of one sensor's device, in birth order."""
     rows = [*value_rows(sensor.series), *STATUS_ROWS, *identity_rows(sensor, protocol)]
     return [*rows, *command_rows(sensor.series, protocol)] if commands else rows
+
+
+@dataclass(frozen=True, slots=True)
+class AlarmMetric:
+    """One metric of every alarm of a sensor: ``Alarms/{alarm}/{name}``, its value in
+    the alarm's state.  ``acknowledges``: a DCMD writing true to it acknowledges."""
+
+    name: str
+    datatype: DataType
+    description: str
+    value: Callable[[AlarmState], Value]
+    acknowledges: bool = False
+
+    def metric(self, alarm: str) -> str:
+        return f"Alarms/{alarm}/{self.name}"
+
+
+ALARM_ROWS = (
+    AlarmMetric("Active", DataType.BOOLEAN,
+                "true while the alarm is active (beyond its limit after the on-delay, or "
+                "held by its latch)", lambda a: a.active),
+    AlarmMetric("Acked", DataType.BOOLEAN,
+                "false while the alarm waits for an acknowledgement; a DCMD writing true "
+                "acknowledges it (with `allow_commands`)", lambda a: a.acked,
+                acknowledges=True),
+    AlarmMetric("State", DataType.STRING,
+                "the ISA-18.2 state: `normal`, `active_unacked`, `active_acked`, "
+                "`rtn_unacked`", lambda a: a.state.value),
+    AlarmMetric("Severity", DataType.STRING, "`info`, `warning` or `critical` (as configured; "
+                "`critical` for the communication alarm)", lambda a: a.severity.value),
+)
 
 
 @dataclass(frozen=True, slots=True)

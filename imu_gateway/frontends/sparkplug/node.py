@@ -20,6 +20,14 @@ each sensor a device.  The rules kept (Sparkplug 3.0):
 * **DCMD** writes a command metric: the catalogue's command, when commands are allowed;
   a write refused here (not a command, the wrong type, no value) is answered in
   ``Commands/Result`` like a command the sensor refused.
+* **Alarms**: each alarm of a device is ``Alarms/{alarm}/…`` (``ALARM_ROWS``), in its
+  DBIRTH with the state the alarm has then, and in a DDATA of its own at each
+  transition (the cache's ``ALARM`` event), stamped with the transition's time: one
+  DDATA per transition, so that none is merged into another or lost with a reading
+  that changed nothing else.  A transition of a device that is not born (offline: its
+  DDEATH said so) is in its next DBIRTH.  A DCMD writing true to
+  ``Alarms/{alarm}/Acked`` acknowledges the alarm (``Acknowledge``), answered in
+  ``Commands/Result`` as a command is.
 * **STATE** (``host``): with a primary host configured, births wait until it says
   online; when it says offline, the node ends its session (NDEATH, disconnect) and is
   born again once the host is back.
@@ -36,12 +44,13 @@ from pathlib import Path
 
 from google.protobuf.message import DecodeError
 
+from ...alarms import AlarmEvent, AlarmState
 from ...cache import Snapshot
 from ...derived import values_of
 from ...errors import ErrorKind
 from ...mqtt_link.message import Message
 from ...stats import BusStats
-from .metrics import BUS_ROWS, RESULT, DataType, MetricRow, Value
+from .metrics import ALARM_ROWS, BUS_ROWS, RESULT, DataType, MetricRow, Value
 from .payload_pb2 import Payload
 
 log = logging.getLogger("imu_gateway.sparkplug")
@@ -54,10 +63,12 @@ DATA_QOS, DEATH_QOS = 0, 1
 
 @dataclass(frozen=True, slots=True)
 class Device:
-    """One sensor as a Sparkplug device: its id (the sensor's name) and metric rows."""
+    """One sensor as a Sparkplug device: its id (the sensor's name), metric rows and
+    alarms (by name, in the gateway's order: the communication alarm last)."""
 
     name: str
     rows: tuple[MetricRow, ...]
+    alarms: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -67,6 +78,15 @@ class Write:
     device: str
     command: str
     value: Value
+
+
+@dataclass(frozen=True, slots=True)
+class Acknowledge:
+    """A DCMD's write of true to ``Alarms/{alarm}/Acked``: acknowledge the alarm."""
+
+    device: str
+    alarm: str
+    metric: str  # the metric written (its outcome is reported under this name)
 
 
 @dataclass(frozen=True, slots=True)
@@ -143,9 +163,14 @@ class EdgeNode:
         # aliases: unique in the node, stable for the process
         names = [(None, BDSEQ), (None, REBIRTH),
                  *((None, r.metric(bus)) for bus in buses for r in BUS_ROWS),
-                 *((d.name, r.name) for d in devices for r in d.rows)]
+                 *((d.name, r.name) for d in devices for r in d.rows),
+                 *((d.name, r.metric(a)) for d in devices for a in d.alarms for r in ALARM_ROWS)]
         self.alias = {key: number for number, key in enumerate(names, start=1)}
         self.by_alias = {number: key for key, number in self.alias.items()}
+        # each alarm's latest state, by (device, alarm): the births carry it
+        self.alarms: dict[tuple[str, str], AlarmState] = {}
+        self._acks = {(d.name, r.metric(a)): a for d in devices for a in d.alarms
+                      for r in ALARM_ROWS if r.acknowledges}
 
     # ------------------------------------------------------------ topics
 
@@ -177,9 +202,11 @@ class EdgeNode:
         return Message(self.topic("NDEATH"), payload.SerializeToString(), DEATH_QOS, False)
 
     def birth(self, snaps: Iterable[Snapshot], buses: Iterable[BusStats],
-              now_ms: int) -> list[Message]:
+              now_ms: int, alarms: Iterable[AlarmState] = ()) -> list[Message]:
         """NBIRTH (seq 0, with the buses' counters), then a DBIRTH for every device that
-        is online."""
+        is online, with ``alarms``, every alarm's state now."""
+        for state in alarms:
+            self.alarms[state.sensor, state.name] = state
         self.seq, self.born = 0, True
         self.alive.clear()
         payload = Payload(timestamp=now_ms, seq=0)
@@ -231,6 +258,29 @@ class EdgeNode:
             return [self._device_birth(snap, now_ms)]
         return self._data(snap, now_ms)
 
+    def alarm(self, event: AlarmEvent, now_ms: int) -> list[Message]:
+        """An alarm's transition: a DDATA of its metrics that changed, stamped with the
+        transition's time (none when the device is not born: its next DBIRTH has the
+        state; nor when its DBIRTH has it already)."""
+        state = event.state
+        self.alarms[state.sensor, state.name] = state
+        device = state.sensor
+        if not self.born or device not in self.alive or \
+                state.name not in self.devices[device].alarms:
+            return []
+        last = self.last[device]
+        changed = [(row, row.value(state)) for row in ALARM_ROWS
+                   if row.value(state) != last.get(row.metric(state.name))]
+        if not changed:
+            return []
+        payload = Payload(timestamp=now_ms, seq=self._next_seq())
+        at = int(event.transition.at * 1000)
+        for row, value in changed:
+            last[row.metric(state.name)] = value
+            self._metric(payload, row.metric(state.name), device, row.datatype, value, at)
+        return [Message(self.topic("DDATA", device), payload.SerializeToString(),
+                        DATA_QOS, False)]
+
     def result(self, device: str, text: str, now_ms: int) -> list[Message]:
         """A command's outcome, as the device's ``Commands/Result``."""
         if not self.born or device not in self.alive:
@@ -242,7 +292,8 @@ class EdgeNode:
 
     # ------------------------------------------------------------ incoming
 
-    def command(self, topic: str, data: bytes) -> list[Write | Refused] | bool | Ignored:
+    def command(self, topic: str, data: bytes
+                ) -> list[Write | Acknowledge | Refused] | bool | Ignored:
         """An NCMD or DCMD: True for a rebirth, a DCMD's writes (each run, or refused
         with its reason), or Ignored."""
         try:
@@ -268,15 +319,19 @@ class EdgeNode:
                 return Ignored(f"a DCMD for {device}: {refused.text}")
         return writes
 
-    def _write(self, device: str, m: Payload.Metric) -> Write | Refused:
-        """One metric of a DCMD: the command it runs, or why it runs none."""
+    def _write(self, device: str, m: Payload.Metric) -> Write | Acknowledge | Refused:
+        """One metric of a DCMD: the command it runs, the alarm it acknowledges, or why
+        it does neither."""
         rows = {r.name: r for r in self.devices[device].rows}
         key = (device, m.name) if m.HasField("name") else self.by_alias.get(m.alias)
+        if key is not None and key[0] == device and key in self._acks:
+            return self._acknowledge(device, key[1], self._acks[key], m)
         row = rows.get(key[1]) if key is not None and key[0] == device else None
         if row is None or row.command is None:
             written = m.name if m.HasField("name") else f"alias {m.alias}"
             return Refused(device, written, ErrorKind.UNKNOWN_COMMAND,
-                           "not a command metric (write one of Commands/…)")
+                           "not a command metric (write one of Commands/…, or true to "
+                           "Alarms/{alarm}/Acked)")
         value = _value_of(m, row.datatype)
         if m.is_null or m.WhichOneof("value") is None:
             return Refused(device, row.command, ErrorKind.BAD_ARGUMENTS,
@@ -289,6 +344,18 @@ class EdgeNode:
             return Refused(device, row.command, ErrorKind.BAD_ARGUMENTS,
                            "false written: write true to run a command without arguments")
         return Write(device, row.command, value)
+
+    @staticmethod
+    def _acknowledge(device: str, metric: str, alarm: str,
+                     m: Payload.Metric) -> Acknowledge | Refused:
+        """A write to an alarm's ``Acked``: true acknowledges; anything else is refused."""
+        if _value_of(m, DataType.BOOLEAN) is True:
+            return Acknowledge(device, alarm, metric)
+        written = "false" if _value_of(m, DataType.BOOLEAN) is False else \
+            "no value" if m.is_null or m.WhichOneof("value") is None else _written_type(m)
+        return Refused(device, metric, ErrorKind.BAD_ARGUMENTS,
+                       f"{metric} is Boolean: write true to acknowledge (the DCMD wrote "
+                       f"{written})")
 
     # ------------------------------------------------------------ the payloads
 
@@ -305,9 +372,24 @@ class EdgeNode:
             if row.unit is not None:
                 metric.properties.keys.append("engUnit")
                 metric.properties.values.add(type=DataType.STRING, string_value=row.unit)
+        for alarm in device.alarms:
+            self._alarm_birth(payload, device.name, alarm, values, now_ms)
         self.last[snap.name] = values
         return Message(self.topic("DBIRTH", snap.name), payload.SerializeToString(),
                        DATA_QOS, False)
+
+    def _alarm_birth(self, payload: Payload, device: str, alarm: str,
+                     values: dict[str, Value | None], now_ms: int) -> None:
+        """An alarm's metrics in its device's DBIRTH, stamped with its latest
+        transition's time (no transition yet: the birth's)."""
+        state = self.alarms.get((device, alarm))
+        if state is None:  # (not told yet: a birth before the gateway's states)
+            return
+        at = int(state.since * 1000) if state.since is not None else now_ms
+        for row in ALARM_ROWS:
+            values[row.metric(alarm)] = value = row.value(state)
+            self._metric(payload, row.metric(alarm), device, row.datatype, value, at,
+                         named=True)
 
     def _data(self, snap: Snapshot, now_ms: int) -> list[Message]:
         last, fields = self.last[snap.name], values_of(snap)
