@@ -124,6 +124,7 @@
       trends: node.querySelector(".trends"),
       trend: { t: [], fields: {} }, // one-second buckets: t, and per field min/max/last
       errorSamples: [], // [time, errors] of the last minute's polls
+      alarmsShown: null, // what the card's alarm lines show (skip redrawing the same)
     };
   }
 
@@ -733,6 +734,7 @@
   const journalKeys = new Set(); // the same transition from the journal and the stream
   let alarmsLoaded = false;
   let alarmsDirty = false;
+  let journalShown = null; // what the journal list shows (skip redrawing the same)
 
   const alarmKey = (sensor, alarm) => sensor + "/" + alarm;
   const epoch = (ts) => (ts ? Date.parse(ts) : -Infinity);
@@ -849,9 +851,14 @@
     badge.textContent = worst
       ? `${active.length} alarm${active.length === 1 ? "" : "s"} · ${worst}` : "";
     badge.className = "badge alarm" + (worst ? " sev-" + worst : "");
+    const shown = own.filter((a) => a.active || !a.acked);
+    // Rebuilt only when they changed: a button replaced under the pointer loses its click.
+    const signature = JSON.stringify(shown);
+    if (signature === s.alarmsShown) return;
+    s.alarmsShown = signature;
     const list = s.card.querySelector("ul.alarms");
-    list.replaceChildren(...own.filter((a) => a.active || !a.acked).map((a) => alarmLine(s, a)));
-    list.hidden = list.childElementCount === 0;
+    list.replaceChildren(...shown.map((a) => alarmLine(s, a)));
+    list.hidden = shown.length === 0;
   }
 
   function alarmLine(s, a) {
@@ -916,6 +923,10 @@
   /** The journal, newest first. */
   function showJournal() {
     const list = $("journal");
+    const newest = journal.length ? JSON.stringify(journal[journal.length - 1]) : "";
+    const shown = journal.length + newest;
+    if (shown === journalShown) return; // unchanged
+    journalShown = shown;
     $("journal-empty").hidden = journal.length > 0;
     const rows = journal.slice(-JOURNAL_SHOWN).reverse().map((t) => {
       const li = document.createElement("li");

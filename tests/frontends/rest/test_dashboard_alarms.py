@@ -182,3 +182,26 @@ def test_a_lean_raises_the_alarm_on_the_page_and_only_the_operator_acknowledges(
             assert mute["banner"]["text"].startswith("active alarms: 1 critical · 0 warning")
             screenshot(driver, tmp_path, "dashboard-alarms.png")
             assert console_errors(driver) == []
+
+
+def test_without_a_token_set_the_button_says_nobody_may_acknowledge(tmp_path: Path) -> None:
+    """A gateway without ``http.token``: the button is refused (forbidden), and the card
+    says which setting allows it; the alarm stays as it was."""
+    boom = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST)
+    with simulated([boom]) as line:
+        line.call(boom.lean, 20.0, 0.0).result(5)
+        cfg = {"gateway_id": "dash", "buses": [bus("a", line.path, "native", [
+            {"name": "boom", "series": "AH", "poll_hz": 20,
+             "alarms": [{**LEAN_ALARM, "on_delay_s": 0, "severity": "critical"}]}])]}
+        with gateway(tmp_path, cfg) as base, chromium(tmp_path) as driver:
+            driver.get(f"{base}/?token=anything")
+            raised = page_when(driver, "boom", lambda p: "boom_lean" in p["lines"],
+                               "the alarm's line")
+            assert raised["banner"]["critical"] == "1" and raised["badge"] == "1 alarm · critical"
+            click_ack(driver, "boom", "boom_lean")
+            refused = page_when(driver, "boom", lambda p: "refused" in p["result"],
+                                "the refusal shown")
+            assert refused["result"].startswith("boom_lean: refused: forbidden: ")
+            assert "http.token" in refused["result"]
+            assert refused["lines"]["boom_lean"]["state"] == "active_unacked"
+            assert alarm_state(base, "boom", "boom_lean")["state"] == "active_unacked"
