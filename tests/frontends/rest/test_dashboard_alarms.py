@@ -18,7 +18,17 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from test_dashboard import FAST, bus, chromium, console_errors, gateway, get_json, screenshot, wait
+from test_dashboard import (
+    ARTIFACTS,
+    FAST,
+    bus,
+    chromium,
+    console_errors,
+    gateway,
+    get_json,
+    screenshot,
+    wait,
+)
 
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import Faults, make_sensor, simulated
@@ -149,8 +159,13 @@ def test_a_lean_raises_the_alarm_on_the_page_and_only_the_operator_acknowledges(
             assert journal[0]["text"].endswith("by dashboard (rest 127.0.0.1)")
             assert "normal → active, unacknowledged · tilt 7.50 (limit 5.00)" in \
                 journal[1]["text"]
-            page_when(driver, "boom", lambda p: p["marks"].get("tilt") == 2,
-                      "both transitions marked on the tilt trend")
+            marked = page_when(driver, "boom", lambda p: p["marks"].get("tilt") == 2,
+                               "both transitions marked on the tilt trend")
+            assert marked["marks"]["angles"] == 0  # (an alarm on tilt: its chart only)
+            ARTIFACTS.mkdir(exist_ok=True)
+            assert driver.find_element(
+                "css selector", '[data-sensor="boom"] canvas.trend[data-group="tilt"]'
+            ).screenshot(str(ARTIFACTS / "dashboard-alarm-trend.png"))
 
             # Back inside the limit, not through the hysteresis (4.7 > 4.5): still active.
             line.call(boom.lean, 4.7, 0.0).result(5)
@@ -180,6 +195,10 @@ def test_a_lean_raises_the_alarm_on_the_page_and_only_the_operator_acknowledges(
             assert mute["badge"] == "1 alarm · critical"
             assert mute["lines"]["communication"]["state"] == "active_unacked"
             assert mute["banner"]["text"].startswith("active alarms: 1 critical · 0 warning")
+            # the communication alarm, of no one field: marked on every chart of the mast
+            page_when(driver, "mast", lambda p: bool(p["marks"]) and
+                      all(n == 1 for n in p["marks"].values()),
+                      "the communication alarm marked on each of the mast's charts")
             screenshot(driver, tmp_path, "dashboard-alarms.png")
             assert console_errors(driver) == []
 
