@@ -1,7 +1,8 @@
 /* imu-gateway live dashboard: plain JS, no dependencies, nothing from the internet.
  *
  * Data: GET /api/v1/sensors (the list, then every 2 s for status and rates),
- * GET /api/v1/buses (every 2 s) and the Server-Sent Events of GET /api/v1/stream.
+ * GET /api/v1/buses and GET /api/v1/alarms (every 2 s), GET /api/v1/alarms/journal
+ * (whenever the stream opens) and the Server-Sent Events of GET /api/v1/stream.
  * With ?token=... in the page address every request carries "Authorization: Bearer";
  * EventSource cannot send headers, so the stream gets it as ?access_token= instead.
  *
@@ -11,7 +12,10 @@
  * Test hooks: each card has data-sensor=name; the horizon canvas carries data-pitch,
  * data-roll, data-yaw (the values it was last drawn with); value cells have
  * data-field="pitch", "accel_x", "q0", "status", "seq", "age", ... and each bus card
- * has data-bus=name.
+ * has data-bus=name.  Alarms: #alarm-banner has data-critical, data-warning, data-info
+ * (active alarms) and data-unacked; a card's alarm lines (ul.alarms li) data-alarm and
+ * data-state; a trend canvas data-marks (the transitions marked on it); each line of
+ * the journal (#journal li) data-alarm="sensor/alarm", data-from and data-to.
  */
 "use strict";
 
@@ -83,7 +87,10 @@
     banner.hidden = down.size === 0 && !unauthorised;
     const wasDown = document.body.classList.contains("is-down");
     document.body.classList.toggle("is-down", !banner.hidden);
-    if (wasDown !== !banner.hidden) for (const s of sensors.values()) markDirty(s);
+    if (wasDown !== !banner.hidden) {
+      for (const s of sensors.values()) markDirty(s);
+      markAlarms();
+    }
   }
 
   const sleep = (ms) => new Promise((resolve) => setTimeout(resolve, ms));
@@ -117,6 +124,7 @@
       trends: node.querySelector(".trends"),
       trend: { t: [], fields: {} }, // one-second buckets: t, and per field min/max/last
       errorSamples: [], // [time, errors] of the last minute's polls
+      alarmsShown: null, // what the card's alarm lines show (skip redrawing the same)
     };
   }
 
@@ -162,6 +170,10 @@
 
   function markDirty(s) {
     dirty.add(s);
+    requestFrame();
+  }
+
+  function requestFrame() {
     if (!frameRequested) {
       frameRequested = true;
       requestAnimationFrame(frame);
@@ -173,6 +185,7 @@
     const now = performance.now();
     for (const s of dirty) render(s, now);
     dirty.clear();
+    if (alarmsDirty) renderAlarms();
   }
 
   /** A reading (or status) event, or a polled reading: the reading JSON. */
@@ -558,11 +571,11 @@
     const now = Date.now() / 1000;
     for (const canvas of s.trends.querySelectorAll("canvas")) {
       const group = GROUPS.find((g) => g.key === canvas.dataset.group);
-      drawTrend(canvas, group, trend, now);
+      drawTrend(canvas, group, trend, now, marksFor(s, group, now - TREND_S));
     }
   }
 
-  function drawTrend(canvas, group, trend, now) {
+  function drawTrend(canvas, group, trend, now, marks) {
     const { ctx, w, h } = prepare(canvas);
     const fields = group.members.map(([, f]) => trend.fields[f]).filter(Boolean);
     let lo = Infinity;
@@ -574,9 +587,15 @@
     ctx.clearRect(0, 0, w, h);
     canvas.dataset.points = String(trend.t.length);
     canvas.dataset.seconds = String(trend.t.length ? trend.t[trend.t.length - 1] - trend.t[0] : 0);
-    if (!Number.isFinite(lo)) return;
-    if (hi - lo < 1e-9) { hi += 0.5; lo -= 0.5; }
+    canvas.dataset.marks = String(marks.length);
+    canvas.setAttribute("aria-label", `${group.label} over the last ${TREND_S / 60} minutes` +
+      (marks.length ? `, ${marks.length} alarm transition${marks.length === 1 ? "" : "s"}` : ""));
     const x = (t) => ((t - (now - TREND_S)) / TREND_S) * w;
+    if (!Number.isFinite(lo)) {
+      drawMarks(ctx, marks, x, h);
+      return;
+    }
+    if (hi - lo < 1e-9) { hi += 0.5; lo -= 0.5; }
     const y = (v) => h - 2 - ((v - lo) / (hi - lo)) * (h - 4);
     fields.forEach((f, k) => {
       ctx.fillStyle = COLOURS[k % COLOURS.length] + "33";
@@ -594,6 +613,7 @@
       }
       ctx.stroke();
     });
+    drawMarks(ctx, marks, x, h); // over the values: a transition is what the eye looks for
     ctx.fillStyle = "#888";
     ctx.font = "10px sans-serif";
     ctx.fillText(`${group.label} ${hi.toFixed(group.digits)}`, 2, 10);
@@ -697,12 +717,277 @@
     }
   }
 
+  // ------------------------------------------------------------------ alarms
+
+  // Every alarm's state (GET /api/v1/alarms's rows, by "sensor/alarm"), kept live by the
+  // stream's "alarm" events and the 2 s poll; the journal's transitions, oldest first.
+  // Alarms change rarely: nothing here runs per reading.
+  const SEVERITIES = ["critical", "warning", "info"]; // worst first
+  const STATE_WORDS = {
+    normal: "normal", active_unacked: "active, unacknowledged",
+    active_acked: "active, acknowledged", rtn_unacked: "back to normal, unacknowledged",
+  };
+  const JOURNAL_KEPT = 1000; // as many as the gateway keeps
+  const JOURNAL_SHOWN = 200; // the newest, in the list
+  const alarms = new Map();
+  const journal = [];
+  const journalKeys = new Set(); // the same transition from the journal and the stream
+  let alarmsLoaded = false;
+  let alarmsDirty = false;
+  let journalShown = null; // what the journal list shows (skip redrawing the same)
+
+  const alarmKey = (sensor, alarm) => sensor + "/" + alarm;
+  const epoch = (ts) => (ts ? Date.parse(ts) : -Infinity);
+
+  function markAlarms() {
+    alarmsDirty = true;
+    requestFrame();
+  }
+
+  /** An alarm's state (a row of GET /api/v1/alarms, an ack's answer or a stream
+   *  event); an older one than we have is ignored. True if it changed anything. */
+  function onAlarmState(state) {
+    const key = alarmKey(state.sensor, state.alarm);
+    const known = alarms.get(key);
+    if (known && (epoch(known.since) > epoch(state.since) ||
+        (known.since === state.since && known.state === state.state))) return false;
+    alarms.set(key, state);
+    markAlarms();
+    return true;
+  }
+
+  /** A transition (a journal row), once, in time order. */
+  function addTransition(t) {
+    const key = [t.sensor, t.alarm, t.ts, t.from, t.to].join("/");
+    if (journalKeys.has(key)) return;
+    journalKeys.add(key);
+    let i = journal.length;
+    while (i > 0 && epoch(journal[i - 1].ts) > epoch(t.ts)) i--;
+    journal.splice(i, 0, t);
+    while (journal.length > JOURNAL_KEPT) {
+      const old = journal.shift();
+      journalKeys.delete([old.sensor, old.alarm, old.ts, old.from, old.to].join("/"));
+    }
+    markAlarms();
+  }
+
+  /** The stream's "alarm" event: the state after a transition, with "from" and "by". */
+  function onAlarmEvent(data) {
+    onAlarmState(data);
+    addTransition({ sensor: data.sensor, alarm: data.alarm, ts: data.since, from: data.from,
+      to: data.state, value: data.value, limit: data.limit, severity: data.severity,
+      by: data.by });
+  }
+
+  /** Every alarm and the journal (since the newest transition we have): at the start and
+   *  whenever the stream (re)opens, as events may have been missed meanwhile. */
+  async function loadAlarms() {
+    const last = journal.length ? journal[journal.length - 1].ts : null;
+    const query = last ? "?since=" + encodeURIComponent(last) : "";
+    const [states, transitions] = await Promise.all([api("/alarms"), api("/alarms/journal" + query)]);
+    for (const state of states) onAlarmState(state);
+    for (const t of transitions) addTransition(t);
+    alarmsLoaded = true;
+    markAlarms();
+  }
+
+  /** The poll's states: one that changed without its event (the stream skipped it)
+   *  brings the journal's missing lines too. */
+  function onAlarmPoll(states) {
+    let news = false;
+    for (const state of states) news = onAlarmState(state) || news;
+    if (news) loadAlarms().catch(() => { /* the next poll tries again */ });
+  }
+
+  /** "tilt 7.50 (limit 5.00)", at the field's resolution. */
+  function valueText(field, value, limit) {
+    if (value === null || value === undefined) return "";
+    const group = GROUPS.find((g) => g.members.some(([, f]) => f === field));
+    const fmt = (v) => (group ? v.toFixed(group.digits) : String(v));
+    return `${field || "value"} ${fmt(value)}` + (limit === null ? "" : ` (limit ${fmt(limit)})`);
+  }
+
+  function renderAlarms() {
+    alarmsDirty = false;
+    if (!alarmsLoaded) return;
+    showAlarmBanner();
+    for (const s of sensors.values()) showCardAlarms(s);
+    showJournal();
+  }
+
+  /** The count of active alarms by severity, in words (not colour alone). */
+  function showAlarmBanner() {
+    const counts = { critical: 0, warning: 0, info: 0 };
+    let unacked = 0;
+    for (const a of alarms.values()) {
+      if (a.active) counts[a.severity] += 1;
+      if (!a.acked) unacked += 1;
+    }
+    const banner = $("alarm-banner");
+    const active = SEVERITIES.reduce((n, sev) => n + counts[sev], 0);
+    const worst = SEVERITIES.find((sev) => counts[sev] > 0) || "none";
+    const parts = SEVERITIES.map((sev) => {
+      banner.dataset[sev] = String(counts[sev]);
+      return `${counts[sev]} ${sev}`;
+    });
+    banner.dataset.unacked = String(unacked);
+    let text = active === 0 ? "no active alarm" : `active alarms: ${parts.join(" · ")}`;
+    if (unacked > 0) text += ` · ${unacked} to acknowledge`;
+    if (document.body.classList.contains("is-down")) text += " (may be old: no connection)";
+    banner.textContent = text;
+    banner.className = "alarm-banner worst-" + worst;
+    banner.hidden = false;
+  }
+
+  /** The card's badge (its active alarms, worst severity) and a line for each alarm
+   *  that needs a person (active or unacknowledged), with an acknowledge button for
+   *  each unacknowledged one. */
+  function showCardAlarms(s) {
+    const own = [...alarms.values()].filter((a) => a.sensor === s.name);
+    const active = own.filter((a) => a.active);
+    const worst = SEVERITIES.find((sev) => active.some((a) => a.severity === sev));
+    const badge = s.cells.alarm_badge;
+    badge.hidden = !worst;
+    badge.textContent = worst
+      ? `${active.length} alarm${active.length === 1 ? "" : "s"} · ${worst}` : "";
+    badge.className = "badge alarm" + (worst ? " sev-" + worst : "");
+    const shown = own.filter((a) => a.active || !a.acked);
+    // Rebuilt only when they changed: a button replaced under the pointer loses its click.
+    const signature = JSON.stringify(shown);
+    if (signature === s.alarmsShown) return;
+    s.alarmsShown = signature;
+    const list = s.card.querySelector("ul.alarms");
+    list.replaceChildren(...shown.map((a) => alarmLine(s, a)));
+    list.hidden = shown.length === 0;
+  }
+
+  function alarmLine(s, a) {
+    const li = document.createElement("li");
+    li.dataset.alarm = a.alarm;
+    li.dataset.state = a.state;
+    li.className = "sev-" + a.severity;
+    const name = document.createElement("b");
+    name.textContent = a.alarm;
+    const since = a.since ? ` · since ${clock(a.since)}` : "";
+    const value = valueText(a.field, a.value, a.limit);
+    li.append(name, ` ${a.severity} · ${STATE_WORDS[a.state] || a.state}` +
+      (value ? ` · ${value}` : "") + since);
+    if (!a.acked) {
+      const button = document.createElement("button");
+      button.type = "button";
+      button.className = "ack";
+      button.textContent = "acknowledge";
+      button.setAttribute("aria-label", `acknowledge ${a.alarm} of ${s.name}`);
+      button.addEventListener("click", () => acknowledge(s, a.alarm, button));
+      li.append(" ", button);
+    }
+    return li;
+  }
+
+  /** POST .../ack with the token; the refusal, if any, is shown as the gateway gave it,
+   *  with what to do. */
+  async function acknowledge(s, alarm, button) {
+    const out = s.cells.alarm_result;
+    button.disabled = true;
+    out.textContent = `${alarm}: acknowledging…`;
+    try {
+      const path = `${API}/alarms/${encodeURIComponent(s.name)}/${encodeURIComponent(alarm)}/ack`;
+      const response = await fetch(path + "?by=dashboard",
+        { method: "POST", headers, cache: "no-store" });
+      let body = {};
+      try { body = await response.json(); } catch (e) { /* not JSON */ }
+      if (response.ok) {
+        onAlarmState(body);
+        out.textContent = `${alarm}: acknowledged`;
+      } else {
+        out.textContent = `${alarm}: refused: ${refusal(response, body)}`;
+      }
+      out.dataset.ok = String(response.ok);
+    } catch (error) {
+      out.textContent = `${alarm}: ${error.message}`;
+      out.dataset.ok = "false";
+    } finally {
+      button.disabled = false;
+    }
+  }
+
+  function refusal(response, body) {
+    if (response.status === 401) {
+      return token ? "unauthorised: the token in the address was refused"
+        : "unauthorised: acknowledging needs the operator's token: open this page with " +
+          "?token=… in its address";
+    }
+    return `${body.kind || response.status}: ${body.error || response.statusText}`;
+  }
+
+  /** The journal, newest first. */
+  function showJournal() {
+    const list = $("journal");
+    const newest = journal.length ? JSON.stringify(journal[journal.length - 1]) : "";
+    const shown = journal.length + newest;
+    if (shown === journalShown) return; // unchanged
+    journalShown = shown;
+    $("journal-empty").hidden = journal.length > 0;
+    const rows = journal.slice(-JOURNAL_SHOWN).reverse().map((t) => {
+      const li = document.createElement("li");
+      li.className = "sev-" + t.severity;
+      li.dataset.alarm = alarmKey(t.sensor, t.alarm);
+      li.dataset.from = t.from;
+      li.dataset.to = t.to;
+      const time = document.createElement("time");
+      time.dateTime = t.ts;
+      time.textContent = clock(t.ts);
+      const name = document.createElement("b");
+      name.textContent = `${t.sensor} / ${t.alarm}`;
+      const a = alarms.get(alarmKey(t.sensor, t.alarm));
+      const value = valueText(a ? a.field : null, t.value, t.limit);
+      li.append(time, " ", name, ` ${t.severity} · ${STATE_WORDS[t.from] || t.from} → ` +
+        `${STATE_WORDS[t.to] || t.to}` + (value ? ` · ${value}` : "") +
+        (t.by ? ` · by ${t.by}` : ""));
+      return li;
+    });
+    list.replaceChildren(...rows);
+  }
+
+  /** The transitions of sensor ``s`` to mark on the chart of ``group`` (an alarm on one
+   *  of its fields; the communication alarm, with no field, on every chart) since
+   *  ``from`` (epoch seconds). */
+  function marksFor(s, group, from) {
+    return journal.filter((t) => {
+      if (t.sensor !== s.name || epoch(t.ts) / 1000 < from) return false;
+      const a = alarms.get(alarmKey(t.sensor, t.alarm));
+      return !a || !a.field || group.members.some(([, f]) => f === a.field);
+    });
+  }
+
+  const SEVERITY_COLOURS = { critical: "#f85149", warning: "#d29922", info: "#58a6ff" };
+
+  /** A vertical line at each transition: solid into an active state, dashed out of it. */
+  function drawMarks(ctx, marks, x, h) {
+    ctx.save();
+    ctx.lineWidth = 1.5;
+    for (const t of marks) {
+      const at = x(epoch(t.ts) / 1000);
+      ctx.strokeStyle = SEVERITY_COLOURS[t.severity] || "#888";
+      ctx.setLineDash(t.to.startsWith("active") ? [] : [3, 3]);
+      ctx.beginPath();
+      ctx.moveTo(at, 0);
+      ctx.lineTo(at, h);
+      ctx.stroke();
+    }
+    ctx.restore();
+  }
+
   // ------------------------------------------------------------------ live data
 
   function openStream() {
     const query = token ? "?access_token=" + encodeURIComponent(token) : "";
     const stream = new EventSource(API + "/stream" + query);
-    stream.addEventListener("open", () => setDown("stream", false));
+    stream.addEventListener("open", () => {
+      setDown("stream", false);
+      loadAlarms().catch(() => { /* the poll brings the states */ });
+    });
+    stream.addEventListener("alarm", (e) => onAlarmEvent(JSON.parse(e.data)));
     stream.addEventListener("reading", (e) => onReading(JSON.parse(e.data)));
     stream.addEventListener("status", (e) => onReading(JSON.parse(e.data)));
     stream.addEventListener("error", () => {
@@ -717,9 +1002,11 @@
   async function pollStatus() {
     for (;;) {
       try {
-        const [list, buses] = await Promise.all([api("/sensors"), api("/buses")]);
+        const [list, buses, states] = await Promise.all([api("/sensors"), api("/buses"),
+          api("/alarms")]);
         for (const info of list) onSensorInfo(info);
         showBuses(buses);
+        onAlarmPoll(states);
         setDown("api", false);
       } catch (error) {
         setDown("api", true, error);
