@@ -10,18 +10,27 @@ fixed time."""
 from __future__ import annotations
 
 import asyncio
+import json
+import shutil
 import time
 from collections.abc import AsyncIterator
+from pathlib import Path
 from typing import Any
 
 import pytest
 from asyncua import Client, Node, ua
+from asyncua.crypto.cert_gen import setup_self_signed_certificate
+from cryptography import x509
+from cryptography.hazmat.primitives import serialization
+from cryptography.x509.oid import ExtendedKeyUsageOID
+from support import ROOT
 from support.harness import free_port, running, until
 
 from imu_gateway.app import Gateway
 from imu_gateway.model import Angles, Reading, Series, WireProtocol
 from imu_gateway.simulator import SimSensor, hold, make_sensor, simulated
 
+NODE_DIR = ROOT / "tests" / "node"
 GID = "ua-alarms"
 NS = "urn:imu-gateway"
 ON_DELAY = 0.3
@@ -231,3 +240,71 @@ async def test_without_the_rights_no_acknowledge_and_a_refresh_tells_what_is_on(
             again = await later.wait_for("boom_lean", active=True, acked=False)
             assert again["EventId"].Value == raised["EventId"].Value
             await asyncio.sleep(0)
+
+
+async def trusted_client(folder: Path, pki: Path) -> tuple[Path, Path]:
+    """A client certificate (PEM) and key, put in the server's trust list."""
+    folder.mkdir(parents=True)
+    key, der = folder / "key.pem", folder / "cert.der"
+    await setup_self_signed_certificate(
+        key, der, "urn:test:node-opcua", "localhost", [ExtendedKeyUsageOID.CLIENT_AUTH],
+        {"commonName": "node-opcua alarm client"})
+    pem = folder / "cert.pem"
+    pem.write_bytes(x509.load_der_x509_certificate(der.read_bytes()).public_bytes(
+        serialization.Encoding.PEM))
+    (pki / "trusted").mkdir(parents=True, exist_ok=True)
+    (pki / "trusted" / "node-opcua.der").write_bytes(der.read_bytes())
+    return pem, key
+
+
+@pytest.mark.anyio
+async def test_node_opcua_receives_the_transition_and_acknowledges_it(
+        boom: tuple[SimSensor, str], tmp_path: Path) -> None:
+    """node-opcua (tests/node/opcua_alarm.js) subscribes to the sensor's events, gets
+    the raise with its severity, acknowledges it with session.acknowledgeCondition, and
+    gets the acknowledged event."""
+    sim, path = boom
+    node = shutil.which("node")
+    assert node is not None, "node is needed: scripts/bootstrap --test installs it"
+    port, pki = free_port(), tmp_path / "pki"
+    cert, key = await trusted_client(tmp_path / "client", pki)
+    cfg = config(port, str(pki), anonymous=False, allow_commands=True,
+                 users={"operator": PASSWORD})
+    cfg["buses"][0]["port"] = path
+    async with running(cfg) as gateway:
+        await readings_pass(gateway)
+        proc = await asyncio.create_subprocess_exec(
+            node, str(NODE_DIR / "opcua_alarm.js"), f"opc.tcp://127.0.0.1:{port}/", GID,
+            "boom", "boom_lean", "operator", PASSWORD,
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+            env={"NODE_PATH": str(NODE_DIR / "node_modules"), "UA_CERT": str(cert),
+                 "UA_KEY": str(key), "HOME": str(cert.parent)})
+        assert proc.stdout is not None
+        try:
+            lines: list[str] = []
+            while not lines or lines[-1] != "SUBSCRIBED":
+                line = (await asyncio.wait_for(proc.stdout.readline(), 60)).decode()
+                assert line, (lines, (await proc.stderr.read()).decode()[-2000:])  # type: ignore[union-attr]
+                lines.append(line.strip())
+            sim.source = leaning(10.0)
+            out, err = await asyncio.wait_for(proc.communicate(), 60)
+        finally:
+            if proc.returncode is None:
+                proc.kill()
+                await proc.wait()
+        assert proc.returncode == 0, err.decode()[-2000:]
+        (result,) = [x for x in out.decode().splitlines() if x.startswith("RESULT ")]
+        got = json.loads(result.removeprefix("RESULT "))
+        assert gateway.alarm_journal()[-1].by == "operator (opcua 127.0.0.1)"
+    raised, acked = got["events"][0], got["events"][-1]
+    ns = got["ns"]
+    assert raised["Severity"] == 500 and raised["SourceName"] == "boom"
+    assert raised["SourceNode"] == f"ns={ns};s={GID}.Sensors.boom"
+    assert raised["ConditionId"] == f"ns={ns};s={GID}.Sensors.boom.Alarms.boom_lean"
+    assert raised["EventType"] == "ns=0;i=9341"  # ExclusiveLimitAlarmType
+    assert (raised["ActiveState"], raised["AckedState"]) == ("Active", "Unacknowledged")
+    assert raised["HighLimit"] == 5.0 and raised["Retain"] is True
+    assert got["ack"] == "Good"
+    assert (acked["AckedState"], acked["AckedState.Id"]) == ("Acknowledged", True)
+    assert acked["ClientUserId"] == "operator (opcua 127.0.0.1)"
+    assert acked["EventId"] != raised["EventId"]
