@@ -53,10 +53,21 @@ SEVERITY = {Severity.INFO: 200, Severity.WARNING: 500, Severity.CRITICAL: 800}
 #: How many of a condition's latest EventIds an Acknowledge may name.
 EVENT_IDS_KEPT = 16
 
-#: Who is calling a method now (set by guard.GuardedProcessor for each Call request):
-#: the session's user name (None: anonymous) and the peer's address.
-CALLER: contextvars.ContextVar[tuple[str | None, str] | None] = contextvars.ContextVar(
-    "opcua_caller", default=None)
+
+
+@dataclass(frozen=True, slots=True)
+class Caller:
+    """Who calls a method: the session's user name (None: anonymous), the peer's
+    address and the session's id."""
+
+    user: str | None
+    peer: str
+    session: ua.NodeId
+
+
+#: Who is calling a method now (set by guard.GuardedProcessor for each Call request).
+CALLER: contextvars.ContextVar[Caller | None] = contextvars.ContextVar("opcua_caller",
+                                                                      default=None)
 
 _S = ua.StatusCodes
 
@@ -208,7 +219,10 @@ class Conditions:
         """Send the events, one after the other (the front end's task)."""
         while True:
             event = await self._queue.get()
-            await self._send(event, (event.SourceNode, *self.notifiers[:2]))
+            try:
+                await self._send(event, (event.SourceNode, *self.notifiers[:2]))
+            except Exception:  # (a bug here must not end the server for the others)
+                log.exception("opcua: an alarm event could not be sent")
 
     async def _send(self, event: Any, notifiers: Iterable[ua.NodeId],
                     subscription: int | None = None) -> None:
@@ -242,8 +256,7 @@ class Conditions:
             return ua.StatusCode(_S.BadInvalidArgument)
         if event_id not in cond.event_ids:
             return ua.StatusCode(_S.BadEventIdUnknown)
-        user, peer = caller
-        who = f"{user} (opcua {peer})" if user else f"opcua {peer}"
+        who = f"{caller.user} (opcua {caller.peer})" if caller.user else f"opcua {caller.peer}"
         before = cond.comment
         cond.comment = (comment.Text or "") if comment is not None else ""
         try:
@@ -259,12 +272,13 @@ class Conditions:
         """ConditionRefresh(SubscriptionId) and ConditionRefresh2(SubscriptionId,
         MonitoredItemId): every retained condition again, between RefreshStart and
         RefreshEnd, to the notifiers the subscription watches."""
-        server = self._server
+        server, caller = self._server, CALLER.get()
         values = [a.Value if isinstance(a, ua.Variant) else a for a in args]
-        if server is None or not values or not isinstance(values[0], int):
+        if server is None or caller is None or not values or not isinstance(values[0], int):
             return ua.StatusCode(_S.BadInvalidArgument)
         subscription = values[0]
-        if subscription not in server.iserver.subscription_service.subscriptions:
+        found = server.iserver.subscription_service.subscriptions.get(subscription)
+        if found is None or found.session_id != caller.session:  # (only the session's own)
             return ua.StatusCode(_S.BadSubscriptionIdInvalid)
         await self._send(_refresh_event(event_objects.RefreshStartEvent()), self.notifiers,
                          subscription)

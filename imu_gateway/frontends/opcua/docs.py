@@ -317,7 +317,8 @@ def _alarms() -> list[str]:
             "same EventId), and a RefreshEndEvent, to the event items of that "
             "subscription. At start the alarms' states are those the journal left "
             "(alarms.md, \"The journal\"), so a refresh tells what is still to handle "
-            "after a restart. An unknown SubscriptionId is `BadSubscriptionIdInvalid`.", "",
+            "after a restart. An unknown SubscriptionId, or another session's, is "
+            "`BadSubscriptionIdInvalid`.", "",
             "**Not supported** of Part 9: the condition objects have their type, limits "
             "and the HasCondition reference, but not the type's state variables and "
             "methods as nodes (read the state from the events, or a ConditionRefresh; "

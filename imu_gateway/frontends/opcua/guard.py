@@ -59,7 +59,7 @@ from asyncua.ua.ua_binary import struct_from_binary, struct_to_binary, uatcp_to_
 from cryptography import x509
 
 from ...supervise import PeerLog
-from .conditions import CALLER
+from .conditions import CALLER, Caller
 
 log = logging.getLogger("imu_gateway.opcua")
 
@@ -182,13 +182,14 @@ class GuardedProcessor(UaProcessor):
             self._watch.origins[self.session] = channel.peer_certificate
         return answer
 
-    def _caller(self) -> tuple[str | None, str] | None:
-        """The activated session's user name (None: anonymous) and the peer's host."""
+    def _caller(self) -> Caller | None:
+        """The activated session's user name (None: anonymous), the peer's host and the
+        session's id."""
         session = self.session
         if session is None or not session.is_activated():
             return None
         peer = self.name[0] if isinstance(self.name, tuple) and self.name else str(self.name)
-        return getattr(session.user, "name", None), str(peer)
+        return Caller(getattr(session.user, "name", None), str(peer), session.session_id)
 
     def _check_service(self, typeid: ua.NodeId, channel: Any) -> None:
         standard = typeid.NamespaceIndex == 0

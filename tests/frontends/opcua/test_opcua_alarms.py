@@ -239,6 +239,13 @@ async def test_without_the_rights_no_acknowledge_and_a_refresh_tells_what_is_on(
                 ua.Variant(sub.subscription_id, ua.VariantType.UInt32))
             again = await later.wait_for("boom_lean", active=True, acked=False)
             assert again["EventId"].Value == raised["EventId"].Value
+            # another session cannot refresh (and so flood) this one's subscription
+            async with Client(f"opc.tcp://127.0.0.1:{port}/") as other:
+                with pytest.raises(ua.UaStatusCodeError) as refused:
+                    await other.nodes.server.call_method(
+                        ua.NodeId(ua.ObjectIds.ConditionType_ConditionRefresh),
+                        ua.Variant(sub.subscription_id, ua.VariantType.UInt32))
+                assert refused.value.code == ua.StatusCodes.BadSubscriptionIdInvalid
             await asyncio.sleep(0)
 
 
