@@ -8,6 +8,7 @@ from asyncua.common.connection import TransportLimits
 
 from ...commands import CATALOGUE, argument_type, commands_for
 from ...model import CAPABILITIES, VALUE_GROUPS, Series, WireProtocol
+from .conditions import EVENT_IDS_KEPT, SEVERITY
 from .guard import (
     MAX_PUBLISHING_INTERVAL_MS,
     MAX_SUBSCRIPTION_LIFETIME_S,
@@ -49,13 +50,14 @@ opcua:
 
 - **Supported:** Read, Browse, TranslateBrowsePaths, subscriptions to data changes,
   Call (the commands), HistoryRead of the measured values (raw and processed, see
-  "History"), GetEndpoints and FindServers; security policies None (only with
-  `allow_none`) and Basic256Sha256 Sign and SignAndEncrypt; anonymous and user name
-  tokens.
+  "History"), the alarms as Part 9 conditions with their events, Acknowledge and
+  ConditionRefresh (see "Alarms and conditions"), GetEndpoints and FindServers;
+  security policies None (only with `allow_none`) and Basic256Sha256 Sign and
+  SignAndEncrypt; anonymous and user name tokens.
 - **Not supported:** writing values (every variable is read-only; a setting is
-  changed by its method), events and Alarms and Conditions (they come with the alarms
-  of a later release), OPC UA PubSub, X.509 user tokens, the Aes policies, and
-  discovery through a Local Discovery Server. The server's `ServerProfileArray`
+  changed by its method), the parts of Part 9 that "Alarms and conditions" lists as
+  not supported, HistoryRead of events, OPC UA PubSub, X.509 user tokens, the Aes
+  policies, and discovery through a Local Discovery Server. The server's `ServerProfileArray`
   names the profiles whose facets it implements; it is not certified (no conformance
   test tool has run on it).
 
@@ -75,6 +77,7 @@ Objects/IMU Gateway/{gateway_id}/                ns=N;s={gateway_id}
             EURange, EngineeringUnits             …Sensors.{sensor}.Angles.pitch.EURange
         Status, Sequence, Errors, Series, Protocol, Address
         {command}()                               with allow_commands
+        Alarms/{alarm}  (a condition)             …Sensors.{sensor}.Alarms.boom_lean
     Buses/{bus}/{counter}                         …Buses.{bus}.Transactions
 Types/ObjectTypes/BaseObjectType/ImuSensorType    ns=N;s=ImuSensorType
 ```
@@ -89,6 +92,7 @@ sensor. Each sensor object's TypeDefinition is it.
 |---|---|
 {type_rows}
 | Status, Sequence, Errors, Series, Protocol, Address | Mandatory |
+| Alarms (the folder of the alarms' conditions) | Mandatory |
 | each command's method | Optional (with `allow_commands`, where the series has it) |
 
 A sensor has only the optional parts its series has: an IMU has no Angles, a VG no
@@ -242,6 +246,101 @@ def _methods() -> list[str]:
     return [*lines, ""]
 
 
+def _alarms() -> list[str]:
+    severities = ", ".join(f"{s.value} {n}" for s, n in SEVERITY.items())
+    return ["### Alarms and conditions", "",
+            "Each alarm ([alarms.md](alarms.md#alarms)) is a condition object in its "
+            "sensor's `Alarms` folder, `ns=N;s={gateway_id}.Sensors.{sensor}.Alarms.{alarm}` "
+            "(its ConditionId), with a HasCondition reference from the sensor:", "",
+            "- a configured alarm is an `ExclusiveLimitAlarmType`, with the properties "
+            "`HighLimit` (`above`) and `LowLimit` (`below`) as configured (only those "
+            "configured);",
+            "- the `communication` alarm is an `OffNormalAlarmType`.", "",
+            "**Notifiers.** The Server object, the gateway object (`ns=N;s={gateway_id}`) and "
+            "each sensor object have EventNotifier SubscribeToEvents, with HasNotifier "
+            "references Server → gateway → sensor. An event item on a sensor gets that "
+            "sensor's alarms; on the gateway object or the Server, every sensor's.", "",
+            "**An event at each transition** (raised, cleared, acknowledged; none per "
+            "sample), of the condition's type, with these fields (select them by browse "
+            "path on the type, as Part 9 names them):", "",
+            "| field | what it says |", "|---|---|",
+            "| EventId | new for each event (ByteString, 16 bytes) |",
+            "| EventType | `ExclusiveLimitAlarmType` (i=9341) or `OffNormalAlarmType` "
+            "(i=10637) |",
+            "| SourceNode, SourceName | the sensor object, the sensor's name |",
+            "| Time | the transition's time; ReceiveTime: when the event was made |",
+            "| Message | `boom/boom_lean active_unacked: pitch 10 (limit 5)`: the alarm, its "
+            "state as in alarms.md, the value against the limit (who acknowledged, for "
+            "an acknowledgement) |",
+            f"| Severity, LastSeverity | {severities} |",
+            "| ConditionId (the NodeId attribute of ConditionType) | the condition object |",
+            "| ConditionName | the alarm's name |",
+            "| ConditionClassId | ProcessConditionClassType; SystemConditionClassType "
+            "for `communication` |",
+            "| Retain | true while the alarm is not `normal` (active, or not yet "
+            "acknowledged) |",
+            "| ActiveState, ActiveState/Id | `Active`/`Inactive`, true/false; "
+            "ActiveState/TransitionTime: when it became active |",
+            "| AckedState, AckedState/Id | `Acknowledged`/`Unacknowledged`, true/false |",
+            "| EnabledState, EnabledState/Id | `Enabled`, true (always) |",
+            "| Quality | Good |",
+            "| LimitState/CurrentState (and /Id) | `High` or `Low` while active (the limit "
+            "crossed), empty otherwise |",
+            "| HighLimit, LowLimit | as configured |",
+            "| InputNode | the watched variable (`…Angles.pitch`; `…Status` for "
+            "`communication`) |",
+            "| Value | the value of the transition that raised or cleared it (Double; "
+            "an acknowledgement keeps the raise's, as in alarms.md; none for "
+            "`communication`): **not a Part 9 field**, the gateway's own, "
+            "selected by the browse path `Value` |",
+            "| Comment, ClientUserId | the latest acknowledgement's comment; who "
+            "acknowledged (`operator (opcua 10.0.0.5)`) |", "",
+            "**Acknowledge** (`AcknowledgeableConditionType`'s `Acknowledge`, i=9111, "
+            "called with the ConditionId as the ObjectId, as Part 9 says every server "
+            "must take it: node-opcua's `session.acknowledgeCondition` does so) with "
+            "(EventId, Comment):", "",
+            "- only with `allow_commands: true` (which needs users): otherwise "
+            "`BadUserAccessDenied`, for every session;",
+            f"- the EventId must be one of the condition's last {EVENT_IDS_KEPT} events "
+            "(the one a client saw): else `BadEventIdUnknown`; an ObjectId that is no "
+            "condition: `BadNodeIdUnknown`; the arguments missing or too many: "
+            "`BadArgumentsMissing`, `BadTooManyArguments`; of the wrong type: "
+            "`BadInvalidArgument`;",
+            "- an alarm `normal` or acknowledged already (nothing to acknowledge, REST's "
+            "409): `BadConditionBranchAlreadyAcked`;",
+            "- it acknowledges the alarm (not one event of it: the gateway keeps no "
+            "branches), as the user of the session (`operator (opcua 10.0.0.5)` in the "
+            "journal); the acknowledged event follows.", "",
+            "**ConditionRefresh** (i=3875, and ConditionRefresh2, i=12912, with a "
+            "MonitoredItemId that is ignored) on the Server object, with a SubscriptionId: "
+            "a RefreshStartEvent, every condition whose Retain is true (its latest event, "
+            "same EventId), and a RefreshEndEvent, to the event items of that "
+            "subscription. At start the alarms' states are those the journal left "
+            "(alarms.md, \"The journal\"), so a refresh tells what is still to handle "
+            "after a restart. An unknown SubscriptionId, or another session's, is "
+            "`BadSubscriptionIdInvalid`.", "",
+            "**Not supported** of Part 9: the condition objects have their type, limits "
+            "and the HasCondition reference, but not the type's state variables and "
+            "methods as nodes (read the state from the events, or a ConditionRefresh; "
+            "the gateway's asyncua builds no condition instances); Enable, Disable, "
+            "AddComment, Confirm (no ConfirmedState), Shelving, Suppression, "
+            "OutOfService, Silence, branches (BranchId is null), the Audit events, "
+            "HistoryRead of events. A Where clause is asyncua's: Equals, the "
+            "comparisons, IsNull, Between, InList, And, Or and Not work; OfType matches "
+            "the exact type only (OfType AlarmConditionType drops an "
+            "ExclusiveLimitAlarmType's event: test EventType InList instead, as asyncua's "
+            "client does); Like drops every event it tests, Cast is taken as true. A "
+            "subscription's event queue is asyncua's: a client that does not publish "
+            "loses the oldest events first.", "",
+            "**Why some of it is the gateway's own code.** asyncua 2.1 gives an event "
+            "only to the items on the node it names as its emitter, not to those on the "
+            "notifiers above it (the gateway gives each event to the sensor's, the "
+            "gateway's and the Server's items); it binds no Acknowledge; and its "
+            "ConditionRefresh resends only to items on an event's last emitter. The "
+            "gateway's code for these is in `imu_gateway/frontends/opcua/conditions.py`.",
+            ""]
+
+
 def markdown() -> str:
     sensor_rows = [(v.name, v.datatype, v.description) for v in (*SENSOR_VARS, *IDENTITY_VARS)]
     bus_rows = [(v.name, v.datatype, v.description) for v in BUS_VARS]
@@ -252,7 +351,7 @@ def markdown() -> str:
     lines = [INTRO.replace("{type_rows}", _type_rows()), *_values(), *_quality(),
              *_rows("### A sensor's status and identity", sensor_rows),
              *_rows("### Buses (written every second)", bus_rows), *_methods(),
-             HISTORY_DOC, *_identity(), security]
+             *_alarms(), HISTORY_DOC, *_identity(), security]
     return "\n".join(lines)
 
 

@@ -59,6 +59,7 @@ from asyncua.ua.ua_binary import struct_from_binary, struct_to_binary, uatcp_to_
 from cryptography import x509
 
 from ...supervise import PeerLog
+from .conditions import CALLER, Caller
 
 log = logging.getLogger("imu_gateway.opcua")
 
@@ -72,6 +73,7 @@ _REGISTER = frozenset({ua.ObjectIds.RegisterServerRequest_Encoding_DefaultBinary
                        ua.ObjectIds.RegisterServer2Request_Encoding_DefaultBinary})
 _CLOSE = ua.NodeId(ua.ObjectIds.CloseSessionRequest_Encoding_DefaultBinary)
 _SUBSCRIBE = ua.NodeId(ua.ObjectIds.CreateSubscriptionRequest_Encoding_DefaultBinary)
+_CALL = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
 MAX_SUBSCRIPTIONS_PER_SESSION = 10
 MAX_PUBLISHING_INTERVAL_MS = 60_000.0
 MAX_SUBSCRIPTION_LIFETIME_S = 3600.0
@@ -165,15 +167,29 @@ class GuardedProcessor(UaProcessor):
             body = self._revise_subscription(body)
         elif typeid == _CLOSE:
             body = Buffer(ua.ua_binary.Primitives.Boolean.pack(True))  # deleteSubscriptions
+        # a method learns who calls it from here (asyncua passes it only the object)
+        caller = CALLER.set(self._caller()) if typeid == _CALL else None
         try:
             answer = await super()._process_message(typeid, requesthdr, seqhdr, body)
         except Exception:
             if typeid == _CREATE:
                 await self._drop_pending()  # (asyncua registers it before its checks)
             raise
+        finally:
+            if caller is not None:
+                CALLER.reset(caller)
         if typeid == _CREATE and self.session is not None:
             self._watch.origins[self.session] = channel.peer_certificate
         return answer
+
+    def _caller(self) -> Caller | None:
+        """The activated session's user name (None: anonymous), the peer's host and the
+        session's id."""
+        session = self.session
+        if session is None or not session.is_activated():
+            return None
+        peer = self.name[0] if isinstance(self.name, tuple) and self.name else str(self.name)
+        return Caller(getattr(session.user, "name", None), str(peer), session.session_id)
 
     def _check_service(self, typeid: ua.NodeId, channel: Any) -> None:
         standard = typeid.NamespaceIndex == 0

@@ -27,6 +27,8 @@ from .methods import Caller, input_arguments
 from .space import IDENTITY_VARS, SENSOR_VARS, UNECE, UNITS
 
 TYPE_NAME = "ImuSensorType"
+#: The folder of a sensor's alarm conditions.
+ALARMS = "Alarms"
 #: The groups every series measures: Mandatory in the type; the others are Optional.
 COMMON_GROUPS = frozenset(g for g in Group if all(g in CAPABILITIES[s].groups for s in Series))
 #: The VariantType of every measured and derived value.
@@ -88,6 +90,10 @@ async def build_type(base: Node, ns: int, commands: Iterable[CommandSpec],
     sensor_type = await add_node(base, ids(), ids.name(TYPE_NAME), ua.NodeClass.ObjectType,
                                  ua.NodeId(), attrs, ua.ObjectIds.HasSubtype)
     await add_parts(sensor_type, ids, set(Group), {}, commands, caller)
+    # the alarms' conditions (conditions.py): every sensor has at least its
+    # communication alarm
+    alarms = await sensor_type.add_folder(ids(ALARMS), ids.name(ALARMS))
+    await alarms.set_modelling_rule(True)
     return sensor_type.nodeid
 
 

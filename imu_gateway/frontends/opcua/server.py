@@ -19,7 +19,7 @@ from typing import Any
 
 from asyncua import Server, ua
 
-from ...cache import EventKind, Snapshot
+from ...cache import ALL_EVENTS, EventKind, Snapshot
 from ...commands import CATALOGUE, CommandSpec, commands_for
 from ...config import OpcUaConfig
 from ...derived import values_of
@@ -29,6 +29,7 @@ from ...stats import FrontendCounts
 from ...supervise import Frontend, RepeatFilter
 from ..common import GatewayLike
 from . import standard_space
+from .conditions import Conditions
 from .guard import MAX_SUBSCRIPTIONS_PER_SESSION, GatewayUaServer
 from .history import install as install_history
 from .identity import MANUFACTURER, PRODUCT_URI, describe
@@ -123,6 +124,8 @@ class OpcUaServer(Frontend):
         self.counts: Counter[str] = Counter()
         self._unsubscribe: Any = None
         self._bus_timer: asyncio.Task[None] | None = None
+        self._events: asyncio.Task[None] | None = None
+        self.conditions = Conditions(gateway, config.allow_commands)
 
     @property
     def listening(self) -> bool:
@@ -173,7 +176,10 @@ class OpcUaServer(Frontend):
         self.server = server
         for snap in self.gateway.cache.snapshots():
             await self._write_sensor(snap)
-        self._unsubscribe = self.gateway.cache.subscribe(self._on_cache_event, self.fail)
+        self._unsubscribe = self.gateway.cache.subscribe(self._on_cache_event, self.fail,
+                                                         kinds=ALL_EVENTS)
+        self._events = asyncio.create_task(self.conditions.run(), name="opcua alarm events")
+        self.guarded(self._events)
         self._bus_timer = asyncio.create_task(self._write_buses(), name="opcua buses")
         self.guarded(self._bus_timer)
         log.info("OPC UA on %s", self.endpoint)
@@ -182,8 +188,9 @@ class OpcUaServer(Frontend):
         if self._unsubscribe is not None:
             self._unsubscribe()
             self._unsubscribe = None
-        if self._bus_timer is not None:
-            self._bus_timer.cancel()
+        for task in (self._bus_timer, self._events):
+            if task is not None:
+                task.cancel()
         server, self.server = self.server, None
         if server is not None:
             await server.stop()
@@ -200,6 +207,7 @@ class OpcUaServer(Frontend):
         type_id = await build_type(server.nodes.base_object_type, self.idx, commands,
                                    lambda spec, _: type_caller(spec, self.callers))
         protocols = {s.name: b.protocol for b, s in self.gateway.config.iter_sensors()}
+        inputs: dict[str, dict[str, ua.NodeId]] = {}
         for sensor in self.gateway.sensors.values():
             protocol = protocols[sensor.name]
             have = commands_for(sensor.series, protocol)
@@ -210,6 +218,11 @@ class OpcUaServer(Frontend):
                  "Address": sensor.address},
                 [c for c in commands if c.name in have], self._method_of(sensor.name))
             self.values[sensor.name], self.status_nodes[sensor.name] = built.values, built.status
+            inputs[sensor.name] = {**dict(built.values),
+                                   **{row.name: node for row, node in built.status}}
+        await self.conditions.build(
+            server, gateway, {name: server.get_node(Ids(f"{gid}.Sensors.{name}", self.idx)())
+                              for name in self.gateway.sensors}, inputs, self.idx, gid)
         buses = await gateway.add_folder(ids("Buses"), ids.name("Buses"))
         for bus in self.gateway.config.buses:
             bus_ids = Ids(f"{gid}.Buses.{bus.name}", self.idx)
@@ -248,7 +261,10 @@ class OpcUaServer(Frontend):
     # ------------------------------------------------------------ values
 
     def _on_cache_event(self, kind: EventKind, snap: Snapshot) -> None:
-        if kind is not EventKind.SETTINGS and self.server is not None:
+        if kind is EventKind.ALARM:
+            if snap.alarm is not None:
+                self.conditions.on_alarm(snap.alarm)
+        elif kind is not EventKind.SETTINGS and self.server is not None:
             task = asyncio.create_task(self._write_sensor(snap))
             task.add_done_callback(self._written)
 
