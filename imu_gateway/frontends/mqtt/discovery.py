@@ -208,6 +208,11 @@ def _sensor_diagnostics(setup: Setup, name: str,
             "device": device, "origin": ORIGIN, **extra}
 
 
+#: An alarm's state JSON as a binary sensor's attributes.  Its ``state`` becomes
+#: ``alarm_state``: Home Assistant drops an attribute named ``state``.
+_ALARM_ATTRIBUTES = _jinja("{'alarm_state': value_json.state, " + ", ".join(
+    f"'{key}': value_json.{key}" for key in ("acked", "severity", "field", "value", "limit",
+                                             "since", "latch")) + "} | tojson")
 #: What Home Assistant's acknowledge button sends: who acknowledged, in the journal, is
 #: ``home assistant (mqtt)``.
 ACK_PRESS = '{"by": "home assistant"}'
@@ -225,6 +230,7 @@ def _alarm_entities(setup: Setup, name: str, sensor: SensorConfig,
             "name": f"{label} alarm", "unique_id": oid, "state_topic": topic,
             "value_template": _jinja("'ON' if value_json.active else 'OFF'"),
             "device_class": "problem", "json_attributes_topic": topic,
+            "json_attributes_template": _ALARM_ATTRIBUTES,
             "availability_topic": setup.topics.status, "device": device, "origin": ORIGIN}
         if setup.commands:
             yield _topic(setup, "button", f"{oid}_ack"), {
