@@ -106,6 +106,29 @@ async def _ask(rec: Recorder, payload: str, topic: str = ACK, naming: str = "",
     return _json(found()[0])
 
 
+async def _refused(rec: Recorder, gateway: Gateway) -> None:
+    """What is refused, and leaves the alarm unacknowledged."""
+    mqtt = gateway.mqtt
+    assert mqtt is not None
+    bad = await _ask(rec, '{"by": ""}')
+    assert (bad["ok"], bad["kind"]) == (False, "bad_arguments") and "by" in bad["error"]
+    odd = await _ask(rec, '{"who": "x"}')
+    assert odd["kind"] == "bad_arguments" and "'who'" in odd["error"]
+    unknown = await _ask(rec, "{}", f"{BASE}/boom/alarm/nope/ack")
+    assert (unknown["ok"], unknown["kind"], unknown["alarm"]) == \
+        (False, "unknown_alarm", "nope")
+    nobody = await _ask(rec, "{}", f"{BASE}/nobody/alarm/boom_lean/ack")
+    assert nobody["kind"] == "unknown_sensor"
+    ignored = mqtt.counters.ignored
+    rec.client.publish(ACK, "{}", qos=1, retain=True)  # cleared, never run
+    await until(lambda: mqtt.counters.ignored == ignored + 1)
+    await until(lambda: any(not m.payload for m in rec.on(ACK)))  # the clearing
+    rec.client.publish(ACK, "", qos=1)
+    await until(lambda: mqtt.counters.ignored == ignored + 2)
+    assert _states(rec)[-1] == "active_unacked"
+    assert [t.by for t in gateway.alarm_journal()] == [None]
+
+
 @pytest.fixture
 def boom() -> Any:
     sim = make_sensor(WireProtocol.NATIVE, Series.AH, baud=FAST)
@@ -155,24 +178,7 @@ async def test_a_lean_raises_the_alarm_on_mqtt_and_an_ack_over_mqtt_acknowledges
             since = datetime.fromisoformat(raised["since"]).timestamp()
             assert since >= leaned_at + ON_DELAY - 0.002
 
-            # what is refused, and leaves the alarm unacknowledged
-            bad = await _ask(rec, '{"by": ""}')
-            assert (bad["ok"], bad["kind"]) == (False, "bad_arguments") and "by" in bad["error"]
-            odd = await _ask(rec, '{"who": "x"}')
-            assert odd["kind"] == "bad_arguments" and "'who'" in odd["error"]
-            unknown = await _ask(rec, "{}", f"{BASE}/boom/alarm/nope/ack")
-            assert (unknown["ok"], unknown["kind"], unknown["alarm"]) == \
-                (False, "unknown_alarm", "nope")
-            nobody = await _ask(rec, "{}", f"{BASE}/nobody/alarm/boom_lean/ack")
-            assert nobody["kind"] == "unknown_sensor"
-            ignored = mqtt.counters.ignored
-            rec.client.publish(ACK, "{}", qos=1, retain=True)  # cleared, never run
-            await until(lambda: mqtt.counters.ignored == ignored + 1)
-            await until(lambda: any(not m.payload for m in rec.on(ACK)))  # the clearing
-            rec.client.publish(ACK, "", qos=1)
-            await until(lambda: mqtt.counters.ignored == ignored + 2)
-            assert _states(rec)[-1] == "active_unacked"
-            assert [t.by for t in gateway.alarm_journal()] == [None]
+            await _refused(rec, gateway)
 
             acked = await _ask(rec, '{"by": "alice", "request_id": 7}')
             assert (acked["ok"], acked["request_id"], acked["state"]["state"]) == \
@@ -186,6 +192,7 @@ async def test_a_lean_raises_the_alarm_on_mqtt_and_an_ack_over_mqtt_acknowledges
             _lean(line, sim, 4.7)
             await _tilt_is(gateway, 4.7)
             assert _states(rec)[-1] == "active_acked"
+            assert gateway.alarm_states()[0].state.value == "active_acked"
             _lean(line, sim, 4.0)
             await until(lambda: _states(rec)[-1] == "normal")
             assert _json(rec.last(LEAN))["value"] == 4.0
