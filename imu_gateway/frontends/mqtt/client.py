@@ -1,4 +1,4 @@
-"""The MQTT client: state, availability, commands and Home Assistant discovery
+"""The MQTT client: state, availability, alarms, commands and Home Assistant discovery
 (docs/mqtt.md).
 
 The connection (threads, connecting, failover) is a ``mqtt_link.session.Session``; the
@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 import paho.mqtt.client as paho
 from paho.mqtt.subscribeoptions import SubscribeOptions
 
+from ...cache import EventKind
 from ...config import Broker, MqttConfig
 from ...mqtt_link import probe
 from ...mqtt_link.errors import BrokerUnreached
@@ -41,12 +42,15 @@ from ...stats import FrontendCounts
 from ...supervise import Frontend
 from ..common import GatewayLike, json_bytes
 from . import identity
+from .alarm_desk import AlarmDesk
 from .commands import CommandDesk
 from .discovery import discovery_configs, setup_of
 from .identity import Identity
 from .states import StateDesk
 from .sweep import SWEEP_S, RetainedSweep
 from .topics import (
+    ACK_LEAF,
+    ALARM_LEAF,
     CONTROL_QOS,
     OFFLINE,
     ONLINE,
@@ -84,10 +88,13 @@ class MqttClient(Frontend):
             if config.homeassistant_discovery else {}
         self.states = StateDesk(gateway, config, self.topics, self.pipe.send,
                                 self._send_control, lambda: self.connected, self.pipe.waiting)
+        self.alarms = AlarmDesk(gateway, config, self.topics, self._send_control,
+                                lambda: self.connected)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._runner: asyncio.Task[None] | None = None
         self._unsubscribe: Any = None
         self._unannounce: Any = None
+        self._unsubscribe_alarms: Any = None
         self.sweep = RetainedSweep(
             self.topics, config.discovery_prefix if config.homeassistant_discovery else None,
             self.discovery, retained_leaves(config, gateway.sensors), self._send_control)
@@ -130,6 +137,8 @@ class MqttClient(Frontend):
         self._unsubscribe = self.gateway.cache.subscribe(self.states.on_cache_event, self.fail)
         captures = self.gateway.captures
         self._unannounce = captures.subscribe(self._announce_capture) if captures else None
+        self._unsubscribe_alarms = self.gateway.cache.subscribe(
+            self.alarms.on_cache_event, self.fail, kinds={EventKind.ALARM})
         self._runner = self.session.run()
         self.guarded(self._runner)
 
@@ -145,10 +154,9 @@ class MqttClient(Frontend):
     async def stop(self) -> None:
         """Say ``offline`` (every sensor's availability, then the status), then
         disconnect; or, when that is not acknowledged in time, leave it to the will."""
-        if self._unsubscribe is not None:
-            self._unsubscribe()
-        if self._unannounce is not None:
-            self._unannounce()
+        for unsubscribe in (self._unsubscribe, self._unsubscribe_alarms, self._unannounce):
+            if unsubscribe is not None:
+                unsubscribe()
         if self._checker is not None:
             self._checker.cancel()
         self.states.cancel()
@@ -248,12 +256,13 @@ class MqttClient(Frontend):
             # node's groups elect new leaders (docs/mqtt.md).
             # MQTT 5: the retain flag as published, so that a retained command is
             # known as one even when it arrives live (3.1.1 brokers clear the flag).
-            topic = f"{self.prefix}/+/cmd/+"
+            # The commands and the alarms' acknowledgements, in one SUBSCRIBE.
+            topics = (f"{self.prefix}/+/cmd/+", f"{self.prefix}/+/{ALARM_LEAF}/+/{ACK_LEAF}")
             if self.config.protocol == "5":
-                _, self._command_mid = self._client.subscribe(topic, options=SubscribeOptions(
-                    qos=0, retainAsPublished=True))
+                _, self._command_mid = self._client.subscribe(
+                    [(t, SubscribeOptions(qos=0, retainAsPublished=True)) for t in topics])
             else:
-                _, self._command_mid = self._client.subscribe(topic, qos=0)
+                _, self._command_mid = self._client.subscribe([(t, 0) for t in topics])
         assert self._loop is not None
         self.sweep.start(self._client, self._loop.time())
         if self._sweep_timer is not None:  # an earlier connection's
@@ -277,14 +286,18 @@ class MqttClient(Frontend):
                 self._send_control(Message(topic, json_bytes(payload), CONTROL_QOS, True,
                                            described))
             self.states.announce()
+            self.alarms.announce()
         finally:
             self._served = {}  # the probe's: for this announcement only
 
     def on_message(self, message: paho.MQTTMessage) -> None:
         topic = message.topic
         parts = topic.removeprefix(f"{self.prefix}/").split("/")
-        if topic.startswith(self.prefix + "/") and len(parts) == 3 and parts[1] == "cmd":
+        ours = topic.startswith(self.prefix + "/")
+        if ours and len(parts) == 3 and parts[1] == "cmd":
             self.desk.take(message, parts[0], parts[2])
+        elif ours and len(parts) == 4 and parts[1] == ALARM_LEAF and parts[3] == ACK_LEAF:
+            self.desk.take_ack(message, parts[0], parts[2])
         elif topic in self.identity.claim_topics:
             if self.identity.seen(message) and self._client is not None:
                 self._client.disconnect()  # cleanly: no will, the status stays theirs

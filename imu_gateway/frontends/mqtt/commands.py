@@ -7,7 +7,8 @@ command's topic with ``/result`` appended.  A response topic where the gateway, 
 Assistant, Sparkplug B or the broker own the topics is refused (``ResponseTopics``).
 A ``request_id`` in the payload (how an MQTT 3.1.1 client correlates: it has no
 properties) is echoed in the result.  Retained and empty messages are never run
-(docs/mqtt.md).
+(docs/mqtt.md).  An alarm's acknowledgement (``…/{sensor}/alarm/{alarm}/ack``) goes
+the same way (``take_ack``; its arguments: ``alarm_desk``).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from ...errors import ErrorKind, RequestFailed
 from ...mqtt_link.message import Counters, Message, json_properties
 from ...supervise import PeerLog
 from ..common import GatewayLike, json_bytes, peer_json
+from .alarm_desk import ack_result, acknowledger
 from .topics import CONTROL_QOS
 
 MAX_COMMANDS = 16  # commands carried out at once; more are answered "busy"
@@ -129,6 +131,23 @@ class CommandDesk:
         self.tasks.add(task)
         task.add_done_callback(self.tasks.discard)
 
+    def take_ack(self, message: paho.MQTTMessage, sensor: str, alarm: str) -> None:
+        """A message on ``{prefix}/{sensor}/alarm/{alarm}/ack``: the alarm acknowledged
+        (at once: it waits for no sensor), answered with its state after."""
+        if not self._runnable(message):
+            return
+        self.counters.commands += 1
+        request_id: RequestId = None
+        try:
+            args = _command_args(bytes(message.payload))
+            request_id = _request_id(args)
+            self._check_properties(message)
+            state = self.gateway.acknowledge(sensor, alarm, acknowledger(args))
+        except RequestFailed as exc:
+            self._reply(message, ack_result(sensor, alarm, None, exc), request_id)
+            return
+        self._reply(message, ack_result(sensor, alarm, state), request_id)
+
     def _runnable(self, message: paho.MQTTMessage) -> bool:
         """Whether a message on a command topic asks for a command at all.
 
@@ -171,7 +190,12 @@ class CommandDesk:
 
     def _answer(self, request: paho.MQTTMessage, result: CommandResult,
                 request_id: RequestId = None) -> None:
-        if not result.ok:
+        self._reply(request, result.to_json(), request_id)
+
+    def _reply(self, request: paho.MQTTMessage, body: dict[str, Any],
+               request_id: RequestId = None) -> None:
+        """Publish a result (``body``, with ``ok``) where the request asks for it."""
+        if not body["ok"]:
             self.counters.command_errors += 1
         # MQTT 5: the asker's response topic and correlation data win, where usable
         # (_check_properties refused the request otherwise, answered here).
@@ -182,7 +206,6 @@ class CommandDesk:
             if correlation is not None:  # (only MQTT 5 carries it: properties exist)
                 assert properties is not None
                 properties.CorrelationData = correlation
-        body = result.to_json()
         if request_id is not None:
             body[REQUEST_ID] = request_id
         self._results += 1

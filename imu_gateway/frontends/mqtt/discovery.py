@@ -11,6 +11,10 @@ gateways with a sensor ``boom`` give two devices).  It has:
   is ``ok`` (a stale reading never looks fresh), besides the gateway's and its own
   availability;
 * its readings a second, learned latency and errors as diagnostic entities;
+* per alarm (its configured ones, then ``communication``), a ``problem`` binary sensor,
+  on while the alarm is active, with the alarm's state as attributes, and with
+  ``allow_commands`` a button that acknowledges it; both available while the gateway
+  is online (the communication alarm is on exactly when the sensor is not);
 * with ``allow_commands``, its commands as entities, from the catalogue rows that
   have a register: a button for a command without arguments, a select for a choice,
   a number for an angle, each showing the known setting.
@@ -32,7 +36,7 @@ from ...commands import CATALOGUE, CommandSpec, commands_for, resolution
 from ...config import GatewayConfig, SensorConfig
 from ...model import CAPABILITIES, VALUE_GROUPS, Group, WireProtocol
 from ...normalise import member_name
-from .topics import HA_LEAF, SETTINGS_LEAF, Topics
+from .topics import HA_LEAF, SETTINGS_LEAF, Topics, alarm_names
 
 Config = dict[str, Any]
 ORIGIN = {"name": "imu-gateway", "sw_version": __version__}
@@ -73,6 +77,7 @@ def discovery_configs(setup: Setup) -> dict[str, Config]:
         device = _sensor_device(setup, name, sensor)
         out.update(_measured(setup, name, sensor, device))
         out.update(_sensor_diagnostics(setup, name, device))
+        out.update(_alarm_entities(setup, name, sensor, device))
         if setup.commands:
             out.update(_command_entities(setup, name, sensor, protocol, device))
     return out
@@ -201,6 +206,38 @@ def _sensor_diagnostics(setup: Setup, name: str,
             "value_template": _jinja(f"value_json['sensors']['{name}']['{key}']"),
             "entity_category": "diagnostic", "availability_topic": setup.topics.status,
             "device": device, "origin": ORIGIN, **extra}
+
+
+#: An alarm's state JSON as a binary sensor's attributes.  Its ``state`` becomes
+#: ``alarm_state``: Home Assistant drops an attribute named ``state``.
+_ALARM_ATTRIBUTES = _jinja("{'alarm_state': value_json.state, " + ", ".join(
+    f"'{key}': value_json.{key}" for key in ("acked", "severity", "field", "value", "limit",
+                                             "since", "latch")) + "} | tojson")
+#: What Home Assistant's acknowledge button sends: who acknowledged, in the journal, is
+#: ``home assistant (mqtt)``.
+ACK_PRESS = '{"by": "home assistant"}'
+
+
+def _alarm_entities(setup: Setup, name: str, sensor: SensorConfig,
+                    device: Config) -> Iterator[tuple[str, Config]]:
+    """Per alarm a ``problem`` binary sensor and, with commands, an acknowledge button.
+    Available while the gateway is: an alarm's state does not depend on the sensor's
+    (the communication alarm is on while the sensor is stale or offline)."""
+    for alarm in alarm_names(sensor):
+        topic, label = setup.topics.alarm(name, alarm), alarm.replace("_", " ")
+        oid = _oid(setup, name, "alarm", alarm)
+        yield _topic(setup, "binary_sensor", oid), {
+            "name": f"{label} alarm", "unique_id": oid, "state_topic": topic,
+            "value_template": _jinja("'ON' if value_json.active else 'OFF'"),
+            "device_class": "problem", "json_attributes_topic": topic,
+            "json_attributes_template": _ALARM_ATTRIBUTES,
+            "availability_topic": setup.topics.status, "device": device, "origin": ORIGIN}
+        if setup.commands:
+            yield _topic(setup, "button", f"{oid}_ack"), {
+                "name": f"acknowledge {label}", "unique_id": f"{oid}_ack",
+                "command_topic": setup.topics.alarm_ack(name, alarm),
+                "payload_press": ACK_PRESS, "availability_topic": setup.topics.status,
+                "device": device, "origin": ORIGIN}
 
 
 def _command_entities(setup: Setup, name: str, sensor: SensorConfig, protocol: WireProtocol,

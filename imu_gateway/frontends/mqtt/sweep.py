@@ -1,8 +1,9 @@
 """After each connect, the retained messages this gateway left on the broker and no
 longer publishes are removed: the Home Assistant discovery configs of entities that
 are gone, and the state, availability and per-field topics of sensors that left the
-config (or per-field values turned off).  Otherwise they would stay on the broker for
-ever, a removed sensor saying ``"status": "ok"``.
+config (or per-field values turned off), and the states of alarms that left it.
+Otherwise they would stay on the broker for ever, a removed sensor saying
+``"status": "ok"``.
 
 For ``SWEEP_S`` after a connect the client subscribes to its own topics and to the
 discovery configs; the broker sends the retained ones at once.  Each that this
@@ -20,7 +21,7 @@ from typing import Any
 import paho.mqtt.client as paho
 
 from ...mqtt_link.message import Message
-from .topics import CONTROL_QOS, Topics
+from .topics import ALARM_LEAF, CONTROL_QOS, Topics
 
 log = logging.getLogger("imu_gateway.mqtt")
 
@@ -46,7 +47,7 @@ class RetainedSweep:
 
     def subscriptions(self) -> list[str]:
         """What to subscribe to for the sweep (and unsubscribe from after it)."""
-        own = [f"{self.topics.prefix}/+/+"]
+        own = [f"{self.topics.prefix}/+/+", f"{self.topics.prefix}/+/{ALARM_LEAF}/+"]
         return own if self.discovery_prefix is None else \
             [*own, f"{self.discovery_prefix}/+/+/config"]
 

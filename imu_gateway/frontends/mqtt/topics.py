@@ -11,12 +11,16 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+from ...alarms import COMMUNICATION
 from ...config import MqttConfig, SensorConfig
 from ...normalise import MEASURED_FIELDS
 
 # A sensor's topics beside its state: what the gateway knows of its settings, and the
 # state again for Home Assistant (throttled apart); the gateway's counters.
 SETTINGS_LEAF, HA_LEAF, DIAGNOSTICS_LEAF = "settings", "ha", "diagnostics"
+# An alarm's state, retained: ``{prefix}/{sensor}/alarm/{alarm}``; where it is
+# acknowledged: that topic with ``/ack`` appended.
+ALARM_LEAF, ACK_LEAF = "alarm", "ack"
 CONTROL_QOS = 1  # status, availability, discovery, results: small and must arrive
 ONLINE, OFFLINE = b"online", b"offline"  # the status and availability payloads
 
@@ -67,6 +71,12 @@ class Topics:
     def sensor(self, sensor: str, leaf: str) -> str:
         return f"{self.prefix}/{sensor}/{leaf}"
 
+    def alarm(self, sensor: str, alarm: str) -> str:
+        return f"{self.prefix}/{sensor}/{alarm_leaf(alarm)}"
+
+    def alarm_ack(self, sensor: str, alarm: str) -> str:
+        return f"{self.alarm(sensor, alarm)}/{ACK_LEAF}"
+
     def object_id(self, sensor: str, field_name: str) -> str:
         # Home Assistant's object ids allow [a-zA-Z0-9_-]; a gateway id may hold dots.
         return f"{self.gateway_id}_{sensor}_{field_name}".replace(".", "_")
@@ -75,14 +85,24 @@ class Topics:
         return f"{self.discovery_prefix}/sensor/{self.object_id(sensor, field_name)}/config"
 
 
+def alarm_leaf(alarm: str) -> str:
+    return f"{ALARM_LEAF}/{alarm}"
+
+
+def alarm_names(sensor: SensorConfig) -> tuple[str, ...]:
+    """A sensor's alarms in config order, its communication alarm last (as
+    ``GatewayLike.alarm_states`` lists them)."""
+    return (*(alarm.name for alarm in sensor.alarms), COMMUNICATION)
+
+
 def retained_leaves(config: MqttConfig,
                     sensors: Mapping[str, SensorConfig]) -> dict[str, frozenset[str]]:
     """Per sensor, the leaves of ``{prefix}/{sensor}/…`` the gateway retains: the
-    availability and the known settings, Home Assistant's state with discovery, and
-    the state and per-field values when ``retain`` is on."""
+    availability, the known settings and each alarm's state, Home Assistant's state
+    with discovery, and the state and per-field values when ``retain`` is on."""
     out = {}
     for name, sensor in sensors.items():
-        leaves = {"availability", SETTINGS_LEAF}
+        leaves = {"availability", SETTINGS_LEAF, *map(alarm_leaf, alarm_names(sensor))}
         if config.homeassistant_discovery:
             leaves.add(HA_LEAF)
         if config.retain:

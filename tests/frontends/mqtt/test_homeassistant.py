@@ -10,7 +10,10 @@ flow, and everything is checked through its REST API:
 * the attributes (status, ts, seq);
 * unavailable when the sensor is stalled, when the gateway stops, and when it is
   killed (its last will);
-* a button press reaching the simulated sensor.
+* a button press reaching the simulated sensor;
+* an alarm on the tilt (docs/alarms.md): its ``problem`` binary sensor turning on when
+  the simulated sensor leans past the limit for the on-delay, staying on through the
+  hysteresis, off below it, and the acknowledge button acknowledging it.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +44,11 @@ HA_VERSION = "2024.3.3"
 HA_PINS = [f"homeassistant=={HA_VERSION}", "josepy<2", "paho-mqtt==1.6.1"]
 CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "imu-gateway"
 GID = "plant"
+ON_DELAY = 1.0
+BOOM_LEAN = {"name": "boom_lean", "field": "tilt", "above": 5.0, "hysteresis": 0.5,
+             "on_delay_s": ON_DELAY}
+PROBLEM, ACKNOWLEDGE = "binary_sensor.plant_boom_boom_lean_alarm", \
+    "button.plant_boom_acknowledge_boom_lean"
 
 pytestmark = pytest.mark.timeout(1200)
 
@@ -157,7 +166,7 @@ def _gateway(line: str, broker: Mosquitto, path: Path) -> subprocess.Popen[bytes
         "buses": [{"name": "line-a", "port": line, "baudrate": 115200, "protocol": "native",
                    "timeout_ms": 300,
                    "sensors": [{"name": "boom", "series": "AH", "poll_hz": 5,
-                                "stale_after_ms": 1500}]}],
+                                "stale_after_ms": 1500, "alarms": [BOOM_LEAN]}]}],
         "mqtt": {"url": broker.url, "homeassistant_discovery": True, "allow_commands": True,
                  "homeassistant_min_interval_ms": 500}}))
     return subprocess.Popen([sys.executable, "-m", "imu_gateway", "run", "-c", str(path)],
@@ -178,12 +187,14 @@ def test_home_assistant_sees_the_gateway_as_its_users_expect(
     ah: SimSensor = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200,
                                 source=Motion.from_seed(7))
     with Mosquitto(tmp_path) as broker, SimulatorThread([ah]) as line:
+        line.call(ah.lean, 1.0, 0.0).result(5)  # level enough: the alarm is normal
         ha.add_mqtt(broker.port)
         gateway = _gateway(line.path, broker, tmp_path / "gateway.yaml")
         try:
             _entities_units_and_devices(ha)
             _stale_is_unavailable(ha, ah)
             _button_reaches_the_sensor(ha, ah)
+            _the_alarm_follows_the_lean(ha, ah, line)
             gateway.send_signal(signal.SIGTERM)  # a clean stop: "offline"
             assert gateway.wait(30) == 0
             ha.wait_state("sensor.plant_boom_pitch", lambda s: s == "unavailable",
@@ -238,3 +249,39 @@ def _button_reaches_the_sensor(ha: HomeAssistant, ah: SimSensor) -> None:
     assert pressed.status_code == 200, pressed.text
     ha._until(lambda: ah.writes_heard["calibrate_gyro"] > before, 30,
               "the sensor heard the calibration")
+
+
+def _attribute(ha: HomeAssistant, entity: str, name: str) -> Any:
+    state = ha.state(entity)
+    return None if state is None else state["attributes"].get(name)
+
+
+def _the_alarm_follows_the_lean(ha: HomeAssistant, ah: SimSensor,
+                                line: SimulatorThread) -> None:
+    ha.wait_state(PROBLEM, lambda s: s == "off", "off while the boom is level")
+    problem = ha.state(PROBLEM)
+    assert problem is not None and problem["attributes"]["device_class"] == "problem"
+    assert problem["attributes"]["alarm_state"] == "normal"
+    leaned_at = time.time()
+    line.call(ah.lean, 7.5, 0.0).result(5)
+    ha.wait_state(PROBLEM, lambda s: s == "on", "on once leaning past 5 degrees")
+    assert _attribute(ha, PROBLEM, "alarm_state") == "active_unacked"
+    assert (_attribute(ha, PROBLEM, "value"), _attribute(ha, PROBLEM, "limit")) == (7.5, 5.0)
+    since = datetime.fromisoformat(_attribute(ha, PROBLEM, "since")).timestamp()
+    assert since >= leaned_at + ON_DELAY - 0.002  # not before the on-delay
+
+    ha.wait_state(ACKNOWLEDGE, lambda s: s != "unavailable", "available")
+    pressed = ha.http.post("/api/services/button/press", json={"entity_id": ACKNOWLEDGE})
+    assert pressed.status_code == 200, pressed.text
+    ha._until(lambda: _attribute(ha, PROBLEM, "alarm_state") == "active_acked", 30,
+              "the alarm acknowledged")
+    assert ha.state(PROBLEM)["state"] == "on"  # type: ignore[index]
+
+    # back under the limit, not through the hysteresis: still on
+    line.call(ah.lean, 4.7, 0.0).result(5)
+    ha.wait_state("sensor.plant_boom_tilt", lambda s: _number(s) and float(s) == 4.7,
+                  "the tilt at 4.7")
+    assert ha.state(PROBLEM)["state"] == "on"  # type: ignore[index]
+    line.call(ah.lean, 4.0, 0.0).result(5)
+    ha.wait_state(PROBLEM, lambda s: s == "off", "off through the hysteresis")
+    assert _attribute(ha, PROBLEM, "alarm_state") == "normal"

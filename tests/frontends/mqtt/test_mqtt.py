@@ -401,7 +401,8 @@ async def test_discovery_configs_are_consistent_and_removed_with_their_sensor(
         assert left == {t for t in every if "_boom_" not in t} | {
             f"{BASE}/status", f"{BASE}/instance", f"{BASE}/diagnostics",
             f"imu/_clients/imu-gateway-{GID}",
-            *(f"{BASE}/arm/{leaf}" for leaf in ("state", "availability", "settings", "ha"))}
+            *(f"{BASE}/arm/{leaf}" for leaf in ("state", "availability", "settings", "ha",
+                                                "alarm/communication"))}
 
 
 # ------------------------------------------------------------------ the broker away
