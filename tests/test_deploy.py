@@ -520,7 +520,7 @@ def test_broker_acl_gateway_publishes_dashboard_reads_operator_commands(
         clients.append(anonymous)
         assert anonymous.reason is not None
         assert anonymous.reason.is_failure  # allow_anonymous false
-        gateway = Client(broker, "gateway", "imu/+/+/cmd/#")
+        gateway = Client(broker, "gateway", "imu/+/+/cmd/#", "imu/+/+/alarm/+/ack")
         dashboard = Client(broker, "dashboard", "imu/#", "homeassistant/#")
         operator = Client(broker, "operator", "imu/#")
         clients += [gateway, dashboard, operator]
@@ -534,13 +534,17 @@ def test_broker_acl_gateway_publishes_dashboard_reads_operator_commands(
         # denied: a dashboard's command, a dashboard's fake state, an operator's fake
         # result; then the operator's command, which arrives after all of them would
         dashboard.publish("imu/gw/boom/cmd/save", "{}")
+        dashboard.publish("imu/gw/boom/alarm/boom_lean/ack", '{"by": "dashboard"}')
         dashboard.publish("imu/gw/boom/state", '{"seq": 666}')
         operator.publish("imu/gw/boom/cmd/save/result", '{"ok": true}')
+        operator.publish("imu/gw/boom/alarm/boom_lean/ack", '{"by": "operator"}')
         operator.publish("imu/gw/boom/cmd/calibrate_gyro", "{}")
+        gateway.wait_for("imu/gw/boom/alarm/boom_lean/ack", '{"by": "operator"}')
         gateway.wait_for("imu/gw/boom/cmd/calibrate_gyro", "{}")
         gateway.publish("imu/gw/boom/cmd/calibrate_gyro/result", '{"ok": true}')
         operator.wait_for("imu/gw/boom/cmd/calibrate_gyro/result", '{"ok": true}')
         assert gateway.got("imu/gw/boom/cmd/save") == []
+        assert gateway.got("imu/gw/boom/alarm/boom_lean/ack") == ['{"by": "operator"}']
         assert gateway.got("imu/gw/boom/cmd/save/result") == []
         assert '{"seq": 666}' not in operator.got("imu/gw/boom/state")
     finally:
