@@ -294,8 +294,12 @@ def _alarms() -> list[str]:
             "`communication`): **not a Part 9 field**, the gateway's own, "
             "selected by the browse path `Value` |",
             "| Comment, ClientUserId | the latest acknowledgement's comment; who "
-            "acknowledged (`operator (opcua 10.0.0.5)`) |", "",
-            "**Acknowledge** (`AcknowledgeableConditionType`'s `Acknowledge`, i=9111, "
+            "acknowledged (`operator (opcua 10.0.0.5)`) |", "", *_alarm_methods()]
+
+
+def _alarm_methods() -> list[str]:
+    """What a client may call on the alarms, and what of Part 9 is not there."""
+    return ["**Acknowledge** (`AcknowledgeableConditionType`'s `Acknowledge`, i=9111, "
             "called with the ConditionId as the ObjectId, as Part 9 says every server "
             "must take it: node-opcua's `session.acknowledgeCondition` does so) with "
             "(EventId, Comment):", "",
