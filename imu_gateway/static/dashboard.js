@@ -2,7 +2,8 @@
  *
  * Data: GET /api/v1/sensors (the list, then every 2 s for status and rates),
  * GET /api/v1/buses and GET /api/v1/alarms (every 2 s), GET /api/v1/alarms/journal
- * (whenever the stream opens) and the Server-Sent Events of GET /api/v1/stream.
+ * (whenever the stream opens), GET /api/v1/captures (every 2 s, when GET /api/v1/health
+ * says capture is on) and the Server-Sent Events of GET /api/v1/stream.
  * With ?token=... in the page address every request carries "Authorization: Bearer";
  * EventSource cannot send headers, so the stream gets it as ?access_token= instead.
  *
@@ -16,6 +17,9 @@
  * (active alarms) and data-unacked; a card's alarm lines (ul.alarms li) data-alarm and
  * data-state; a trend canvas data-marks (the transitions marked on it); each line of
  * the journal (#journal li) data-alarm="sensor/alarm", data-from and data-to.
+ * Captures: #captures-section has data-capture ("on" or "off"); each line of the list
+ * (#captures li) data-capture (its id), data-trigger, data-alarm, data-time, data-size,
+ * and its download link a.download; #capture-result data-ok and data-capture.
  */
 "use strict";
 
@@ -900,7 +904,7 @@
         onAlarmState(body);
         out.textContent = `${alarm}: acknowledged`;
       } else {
-        out.textContent = `${alarm}: refused: ${refusal(response, body)}`;
+        out.textContent = `${alarm}: refused: ${refusal(response, body, "acknowledging")}`;
       }
       out.dataset.ok = String(response.ok);
     } catch (error) {
@@ -911,10 +915,12 @@
     }
   }
 
-  function refusal(response, body) {
+  /** Why the gateway refused an operator's action ("acknowledging", "taking a
+   *  capture"), in words, with what to do. */
+  function refusal(response, body, action) {
     if (response.status === 401) {
       return token ? "unauthorised: the token in the address was refused"
-        : "unauthorised: acknowledging needs the operator's token: open this page with " +
+        : `unauthorised: ${action} needs the operator's token: open this page with ` +
           "?token=… in its address";
     }
     return `${body.kind || response.status}: ${body.error || response.statusText}`;
@@ -978,6 +984,142 @@
     ctx.restore();
   }
 
+  // ------------------------------------------------------------------ captures
+
+  // The captures the gateway keeps (GET /api/v1/captures, newest first), polled with the
+  // status: a capture is written post_s after its trigger, and listed from then on, so
+  // the page shows it at most one poll (2 s) later.  Whether capture is on comes from
+  // GET /api/v1/health, not from asking the list: without a capture: section the list
+  // answers 404, which a browser logs as an error on every poll.
+  let capturesOn = null; // null: not known yet
+  let capturesShown = null; // what the list shows (skip redrawing the same)
+  let captureAwaited = null; // the capture the button took, until it is listed
+
+  /** On or off (health's "capture"): the list and the button, or the note that the
+   *  gateway's config has no capture: section. */
+  function showCaptureMode(on) {
+    capturesOn = on;
+    const section = $("captures-section");
+    section.dataset.capture = on ? "on" : "off";
+    section.hidden = false;
+    $("captures-off").hidden = on;
+    $("captures-on").hidden = !on;
+    if (on) loadCaptures();
+  }
+
+  async function loadCaptures() {
+    if (!capturesOn) return;
+    try {
+      showCaptures(await api("/captures"));
+    } catch (error) {
+      // 404: capture is off after all (a gateway restarted without it); anything else
+      // (the connection, a refused token) the banner tells, and the next poll retries.
+      if (error.status === 404) showCaptureMode(false);
+    }
+  }
+
+  function showCaptures(list) {
+    const signature = JSON.stringify(list);
+    if (signature !== capturesShown) { // rebuilt only when changed: a link keeps its click
+      capturesShown = signature;
+      $("captures-empty").hidden = list.length > 0;
+      $("captures").replaceChildren(...list.map(captureLine));
+    }
+    if (captureAwaited && list.some((c) => c.id === captureAwaited)) {
+      showCaptureResult(`capture ${captureAwaited}: written, in the list below`, true,
+        captureAwaited);
+      captureAwaited = null;
+    }
+  }
+
+  /** "2026-11-22 04:40:00 · alarm boom/boom_lean · 412 KiB · download". */
+  function captureLine(c) {
+    const li = document.createElement("li");
+    li.dataset.capture = c.id;
+    li.dataset.trigger = c.trigger;
+    li.dataset.alarm = c.alarm || "";
+    li.dataset.time = c.time;
+    li.dataset.size = String(c.size);
+    const time = document.createElement("time");
+    time.dateTime = c.time;
+    time.textContent = new Date(c.time).toLocaleString();
+    const trigger = document.createElement("b");
+    trigger.textContent = c.alarm ? `${c.trigger} ${c.alarm}` : c.trigger;
+    const link = document.createElement("a");
+    link.className = "download";
+    link.href = `${API}/captures/${encodeURIComponent(c.id)}`;
+    link.download = `imu-gateway-capture-${c.id}.zip`;
+    link.textContent = "download";
+    link.setAttribute("aria-label", `download the capture of ${time.textContent}`);
+    // With a token the link fetches with it (a plain link cannot send a header, and a
+    // gateway may need the token to read).
+    if (token) link.addEventListener("click", (e) => { e.preventDefault(); download(link); });
+    li.append(time, " ", trigger, ` · ${bytes(c.size)} · `, link);
+    return li;
+  }
+
+  function bytes(n) {
+    if (n < 1024) return `${n} B`;
+    if (n < 1024 * 1024) return `${(n / 1024).toFixed(1)} KiB`;
+    return `${(n / 1024 / 1024).toFixed(1)} MiB`;
+  }
+
+  /** The ZIP with the bearer token, saved under the link's file name. */
+  async function download(link) {
+    try {
+      const response = await fetch(link.href, { headers, cache: "no-store" });
+      if (!response.ok) throw new HttpError(response.status, response.statusText);
+      const url = URL.createObjectURL(await response.blob());
+      const save = document.createElement("a");
+      save.href = url;
+      save.download = link.download;
+      save.click();
+      setTimeout(() => URL.revokeObjectURL(url), 60000);
+    } catch (error) {
+      showCaptureResult(`download: ${error.status || ""} ${error.message}`.trim(), false);
+    }
+  }
+
+  function showCaptureResult(text, ok, id) {
+    const out = $("capture-result");
+    out.textContent = text;
+    out.dataset.ok = String(ok);
+    out.dataset.capture = id || "";
+  }
+
+  /** POST /api/v1/captures (an operator's: the token, and http.allow_commands): pre_s
+   *  before now to post_s after; the list is fetched again when it is written. */
+  async function takeCapture(button) {
+    button.disabled = true;
+    showCaptureResult("taking a capture…", true);
+    try {
+      const response = await fetch(API + "/captures", { method: "POST", headers, cache: "no-store" });
+      let body = {};
+      try { body = await response.json(); } catch (e) { /* not JSON */ }
+      if (response.ok) {
+        captureAwaited = body.id;
+        showCaptureResult(`capture ${body.id}: recording, written in ` +
+          `${body.ready_in_s.toFixed(1)} s`, true, body.id);
+        setTimeout(loadCaptures, body.ready_in_s * 1000 + 250);
+      } else {
+        showCaptureResult(`refused: ${refusal(response, body, "taking a capture")}`, false);
+      }
+    } catch (error) {
+      showCaptureResult(error.message, false);
+    } finally {
+      button.disabled = false;
+    }
+  }
+
+  /** The gateway's id and version in the header, and whether capture is on: at the
+   *  start and whenever the stream opens (a gateway restarted may have a new config). */
+  async function loadHealth() {
+    const health = await api("/health");
+    $("mode").textContent = `${health.gateway_id} · v${health.version} · ` +
+      (token ? "live (token)" : "live");
+    if (health.capture !== capturesOn) showCaptureMode(Boolean(health.capture));
+  }
+
   // ------------------------------------------------------------------ live data
 
   function openStream() {
@@ -986,6 +1128,7 @@
     stream.addEventListener("open", () => {
       setDown("stream", false);
       loadAlarms().catch(() => { /* the poll brings the states */ });
+      loadHealth().catch(() => { /* shown by the banner */ });
     });
     stream.addEventListener("alarm", (e) => onAlarmEvent(JSON.parse(e.data)));
     stream.addEventListener("reading", (e) => onReading(JSON.parse(e.data)));
@@ -1008,6 +1151,7 @@
         showBuses(buses);
         onAlarmPoll(states);
         setDown("api", false);
+        loadCaptures();
       } catch (error) {
         setDown("api", true, error);
       }
@@ -1045,10 +1189,8 @@
         for (const s of sensors.values()) showCommands(s, names);
       }, () => { /* no buttons: the API answers commands all the same */ });
     }
-    api("/health").then((health) => {
-      $("mode").textContent = `${health.gateway_id} · v${health.version} · ` +
-        (token ? "live (token)" : "live");
-    }, () => { /* shown by the banner */ });
+    loadHealth().catch(() => { /* shown by the banner */ });
+    $("capture-take").addEventListener("click", (e) => takeCapture(e.currentTarget));
     pollStatus();
     openStream();
     // The age keeps growing between readings.

@@ -178,6 +178,8 @@ class HealthOut(_Out):
     buses: dict[str, bool] = Field(description="bus name -> port open")
     sensors: dict[str, int] = Field(description="how many sensors are ok, stale, offline")
     interfaces: list[str]
+    capture: bool = Field(description=(
+        "event capture is on (a `capture:` section): `GET /api/v1/captures` lists them"))
     frontends: dict[str, dict[str, float]] = Field(description=(
         "front end -> its counters: clients, requests, restarts (after a failure) and "
         "those of docs/reliability.md"))

@@ -254,7 +254,7 @@ def _status_routes(app: FastAPI, routes: _Routes) -> None:
                 "gateway_id": gateway.config.gateway_id, "version": __version__,
                 "uptime_s": round(time.monotonic() - gateway.started, 1),
                 "buses": buses, "sensors": counted, "interfaces": gateway.config.interfaces(),
-                "frontends": gateway.frontend_stats()}
+                "capture": gateway.captures is not None, "frontends": gateway.frontend_stats()}
 
     @app.get(f"{API}/buses", response_model=list[BusOut], dependencies=routes.reads,
              responses=_errors(401), summary="every bus and its stats")
