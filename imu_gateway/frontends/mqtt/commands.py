@@ -112,14 +112,9 @@ class CommandDesk:
         """A message on ``{prefix}/{sensor}/cmd/{command}``: carried out, answered."""
         if not self._runnable(message):
             return
-        self.counters.commands += 1
-        request_id: RequestId = None
-        try:
-            args = _command_args(bytes(message.payload))
-            request_id = _request_id(args)
-            self._check_properties(message)
-        except RequestFailed as exc:
-            self._answer(message, CommandResult.failed(sensor, command, exc), request_id)
+        args, request_id, refused = self._request(message)
+        if refused is not None:
+            self._answer(message, CommandResult.failed(sensor, command, refused), request_id)
             return
         if len(self.tasks) >= MAX_COMMANDS:
             self._answer(message, CommandResult.failed(sensor, command, RequestFailed(
@@ -136,17 +131,29 @@ class CommandDesk:
         (at once: it waits for no sensor), answered with its state after."""
         if not self._runnable(message):
             return
+        args, request_id, refused = self._request(message)
+        try:
+            if refused is not None:
+                raise refused
+            state = self.gateway.acknowledge(sensor, alarm, acknowledger(args))
+        except RequestFailed as exc:
+            self._reply(message, ack_result(sensor, alarm, None, exc), request_id)
+            return
+        self._reply(message, ack_result(sensor, alarm, state), request_id)
+
+    def _request(self, message: paho.MQTTMessage
+                 ) -> tuple[dict[str, Any], RequestId, RequestFailed | None]:
+        """A command's or an acknowledgement's arguments and request id (counted), or
+        why it is refused (with the request id, when it had one to echo)."""
         self.counters.commands += 1
         request_id: RequestId = None
         try:
             args = _command_args(bytes(message.payload))
             request_id = _request_id(args)
             self._check_properties(message)
-            state = self.gateway.acknowledge(sensor, alarm, acknowledger(args))
         except RequestFailed as exc:
-            self._reply(message, ack_result(sensor, alarm, None, exc), request_id)
-            return
-        self._reply(message, ack_result(sensor, alarm, state), request_id)
+            return {}, request_id, exc
+        return args, request_id, None
 
     def _runnable(self, message: paho.MQTTMessage) -> bool:
         """Whether a message on a command topic asks for a command at all.
