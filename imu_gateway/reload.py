@@ -22,7 +22,7 @@ import asyncio
 import logging
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from pydantic import BaseModel
 
@@ -31,7 +31,26 @@ from .config.loading import ConfigSource, save_atomically, shown, with_secrets_k
 from .errors import ConfigError
 
 if TYPE_CHECKING:
-    from .app import Gateway
+    from .bus.runner import BusThread
+    from .supervise import Frontend
+
+
+class Gateway(Protocol):
+    """What a reload needs of ``app.Gateway`` (a protocol: the app imports this module)."""
+
+    config: GatewayConfig
+    source: ConfigSource | None
+    buses: BusThread
+
+    def adopt(self, config: GatewayConfig) -> None: ...
+
+    def start_bus(self, config: BusConfig) -> None: ...
+
+    def index_buses(self) -> None: ...
+
+    def frontend(self, name: str) -> Frontend | None: ...
+
+    async def replace_frontend(self, name: str) -> None: ...
 
 log = logging.getLogger("imu_gateway")
 
