@@ -26,6 +26,7 @@ from .cache import Cache, EventKind, Snapshot, Status
 from .capacity import line_loads
 from .commands import CATALOGUE, CommandResult, validate
 from .config import (
+    BusConfig,
     GatewayConfig,
     HttpConfig,
     ModbusConfig,
@@ -34,10 +35,12 @@ from .config import (
     SensorConfig,
     config_from_dict,
 )
+from .config.loading import ConfigSource
 from .derived import values_of
 from .errors import RequestFailed, StartupError, unknown_sensor
 from .history import History
 from .journal import JournalFile
+from .reload import Reloader
 from .stats import BusStats, FrontendCounts, SensorStats
 from .supervise import Frontend, Supervisor
 
@@ -64,7 +67,7 @@ GIL_SWITCH_INTERVAL = 0.0005
 class Gateway:
     """The running gateway as the front ends see it: the cache, and commands."""
 
-    def __init__(self, config: GatewayConfig) -> None:
+    def __init__(self, config: GatewayConfig, source: ConfigSource | None = None) -> None:
         self.config = config
         self.cache = Cache([(s.name, s.stale_after_ms) for _, s in config.iter_sensors()])
         self.buses = BusThread(list(config.buses), self.cache)
@@ -81,18 +84,92 @@ class Gateway:
         # Event capture: every sample into its ring, every frame into its line's ring
         self.captures = _captures(self) if config.capture else None
         self.modbus = _modbus_server(self, config.modbus) if config.modbus else None
-        sparkplug = config.mqtt.sparkplug if config.mqtt else None
-        self.mqtt = _mqtt_client(self, config.mqtt) \
-            if config.mqtt and (sparkplug is None or sparkplug.plain_topics) else None
-        self.sparkplug = _sparkplug_client(self, config.mqtt) \
-            if config.mqtt and sparkplug is not None else None
+        self.mqtt, self.sparkplug = self._mqtt_clients(config.mqtt)
         self.http = _http_server(self, config.http) if config.http else None
         self.opcua = _opcua_server(self, config.opcua) if config.opcua else None
         # the supervised front ends
         self.frontends: list[Frontend] = [
             f for f in (self.modbus, self.http, self.opcua, self.mqtt, self.sparkplug) if f]
         self.supervisor = Supervisor()
+        self._watchers: dict[str, asyncio.Task[None]] = {}
+        self._running = False  # between the start of the buses and the front ends' stop
+        self.source = source  # the file and its unexpanded text (a reload, GET and PUT)
+        self.reloader = Reloader(self)
         self.started = time.monotonic()
+
+    def _mqtt_clients(self, config: MqttConfig | None
+                      ) -> tuple[MqttClient | None, SparkplugClient | None]:
+        sparkplug = config.sparkplug if config else None
+        plain = _mqtt_client(self, config) \
+            if config and (sparkplug is None or sparkplug.plain_topics) else None
+        return plain, _sparkplug_client(self, config) if config and sparkplug else None
+
+    # ------------------------------------------------------------ a reload (reload.py)
+
+    def adopt(self, config: GatewayConfig) -> None:
+        """The new config's sensors, in the cache, the history and the alarms (the
+        buses that run them are stopped or started by the reloader)."""
+        old_alarms = [a for _, s in self.config.iter_sensors() for a in (s.name, s.alarms)]
+        self.config = config
+        self.sensors = {s.name: s for _, s in config.iter_sensors()}
+        self.cache.set_sensors([(s.name, s.stale_after_ms) for s in self.sensors.values()],
+                               [b.name for b in config.buses])
+        self.history.set_sensors(self)
+        if old_alarms != [a for _, s in config.iter_sensors() for a in (s.name, s.alarms)]:
+            # their states carried over from the transitions kept in memory
+            self.alarms: Alarms = Alarms([a.row(s.name) for _, s in config.iter_sensors()
+                                  for a in s.alarms], self.sensors, self.alarms.since(None))
+
+    def start_bus(self, config: BusConfig) -> None:
+        from .bus.frames import ring_size
+
+        capture = self.config.capture
+        frames = ring_size(capture.pre_s + capture.post_s, config.baudrate) \
+            if capture is not None else None
+        self.buses.start_one(config, frames)
+
+    def index_buses(self) -> None:
+        """The maps of buses and sensors, after buses were stopped and started."""
+        self.runners = self.buses.runners
+        self.masters = {name: runner.master for name, runner in self.runners.items()}
+        self._runner_of = {s.name: self.runners[b.name] for b, s in self.config.iter_sensors()}
+
+    def frontend(self, name: str) -> Frontend | None:
+        found: Frontend | None = getattr(self, name)
+        return found
+
+    async def replace_frontend(self, name: str) -> None:
+        """Stop the front end ``name`` and start one made from the current config (or
+        none, when its section is gone); the supervisor watches the new one."""
+        old = self.frontend(name)
+        if old is not None:
+            watcher = self._watchers.pop(name, None)
+            if watcher is not None:
+                watcher.cancel()
+            try:
+                await old.stop()
+            except Exception:
+                log.exception("%s: stopping it for a reload failed", name)
+            self.cache.forget(old)
+        config = self.config
+        made: Frontend | None
+        if name == "modbus":
+            made = _modbus_server(self, config.modbus) if config.modbus else None
+        elif name == "opcua":
+            made = _opcua_server(self, config.opcua) if config.opcua else None
+        else:
+            made = self._mqtt_clients(config.mqtt)[name == "sparkplug"]
+        setattr(self, name, made)
+        self.frontends = [f for f in (self.modbus, self.http, self.opcua, self.mqtt,
+                                      self.sparkplug) if f]
+        if made is not None and self._running:
+            made.arm()
+            try:
+                await made.start()
+            except Exception as exc:  # (a port taken: the supervisor tries again)
+                log.error("%s: could not start after the reload: %s", name, exc)
+                made.fail(exc)
+            self._watch(made)
 
     # ------------------------------------------------------------ alarms
 
@@ -193,27 +270,42 @@ class Gateway:
         async with contextlib.AsyncExitStack() as stopping:  # unwinds last in, first out
             stopping.push_async_callback(self._stop_buses)
             self.buses.start()
-            for frontend in (self.modbus, self.http, self.opcua, self.mqtt, self.sparkplug):
-                if frontend is not None:
-                    stopping.push_async_callback(frontend.stop)
+            self._running = True
+            # the front ends of the moment (a reload may have replaced some)
+            stopping.push_async_callback(self._stop_frontends)
             if self.captures is not None:  # the one being collected, while MQTT is up
                 stopping.push_async_callback(self.captures.stop)
             # (they connect in the background, retrying: never fail)
             for client in (self.mqtt, self.sparkplug):
                 if client is not None:
                     await client.start()
-            watchers = [asyncio.create_task(self.supervisor.watch(f), name=f"watch {f.name}")
-                        for f in self.frontends]
+            for frontend in self.frontends:
+                self._watch(frontend)
             try:
                 await self._watch_staleness(stop)
             finally:
                 self._evaluating = False
                 if self.journal_file is not None:
                     stopping.push_async_callback(asyncio.to_thread, self.journal_file.close)
+                watchers = list(self._watchers.values())
                 for watcher in watchers:
                     watcher.cancel()
                 await asyncio.gather(*watchers, return_exceptions=True)
             log.info("stopping")
+
+    def _watch(self, frontend: Frontend) -> None:
+        self._watchers[frontend.name] = asyncio.create_task(
+            self.supervisor.watch(frontend), name=f"watch {frontend.name}")
+
+    async def _stop_frontends(self) -> None:
+        """Last started, first stopped; each one even if one before it failed."""
+        self._running = False
+        for frontend in (self.sparkplug, self.mqtt, self.opcua, self.http, self.modbus):
+            if frontend is not None:
+                try:
+                    await frontend.stop()
+                except Exception:
+                    log.exception("%s: stopping failed", frontend.name)
 
     async def _stop_buses(self) -> None:
         await self.buses.stop(SHUTDOWN_GRACE)
@@ -312,15 +404,25 @@ def _opcua_server(gateway: Gateway, config: OpcUaConfig) -> OpcUaServer:
 
 
 async def run_until_signalled(config: GatewayConfig, stats_interval: float = 0.0,
-                              on_started: Callable[[Gateway], None] | None = None) -> None:
-    """``imu-gateway run``: the gateway until SIGINT or SIGTERM.  ``on_started`` is
-    called once every listening socket is open."""
+                              on_started: Callable[[Gateway], None] | None = None,
+                              source: ConfigSource | None = None) -> None:
+    """``imu-gateway run``: the gateway until SIGINT or SIGTERM; SIGHUP reads the
+    config file (``source``) again and applies it.  ``on_started`` is called once
+    every listening socket is open."""
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     sys.setswitchinterval(GIL_SWITCH_INTERVAL)
-    gateway = Gateway(config)
+    gateway = Gateway(config, source)
+    reloads: set[asyncio.Task[Any]] = set()
+
+    def on_hangup() -> None:
+        task = loop.create_task(gateway.reloader.from_file(), name="reload")
+        reloads.add(task)
+        task.add_done_callback(reloads.discard)
+
+    loop.add_signal_handler(signal.SIGHUP, on_hangup)
     log.info("%s", config.summary())
     for load in line_loads(config.buses):
         log.info("%s", load.describe())

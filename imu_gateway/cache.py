@@ -140,6 +140,17 @@ class Cache:
     def names(self) -> list[str]:
         return list(self._entries)
 
+    def set_sensors(self, sensors: Iterable[tuple[str, float]], buses: Iterable[str]) -> None:
+        """A reload: the sensors kept keep their entries (stale_after updated), new ones
+        get one, and the sensors and buses gone are forgotten."""
+        wanted, keep = dict(sensors), set(buses)
+        self._entries = {name: self._entries.get(name) or _Entry(stale_ms / 1000)
+                         for name, stale_ms in wanted.items()}
+        for name, stale_ms in wanted.items():
+            self._entries[name].stale_after = stale_ms / 1000
+        self._buses = {n: b for n, b in self._buses.items() if n in keep}
+        self._sensor_stats = {n: s for n, s in self._sensor_stats.items() if n in wanted}
+
     def _entry(self, name: str) -> _Entry:
         try:
             return self._entries[name]
@@ -168,6 +179,12 @@ class Cache:
         entry = (listener, on_error, frozenset(kinds))
         self._listeners.append(entry)
         return lambda: self._listeners.remove(entry) if entry in self._listeners else None
+
+    def forget(self, owner: object) -> None:
+        """Unsubscribe every listener that is a method of ``owner`` (a front end a
+        reload replaced)."""
+        self._listeners = [e for e in self._listeners
+                           if getattr(e[0], "__self__", None) is not owner]
 
     # ------------------------------------------------------------ writing (bus masters)
 

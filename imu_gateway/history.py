@@ -128,6 +128,15 @@ class History:
                        for name, sensor in gateway.sensors.items()}
         self._rings = {name: _Ring(len(fields)) for name, fields in self.fields.items()}
 
+    def set_sensors(self, gateway: _HasSensors) -> None:
+        """A reload: a sensor kept with the same fields keeps its past; a new one (or
+        one of another series) starts empty; those gone are forgotten."""
+        fields = {name: MEASURED_FIELDS[sensor.series]
+                  for name, sensor in gateway.sensors.items()}
+        self._rings = {name: self._rings[name] if self.fields.get(name) == f
+                       else _Ring(len(f)) for name, f in fields.items()}
+        self.fields = fields
+
     @property
     def nbytes(self) -> int:
         """The memory the rings hold (fixed from the start)."""

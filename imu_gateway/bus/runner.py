@@ -25,6 +25,7 @@ import asyncio
 import contextlib
 import functools
 import logging
+import math
 from collections import deque
 from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
@@ -226,3 +227,70 @@ class BusThread:
             if not await asyncio.to_thread(self.reactor.join, 5.0):
                 return  # (its pipe stays open: the thread may still post to it)
         self.reactor.close()
+
+    # ------------------------------------------------------------ a reload
+
+    async def stop_one(self, name: str, grace: float) -> None:
+        """Stop one bus (its exchange in flight finished, its port closed) while the
+        others run on; its runner is dropped.  The thread is held meanwhile: a loop
+        whose every client is done would end (``Reactor._main``)."""
+        runner = self.runners.pop(name)
+        if not self.reactor.running:
+            return
+        hold = _Hold()
+        self.reactor.post(functools.partial(self.reactor.clients.append, hold))
+        runner.stop()
+        try:
+            deadline = asyncio.get_running_loop().time() + grace
+            while not await runner.call(lambda: runner.master.done):
+                if asyncio.get_running_loop().time() > deadline:
+                    log.warning("bus %s: not stopped after %.0f s; stopping it now", name, grace)
+                    self.reactor.post(runner.master.finish)
+                    break
+                await asyncio.sleep(0.01)
+        finally:
+            self.reactor.post(functools.partial(_drop, self.reactor, runner.master))
+            self.reactor.post(functools.partial(_drop, self.reactor, hold))
+        await self._handed_over()
+
+    async def _handed_over(self) -> None:
+        """Wait until what the bus thread handed the cache so far has reached it (a
+        stopped master's last counters must not arrive after its bus is gone)."""
+        future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        marker = functools.partial(_settle_none, future)
+        if self.reactor.post(functools.partial(self.writer.hand, marker)):
+            await future
+
+    def start_one(self, config: BusConfig, frames: int | None = None) -> BusRunner:
+        """A new bus on the running thread (``frames``: its frames kept, as
+        ``record_frames``)."""
+        runner = BusRunner(config, self.writer, self.reactor)
+        if frames is not None:
+            runner.record_frames(frames)
+        self.runners[config.name] = runner
+        if self.reactor.running:
+            runner.start()
+        return runner
+
+
+def _settle_none(future: asyncio.Future[None]) -> None:
+    if not future.done():
+        future.set_result(None)
+
+
+class _Hold:
+    """A client of the bus loop that keeps it running while a bus is replaced."""
+
+    done = False
+
+    def next_at(self) -> float:
+        return math.inf
+
+    def on_timer(self, now: float) -> None:
+        pass
+
+
+def _drop(reactor: Reactor, client: object) -> None:
+    """(On the bus thread.)"""
+    with contextlib.suppress(ValueError):
+        reactor.clients.remove(client)  # type: ignore[arg-type]

@@ -7,6 +7,7 @@ import contextlib
 import os
 import re
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -134,22 +135,7 @@ def load_config_text(
     text: str, source: str = "<config>", env: Mapping[str, str] | None = None
 ) -> GatewayConfig:
     """Parse and validate YAML text; ``source`` names it in file-level problems."""
-    try:
-        data = yaml.load(text, Loader=_Loader)  # a SafeLoader subclass
-    except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark or exc.context_mark
-        where = f"{source}:{mark.line + 1}:{mark.column + 1}" if mark else source
-        what = " ".join(str(exc.problem or exc.context or "syntax error").split())
-        raise ConfigError([f"{where}: invalid YAML: {what}"]) from None
-    except yaml.YAMLError as exc:
-        raise ConfigError([f"{source}: invalid YAML: {' '.join(str(exc).split())}"]) from None
-    if data is None:
-        raise ConfigError([f"{source}: empty file: expected a mapping with at least 'buses'"])
-    if not isinstance(data, dict):
-        raise ConfigError(
-            [f"{source}: the top level must be a mapping (key: value), not {_kind(data)}"]
-        )
-    return config_from_dict(data, env)
+    return config_from_dict(parse_text(text, source), env)
 
 
 def load_config(path: str | os.PathLike[str], env: Mapping[str, str] | None = None
@@ -173,3 +159,168 @@ def load_config(path: str | os.PathLike[str], env: Mapping[str, str] | None = No
         raise ConfigError([f"{source}: not UTF-8 text (bad byte at offset {exc.start})"]) \
             from None
     return load_config_text(text, source, env)
+
+
+# ------------------------------------------------------- the file as written: a reload
+
+#: The config's secrets, by YAML path (``*``: any key): shown as their ``${VAR}``
+#: reference, or as ``***`` when written literally (``GET /api/v1/config``).
+SECRET_PATHS = (("mqtt", "password"), ("http", "token"), ("opcua", "users", "*"),
+                ("http", "tokens", "*"), ("http", "users", "*"))
+HIDDEN = "***"
+_ONLY_REFS = re.compile(r"(?:\$\{[A-Za-z_][A-Za-z0-9_]*\}|\$\$\{|[^$])*")
+
+
+@dataclass
+class ConfigSource:
+    """The config as written: its file (``None``: given in memory) and its data with
+    every ``${VAR}`` unexpanded (what ``GET`` shows, and what a ``PUT`` saves)."""
+
+    path: Path | None
+    data: Any  # a ruamel CommentedMap as read (comments kept), or plain data
+
+    @classmethod
+    def read(cls, path: str | os.PathLike[str]) -> ConfigSource:
+        """The file's text, parsed without expanding anything (after ``load_config``
+        accepted it)."""
+        return cls(Path(path), round_trip_load(Path(path).read_text("utf-8-sig")))
+
+
+def round_trip_load(text: str) -> Any:
+    """YAML with its comments and key order (ruamel.yaml's round trip)."""
+    from ruamel.yaml import YAML  # (only a reload needs it)
+
+    return YAML(typ="rt").load(text)
+
+
+def _secret_keys(data: Any, pattern: tuple[str, ...]) -> list[tuple[Any, Any]]:
+    """(mapping, key) of each secret the pattern finds in ``data``."""
+    *parents, last = pattern
+    found = [data]
+    for step in parents:
+        found = [m[step] for m in found if isinstance(m, Mapping) and isinstance(
+            m.get(step), Mapping)]
+    return [(m, k) for m in found for k in list(m) if last in ("*", k)]
+
+
+def shown(data: Any) -> Any:
+    """A copy of the config's data with every secret hidden: a value that is only
+    ``${VAR}`` references stays as written; a literal one becomes ``***``."""
+    copy = copy_plain(data)
+    for pattern in SECRET_PATHS:
+        for mapping, key in _secret_keys(copy, pattern):
+            value = mapping[key]
+            if not (isinstance(value, str) and "${" in value
+                    and _ONLY_REFS.fullmatch(value) and _no_literal(value)):
+                mapping[key] = None if value is None else HIDDEN
+    return copy
+
+
+def _no_literal(value: str) -> bool:
+    """Nothing but references: ``${A}`` or ``${A}${B}``, no secret text beside them."""
+    return not re.sub(r"\$\{[A-Za-z_][A-Za-z0-9_]*\}", "", value)
+
+
+def with_secrets_kept(new: Any, old: Any) -> Any:
+    """``new`` (a PUT's data) where each secret sent back as ``***`` takes its value
+    from ``old`` (the config as written): a client that read a hidden secret can send
+    the whole config back without knowing it."""
+    merged = copy_plain(new)
+    for pattern in SECRET_PATHS:
+        for mapping, key in _secret_keys(merged, pattern):
+            if mapping[key] == HIDDEN:
+                previous = [m[k] for m, k in _secret_keys(old, pattern) if k == key]
+                if previous:
+                    mapping[key] = previous[0]
+    return merged
+
+
+def copy_plain(data: Any) -> Any:
+    """Plain dicts and lists (no comments), deep."""
+    if isinstance(data, Mapping):
+        return {k: copy_plain(v) for k, v in data.items()}
+    if isinstance(data, list | tuple):
+        return [copy_plain(v) for v in data]
+    return data
+
+
+def merged_into(tree: Any, data: Any) -> Any:
+    """``data`` written into ``tree`` (a ruamel mapping read from the file) in place:
+    keys kept keep their place and comments, new ones go at the end, removed ones
+    go; list items are matched by position.  Returns what to dump."""
+    if isinstance(tree, dict) and isinstance(data, Mapping):
+        for key in [k for k in tree if k not in data]:
+            del tree[key]
+        for key, value in data.items():
+            tree[key] = merged_into(tree[key], value) if key in tree else value
+        return tree
+    if isinstance(tree, list) and isinstance(data, list):
+        for i, value in enumerate(data):
+            if i < len(tree):
+                tree[i] = merged_into(tree[i], value)
+            else:
+                tree.append(value)
+        del tree[len(data):]
+        return tree
+    return data
+
+
+def save_atomically(path: Path, data: Any) -> None:
+    """``data`` written over ``path`` with the comments of what is there: a temporary
+    file beside it, fsync'd, then renamed; the previous file kept as ``<name>.bak``.
+    Raises ``OSError`` (a read-only file or folder)."""
+    from ruamel.yaml import YAML
+
+    text = path.read_text("utf-8-sig")
+    tree = merged_into(round_trip_load(text), data)
+    if not os.access(path, os.W_OK):  # (renaming over it would still work in its folder)
+        raise PermissionError(13, "the file is read-only", str(path))
+    temp = path.with_name(f".{path.name}.new")
+    yaml_rt = YAML(typ="rt")
+    yaml_rt.preserve_quotes = True
+    with open(temp, "w", encoding="utf-8") as out:
+        yaml_rt.dump(tree, out)
+        out.flush()
+        os.fsync(out.fileno())
+    try:
+        os.chmod(temp, path.stat().st_mode & 0o777)
+        backup = path.with_name(path.name + ".bak")
+        with contextlib.suppress(FileNotFoundError):
+            backup.unlink()
+        os.link(path, backup)
+        os.replace(temp, path)
+    except OSError:
+        with contextlib.suppress(OSError):
+            temp.unlink()
+        raise
+    _fsync_dir(path.parent)
+
+
+def _fsync_dir(folder: Path) -> None:
+    """The rename itself made durable (where the system allows a folder's fsync)."""
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def parse_text(text: str, source: str = "<config>") -> dict[str, Any]:
+    """YAML (or JSON, a subset) to a mapping, unexpanded.  Raises ``ConfigError``."""
+    try:
+        data = yaml.load(text, Loader=_Loader)  # a SafeLoader subclass
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        where = f"{source}:{mark.line + 1}:{mark.column + 1}" if mark else source
+        what = " ".join(str(exc.problem or exc.context or "syntax error").split())
+        raise ConfigError([f"{where}: invalid YAML: {what}"]) from None
+    except yaml.YAMLError as exc:
+        raise ConfigError([f"{source}: invalid YAML: {' '.join(str(exc).split())}"]) from None
+    if data is None:
+        raise ConfigError([f"{source}: empty file: expected a mapping with at least 'buses'"])
+    if not isinstance(data, dict):
+        raise ConfigError(
+            [f"{source}: the top level must be a mapping (key: value), not {_kind(data)}"]
+        )
+    return data

@@ -325,6 +325,7 @@ def _load_or_report(path: str) -> GatewayConfig | None:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from ..app import run_until_signalled
+    from ..config.loading import ConfigSource
     from ..errors import StartupError
 
     config = _load_or_report(args.config)
@@ -342,7 +343,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
                         format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
     try:
-        asyncio.run(run_until_signalled(config, args.stats_interval))
+        asyncio.run(run_until_signalled(config, args.stats_interval,
+                                        source=ConfigSource.read(args.config)))
     except StartupError as exc:
         print(f"imu-gateway run: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -129,16 +129,7 @@ class ModbusTcpServer(Frontend):
         super().__init__()
         self.gateway = gateway
         self.config = config
-        protocols = {s.name: b.protocol for b, s in gateway.config.iter_sensors()}
-        self._protocols = protocols
-        alarms: dict[str, list[AlarmState]] = {name: [] for name in gateway.sensors}
-        for state in gateway.alarm_states():  # (in order: the communication alarm last)
-            alarms[state.sensor].append(state)
-        self.units = {s.unit_id: _Unit(s, protocols[s.name], alarms[s.name])
-                      for s in gateway.sensors.values()}
-        self._by_name = {u.sensor.name: u for u in self.units.values()}
-        self.raw_units = {s.raw_unit_id: s.name for s in gateway.sensors.values()
-                          if s.raw_unit_id is not None}
+        self.sensors_changed()
         self._decoder = DecodePDU(is_server=True)
         self.connections: set[_Connection] = set()
         self.counts: Counter[str] = Counter()
@@ -149,14 +140,32 @@ class ModbusTcpServer(Frontend):
         self._housekeeping: asyncio.TimerHandle | None = None
         # ALARM events too: the alarms' bits change only at a transition.
         gateway.cache.subscribe(self._on_cache_event, self.fail, kinds=ALL_EVENTS)
+
+    def sensors_changed(self) -> None:
+        """The unit map made from the gateway's sensors (at start, and at once after a
+        reload changed them: the connections stay)."""
+        gateway = self.gateway
+        protocols = {s.name: b.protocol for b, s in gateway.config.iter_sensors()}
+        self._protocols = protocols
+        alarms: dict[str, list[AlarmState]] = {name: [] for name in gateway.sensors}
+        for state in gateway.alarm_states():  # (in order: the communication alarm last)
+            alarms[state.sensor].append(state)
+        self.units = {s.unit_id: _Unit(s, protocols[s.name], alarms[s.name])
+                      for s in gateway.sensors.values()}
+        self._by_name = {u.sensor.name: u for u in self.units.values()}
+        self.raw_units = {s.raw_unit_id: s.name for s in gateway.sensors.values()
+                          if s.raw_unit_id is not None}
         for name, unit in self._by_name.items():
             unit.image.set_reading(gateway.cache.snapshot(name).reading)
 
     def _on_cache_event(self, kind: EventKind, snap: Snapshot) -> None:
+        unit = self._by_name.get(snap.name)  # (None: a sensor a reload just removed)
+        if unit is None:
+            return
         if kind is EventKind.READING:
-            self._by_name[snap.name].image.set_reading(snap.reading)
+            unit.image.set_reading(snap.reading)
         elif kind is EventKind.ALARM and snap.alarm is not None:
-            self._by_name[snap.name].alarm_changed(snap.alarm.state)
+            unit.alarm_changed(snap.alarm.state)
 
     async def start(self) -> None:
         """Listen on the plain port and the TLS port, those configured; raises

@@ -48,6 +48,7 @@ from .access import (
     token_matches,
 )
 from .captures import capture_routes
+from .config_routes import config_routes
 from .limits import API, MAX_STREAMS
 from .metrics import GatewayCollector
 from .models import (
@@ -112,6 +113,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     for spec in CATALOGUE.values():
         _command_route(app, routes, spec)
     capture_routes(app, gateway, routes.reads, routes.commands)
+    config_routes(app, gateway, config)
     _metrics_route(app, routes)
     app.add_middleware(BodyGuard, config=config)
     app.openapi = _openapi_of(app)  # type: ignore[method-assign]
@@ -276,11 +278,11 @@ def _status_routes(app: FastAPI, routes: _Routes) -> None:
 def _sensor_routes(app: FastAPI, routes: _Routes) -> None:
     """The sensors: the list, one sensor, its latest reading."""
     gateway = routes.gateway
-    bus_of = {s.name: b for b, s in gateway.config.iter_sensors()}
     bodies: dict[str, tuple[tuple[int, Status], bytes]] = {}  # the latest reading's JSON
 
     def sensor_out(snap: Snapshot, stats: SensorStats) -> dict[str, Any]:
-        sensor, bus = gateway.sensors[snap.name], bus_of[snap.name]
+        sensor = gateway.sensors[snap.name]  # (a reload may change them: looked up here)
+        bus = next(b for b, s in gateway.config.iter_sensors() if s.name == snap.name)
         return {"name": snap.name, "bus": bus.name, "series": sensor.series.name,
                 "protocol": bus.protocol.name.lower(),
                 "address": stats.address,  # the live one, after a set_address too

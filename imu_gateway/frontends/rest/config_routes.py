@@ -1,0 +1,91 @@
+"""The config over REST (docs/rest.md, "The config"): ``GET /api/v1/config`` shows it
+as written, secrets hidden; ``PUT /api/v1/config`` checks a new one, applies it as a
+reload, and saves it to the file (``?dry_run=1``: the problems and the diff only)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Protocol, runtime_checkable
+
+from fastapi import Depends, FastAPI, Query, Request
+from fastapi.responses import JSONResponse
+
+from ...config import HttpConfig
+from ...config.loading import parse_text
+from ...errors import ConfigError, ErrorKind, RequestFailed
+from ..common import GatewayLike
+from .access import Credentials, token_matches
+from .limits import API
+from .models import ErrorOut
+
+#: The largest config a PUT may send (a config of 250 sensors is about 40 kB).
+MAX_CONFIG_BODY = 1 << 20
+
+
+@runtime_checkable
+class _Reloader(Protocol):
+    def shown(self) -> Any: ...
+
+    async def put(self, data: Any, dry_run: bool) -> Any: ...
+
+
+def _reloader(gateway: GatewayLike) -> _Reloader:
+    reloader = getattr(gateway, "reloader", None)
+    if not isinstance(reloader, _Reloader):
+        raise RequestFailed(ErrorKind.NOT_FOUND, "this gateway cannot change its config")
+    return reloader
+
+
+def config_routes(app: FastAPI, gateway: GatewayLike, config: HttpConfig) -> None:
+    """``GET`` and ``PUT /api/v1/config``: both an admin's (today, the bearer token)."""
+
+    # role: admin
+    async def admin(credentials: Credentials) -> None:
+        if config.token is None:
+            raise RequestFailed(ErrorKind.FORBIDDEN, "the config over REST needs http.token "
+                                "(the bearer token an admin sends); none is set")
+        if credentials is None or not token_matches(credentials.credentials, config.token):
+            raise RequestFailed(ErrorKind.UNAUTHORISED, "a valid bearer token is required")
+
+    responses: dict[int | str, dict[str, Any]] = {
+        code: {"model": ErrorOut} for code in (401, 403, 404, 413)}
+
+    # role: admin
+    @app.get(f"{API}/config", dependencies=[Depends(admin)], responses=responses,
+             summary="the config as written: every secret as its ${VAR} reference, or ***",
+             tags=["config"])
+    async def get_config() -> JSONResponse:
+        return JSONResponse({"config": _reloader(gateway).shown()})
+
+    # role: admin
+    @app.put(f"{API}/config", dependencies=[Depends(admin)], responses=responses,
+             summary="a new config (YAML or JSON): checked, applied live, saved",
+             tags=["config"])
+    async def put_config(
+        request: Request,
+        dry_run: Annotated[bool, Query(description="only check it and show the diff")] = False,
+    ) -> JSONResponse:
+        reloader = _reloader(gateway)
+        text = await _body(request)
+        try:
+            data = parse_text(text, "the body")
+            outcome = await reloader.put(data, dry_run)
+        except ConfigError as exc:
+            return JSONResponse({"error": f"the config has {len(exc.problems)} problem"
+                                 f"{'s' if len(exc.problems) != 1 else ''}; nothing changed",
+                                 "kind": "invalid_config", "problems": exc.problems}, 422)
+        return JSONResponse(outcome.to_json())
+
+
+async def _body(request: Request) -> str:
+    """The body as text, at most ``MAX_CONFIG_BODY`` bytes (read after the access
+    check: an unauthorised client's body is never read)."""
+    body = bytearray()
+    async for chunk in request.stream():
+        body += chunk
+        if len(body) > MAX_CONFIG_BODY:
+            raise RequestFailed(ErrorKind.TOO_LARGE, f"the body is over {MAX_CONFIG_BODY} bytes")
+    try:
+        return body.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS,
+                            f"the body is not UTF-8 (bad byte at offset {exc.start})") from None

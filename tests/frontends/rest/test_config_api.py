@@ -1,0 +1,158 @@
+"""GET and PUT /api/v1/config (docs/rest.md, "The config") through a real HTTP client
+against a running gateway on a simulated line, its config in a real file."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from support.harness import until
+
+from imu_gateway.app import Gateway
+from imu_gateway.config import load_config
+from imu_gateway.config.loading import ConfigSource
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.simulator import hold, make_sensor, simulated
+from imu_gateway.simulator.motion import Motion
+
+READING = Motion.from_seed(3).sample(10.0)
+TOKEN = "t0ken-for-tests"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+FILE = """\
+# the plant's gateway
+gateway_id: test
+buses:
+  - name: a   # the boom's line
+    port: {port}
+    protocol: native
+    baudrate: 115200
+    timeout_ms: 300
+    sensors:
+      - name: boom
+        series: AH
+mqtt:
+  url: mqtt://127.0.0.1:1
+  username: gateway
+  password: ${{MQTT_PASSWORD}}   # from the environment
+http:
+  listen: 127.0.0.1:0
+  token: {token}
+"""
+
+
+async def _running(path: Path) -> Any:
+    import asyncio
+    import contextlib
+
+    @contextlib.asynccontextmanager
+    async def block() -> Any:
+        gateway = Gateway(load_config(path), ConfigSource.read(path))
+        stop = asyncio.Event()
+        task = asyncio.create_task(gateway.run(stop))
+        try:
+            await until(lambda: gateway.http is not None and gateway.http.listening)
+            yield gateway
+        finally:
+            stop.set()
+            await asyncio.wait_for(task, 15)
+    return block()
+
+
+@pytest.fixture
+def setup(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Any:
+    monkeypatch.setenv("MQTT_PASSWORD", "the-real-password")
+    a1 = make_sensor(WireProtocol.NATIVE, Series.AH, baud=115200, source=hold(READING))
+    a2 = make_sensor(WireProtocol.NATIVE, Series.AH, address=1, baud=115200,
+                     source=hold(READING))
+    with simulated([a1, a2]) as line:
+        path = tmp_path / "gateway.yaml"
+        path.write_text(FILE.format(port=line.path, token=TOKEN))
+        yield path
+
+
+def client(gateway: Gateway) -> httpx.AsyncClient:
+    assert gateway.http is not None
+    return httpx.AsyncClient(base_url=f"http://127.0.0.1:{gateway.http.port}",
+                             timeout=15, headers=AUTH)
+
+
+def added(config: dict[str, Any]) -> dict[str, Any]:
+    config["buses"][0]["sensors"].append({"name": "boom2", "series": "AH", "address": 1})
+    return config
+
+
+@pytest.mark.anyio
+async def test_get_shows_references_and_hides_literal_secrets(setup: Path) -> None:
+    async with await _running(setup) as gw, client(gw) as http:
+        got = (await http.get("/api/v1/config")).json()["config"]
+        assert got["mqtt"]["password"] == "${MQTT_PASSWORD}"
+        assert got["http"]["token"] == "***"
+        raw = (await http.get("/api/v1/config")).text
+        assert "the-real-password" not in raw and TOKEN not in raw
+        no_token = await http.get("/api/v1/config", headers={"Authorization": ""})
+        assert no_token.status_code == 401
+
+
+@pytest.mark.anyio
+async def test_put_adds_a_sensor_live_and_saves_comments_and_references(setup: Path) -> None:
+    """The config sent back as GET gave it (secrets hidden), with a sensor more: it is
+    served at once, the file keeps its comments and ${VAR}, the old one is .bak."""
+    before = setup.read_text()
+    async with await _running(setup) as gw, client(gw) as http:
+        config = added((await http.get("/api/v1/config")).json()["config"])
+        dry = await http.put("/api/v1/config?dry_run=1", json=config)
+        assert dry.status_code == 200 and dry.json()["applied"] is False
+        assert dry.json()["diff"]["sensors"]["added"] == [{"sensor": "boom2", "bus": "a"}]
+        assert "boom2" not in gw.sensors and setup.read_text() == before
+        answer = await http.put("/api/v1/config", json=config)
+        assert answer.status_code == 200, answer.text
+        body = answer.json()
+        assert body["applied"] and body["saved"], body
+        sensors = (await http.get("/api/v1/sensors")).json()
+        assert [s["name"] for s in sensors] == ["boom", "boom2"]
+        await until(lambda: gw.cache.snapshot("boom2").has_reading)
+    text = setup.read_text()
+    assert "# the plant's gateway" in text and "# the boom's line" in text
+    assert "${MQTT_PASSWORD}" in text and "the-real-password" not in text
+    assert f"token: {TOKEN}" in text  # the *** sent back kept the file's value
+    assert "boom2" in text
+    assert setup.with_name("gateway.yaml.bak").read_text() == before
+
+
+@pytest.mark.anyio
+async def test_a_broken_config_changes_nothing(setup: Path) -> None:
+    before = setup.read_text()
+    async with await _running(setup) as gw, client(gw) as http:
+        config = (await http.get("/api/v1/config")).json()["config"]
+        config["buses"][0]["baudrate"] = 12345
+        config["buses"][0]["sensors"].append({"name": "boom", "series": "XY"})
+        answer = await http.put("/api/v1/config", json=config)
+        assert answer.status_code == 422
+        problems = answer.json()["problems"]
+        assert any(p.startswith("buses[0].baudrate:") for p in problems), problems
+        assert any(p.startswith("buses[0].sensors[1].series:") for p in problems), problems
+        bad_yaml = await http.put("/api/v1/config", content="buses: [")
+        assert bad_yaml.status_code == 422 and "invalid YAML" in bad_yaml.json()["problems"][0]
+        assert list(gw.sensors) == ["boom"] and gw.config.buses[0].baudrate == 115200
+    assert setup.read_text() == before
+
+
+@pytest.mark.anyio
+async def test_a_read_only_file_is_applied_live_and_not_saved(setup: Path) -> None:
+    if os.geteuid() == 0:
+        pytest.skip("root writes a read-only file")
+    before = setup.read_text()
+    setup.chmod(0o444)
+    async with await _running(setup) as gw, client(gw) as http:
+        config = added((await http.get("/api/v1/config")).json()["config"])
+        body = (await http.put("/api/v1/config", json=config)).json()
+        assert body["applied"] and not body["saved"] and "not saved" in body["note"]
+        assert "boom2" in gw.sensors
+        assert "boom2" in [c["name"] for c in
+                           (await http.get("/api/v1/config")).json()["config"]["buses"][0]
+                           ["sensors"]]
+    assert setup.read_text() == before

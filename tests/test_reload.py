@@ -1,0 +1,137 @@
+"""Reload without a restart (docs/configuration.md, "Changing the config while
+running"): the diff on values alone, then a reload under load against simulated lines."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+import pytest
+from pymodbus.client import AsyncModbusTcpClient
+from support.harness import running, until
+
+from imu_gateway.config import config_from_dict
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.reload import diff_configs
+from imu_gateway.simulator import hold, make_sensor, simulated
+from imu_gateway.simulator.motion import Motion
+
+FAST = 115200
+READING = Motion.from_seed(3).sample(10.0)
+
+
+def bus(name: str, port: str, sensors: list[dict[str, Any]], **more: Any) -> dict[str, Any]:
+    return {"name": name, "port": port, "protocol": "native", "baudrate": FAST,
+            "timeout_ms": 300, "sensors": sensors, **more}
+
+
+def gateway(buses: list[dict[str, Any]], **sections: Any) -> dict[str, Any]:
+    return {"gateway_id": "test", "buses": buses, **sections}
+
+
+def test_an_unchanged_config_is_no_change() -> None:
+    config = config_from_dict(gateway([bus("a", "/dev/null", [{"name": "s", "series": "AH"}])]))
+    diff = diff_configs(config, config)
+    assert diff.empty and diff.summary() == "reload: no change"
+
+
+def test_the_diff_names_each_part_and_its_change() -> None:
+    """A sensor added restarts its bus only; a baud rate changed restarts that bus; a
+    bus and a front end untouched are named unchanged; http needs a restart."""
+    old = config_from_dict(gateway(
+        [bus("line-a", "/dev/null", [{"name": "boom", "series": "AH"}]),
+         bus("line-b", "/dev/zero", [{"name": "arm", "series": "VG"}], baudrate=9600),
+         bus("line-c", "/dev/tty", [{"name": "mast", "series": "IMU"}])],
+        modbus={"listen": "127.0.0.1:0"}, http={"listen": "127.0.0.1:8080"}), env={})
+    new = config_from_dict(gateway(
+        [bus("line-a", "/dev/null", [{"name": "boom", "series": "AH"},
+                                     {"name": "boom2", "series": "AH", "address": 1}]),
+         bus("line-b", "/dev/zero", [{"name": "arm", "series": "VG"}], baudrate=19200),
+         bus("line-c", "/dev/tty", [{"name": "mast", "series": "IMU"}])],
+        modbus={"listen": "127.0.0.1:0"}, http={"listen": "127.0.0.1:8081"}), env={})
+    diff = diff_configs(old, new)
+    assert [(m.sensor, m.bus) for m in diff.sensors_added] == [("boom2", "line-a")]
+    assert diff.buses_restarted == ("line-b", "line-a")
+    assert diff.buses_unchanged == ("line-c",)
+    assert [c.describe() for c in diff.buses_changed] == ["line-b (baudrate 9600→19200)"]
+    assert diff.frontends_unchanged == ("modbus",)
+    assert [c.name for c in diff.needs_restart] == ["http"]
+    assert diff.summary() == (
+        "reload: +1 sensor (boom2 on line-a, line-a restarted), line-b restarted "
+        "(baudrate 9600→19200), sensor arm (unit_id 2→3), sensor mast (unit_id 3→4), "
+        "needs a restart: http (listen 127.0.0.1:8080→127.0.0.1:8081), "
+        "unchanged: line-c, modbus")
+
+
+def test_unit_ids_and_alarms_restart_no_bus() -> None:
+    """A unit id or an alarm is not the bus's business: the bus is kept."""
+    old = config_from_dict(gateway([bus("a", "/dev/null", [{"name": "s", "series": "AH"}])]))
+    new = config_from_dict(gateway([bus("a", "/dev/null", [
+        {"name": "s", "series": "AH", "unit_id": 9,
+         "alarms": [{"name": "tilt", "field": "pitch", "above": 5}]}])]))
+    diff = diff_configs(old, new)
+    assert diff.buses_restarted == () and diff.buses_changed == ()
+    assert [c.name for c in diff.sensors_changed] == ["s"] and diff.sensor_set_changed
+
+
+def test_a_secret_changed_is_named_never_shown() -> None:
+    old = config_from_dict(gateway([bus("a", "/dev/null", [{"name": "s", "series": "AH"}])],
+                                   http={"token": "old-secret"}))
+    new = config_from_dict(gateway([bus("a", "/dev/null", [{"name": "s", "series": "AH"}])],
+                                   http={"token": "new-secret"}))
+    summary = diff_configs(old, new).summary()
+    assert "token changed" in summary and "secret" not in summary
+
+
+async def _poll_modbus(port: int, gaps: list[float], stop: asyncio.Event) -> None:
+    async with AsyncModbusTcpClient("127.0.0.1", port=port) as client:
+        last = asyncio.get_running_loop().time()
+        while not stop.is_set():
+            answer = await client.read_input_registers(0, count=4, device_id=1)
+            assert not answer.isError(), answer
+            now = asyncio.get_running_loop().time()
+            gaps.append(now - last)
+            last = now
+            await asyncio.sleep(0.02)
+
+
+@pytest.mark.anyio
+async def test_a_reload_under_load_keeps_the_unchanged_bus_running() -> None:
+    """Line a unchanged, line b changed (a sensor added): a Modbus TCP poller of a's
+    sensor sees no gap longer than its normal period, a's master and port are the same
+    (opened once), its counters go on; b's sensor is added and answers."""
+    a = make_sensor(WireProtocol.NATIVE, Series.AH, baud=FAST, source=hold(READING))
+    b1 = make_sensor(WireProtocol.NATIVE, Series.AH, baud=FAST, source=hold(READING))
+    b2 = make_sensor(WireProtocol.NATIVE, Series.AH, address=1, baud=FAST,
+                     source=hold(READING))
+    with simulated([a]) as line_a, simulated([b1, b2]) as line_b:
+        buses = [bus("a", line_a.path, [{"name": "boom", "series": "AH", "unit_id": 1}]),
+                 bus("b", line_b.path, [{"name": "arm", "series": "AH", "unit_id": 2}])]
+        first = gateway(buses, modbus={"listen": "127.0.0.1:0"})
+        async with running(first) as gw:
+            assert gw.modbus is not None
+            await until(lambda: gw.cache.snapshot("boom").has_reading
+                        and gw.cache.snapshot("arm").has_reading)
+            master_a = gw.masters["a"]
+            before = next(s.transactions for s in gw.stats() if s.name == "a")
+            gaps: list[float] = []
+            stop = asyncio.Event()
+            poller = asyncio.create_task(_poll_modbus(gw.modbus.port, gaps, stop))
+            await until(lambda: len(gaps) > 20)
+            normal = max(gaps[1:])
+            buses[1]["sensors"].append({"name": "arm2", "series": "AH", "address": 1,
+                                         "unit_id": 3})
+            diff = await gw.reloader._apply(config_from_dict(first, env={}))
+            assert diff.buses_restarted == ("b",) and diff.buses_unchanged == ("a",)
+            count = len(gaps)
+            await until(lambda: len(gaps) > count + 20)
+            stop.set()
+            await poller
+            after = gaps[count - 1:]
+            assert max(after) <= max(2 * normal, 0.25), (max(after), normal)
+            assert gw.masters["a"] is master_a
+            assert master_a.link._opens == 1  # the port was opened once, never again
+            # its counters go on from where they were (not from zero)
+            assert next(s.transactions for s in gw.stats() if s.name == "a") > before
+            await until(lambda: gw.cache.snapshot("arm2").has_reading)
+            assert 3 in gw.modbus.units
