@@ -8,13 +8,10 @@ A real HTTP client (httpx) against the running gateway on simulated sensors."""
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import csv
 import io
 import json
 import logging
-import os
-import subprocess
 import time
 import zipfile
 from collections.abc import Iterator
@@ -25,6 +22,7 @@ import httpx
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 from support.harness import expected, running, tolerance, until
+from support.readonly import read_only
 
 from imu_gateway.app import Gateway
 from imu_gateway.model import Series, WireProtocol
@@ -173,23 +171,6 @@ async def test_an_id_names_no_path_outside_the_folder(two_lines: Any, tmp_path: 
             status, answer = await raw_get(gateway.http.port, f"{API}/captures/{tail}")
             assert status == 404, (tail, answer[:300])
             assert secret not in answer and b"application/zip" not in answer, tail
-
-
-@contextlib.contextmanager
-def read_only(folder: Path) -> Iterator[None]:
-    """``folder`` on a read-only file system (root writes through any mode bits), or
-    read-only by its mode for anyone else."""
-    folder.mkdir()
-    if os.geteuid() != 0:
-        folder.chmod(0o555)
-        yield
-        return
-    subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(folder)],
-                   check=True)
-    try:
-        yield
-    finally:
-        subprocess.run(["umount", str(folder)], check=True)
 
 
 @pytest.mark.anyio
