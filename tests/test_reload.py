@@ -4,11 +4,17 @@ running"): the diff on values alone, then a reload under load against simulated 
 from __future__ import annotations
 
 import asyncio
-from typing import Any
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from typing import IO, Any
 
+import httpx
 import pytest
 from pymodbus.client import AsyncModbusTcpClient
-from support.harness import running, until
+from support.harness import free_port, running, until
 
 from imu_gateway.config import config_from_dict
 from imu_gateway.model import Series, WireProtocol
@@ -135,3 +141,62 @@ async def test_a_reload_under_load_keeps_the_unchanged_bus_running() -> None:
             assert next(s.transactions for s in gw.stats() if s.name == "a") > before
             await until(lambda: gw.cache.snapshot("arm2").has_reading)
             assert 3 in gw.modbus.units
+
+
+def test_sighup_reads_the_file_again_and_a_broken_one_changes_nothing(tmp_path: Path) -> None:
+    """``imu-gateway run`` as a process: SIGHUP with a broken file logs its problems and
+    keeps the running config; SIGHUP with a sensor added logs the reload's summary, and
+    the new sensor reads (REST), while the first one goes on."""
+    sensors = [make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200),
+               make_sensor(WireProtocol.NATIVE, Series.AH, 1, baud=115200)]
+    port = free_port()
+    with simulated(sensors) as sim:
+        config = tmp_path / "gateway.yaml"
+        good = SIGHUP_CONFIG.format(port=sim.path, http=port)
+        config.write_text(good)
+        with subprocess.Popen([sys.executable, "-m", "imu_gateway", "run", "-c", str(config)],
+                              stderr=subprocess.PIPE, text=True) as proc:
+            watchdog = threading.Timer(90, proc.kill)
+            watchdog.start()
+            assert proc.stderr is not None
+            try:
+                wait_for_line(proc.stderr, "sensor boom: online")
+                config.write_text(good.replace("baudrate: 115200", "baudrate: 115201"))
+                proc.send_signal(signal.SIGHUP)
+                refused = wait_for_line(proc.stderr, "reload refused, nothing changed")
+                assert "buses[0].baudrate" in refused, refused
+                config.write_text(good + "      - {name: boom2, series: AH, address: 1, "
+                                  "poll_hz: 10}\n")
+                proc.send_signal(signal.SIGHUP)
+                summary = wait_for_line(proc.stderr, "reload:")
+                assert "boom2" in summary, summary
+                wait_for_line(proc.stderr, "sensor boom2: online")
+                with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=10) as http:
+                    names = [s["name"] for s in http.get("/api/v1/sensors").json()]
+                    assert names == ["boom", "boom2"], names
+                    assert http.get("/api/v1/sensors/boom/reading").status_code == 200
+                proc.send_signal(signal.SIGTERM)
+                assert proc.wait(timeout=20) == 0
+            finally:
+                watchdog.cancel()
+
+
+SIGHUP_CONFIG = """gateway_id: hup
+http: {{listen: "127.0.0.1:{http}"}}
+buses:
+  - name: line-a
+    port: {port}
+    baudrate: 115200
+    protocol: native
+    sensors:
+      - {{name: boom, series: AH, address: 0, poll_hz: 10}}
+"""
+
+
+def wait_for_line(stream: IO[str], text: str) -> str:
+    """The first line of ``stream`` with ``text`` in it (the watchdog ends a process
+    that never writes it)."""
+    for line in stream:
+        if text in line:
+            return line
+    raise AssertionError(f"the gateway ended without logging {text!r}")
