@@ -64,6 +64,7 @@ from .models import (
     SensorOut,
     TransitionOut,
 )
+from .procedures import procedure_routes
 from .streams import StreamHub, stream_peer
 
 #: Each error status's body, for the OpenAPI document.
@@ -112,6 +113,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     for spec in CATALOGUE.values():
         _command_route(app, routes, spec)
     capture_routes(app, gateway, routes.reads, routes.commands)
+    procedure_routes(app, gateway, routes.reads, routes.streams, routes.commands)
     _metrics_route(app, routes)
     app.add_middleware(BodyGuard, config=config)
     app.openapi = _openapi_of(app)  # type: ignore[method-assign]
