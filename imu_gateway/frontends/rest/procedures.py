@@ -15,10 +15,11 @@ import logging
 from collections import OrderedDict
 from collections.abc import AsyncGenerator, Awaitable, Callable
 from dataclasses import dataclass, field
+from importlib import resources
 from typing import Annotated, Any
 
 from fastapi import Depends, FastAPI, Request
-from fastapi.responses import JSONResponse, StreamingResponse
+from fastapi.responses import HTMLResponse, JSONResponse, StreamingResponse
 from pydantic import BaseModel, Field
 
 from ...cache import EventKind, Snapshot
@@ -237,6 +238,11 @@ def procedure_routes(app: FastAPI, gateway: GatewayLike, reads: list[Any],
                 <= commands_for(series, bus.protocol)]
         return {"available": able, "runs": [live.to_json() for live in
                                             procedures.runs.values() if live.sensor == name]}
+
+    @app.get("/wizards", response_class=HTMLResponse, include_in_schema=False)
+    async def page() -> HTMLResponse:
+        return HTMLResponse((resources.files("imu_gateway") / "static" / "wizards.html")
+                            .read_text(encoding="utf-8"))
 
     # role: operator
     @app.post(f"{base}/{{procedure}}", status_code=201, response_model=ProcedureOut,
