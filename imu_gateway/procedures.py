@@ -77,6 +77,9 @@ class Send:
     command: str
     args_of: Callable[[Args], Args | None] = lambda args: {}
     prompt: str = ""
+    #: left out unless its arguments ask for it (a sensor without it may still run
+    #: the procedure)
+    optional: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -152,10 +155,17 @@ PROCEDURES: Mapping[str, ProcedureSpec] = MappingProxyType({spec.name: spec for 
         frozenset(Series), ZeroArgs, (
             Look("before"),
             Send("set_zero_type", lambda a: {"type": a["type"]}),
-            Send("set_relative_heading", _heading),
+            Send("set_relative_heading", _heading, optional=True),
             Look("after")),
         offers=("save",)),
 )})
+
+
+def available(series: Series, commands: frozenset[str]) -> list[str]:
+    """The procedures a sensor of ``series`` that can carry ``commands``
+    (``commands.commands_for``) can run."""
+    return [spec.name for spec in PROCEDURES.values() if series in spec.series and {
+        s.command for s in spec.steps if isinstance(s, Send) and not s.optional} <= commands]
 
 
 def unknown_procedure(name: str) -> RequestFailed:

@@ -19,6 +19,7 @@ from imu_gateway.procedures import (
     SendCommand,
     State,
     Wait,
+    available,
     validate,
 )
 
@@ -194,6 +195,15 @@ def test_every_procedure_uses_catalogue_commands_only() -> None:
     from imu_gateway.commands import CATALOGUE
     for spec in PROCEDURES.values():
         assert spec.commands <= set(CATALOGUE), spec.name
+
+
+def test_what_each_sensor_can_run() -> None:
+    assert available(Series.AH, commands_for(Series.AH, NATIVE)) == [
+        "gyro_calibration", "mag_calibration", "zero"]
+    assert available(Series.AH, commands_for(Series.AH, MODBUS)) == ["gyro_calibration",
+                                                                     "zero"]
+    assert available(Series.MINS, commands_for(Series.MINS, MODBUS)) == ["gyro_calibration",
+                                                                         "zero"]
 
 
 def test_the_circle_ignores_readings_without_a_direction() -> None:

@@ -25,7 +25,7 @@ from pydantic import BaseModel, Field
 from ...cache import EventKind, Snapshot
 from ...commands import commands_for
 from ...errors import ErrorKind, RequestFailed
-from ...procedures import PROCEDURES, Run, SendCommand, validate
+from ...procedures import Run, SendCommand, available, validate
 from ..common import GatewayLike, json_bytes, peer_json
 from .limits import API, KEEPALIVE_S, MAX_BODY
 from .models import ErrorOut
@@ -233,9 +233,7 @@ def procedure_routes(app: FastAPI, gateway: GatewayLike, reads: list[Any],
         gateway.cache.snapshot(name)
         bus = next(b for b, s in gateway.config.iter_sensors() if s.name == name)
         series = gateway.sensors[name].series
-        able = [spec.name for spec in PROCEDURES.values() if series in spec.series
-                and spec.commands - {"set_relative_heading"}
-                <= commands_for(series, bus.protocol)]
+        able = available(series, commands_for(series, bus.protocol))
         return {"available": able, "runs": [live.to_json() for live in
                                             procedures.runs.values() if live.sensor == name]}
 
