@@ -16,6 +16,7 @@ import os
 import socket
 import stat
 import sys
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -26,7 +27,10 @@ from .sensor import SimSensor
 
 #: The longest command line taken; a longer one is refused and its connection closed.
 MAX_LINE = 256
-COMMANDS = "lean ADDRESS PITCH ROLL, lean ADDRESS off"
+COMMANDS = ("lean ADDRESS PITCH ROLL, lean ADDRESS off, turn ADDRESS HEADING [RATE], "
+            "turn ADDRESS off")
+#: A turn's heading and rate (deg/s) are at most this far from zero.
+TURN_LIMIT = 3600.0
 OK = "ok"
 
 
@@ -65,9 +69,11 @@ def _sensor(sensors: Sequence[SimSensor], text: str) -> SimSensor:
     return found[0]
 
 
-def execute(sensors: Sequence[SimSensor], line: str) -> str:
-    """Carry out one command line; the answer line (without its newline)."""
+def execute(sensors: Sequence[SimSensor], line: str, now: float | None = None) -> str:
+    """Carry out one command line at ``now`` (the simulator's clock; by default
+    ``time.monotonic()``, which it is); the answer line (without its newline)."""
     words = line.split()
+    now = time.monotonic() if now is None else now
     try:
         match words:
             case ["lean", address, "off"]:
@@ -76,6 +82,15 @@ def execute(sensors: Sequence[SimSensor], line: str) -> str:
                 sensor = _sensor(sensors, address)
                 sensor.lean(_number(pitch, "PITCH", PITCH_LIMIT),
                             _number(roll, "ROLL", ROLL_LIMIT))
+            case ["turn", address, "off"]:
+                _sensor(sensors, address).turn(None)
+            case ["turn", address, heading, *rate] if len(rate) <= 1:
+                sensor = _sensor(sensors, address)
+                sensor.turn(_number(heading, "HEADING", TURN_LIMIT),
+                            _number(rate[0], "RATE", TURN_LIMIT) if rate else 0.0, now)
+            case ["turn", *_]:
+                raise BadCommand(f"turn takes ADDRESS HEADING [RATE] or ADDRESS off, not "
+                                 f"{' '.join(words[1:])!r}")
             case []:
                 raise BadCommand(f"an empty line; the commands are {COMMANDS}")
             case ["lean", *_]:

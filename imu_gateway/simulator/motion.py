@@ -76,13 +76,16 @@ class Motion:
         yaw = (self.yaw0 + self.yaw_rate * t) % 360.0
         return 0.0 if yaw >= 360.0 else yaw  # a tiny negative value rounds up to 360.0 under %
 
-    def sample(self, t: float) -> Reading:
+    def sway(self, t: float) -> tuple[float, float, float, float]:
+        """Roll, pitch and their analytic rates (degrees, deg/s) at ``t``."""
         wr, wp = TAU * self.roll_freq, TAU * self.pitch_freq
-        roll = self.roll_amp * math.sin(wr * t + self.roll_phase)
-        pitch = self.pitch_amp * math.sin(wp * t + self.pitch_phase)
-        # Analytic Euler-angle rates (deg/s).
-        droll = self.roll_amp * wr * math.cos(wr * t + self.roll_phase)
-        dpitch = self.pitch_amp * wp * math.cos(wp * t + self.pitch_phase)
+        return (self.roll_amp * math.sin(wr * t + self.roll_phase),
+                self.pitch_amp * math.sin(wp * t + self.pitch_phase),
+                self.roll_amp * wr * math.cos(wr * t + self.roll_phase),
+                self.pitch_amp * wp * math.cos(wp * t + self.pitch_phase))
+
+    def sample(self, t: float) -> Reading:
+        roll, pitch, droll, dpitch = self.sway(t)
         return attitude(Angles(pitch, roll, self.yaw(t)), (droll, dpitch, self.yaw_rate),
                         (self.mag_north, self.mag_down))
 
@@ -162,7 +165,7 @@ class Leaned:
                                  f"to {limit:g}, not {value!r}")
 
     def sample(self, t: float) -> Reading:
-        if isinstance(self.base, Motion):
+        if isinstance(self.base, Motion | Turned):
             yaw, rate = self.base.yaw(t), self.base.yaw_rate
             field = (self.base.mag_north, self.base.mag_down)
         else:  # a still source: its heading, if it has one
@@ -170,3 +173,49 @@ class Leaned:
             yaw, rate, field = (angles.yaw if angles else 0.0), 0.0, (MAG_NORTH, MAG_DOWN)
         return attitude(Angles(float(self.pitch), float(self.roll), yaw), (0.0, 0.0, rate),
                         field)
+
+
+@dataclass(frozen=True, slots=True)
+class Turned:
+    """``base`` turned to a heading: ``yaw0`` (degrees) at ``since`` (the simulator's
+    clock, seconds), turning on at ``rate`` deg/s from there (0: held), as a person
+    turns a sensor in their hand.  Pitch and roll go on as ``base`` has them, and every
+    group follows the heading: the Earth's field turns in the sensor's frame, so mag x
+    against mag y draws a circle as the heading goes round."""
+
+    base: Source
+    yaw0: float
+    rate: float = 0.0
+    since: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name, value in (("heading", self.yaw0), ("rate", self.rate)):
+            if not math.isfinite(value) or abs(value) > 3600.0:
+                raise ValueError(f"a turn's {name} is a number of degrees (per second) from "
+                                 f"-3600 to 3600, not {value!r}")
+
+    @property
+    def yaw_rate(self) -> float:
+        return self.rate
+
+    @property
+    def mag_north(self) -> float:
+        return self.base.mag_north if isinstance(self.base, Motion) else MAG_NORTH
+
+    @property
+    def mag_down(self) -> float:
+        return self.base.mag_down if isinstance(self.base, Motion) else MAG_DOWN
+
+    def yaw(self, t: float) -> float:
+        yaw = (self.yaw0 + self.rate * (t - self.since)) % 360.0
+        return 0.0 if yaw >= 360.0 else yaw
+
+    def sample(self, t: float) -> Reading:
+        if isinstance(self.base, Motion):
+            roll, pitch, droll, dpitch = self.base.sway(t)
+        else:  # a still source: its pitch and roll, held
+            angles = self.base.sample(t).angles
+            roll, pitch = (angles.roll, angles.pitch) if angles else (0.0, 0.0)
+            droll = dpitch = 0.0
+        return attitude(Angles(pitch, roll, self.yaw(t)), (droll, dpitch, self.rate),
+                        (self.mag_north, self.mag_down))

@@ -26,7 +26,7 @@ from ..protocol import bcd, native
 from ..protocol import modbus_rtu as rtu
 from ..protocol.errors import FrameError
 from ..protocol.exchanges import Framer, char_time, rtu_silence
-from .motion import Leaned, Motion, Source
+from .motion import Leaned, Motion, Source, Turned
 
 
 @dataclass(slots=True)
@@ -87,6 +87,8 @@ class SimSensor(ABC):
     last_answer_end: float = 0.0  # when this sensor's latest answer leaves the wire
     #: the (pitch, roll) the sensor is held at (``lean``), or None: its source's motion
     leaning: tuple[float, float] | None = None
+    #: the heading the sensor is turned to (``turn``), or None: its source's
+    turning: Turned | None = None
     rng: random.Random = field(init=False)
 
     protocol: WireProtocol = field(init=False)
@@ -155,12 +157,25 @@ class SimSensor(ABC):
         Leaned(self.source, pitch, roll)  # checks the range
         self.leaning = (float(pitch), float(roll))
 
+    def turn(self, yaw: float | None, rate: float = 0.0, now: float = 0.0) -> None:
+        """Turn the sensor to heading ``yaw`` (degrees) at ``now`` (the simulator's
+        clock: ``time.monotonic()``), turning on at ``rate`` deg/s (0: held there); or
+        (``None``) let the heading follow its source again.  Pitch and roll stay as
+        they are (with a lean: the lean's).  A ``ValueError`` names a turn out of range,
+        and the sensor stays as it was.
+
+        From another thread: ``sim.call(sensor.turn, 0.0, 90.0, time.monotonic())``."""
+        self.turning = None if yaw is None else Turned(self.source, float(yaw), float(rate),
+                                                       now)
+
     @property
     def attitude(self) -> Source:
-        """The source with the lean, if any, applied: what every value comes from."""
+        """The source with the turn and the lean, if any, applied: what every value
+        comes from."""
+        source: Source = self.source if self.turning is None else self.turning
         if self.leaning is None:
-            return self.source
-        return Leaned(self.source, *self.leaning)
+            return source
+        return Leaned(source, *self.leaning)
 
     def measure(self, now: float, *, every_group: bool = False) -> Reading:
         """What the sensor reports at ``now``: its source through the zero type and the

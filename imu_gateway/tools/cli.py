@@ -282,7 +282,7 @@ def _simulate_control_parser(commands: Subcommands) -> None:
         description="Send one command to the control socket of 'imu-gateway simulate "
         "--control PATH' and print its answer: 'ok' (exit 0), or the error (exit 2). "
         "Commands: lean ADDRESS PITCH ROLL (degrees; ADDRESS may be native:N or modbus:N), "
-        "lean ADDRESS off.",
+        "lean ADDRESS off, turn ADDRESS HEADING [RATE] (degrees, deg/s), turn ADDRESS off.",
     )
     control.add_argument("path", metavar="PATH", help="the simulator's --control socket")
     control.add_argument("words", nargs="+", metavar="WORD", help="the command, e.g. lean 1 7.5 0")

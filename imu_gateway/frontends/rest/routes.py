@@ -65,6 +65,7 @@ from .models import (
     SensorOut,
     TransitionOut,
 )
+from .procedures import procedure_routes
 from .streams import StreamHub, stream_peer
 
 #: Each error status's body, for the OpenAPI document.
@@ -114,6 +115,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
         _command_route(app, routes, spec)
     capture_routes(app, gateway, routes.reads, routes.commands)
     config_routes(app, gateway, config)
+    procedure_routes(app, gateway, routes.reads, routes.streams, routes.commands)
     _metrics_route(app, routes)
     app.add_middleware(BodyGuard, config=config)
     app.openapi = _openapi_of(app)  # type: ignore[method-assign]
@@ -125,7 +127,8 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
 
     app.mount("/static", StaticFiles(packages=[("imu_gateway", "static")]), name="static")
     docs_policy = _docs_routes(app)
-    app.add_middleware(SecurityHeaders, pages={"/": PAGE_POLICY, "/docs": docs_policy})
+    app.add_middleware(SecurityHeaders, pages={"/": PAGE_POLICY, "/docs": docs_policy,
+                                               "/wizards": PAGE_POLICY})
     counts = counters if counters is not None else {"requests": 0}
     app.add_middleware(CountRequests, counts=counts)  # outermost: counts every request
     return app
