@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import inspect
 import logging
 import socket
 from http import HTTPStatus
@@ -248,6 +249,7 @@ class HttpServer(Frontend):
         self._socket: socket.socket | None = None
         self._server: _Server | None = None
         self._task: asyncio.Task[None] | None = None
+        self._on_stop: list[Any] = []  # the app's shutdown hooks (uvicorn's lifespan is off)
 
     async def start(self) -> None:
         """Listen; raises ``OSError`` when the address cannot be bound."""
@@ -274,6 +276,7 @@ class HttpServer(Frontend):
         if not any(isinstance(f, RepeatFilter) for f in uvicorn_log.filters):
             uvicorn_log.addFilter(RepeatFilter())  # it warns once per odd request
         app = create_app(self.gateway, self.config, self.hub, self.counters)
+        self._on_stop = list(app.router.on_shutdown)  # (the procedures in progress)
         self._server = _Server(uvicorn.Config(
             app, log_config=None, log_level="warning", access_log=False, lifespan="off",
             timeout_graceful_shutdown=2, server_header=False,
@@ -309,6 +312,9 @@ class HttpServer(Frontend):
                 "skipped_events": self.hub.skipped if self.hub is not None else 0}
 
     async def stop(self) -> None:
+        for hook in self._on_stop:  # uvicorn runs with lifespan off: no shutdown event
+            if inspect.isawaitable(done := hook()):
+                await done
         if self.hub is not None:
             self.hub.close()  # streams end, so their connections can close
         if self._server is not None and self._task is not None:

@@ -6,6 +6,7 @@ them."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import time
 from collections.abc import AsyncIterator, Iterator
@@ -205,3 +206,19 @@ async def test_what_the_sensor_cannot_do_is_refused_naming_why(held_ah: SimSenso
         nobody = await http.post(f"{API}/sensors/ghost/procedures/zero", headers=AUTH)
         assert nobody.status_code == 404
         assert (await http.get(f"{base}/zero/99")).status_code == 404
+
+
+@pytest.mark.anyio
+async def test_a_procedure_in_progress_ends_with_the_http_front_end(
+        held_ah: SimSensor) -> None:
+    """uvicorn runs without its lifespan events, so the front end's stop ends the
+    procedures itself: none is left waiting for a circle nobody will turn."""
+    async with gateway_on(held_ah, "native", "AH") as (gw, http, _sim):
+        await start(http, "mag_calibration")
+        await until(lambda: held_ah.writes_heard["start_mag_calibration"] == 1)
+        left = [t for t in asyncio.all_tasks() if t.get_name().startswith("procedure ")]
+        assert len(left) == 1 and not left[0].done()
+        assert gw.http is not None
+        await gw.http.stop()
+        await until(lambda: left[0].done())
+        assert left[0].cancelled() or left[0].exception() is None
