@@ -105,6 +105,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     _error_handlers(app)
     authority = Authority(config)
     routes = _Routes(gateway, Roles.of(authority))
+    app.state.roles = routes.roles  # (for routes added beside these: roles.admin …)
     login_routes(app, authority, routes.roles)
     _status_routes(app, routes)
     _sensor_routes(app, routes)
