@@ -167,9 +167,10 @@ class BodyGuard:
             await self.app(scope, receive, send)
             return
         method, on_command = scope["method"], _is_command(scope["path"])
-        command = method == "POST" and on_command
-        login = method == "POST" and scope["path"] == f"{API}/login"
-        if not (command or login) and (on_command or method not in ("GET", "HEAD")):
+        on_login = scope["path"] == f"{API}/login"
+        command, login = method == "POST" and on_command, method == "POST" and on_login
+        if not (command or login) and (on_command or on_login
+                                       or method not in ("GET", "HEAD")):
             await self.app(scope, receive, send)  # no such route: 404 or 405, unread
             return
         headers = dict(scope["headers"])
