@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import re
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -16,7 +17,8 @@ import httpx
 import pytest
 from support.harness import running, until
 
-from imu_gateway.frontends.rest.access import Roles
+from imu_gateway.config import HttpConfig
+from imu_gateway.frontends.rest.access import MAX_SESSIONS, Authority, Role, Roles, Who
 from imu_gateway.frontends.rest.routes import create_app
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.passwords import hash_password
@@ -211,3 +213,23 @@ async def test_every_admin_action_is_logged_with_who(line: str,
         await until(lambda: any("admin" in r.getMessage() for r in caplog.records))
         assert [r.getMessage() for r in caplog.records if r.name == "imu_gateway.http"] == [
             f"admin token 3 of http.tokens (10.0.0.9): PUT {API}/admin-thing"]
+
+
+def test_a_session_ends_when_it_expires_and_the_oldest_goes_first(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """``http.session_minutes`` after its login a session's token is nobody's; past
+    ``MAX_SESSIONS`` the oldest session ends (a flood of logins cannot grow memory)."""
+    authority = Authority(HttpConfig(session_minutes=1))
+    otto = Who("otto", Role.OPERATOR)
+    token, expires_at = authority.start_session(otto)
+    assert authority.who(token) == otto and expires_at > time.time() + 59
+    start = time.monotonic()
+    monkeypatch.setattr(time, "monotonic", lambda: start + 59)
+    assert authority.who(token) == otto
+    monkeypatch.setattr(time, "monotonic", lambda: start + 61)
+    assert authority.who(token) is None and token not in authority.sessions
+    monkeypatch.undo()
+    first = authority.start_session(otto)[0]
+    for _ in range(MAX_SESSIONS):
+        authority.start_session(otto)
+    assert len(authority.sessions) == MAX_SESSIONS and authority.who(first) is None
