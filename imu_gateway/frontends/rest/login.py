@@ -25,7 +25,7 @@ from .models import ErrorOut
 
 log = logging.getLogger("imu_gateway.http")
 
-#: Password checks at once: each takes scrypt's 16 MiB and ~50 ms of a core, and a
+#: Password checks at once: each takes scrypt's 16 MiB and ~30 ms of a core, and a
 #: crowd of logins must not take the gateway's memory or its loop's workers.
 _CHECKS_AT_ONCE = 2
 #: Client addresses remembered by the limiter before the idle ones are forgotten.
