@@ -89,6 +89,7 @@ class ErrorKind(enum.Enum):
     METHOD_NOT_ALLOWED = "method_not_allowed"
     UNKNOWN_ALARM = "unknown_alarm"
     NOTHING_TO_ACKNOWLEDGE = "nothing_to_acknowledge"
+    TOO_MANY_ATTEMPTS = "too_many_attempts"
 
 
 
@@ -122,7 +123,7 @@ KINDS: Mapping[ErrorKind, KindRow] = MappingProxyType({
     ErrorKind.TOO_MANY_STREAMS: KindRow(503, None, "every event stream is taken"),
     ErrorKind.TOO_LARGE: KindRow(413, None, "the request body is too large"),
     ErrorKind.UNAUTHORISED: KindRow(401, None, "a valid bearer token is required"),
-    ErrorKind.FORBIDDEN: KindRow(403, None, "commands are turned off"),
+    ErrorKind.FORBIDDEN: KindRow(403, None, "commands are turned off, or the role is too low"),
     ErrorKind.REQUEST_TIMEOUT: KindRow(408, None, "the request did not come in time"),
     ErrorKind.HEADERS_TOO_LARGE: KindRow(431, None, "the request line and headers are too large"),
     ErrorKind.NOT_FOUND: KindRow(404, None, "no such path"),
@@ -133,6 +134,8 @@ KINDS: Mapping[ErrorKind, KindRow] = MappingProxyType({
     ErrorKind.NOTHING_TO_ACKNOWLEDGE: KindRow(
         409, ILLEGAL_VALUE, "the alarm is normal or acknowledged already: nothing to "
         "acknowledge"),
+    ErrorKind.TOO_MANY_ATTEMPTS: KindRow(429, None, "too many logins from this address: "
+                                         "wait Retry-After seconds"),
 })
 
 

@@ -114,6 +114,7 @@ _TYPE_MESSAGES: Mapping[str, str] = {
     "bool_parsing": "must be true or false",
     "string_type": "must be a string",
     "list_type": "must be a list",
+    "tuple_type": "must be a list",
     "model_type": "must be a mapping (key: value)",
     "model_attributes_type": "must be a mapping (key: value)",
     "dict_type": "must be a mapping (key: value)",

@@ -23,6 +23,7 @@ from pydantic import (
     model_validator,
 )
 
+from .. import passwords
 from ..alarms import COMMUNICATION, AlarmRow, Severity
 from ..errors import ConfigError
 from ..model import VALUE_GROUPS, Group, Series, WireProtocol
@@ -540,25 +541,84 @@ class OpcUaConfig(_Model):
         return self
 
 
+#: Who may do what over HTTP (docs/rest.md, "Roles"): each role may do all a lower may.
+Role = Literal["viewer", "operator", "admin"]
+
+
+def _password_hash(value: str) -> str:
+    try:
+        passwords.parse(value)
+    except ValueError as exc:
+        raise fail(str(exc)) from None
+    return value
+
+
+class HttpUser(_Model):
+    """One person who logs in to the dashboard or ``POST /api/v1/login``."""
+
+    role: Role = Field(description="`viewer`, `operator` or `admin`")
+    password: Annotated[str, AfterValidator(_password_hash)] = Field(description=(
+        "the password's hash, as `imu-gateway hash-password` prints it (never the "
+        "password itself); write `${VAR}` to take it from the environment"))
+
+
+class HttpToken(_Model):
+    """A bearer token a program sends (``Authorization: Bearer …``), and its role."""
+
+    token: NonEmpty = Field(description=(
+        "not empty; write `${VAR}` to take it from the environment"))
+    role: Role = Field(description="`viewer`, `operator` or `admin`")
+
+
 class HttpConfig(_Model):
     """The REST API and dashboard."""
 
     listen: Listen = Field(default=ListenAddress("0.0.0.0", 8080), description=(
         "`host:port` as for `modbus.listen`"))
     token: NonEmpty | None = Field(default=None, description=(
-        "not empty; the bearer token (`Authorization: Bearer …`); write `${VAR}` to take "
-        "it from the environment"))
+        "not empty; an admin's bearer token (`Authorization: Bearer …`), as before roles: "
+        "the same as an entry of `tokens` with role `admin`; write `${VAR}` to take it "
+        "from the environment"))
+    tokens: tuple[HttpToken, ...] = Field(default=(), description=(
+        "bearer tokens with their roles: a list of `{token, role}` (a list, not a map: "
+        "`${VAR}` is expanded in values, not in keys)"),
+        json_schema_extra={_SHOWN_DEFAULT: "`[]`"})
+    users: dict[Name, HttpUser] = Field(default_factory=dict, description=(
+        "user name → `{role, password}`: who may log in (`POST /api/v1/login`, the "
+        "dashboard's form)"))
+    session_minutes: Annotated[int, between(1, 7 * 24 * 60)] = Field(default=480, description=(
+        "1-10080; how long a login's session token lasts"))
     allow_commands: bool = Field(default=False, description=(
-        "accept `POST /api/v1/sensors/{name}/commands/{command}`; needs `token`"))
+        "accept `POST /api/v1/sensors/{name}/commands/{command}` (an operator's); needs "
+        "`token`, `tokens` or `users`"))
     read_token_required: bool = Field(default=False, description=(
-        "reads need the token too; needs `token`"))
+        "reads need a credential too (a viewer's at least); needs `token`, `tokens` or "
+        "`users`"))
 
     @field_validator("allow_commands", "read_token_required")
     @classmethod
-    def _needs_token(cls, value: bool, info: ValidationInfo) -> bool:
-        if value and info.data.get("token", "") is None:
-            raise fail("needs http.token (the bearer token clients must send)")
+    def _needs_credentials(cls, value: bool, info: ValidationInfo) -> bool:
+        given = info.data
+        if value and given.get("token", "") is None and not given.get("tokens", 1) \
+                and not given.get("users", 1):  # (a field that failed is absent: no 2nd error)
+            raise fail("needs http.token, http.tokens or http.users (the credentials "
+                       "clients must send)")
         return value
+
+    @field_validator("tokens")
+    @classmethod
+    def _tokens_once(cls, value: tuple[HttpToken, ...]) -> tuple[HttpToken, ...]:
+        given = [t.token for t in value]
+        if len(set(given)) != len(given):
+            raise fail("the same token twice (each token has one role)")
+        return value
+
+    def roles_of_tokens(self) -> dict[str, Role]:
+        """Each bearer token's role: ``token`` is an admin's (as it was before roles)."""
+        roles: dict[str, Role] = {t.token: t.role for t in self.tokens}
+        if self.token is not None:
+            roles[self.token] = "admin"
+        return roles
 
 
 #: An alarm's name as ``capture.on_alarms`` lists it (the alarms' own rule).

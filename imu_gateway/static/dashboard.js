@@ -4,8 +4,9 @@
  * GET /api/v1/buses and GET /api/v1/alarms (every 2 s), GET /api/v1/alarms/journal
  * (whenever the stream opens), GET /api/v1/captures (every 2 s, when GET /api/v1/health
  * says capture is on) and the Server-Sent Events of GET /api/v1/stream.
- * With ?token=... in the page address every request carries "Authorization: Bearer";
- * EventSource cannot send headers, so the stream gets it as ?access_token= instead.
+ * Who is looking comes from login.js (window.imuAuth): with a credential every request
+ * carries "Authorization: Bearer", never a token in a URL; a viewer gets no command,
+ * acknowledge or capture buttons.
  *
  * Readings may arrive at hundreds per second: they only update the model and mark the
  * sensor dirty; the DOM and the canvases are redrawn at most once per animation frame.
@@ -52,8 +53,9 @@
     }
   }
 
-  const token = new URLSearchParams(location.search).get("token");
-  const headers = token ? { Authorization: "Bearer " + token } : {};
+  const auth = window.imuAuth;
+  const token = auth.credential();
+  const headers = auth.headers();
   const sensors = new Map(); // name -> state
   const down = new Set(); // which links are down: "stream", "api"
   let unauthorised = false;
@@ -82,9 +84,8 @@
     if (isDown) down.add(link); else down.delete(link);
     const banner = $("banner");
     if (unauthorised) {
-      banner.textContent = token
-        ? "unauthorised: the token in the address was refused"
-        : "unauthorised: open this page with ?token=… in its address";
+      banner.textContent = token ? "unauthorised: the session ended: log in again"
+        : "unauthorised: log in";
     } else {
       banner.textContent = "disconnected: reconnecting…";
     }
@@ -626,10 +627,10 @@
 
   // ------------------------------------------------------------------ commands
 
-  /** With a token, a button for each of the sensor's commands that takes no
+  /** For an operator, a button for each of the sensor's commands that takes no
    *  arguments (the OpenAPI document says which); the result is shown inline. */
   function showCommands(s, noArguments) {
-    if (!token) return;
+    if (!auth.may("operator")) return;
     const names = s.info.commands.filter((c) => noArguments.has(c));
     s.card.querySelector(".commands").replaceChildren(...names.map((name) => {
       const button = document.createElement("button");
@@ -876,7 +877,7 @@
     const value = valueText(a.field, a.value, a.limit);
     li.append(name, ` ${a.severity} · ${STATE_WORDS[a.state] || a.state}` +
       (value ? ` · ${value}` : "") + since);
-    if (!a.acked) {
+    if (!a.acked && auth.may("operator")) {
       const button = document.createElement("button");
       button.type = "button";
       button.className = "ack";
@@ -888,7 +889,7 @@
     return li;
   }
 
-  /** POST .../ack with the token; the refusal, if any, is shown as the gateway gave it,
+  /** POST .../ack with the credential; the refusal, if any, is shown as the gateway gave it,
    *  with what to do. */
   async function acknowledge(s, alarm, button) {
     const out = s.cells.alarm_result;
@@ -919,9 +920,8 @@
    *  capture"), in words, with what to do. */
   function refusal(response, body, action) {
     if (response.status === 401) {
-      return token ? "unauthorised: the token in the address was refused"
-        : `unauthorised: ${action} needs the operator's token: open this page with ` +
-          "?token=… in its address";
+      return token ? "unauthorised: the session ended: log in again"
+        : `unauthorised: ${action} needs an operator: log in`;
     }
     return `${body.kind || response.status}: ${body.error || response.statusText}`;
   }
@@ -1051,8 +1051,8 @@
     link.download = `imu-gateway-capture-${c.id}.zip`;
     link.textContent = "download";
     link.setAttribute("aria-label", `download the capture of ${time.textContent}`);
-    // With a token the link fetches with it (a plain link cannot send a header, and a
-    // gateway may need the token to read).
+    // With a credential the link fetches with it (a plain link cannot send a header,
+    // and a gateway may need one to read).
     if (token) link.addEventListener("click", (e) => { e.preventDefault(); download(link); });
     li.append(time, " ", trigger, ` · ${bytes(c.size)} · `, link);
     return li;
@@ -1064,7 +1064,7 @@
     return `${(n / 1024 / 1024).toFixed(1)} MiB`;
   }
 
-  /** The ZIP with the bearer token, saved under the link's file name. */
+  /** The ZIP with the credential, saved under the link's file name. */
   async function download(link) {
     try {
       const response = await fetch(link.href, { headers, cache: "no-store" });
@@ -1087,7 +1087,7 @@
     out.dataset.capture = id || "";
   }
 
-  /** POST /api/v1/captures (an operator's: the token, and http.allow_commands): pre_s
+  /** POST /api/v1/captures (an operator's, with http.allow_commands): pre_s
    *  before now to post_s after; the list is fetched again when it is written. */
   async function takeCapture(button) {
     button.disabled = true;
@@ -1115,16 +1115,14 @@
    *  start and whenever the stream opens (a gateway restarted may have a new config). */
   async function loadHealth() {
     const health = await api("/health");
-    $("mode").textContent = `${health.gateway_id} · v${health.version} · ` +
-      (token ? "live (token)" : "live");
+    $("mode").textContent = `${health.gateway_id} · v${health.version} · live`;
     if (health.capture !== capturesOn) showCaptureMode(Boolean(health.capture));
   }
 
   // ------------------------------------------------------------------ live data
 
   function openStream() {
-    const query = token ? "?access_token=" + encodeURIComponent(token) : "";
-    const stream = new EventSource(API + "/stream" + query);
+    const stream = auth.eventSource(API + "/stream");
     stream.addEventListener("open", () => {
       setDown("stream", false);
       loadAlarms().catch(() => { /* the poll brings the states */ });
@@ -1160,7 +1158,9 @@
   }
 
   async function start() {
-    $("mode").textContent = token ? "live (token)" : "live";
+    await auth.ready; // (the login form, if reads need one)
+    $("mode").textContent = "live";
+    $("capture-take").hidden = !auth.may("operator");
     let list;
     for (;;) {
       try {
@@ -1184,7 +1184,7 @@
       markDirty(s);
       loadTrend(s);
     }
-    if (token) {
+    if (auth.may("operator")) {
       commandsWithoutArguments().then((names) => {
         for (const s of sensors.values()) showCommands(s, names);
       }, () => { /* no buttons: the API answers commands all the same */ });

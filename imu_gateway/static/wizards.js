@@ -5,21 +5,20 @@
  * Test hooks: <body data-state> is the procedure's state (running, done, failed,
  * cancelled), data-step its step; #coverage the circle's coverage in percent.
  *
- * The token: as on the dashboard, ?token=… in this page's address (sent as
- * "Authorization: Bearer"; the stream, which cannot send headers, as ?access_token=).
+ * The credential: the dashboard's login (static/auth.js, sent as "Authorization:
+ * Bearer"; never in a URL): log in on the dashboard, then open this page from it.
  */
 "use strict";
 
 (() => {
   const API = "/api/v1";
-  const token = new URLSearchParams(location.search).get("token");
-  const headers = token ? { Authorization: "Bearer " + token } : {};
+  const auth = window.imuAuth;
   const $ = (id) => document.getElementById(id);
   let current = null; // {sensor, path, source, state}
   let ticking = null; // the local countdown's timer
 
   async function call(method, path, body) {
-    const init = { method, headers: { ...headers }, cache: "no-store" };
+    const init = { method, headers: auth.headers(), cache: "no-store" };
     if (body !== undefined) {
       init.headers["Content-Type"] = "application/json";
       init.body = JSON.stringify(body);
@@ -29,8 +28,8 @@
     try { data = await response.json(); } catch (e) { /* no body */ }
     if (!response.ok) {
       const why = (data && data.error) || response.statusText;
-      const error = new Error(response.status === 401 && !token
-        ? `${why}: open this page with ?token=… in its address` : why);
+      const error = new Error(response.status === 401 && !auth.credential()
+        ? `${why}: log in on the dashboard first, then open this page from it` : why);
       error.status = response.status;
       throw error;
     }
@@ -107,8 +106,7 @@
     if (current && current.source) current.source.close();
     current = { sensor, path, source: null, state };
     render(state);
-    const url = `${path}/events` + (token ? `?access_token=${encodeURIComponent(token)}` : "");
-    const source = new EventSource(url);
+    const source = auth.eventSource(`${path}/events`);
     current.source = source;
     const take = (event) => render(JSON.parse(event.data));
     source.addEventListener("progress", take);
@@ -116,7 +114,7 @@
     source.onerror = () => {
       // A stream that ends is reconnected by the browser; one that cannot be had is
       // asked once more by GET, so the page still shows the end.
-      if (source.readyState === EventSource.CLOSED) refresh();
+      if (source.readyState === 2) refresh(); // CLOSED
     };
   }
 

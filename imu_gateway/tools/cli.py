@@ -133,6 +133,7 @@ def build_parser() -> argparse.ArgumentParser:
     _simulate_parser(commands)
     _simulate_control_parser(commands)
     _check_config_parser(commands)
+    _hash_password_parser(commands)
     return parser
 
 
@@ -297,6 +298,35 @@ def _check_config_parser(commands: Subcommands) -> None:
     )
     check.add_argument("-c", "--config", required=True, metavar="FILE",
                        help="the YAML config file")
+
+
+def _hash_password_parser(commands: Subcommands) -> None:
+    commands.add_parser(
+        "hash-password",
+        help="print a password's hash for http.users",
+        description="Read a password (asked twice on a terminal; else the first line of "
+        "stdin) and print its scrypt hash, for `password:` of a user in http.users "
+        "(docs/rest.md, \"Roles\").",
+    )
+
+
+def cmd_hash_password(args: argparse.Namespace) -> int:
+    import getpass
+
+    from ..passwords import hash_password
+
+    if sys.stdin.isatty():
+        password = getpass.getpass("password: ")
+        if getpass.getpass("again: ") != password:
+            print("imu-gateway hash-password: the two passwords differ", file=sys.stderr)
+            return EXIT_BAD_INPUT
+    else:
+        password = sys.stdin.readline().rstrip("\r\n")
+    if not password:
+        print("imu-gateway hash-password: the password is empty", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(hash_password(password))
+    return 0
 
 
 def cmd_decode(args: argparse.Namespace) -> int:
@@ -583,6 +613,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     handlers: dict[str, Callable[[argparse.Namespace], int]] = {
         "decode": cmd_decode, "check-config": cmd_check_config, "run": cmd_run,
         "scan": cmd_scan, "demo": cmd_demo, "simulate-control": cmd_simulate_control,
+        "hash-password": cmd_hash_password,
     }
     return handlers[args.command](args)
 

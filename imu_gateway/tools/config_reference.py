@@ -33,7 +33,7 @@ from ..config import (
     SensorConfig,
     SparkplugConfig,
 )
-from ..config.schema import AlarmConfig, ModbusTlsConfig
+from ..config.schema import AlarmConfig, HttpToken, HttpUser, ModbusTlsConfig
 
 #: (heading, model, what the section is): the order of the document.
 SECTIONS: tuple[tuple[str, type[BaseModel], str], ...] = (
@@ -57,7 +57,10 @@ SECTIONS: tuple[tuple[str, type[BaseModel], str], ...] = (
     ("mqtt.sparkplug", SparkplugConfig,
      "Sparkplug B on the same brokers ([sparkplug.md](sparkplug.md)); `group_id` is "
      "required."),
-    ("http", HttpConfig, "The REST API and dashboard ([rest.md](rest.md))."),
+    ("http", HttpConfig, "The REST API and dashboard ([rest.md](rest.md)); who may "
+     "do what: [rest.md](rest.md#roles)."),
+    ("http.tokens[]", HttpToken, "A token a program sends, and its role; both required."),
+    ("http.users.NAME", HttpUser, "A person who logs in; both required."),
     ("opcua", OpcUaConfig, "The OPC UA server ([opcua.md](opcua.md))."),
     ("capture", CaptureConfig, "Event capture ([alarms.md](alarms.md#captures))."),
 )

@@ -34,6 +34,7 @@ from imu_gateway.config import (
 )
 from imu_gateway.errors import ConfigError
 from imu_gateway.model import Series, WireProtocol
+from imu_gateway.passwords import hash_password, verify
 
 CONFIGS = ROOT / "tests" / "configs"
 SPEC_EXAMPLE = CONFIGS / "spec_example.yaml"
@@ -47,6 +48,8 @@ MODBUS_BUS: dict[str, Any] = {
     "protocol": "modbus",
     "sensors": [{"name": "arm", "series": "VG"}, {"name": "base", "series": "MINS", "address": 2}],
 }
+#: A password's hash, as ``imu-gateway hash-password`` makes one.
+A_HASH = hash_password("correct horse")
 
 
 def base(**top: Any) -> dict[str, Any]:
@@ -465,10 +468,26 @@ RULES: list[tuple[str, dict[str, Any], str]] = [
     ("mqtt negative deadband", base(mqtt={"deadband": {"angles": -1}}),
      "mqtt.deadband.angles: input should be greater than or equal to 0"),
     ("http commands need a token", base(http={"allow_commands": True}),
-     "http.allow_commands: needs http.token (the bearer token clients must send)"),
+     "http.allow_commands: needs http.token, http.tokens or http.users (the credentials "
+     "clients must send)"),
     ("http read token needs a token", base(http={"read_token_required": True}),
-     "http.read_token_required: needs http.token (the bearer token clients must send)"),
+     "http.read_token_required: needs http.token, http.tokens or http.users (the "
+     "credentials clients must send)"),
     ("http empty token", base(http={"token": ""}), "http.token: must not be empty"),
+    ("http user's role unknown", base(http={"users": {"ann": {"role": "root",
+                                                              "password": A_HASH}}}),
+     "http.users.ann.role: input should be 'viewer', 'operator' or 'admin'"),
+    ("http user's password not hashed", base(http={"users": {"ann": {
+        "role": "admin", "password": "hunter2"}}}),
+     "http.users.ann.password: not a password hash (scrypt$n$r$p$salt$hash): make one "
+     "with `imu-gateway hash-password`"),
+    ("http tokens as a map", base(http={"tokens": {"abc": "viewer"}}),
+     "http.tokens: must be a list, not a mapping"),
+    ("http token twice", base(http={"tokens": [{"token": "a", "role": "viewer"},
+                                               {"token": "a", "role": "admin"}]}),
+     "http.tokens: the same token twice (each token has one role)"),
+    ("http session of no minutes", base(http={"session_minutes": 0}),
+     "http.session_minutes: must be 1-10080, not 0"),
     ("section not a mapping", base(http="on"),
      'http: must be a mapping (key: value), not "on"'),
     ("missing buses", {"gateway_id": "x"}, "buses: required"),
@@ -638,6 +657,41 @@ def test_env_from_os_environ(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("IMU_TEST_TOKEN", "abc")
     config = config_from_dict(base(http={"token": "${IMU_TEST_TOKEN}"}))
     assert config.http is not None and config.http.token == "abc"
+
+
+def test_http_roles_the_old_token_is_an_admins_and_hashes_come_from_the_environment(
+        ) -> None:
+    """``http.token`` of before roles is an admin's token, beside ``http.tokens``; a
+    user's hash may be ``${VAR}`` (its ``$`` signs are not references)."""
+    old = config_from_dict(base(http={"token": "t0", "allow_commands": True}))
+    assert old.http is not None and old.http.roles_of_tokens() == {"t0": "admin"}
+    data = base(http={"token": "t0", "tokens": [{"token": "${VIEW}", "role": "viewer"}],
+                      "users": {"ann": {"role": "operator", "password": "${ANN_HASH}"}},
+                      "read_token_required": True})
+    new = config_from_dict(data, env={"VIEW": "v1", "ANN_HASH": A_HASH})
+    assert new.http is not None
+    assert new.http.roles_of_tokens() == {"v1": "viewer", "t0": "admin"}
+    assert new.http.users["ann"].password == A_HASH
+    assert verify("correct horse", A_HASH) and not verify("correct horsE", A_HASH)
+    only_users = base(http={"users": {"ann": {"role": "admin", "password": A_HASH}},
+                            "allow_commands": True})
+    assert config_from_dict(only_users).http is not None
+
+
+def test_hash_password_prints_a_hash_the_config_takes() -> None:
+    made = subprocess.run([sys.executable, "-m", "imu_gateway", "hash-password"],
+                          input="s3cret pass\n", capture_output=True, text=True, timeout=60,
+                          check=False)
+    assert made.returncode == 0, made.stderr
+    printed = made.stdout.strip()
+    assert printed.startswith("scrypt$") and verify("s3cret pass", printed)
+    config = config_from_dict(base(http={"users": {"ann": {"role": "viewer",
+                                                           "password": printed}}}))
+    assert config.http is not None and config.http.users["ann"].role == "viewer"
+    empty = subprocess.run([sys.executable, "-m", "imu_gateway", "hash-password"], input="\n",
+                           capture_output=True, text=True, timeout=60, check=False)
+    assert empty.returncode == 2
+    assert empty.stderr == "imu-gateway hash-password: the password is empty\n"
 
 
 def test_env_unset_is_an_error_at_its_path() -> None:

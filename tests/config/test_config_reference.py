@@ -22,12 +22,13 @@ from imu_gateway.config import (
     SparkplugConfig,
     config_from_dict,
 )
-from imu_gateway.config.schema import AlarmConfig, ModbusTlsConfig
+from imu_gateway.config.schema import AlarmConfig, HttpToken, HttpUser, ModbusTlsConfig
 from imu_gateway.tools import config_reference as ref
 
 DOC = ROOT / "docs" / "config-reference.md"
 MODELS = (GatewayConfig, BusConfig, SensorConfig, AlarmConfig, ModbusConfig, ModbusTlsConfig,
-          MqttConfig, SparkplugConfig, HttpConfig, OpcUaConfig, CaptureConfig)
+          MqttConfig, SparkplugConfig, HttpConfig, HttpToken, HttpUser, OpcUaConfig,
+          CaptureConfig)
 
 
 def test_config_reference_document_is_up_to_date() -> None:

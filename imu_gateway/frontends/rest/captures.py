@@ -1,17 +1,17 @@
 """The captures' routes (docs/rest.md, "Captures"): the list, one capture's ZIP, and a
-capture on demand (an operator's: the token, as for commands)."""
+capture on demand (an operator's, with http.allow_commands, as for commands)."""
 
 from __future__ import annotations
 
-from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any
 
-from fastapi import Depends, FastAPI
+from fastapi import FastAPI
 from fastapi.responses import FileResponse, JSONResponse
 from pydantic import BaseModel, Field
 
 from ...errors import ErrorKind, RequestFailed
 from ..common import GatewayLike
+from .access import Roles
 from .limits import API
 from .models import ErrorOut
 
@@ -44,8 +44,7 @@ def _responses(*codes: int) -> dict[int | str, dict[str, Any]]:
     return {code: {"model": ErrorOut} for code in codes}
 
 
-def capture_routes(app: FastAPI, gateway: GatewayLike, reads: list[Any],
-                   operator: Callable[..., Awaitable[None]]) -> None:
+def capture_routes(app: FastAPI, gateway: GatewayLike, roles: Roles) -> None:
     """``GET /api/v1/captures``, ``GET /api/v1/captures/{id}``, ``POST /api/v1/captures``."""
 
     def captures() -> Captures:
@@ -54,13 +53,14 @@ def capture_routes(app: FastAPI, gateway: GatewayLike, reads: list[Any],
                                 "no capture: section (docs/alarms.md)")
         return gateway.captures
 
-    @app.get(f"{API}/captures", response_model=list[CaptureOut], dependencies=reads,
+    @app.get(f"{API}/captures", response_model=list[CaptureOut], dependencies=[roles.viewer],
              responses=_responses(401, 404), summary="the captures kept, newest first",
              tags=["captures"])
     async def listed() -> list[dict[str, Any]]:
         return [info.to_json() for info in captures().listed()]
 
-    @app.get(f"{API}/captures/{{capture_id}}", dependencies=reads, response_class=FileResponse,
+    @app.get(f"{API}/captures/{{capture_id}}", dependencies=[roles.viewer],
+             response_class=FileResponse,
              responses={200: {"content": {"application/zip": {}},
                               "description": "the capture's ZIP"}, **_responses(401, 404)},
              summary="one capture: a ZIP of a CSV per sensor, frames.jsonl and meta.json",
@@ -73,7 +73,7 @@ def capture_routes(app: FastAPI, gateway: GatewayLike, reads: list[Any],
                             filename=f"imu-gateway-capture-{capture_id}.zip")
 
     @app.post(f"{API}/captures", status_code=202, response_model=CaptureArmedOut,
-              dependencies=[Depends(operator)], responses=_responses(401, 403, 404),
+              dependencies=[roles.commands], responses=_responses(401, 403, 404),
               summary="take a capture now: pre_s before this moment to post_s after it",
               tags=["captures"])
     async def take() -> JSONResponse:

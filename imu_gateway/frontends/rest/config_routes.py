@@ -6,14 +6,13 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Protocol, runtime_checkable
 
-from fastapi import Depends, FastAPI, Query, Request
+from fastapi import FastAPI, Query, Request
 from fastapi.responses import JSONResponse
 
-from ...config import HttpConfig
 from ...config.loading import parse_text
 from ...errors import ConfigError, ErrorKind, RequestFailed
 from ..common import GatewayLike
-from .access import Credentials, token_matches
+from .access import Roles
 from .limits import API
 from .models import ErrorOut
 
@@ -35,29 +34,18 @@ def _reloader(gateway: GatewayLike) -> _Reloader:
     return reloader
 
 
-def config_routes(app: FastAPI, gateway: GatewayLike, config: HttpConfig) -> None:
-    """``GET`` and ``PUT /api/v1/config``: both an admin's (today, the bearer token)."""
-
-    # role: admin
-    async def admin(credentials: Credentials) -> None:
-        if config.token is None:
-            raise RequestFailed(ErrorKind.FORBIDDEN, "the config over REST needs http.token "
-                                "(the bearer token an admin sends); none is set")
-        if credentials is None or not token_matches(credentials.credentials, config.token):
-            raise RequestFailed(ErrorKind.UNAUTHORISED, "a valid bearer token is required")
-
+def config_routes(app: FastAPI, gateway: GatewayLike, roles: Roles) -> None:
+    """``GET`` and ``PUT /api/v1/config``: both an admin's."""
     responses: dict[int | str, dict[str, Any]] = {
         code: {"model": ErrorOut} for code in (401, 403, 404, 413)}
 
-    # role: admin
-    @app.get(f"{API}/config", dependencies=[Depends(admin)], responses=responses,
+    @app.get(f"{API}/config", dependencies=[roles.admin], responses=responses,
              summary="the config as written: every secret as its ${VAR} reference, or ***",
              tags=["config"])
     async def get_config() -> JSONResponse:
         return JSONResponse({"config": _reloader(gateway).shown()})
 
-    # role: admin
-    @app.put(f"{API}/config", dependencies=[Depends(admin)], responses=responses,
+    @app.put(f"{API}/config", dependencies=[roles.admin], responses=responses,
              summary="a new config (YAML or JSON): checked, applied live, saved",
              tags=["config"])
     async def put_config(

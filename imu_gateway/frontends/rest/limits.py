@@ -15,3 +15,6 @@ LINGER_BYTES = 1 << 20  # and at most this much, then no more is read (dropping 
 HEADER_DEADLINE_S = 10.0  # a request's headers, from connecting or from the previous answer
 BODY_DEADLINE_S = 10.0  # a request's body, from the end of its headers
 IDLE_S = 5  # a connection with no request under way (uvicorn's timeout_keep_alive)
+LOGIN_BODY = 4 * 1024  # a login's user name and password
+LOGINS_PER_MINUTE = 5  # login attempts per client address; beyond, 429 with Retry-After
+LOGIN_WINDOW_S = 60.0

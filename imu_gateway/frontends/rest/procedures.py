@@ -13,7 +13,7 @@ import enum
 import itertools
 import logging
 from collections import OrderedDict
-from collections.abc import AsyncGenerator, Awaitable, Callable
+from collections.abc import AsyncGenerator
 from dataclasses import dataclass, field
 from importlib import resources
 from typing import Annotated, Any
@@ -27,6 +27,7 @@ from ...commands import commands_for
 from ...errors import ErrorKind, RequestFailed
 from ...procedures import Run, SendCommand, available, validate
 from ..common import GatewayLike, json_bytes, peer_json
+from .access import Roles
 from .limits import API, KEEPALIVE_S, MAX_BODY
 from .models import ErrorOut
 
@@ -215,8 +216,7 @@ def _responses(*codes: int) -> dict[int | str, dict[str, Any]]:
     return {code: {"model": ErrorOut} for code in codes}
 
 
-def procedure_routes(app: FastAPI, gateway: GatewayLike, reads: list[Any],
-                     streams: list[Any], operator: Callable[..., Awaitable[None]]) -> None:
+def procedure_routes(app: FastAPI, gateway: GatewayLike, roles: Roles) -> None:
     """The procedure routes under ``/api/v1/sensors/{name}/procedures``."""
     procedures = Procedures(gateway)
     app.router.on_shutdown.append(procedures.close)
@@ -227,7 +227,7 @@ def procedure_routes(app: FastAPI, gateway: GatewayLike, reads: list[Any],
         gateway.cache.snapshot(name)  # an unknown sensor: 404 unknown_sensor
         return procedures.get(name, procedure, run_id)
 
-    @app.get(base, dependencies=reads, responses=_responses(401, 404), tags=tags,
+    @app.get(base, dependencies=[roles.viewer], responses=_responses(401, 404), tags=tags,
              summary="the procedures this sensor can run, and those run lately")
     async def listed(name: str) -> dict[str, Any]:
         gateway.cache.snapshot(name)
@@ -242,9 +242,8 @@ def procedure_routes(app: FastAPI, gateway: GatewayLike, reads: list[Any],
         return HTMLResponse((resources.files("imu_gateway") / "static" / "wizards.html")
                             .read_text(encoding="utf-8"))
 
-    # role: operator
     @app.post(f"{base}/{{procedure}}", status_code=201, response_model=ProcedureOut,
-              dependencies=[Depends(operator)], tags=tags,
+              dependencies=[roles.commands], tags=tags,
               responses=_responses(401, 403, 404, 409, 413, 422),
               summary="start a procedure (gyro_calibration, mag_calibration, zero)")
     async def start(name: str, procedure: str,
@@ -253,12 +252,13 @@ def procedure_routes(app: FastAPI, gateway: GatewayLike, reads: list[Any],
         live = procedures.start(name, procedure, args)
         return JSONResponse(live.to_json(), 201, headers={"Location": live.path})
 
-    @app.get(f"{base}/{{procedure}}/{{run_id}}", response_model=ProcedureOut, dependencies=reads,
-             tags=tags, responses=_responses(401, 404), summary="a procedure's state")
+    @app.get(f"{base}/{{procedure}}/{{run_id}}", response_model=ProcedureOut,
+             dependencies=[roles.viewer], tags=tags, responses=_responses(401, 404),
+             summary="a procedure's state")
     async def one(name: str, procedure: str, run_id: str) -> dict[str, Any]:
         return live_of(name, procedure, run_id).to_json()
 
-    @app.get(f"{base}/{{procedure}}/{{run_id}}/events", dependencies=streams, tags=tags,
+    @app.get(f"{base}/{{procedure}}/{{run_id}}/events", dependencies=[roles.viewer], tags=tags,
              response_class=StreamingResponse,
              responses={200: {"content": {"text/event-stream": {}},
                               "description": "`event: progress` with the state as `data:` "
@@ -270,9 +270,8 @@ def procedure_routes(app: FastAPI, gateway: GatewayLike, reads: list[Any],
                                  media_type="text/event-stream",
                                  headers={"X-Accel-Buffering": "no"})
 
-    # role: operator
     @app.post(f"{base}/{{procedure}}/{{run_id}}/finish", response_model=ProcedureOut,
-              dependencies=[Depends(operator)], tags=tags, responses=_responses(401, 403, 404,
+              dependencies=[roles.commands], tags=tags, responses=_responses(401, 403, 404,
                                                                                  409),
               summary="magnetic calibration: end the circle where it stands")
     async def finish(name: str, procedure: str, run_id: str) -> dict[str, Any]:
@@ -281,9 +280,8 @@ def procedure_routes(app: FastAPI, gateway: GatewayLike, reads: list[Any],
         live.touch()
         return live.to_json()
 
-    # role: operator
     @app.delete(f"{base}/{{procedure}}/{{run_id}}", response_model=ProcedureOut,
-                dependencies=[Depends(operator)], tags=tags,
+                dependencies=[roles.commands], tags=tags,
                 responses=_responses(401, 403, 404),
                 summary="cancel a procedure (a magnetic calibration is cleared)")
     async def cancel(name: str, procedure: str, run_id: str) -> dict[str, Any]:

@@ -7,7 +7,7 @@ import base64
 import hashlib
 import re
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from importlib import resources
@@ -19,7 +19,6 @@ from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
 from fastapi.routing import APIRoute
-from fastapi.security import HTTPAuthorizationCredentials
 from fastapi.staticfiles import StaticFiles
 from prometheus_client import CollectorRegistry, ProcessCollector, generate_latest
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -37,19 +36,22 @@ from ...stats import SensorStats
 from ..common import GatewayLike, peer_json
 from .access import (
     PAGE_POLICY,
+    Authority,
     BodyGuard,
     CountRequests,
-    Credentials,
+    Role,
+    Roles,
     SecurityHeaders,
-    ack_refusal,
-    command_refusal,
+    declared_role,
     error_response,
     json_error,
-    token_matches,
+    peer_of,
+    who_of,
 )
 from .captures import capture_routes
 from .config_routes import config_routes
 from .limits import API, MAX_STREAMS
+from .login import login_routes
 from .metrics import GatewayCollector
 from .models import (
     AlarmOut,
@@ -79,14 +81,11 @@ def _errors(*codes: int) -> dict[int | str, dict[str, Any]]:
 
 @dataclass(frozen=True)
 class _Routes:
-    """What the route groups share: the gateway, who may read, stream and command,
-    and the one way an unknown sensor is refused."""
+    """What the route groups share: the gateway, each role's dependency, and the one
+    way an unknown sensor is refused."""
 
     gateway: GatewayLike
-    reads: list[Any]  # the dependencies of a read
-    streams: list[Any]  # of a stream (the token may come in the query)
-    commands: Callable[..., Awaitable[None]]  # the dependency of a command
-    acks: Callable[..., Awaitable[None]]  # of an alarm's acknowledgement
+    roles: Roles
 
     def sensor_or_404(self, name: str) -> Snapshot:
         """(The cache refuses a sensor it does not know: ``unknown_sensor``, 404.)"""
@@ -106,18 +105,21 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
         redoc_url=None,
     )
     _error_handlers(app)
-    routes = _access(gateway, config)
+    authority = Authority(config)
+    routes = _Routes(gateway, Roles.of(authority))
+    app.state.roles = routes.roles  # (for routes added beside these: roles.admin …)
+    login_routes(app, authority, routes.roles)
     _status_routes(app, routes)
     _sensor_routes(app, routes)
     _stream_routes(app, routes, hub if hub is not None else StreamHub(gateway))
     _alarm_routes(app, routes)
     for spec in CATALOGUE.values():
         _command_route(app, routes, spec)
-    capture_routes(app, gateway, routes.reads, routes.commands)
-    config_routes(app, gateway, config)
-    procedure_routes(app, gateway, routes.reads, routes.streams, routes.commands)
+    capture_routes(app, gateway, routes.roles)
+    config_routes(app, gateway, routes.roles)
+    procedure_routes(app, gateway, routes.roles)
     _metrics_route(app, routes)
-    app.add_middleware(BodyGuard, config=config)
+    app.add_middleware(BodyGuard, authority=authority)
     app.openapi = _openapi_of(app)  # type: ignore[method-assign]
     static = resources.files("imu_gateway") / "static"
 
@@ -126,7 +128,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
         return HTMLResponse((static / "index.html").read_text(encoding="utf-8"))
 
     app.mount("/static", StaticFiles(packages=[("imu_gateway", "static")]), name="static")
-    docs_policy = _docs_routes(app)
+    docs_policy = _docs_routes(app, routes.roles)
     app.add_middleware(SecurityHeaders, pages={"/": PAGE_POLICY, "/docs": docs_policy,
                                                "/wizards": PAGE_POLICY})
     counts = counters if counters is not None else {"requests": 0}
@@ -139,7 +141,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
 DOCS_ASSETS = "/docs/assets"
 
 
-def _docs_routes(app: FastAPI) -> str:
+def _docs_routes(app: FastAPI, roles: Roles) -> str:
     """The interactive API reference at ``/docs``, and ``/api/v1`` listing the
     endpoints (a client that starts at the API's root finds its way).  The docs
     page's Content-Security-Policy: the page policy, and its one inline script (which
@@ -158,7 +160,8 @@ def _docs_routes(app: FastAPI) -> str:
     async def docs() -> HTMLResponse:
         return HTMLResponse(page)
 
-    @app.get(API, response_model=ApiIndexOut, summary="the endpoints of this API")
+    @app.get(API, response_model=ApiIndexOut, dependencies=[roles.public],
+             summary="the endpoints of this API")
     async def index() -> dict[str, Any]:
         endpoints = [{"method": method, "path": route.path, "summary": route.summary or ""}
                      for route in app.routes if isinstance(route, APIRoute)
@@ -199,46 +202,11 @@ def _error_handlers(app: FastAPI) -> None:
         return response
 
 
-def _access(gateway: GatewayLike, config: HttpConfig) -> _Routes:
-    """The dependencies that check a request's token, per kind of request."""
-
-    def authorised(credentials: HTTPAuthorizationCredentials | None) -> None:
-        if credentials is None or not token_matches(credentials.credentials, config.token):
-            raise RequestFailed(ErrorKind.UNAUTHORISED, "a valid bearer token is required")
-
-    # async, like every dependency here: FastAPI runs a plain def in a worker thread,
-    # a thread hop per request (measured: it halved the readings/s).
-    async def read_access(credentials: Credentials) -> None:
-        if config.read_token_required:
-            authorised(credentials)
-
-    async def command_access(credentials: Credentials) -> None:
-        refusal = command_refusal(config, credentials.credentials if credentials else None)
-        if refusal is not None:
-            raise refusal
-
-    async def stream_access(credentials: Credentials, access_token: Annotated[
-            str | None, Query(description="the token, for clients that cannot send "
-                              "headers (a browser's EventSource; RFC 6750 §2.3)")] = None,
-                            ) -> None:
-        if config.read_token_required and not (
-                access_token is not None and token_matches(access_token, config.token)):
-            authorised(credentials)
-
-    async def ack_access(credentials: Credentials) -> None:
-        refusal = ack_refusal(config, credentials.credentials if credentials else None)
-        if refusal is not None:
-            raise refusal
-
-    return _Routes(gateway, [Depends(read_access)], [Depends(stream_access)], command_access,
-                   ack_access)
-
-
 def _status_routes(app: FastAPI, routes: _Routes) -> None:
     """The gateway as a whole: health, buses, value groups."""
     gateway = routes.gateway
 
-    @app.get(f"{API}/groups", response_model=list[GroupOut], dependencies=routes.reads,
+    @app.get(f"{API}/groups", response_model=list[GroupOut], dependencies=[routes.roles.viewer],
              responses=_errors(401), summary="the value groups and their units")
     async def groups() -> list[dict[str, Any]]:
         return [{"group": group.value, "fields": list(spec.fields),
@@ -247,7 +215,7 @@ def _status_routes(app: FastAPI, routes: _Routes) -> None:
                  "derived_from": [g.value for g in Group if g in spec.derived_from]}
                 for group, spec in VALUE_GROUPS.items()]
 
-    @app.get(f"{API}/health", response_model=HealthOut, dependencies=routes.reads,
+    @app.get(f"{API}/health", response_model=HealthOut, dependencies=[routes.roles.viewer],
              responses=_errors(401), summary="gateway and bus status")
     async def health() -> dict[str, Any]:
         buses = {b.name: b.port_open for b in gateway.stats()}
@@ -261,7 +229,7 @@ def _status_routes(app: FastAPI, routes: _Routes) -> None:
                 "buses": buses, "sensors": counted, "interfaces": gateway.config.interfaces(),
                 "capture": gateway.captures is not None, "frontends": gateway.frontend_stats()}
 
-    @app.get(f"{API}/buses", response_model=list[BusOut], dependencies=routes.reads,
+    @app.get(f"{API}/buses", response_model=list[BusOut], dependencies=[routes.roles.viewer],
              responses=_errors(401), summary="every bus and its stats")
     async def buses() -> list[dict[str, Any]]:
         names = {b.name: [s.name for s in b.sensors] for b in gateway.config.buses}
@@ -298,7 +266,7 @@ def _sensor_routes(app: FastAPI, routes: _Routes) -> None:
                 "commands": sorted(commands_for(sensor.series, bus.protocol),
                                    key=list(CATALOGUE).index)}
 
-    @app.get(f"{API}/sensors", response_model=list[SensorOut], dependencies=routes.reads,
+    @app.get(f"{API}/sensors", response_model=list[SensorOut], dependencies=[routes.roles.viewer],
              responses=_errors(401), summary="every sensor with its status")
     async def sensors() -> list[dict[str, Any]]:
         return [sensor_out(snap, gateway.sensor_stats(snap.name))
@@ -307,7 +275,7 @@ def _sensor_routes(app: FastAPI, routes: _Routes) -> None:
     # exclude_unset: the reading's groups a series does not measure stay absent (as in
     # the reading JSON itself), while the nulls the route sets (age_ms …) stay null.
     @app.get(f"{API}/sensors/{{name}}", response_model=SensorDetailOut,
-             response_model_exclude_unset=True, dependencies=routes.reads,
+             response_model_exclude_unset=True, dependencies=[routes.roles.viewer],
              responses=_errors(401, 404), summary="a sensor's config, status and latest reading")
     async def sensor(name: str) -> dict[str, Any]:
         snap = routes.sensor_or_404(name)
@@ -319,7 +287,7 @@ def _sensor_routes(app: FastAPI, routes: _Routes) -> None:
                 "reading": snap.to_json() if snap.has_reading else None}
 
     @app.get(f"{API}/sensors/{{name}}/reading", response_model=ReadingOut,
-             response_model_exclude_none=True, dependencies=routes.reads,
+             response_model_exclude_none=True, dependencies=[routes.roles.viewer],
              responses=_errors(401, 404, 409, 503, 504),
              summary="the latest reading; older than max_age_ms: a fresh bus read first")
     async def reading(name: str, max_age_ms: Annotated[float | None, Query(
@@ -355,7 +323,7 @@ def _stream_routes(app: FastAPI, routes: _Routes, hub: StreamHub) -> None:
                           "(as in `GET /api/v1/alarms`) with `from` and `by`; a "
                           "`: keep-alive` comment when idle"}
 
-    @app.get(f"{API}/sensors/{{name}}/stream", dependencies=routes.streams,
+    @app.get(f"{API}/sensors/{{name}}/stream", dependencies=[routes.roles.viewer],
              response_class=StreamingResponse, responses={200: sse, **_errors(401, 404, 503)},
              summary="Server-Sent Events: one reading per event")
     async def stream(name: str, request: Request) -> StreamingResponse:
@@ -363,7 +331,7 @@ def _stream_routes(app: FastAPI, routes: _Routes, hub: StreamHub) -> None:
         return stream_response(name, request)
 
     @app.get(f"{API}/sensors/{{name}}/history", response_model=HistoryOut,
-             dependencies=routes.reads, responses=_errors(401, 404, 422),
+             dependencies=[routes.roles.viewer], responses=_errors(401, 404, 422),
              summary="the last minutes: per second, each field's lowest, highest and last")
     async def history(name: str, seconds: Annotated[float, Query(
             gt=0, le=KEEP_S, description=f"how far back, at most {KEEP_S} s")] = KEEP_S,
@@ -371,7 +339,7 @@ def _stream_routes(app: FastAPI, routes: _Routes, hub: StreamHub) -> None:
         routes.sensor_or_404(name)
         return hub.history.query(name, seconds, time.time())
 
-    @app.get(f"{API}/stream", dependencies=routes.streams, response_class=StreamingResponse,
+    @app.get(f"{API}/stream", dependencies=[routes.roles.viewer], response_class=StreamingResponse,
              responses={200: sse, **_errors(401, 503)},
              summary="Server-Sent Events of every sensor")
     async def stream_all(request: Request) -> StreamingResponse:
@@ -382,14 +350,14 @@ def _alarm_routes(app: FastAPI, routes: _Routes) -> None:
     """The alarms (docs/alarms.md): their states, the journal, acknowledgement."""
     gateway = routes.gateway
 
-    @app.get(f"{API}/alarms", response_model=list[AlarmOut], dependencies=routes.reads,
+    @app.get(f"{API}/alarms", response_model=list[AlarmOut], dependencies=[routes.roles.viewer],
              responses=_errors(401), tags=["alarms"],
              summary="every alarm with its state (each sensor's communication alarm last)")
     async def alarms() -> list[dict[str, Any]]:
         return [state.to_json() for state in gateway.alarm_states()]
 
     @app.get(f"{API}/alarms/journal", response_model=list[TransitionOut],
-             dependencies=routes.reads, responses=_errors(401, 422), tags=["alarms"],
+             dependencies=[routes.roles.viewer], responses=_errors(401, 422), tags=["alarms"],
              summary="the alarms' transitions, oldest first (the last 1000)")
     async def journal(since: Annotated[float | datetime | None, Query(
             description="only those at or after this time: epoch seconds, or ISO 8601 "
@@ -400,14 +368,14 @@ def _alarm_routes(app: FastAPI, routes: _Routes) -> None:
         return [change.to_json() for change in gateway.alarm_journal(wall)]
 
     @app.post(f"{API}/alarms/{{sensor}}/{{alarm}}/ack", response_model=AlarmOut,
-              dependencies=[Depends(routes.acks)], responses=_errors(401, 403, 404, 409),
-              tags=["alarms"], summary="acknowledge an alarm (needs the token); its state "
+              dependencies=[routes.roles.operator], responses=_errors(401, 403, 404, 409),
+              tags=["alarms"], summary="acknowledge an alarm (an operator's); its state "
                                        "after")
     async def acknowledge(sensor: str, alarm: str, request: Request, by: Annotated[
             str | None, Query(min_length=1, max_length=64, pattern=r"^[^\x00-\x1f\x7f]+$",
                               description="who acknowledges, for the journal")] = None,
                           ) -> dict[str, Any]:
-        who = f"rest {request.client.host if request.client else 'unknown'}"
+        who = f"rest {peer_of(request)}, {who_of(request).name}"
         return gateway.acknowledge(sensor, alarm, f"{by} ({who})" if by else who).to_json()
 
 
@@ -417,12 +385,13 @@ def _metrics_route(app: FastAPI, routes: _Routes) -> None:
     registry.register(GatewayCollector(routes.gateway))
     ProcessCollector(registry=registry)  # process_*: CPU, memory, open files
 
-    @app.post(f"{API}/sensors/{{name}}/commands/{{command}}", include_in_schema=False)
+    @app.post(f"{API}/sensors/{{name}}/commands/{{command}}", include_in_schema=False,
+              dependencies=[routes.roles.commands])
     async def other_command(name: str, command: str) -> None:
         routes.sensor_or_404(name)
         raise unknown_command(command)
 
-    @app.get("/metrics", response_class=Response, dependencies=routes.reads,
+    @app.get("/metrics", response_class=Response, dependencies=[routes.roles.viewer],
              responses={200: {"content": {"text/plain": {}}}, **_errors(401)},
              summary="Prometheus text format")
     async def metrics() -> Response:
@@ -432,16 +401,26 @@ def _metrics_route(app: FastAPI, routes: _Routes) -> None:
 
 def _openapi_of(app: FastAPI) -> Callable[[], dict[str, Any]]:
     def openapi() -> dict[str, Any]:
-        """FastAPI's document, with one correction and one addition: a read's bearer
-        token is optional (required only with ``http.read_token_required``), which
-        OpenAPI says with an empty alternative; and the command bodies' models."""
+        """FastAPI's document, with two additions and one correction: each operation's
+        role (``x-role``: what its dependency declares); a viewer's bearer token is
+        optional (required only with ``http.read_token_required``), which OpenAPI says
+        with an empty alternative, and a public route takes none; and the command
+        bodies' models."""
         if app.openapi_schema is None:
             document = get_openapi(title=app.title, version=app.version,
                                    description=app.description, routes=app.routes)
-            for path in document["paths"].values():
-                operation = path.get("get")
-                if operation is not None and "security" in operation:
-                    operation["security"] = [{}, *operation["security"]]
+            for route in app.routes:
+                role = declared_role(route) if isinstance(route, APIRoute) else None
+                for method in getattr(route, "methods", None) or ():
+                    operation = document["paths"].get(getattr(route, "path", ""), {}).get(
+                        method.lower())
+                    if operation is None or role is None:
+                        continue
+                    operation["x-role"] = role.label
+                    if role is Role.PUBLIC:
+                        operation.pop("security", None)
+                    elif role is Role.VIEWER and "security" in operation:
+                        operation["security"] = [{}, *operation["security"]]
             schemas = document.setdefault("components", {}).setdefault("schemas", {})
             for spec in CATALOGUE.values():  # the command bodies (``_command_route``)
                 schemas[spec.args.__name__] = spec.args.model_json_schema(
@@ -489,7 +468,7 @@ def _command_route(app: FastAPI, routes: _Routes, spec: CommandSpec) -> None:
     app.add_api_route(
         f"{API}/sensors/{{name}}/commands/{spec.name}", endpoint, methods=["POST"],
         response_model=CommandOut, summary=spec.summary, name=f"command_{spec.name}",
-        dependencies=[Depends(routes.commands)], tags=["commands"],
+        dependencies=[routes.roles.commands], tags=["commands"],
         responses=_errors(401, 403, 404, 409, 413, 422, 502, 504),
         openapi_extra={"requestBody": {"required": bool(spec.args.model_fields),
                                        "content": {"application/json": {"schema": schema}}}})

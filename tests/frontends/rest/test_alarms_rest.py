@@ -183,7 +183,7 @@ async def test_a_lean_raises_the_alarm_an_operator_acknowledges_it_and_it_clears
         assert (acked.json()["state"], acked.json()["acked"], acked.json()["active"]) == \
             ("active_acked", True, True)
         event = await events.wait_for("boom_lean", "active_acked")
-        assert event["by"] == "alice (rest 127.0.0.1)"
+        assert event["by"] == "alice (rest 127.0.0.1, http.token)"
         again = await http.post(ack, headers=AUTH)
         assert again.status_code == 409 and again.json()["kind"] == "nothing_to_acknowledge"
         unknown = await http.post(f"{API}/alarms/boom/nope/ack", headers=AUTH)
@@ -204,7 +204,7 @@ async def test_a_lean_raises_the_alarm_an_operator_acknowledges_it_and_it_clears
         everything = (await http.get(f"{API}/alarms/journal")).json()
         assert [(t["from"], t["to"], t["by"]) for t in everything] == [
             ("normal", "active_unacked", None),
-            ("active_unacked", "active_acked", "alice (rest 127.0.0.1)"),
+            ("active_unacked", "active_acked", "alice (rest 127.0.0.1, http.token)"),
             ("active_acked", "normal", None)]
         since = await http.get(f"{API}/alarms/journal", params={"since": everything[1]["ts"]})
         assert since.json() == everything[1:]

@@ -127,6 +127,23 @@ def chromium(tmp_path: Path) -> Iterator[Any]:
         driver.quit()
 
 
+def log_in(driver: Any, base: str, user: str, password: str, role: str) -> None:
+    """Open the page and log in with its form (no user name: ``password`` is a token of
+    ``http.tokens``), as a person would: typed and clicked; until the page says who."""
+    driver.get(base + "/")
+    form = driver.find_element("id", "login")
+    if not form.is_displayed():  # reads are open: the form is a click away
+        wait(lambda: driver.find_element("id", "login-open").is_displayed(), "Log in")
+        driver.find_element("id", "login-open").click()
+    driver.find_element("id", "login-user").send_keys(user)
+    driver.find_element("id", "login-password").send_keys(password)
+    form.find_element("css selector", "button[type=submit]").click()
+    wait(lambda: driver.execute_script(  # (one call: the page reloads once logged in)
+        "const w = document.getElementById('who');"
+        "return w && !document.getElementById('logout').hidden ? w.dataset.role : null;")
+        == role, f"logged in as {role}")
+
+
 def console_errors(driver: Any) -> list[dict[str, Any]]:
     """SEVERE console entries since the last call (the browser's log is drained)."""
     return [e for e in driver.get_log("browser") if e.get("level") == "SEVERE"]
@@ -282,25 +299,33 @@ def test_the_stream_going_down_shows_a_banner(tmp_path: Path) -> None:
         assert "disconnected" in banner.text
 
 
-def test_with_a_read_token_the_dashboard_streams_with_it(tmp_path: Path) -> None:
+def test_with_a_read_token_the_dashboard_logs_in_and_streams(tmp_path: Path) -> None:
+    """Reads need a credential: the page shows its login form; a token in the address
+    is taken out of it and not used; logged in with the form (the token as password),
+    the page streams (by fetch, with the header: no token in any URL)."""
     boom = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST, source=Motion.from_seed(7))
     with simulated([boom]) as line:
         cfg = {"gateway_id": "dash", "http": {"token": "s3cret", "read_token_required": True},
                "buses": [bus("a", line.path, "native",
                              [{"name": "boom", "series": "AH", "poll_hz": 20}])]}
         with gateway(tmp_path, cfg, token="s3cret") as base, chromium(tmp_path) as driver:
-            driver.get(base + "/")  # no token: the page says what is missing
-            banner = driver.find_element("id", "banner")
-            wait(lambda: banner.is_displayed() and "unauthorised" in banner.text,
-                 "the unauthorised banner")
-            console_errors(driver)  # the 401s are expected here
-
-            driver.get(base + "/?token=s3cret")
-            moves(driver, "boom")
+            driver.get(base + "/?token=s3cret")  # the old way: no longer a credential
+            form = driver.find_element("id", "login")
+            wait(form.is_displayed, "the login form")
+            assert "token" not in driver.current_url
+            assert "not used" in driver.find_element("id", "login-result").text
+            log_in(driver, base, "", "s3cret", "admin")
+            assert {e["message"].split(" - ")[0] for e in console_errors(driver)} <= {
+                f"{base}/api/v1/me"}  # its 401 before the login was expected
+            moves(driver, "boom")  # (readings come by the stream only)
             wait(lambda: agrees(driver, f"{base}/api/v1/sensors/boom/reading", "boom",
                                 "s3cret"), "boom's shown angles agree with REST")
-            assert "live (token)" in driver.find_element("id", "mode").text
+            assert driver.find_element("id", "mode").text.endswith("live")
             assert not driver.find_element("id", "banner").is_displayed()
+            urls = driver.execute_script(
+                "return performance.getEntriesByType('resource').map((e) => e.name)")
+            assert any("/api/v1/sensors" in u for u in urls)  # (the stream is not done)
+            assert not [u for u in urls if "s3cret" in u]
             assert console_errors(driver) == []
 
 
@@ -354,7 +379,7 @@ def test_the_dashboard_is_honest_keeps_trends_and_runs_commands(tmp_path: Path) 
             wait(lambda: get_json(f"{base}/api/v1/sensors/boom", token)["seq"] > 60,
                  "three seconds of readings", timeout=30)
             past = get_json(f"{base}/api/v1/sensors/boom/history", token)["t"]
-            driver.get(f"{base}/?token={token}")
+            log_in(driver, base, "", token, "admin")
             # every second the gateway had before the page opened is in the trend
             fresh = card_when(driver, "boom", lambda c: "is-ok" in c["classes"] and
                               c["trends"].get("angles", {}).get("points", 0) >= len(past)

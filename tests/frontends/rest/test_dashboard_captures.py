@@ -4,11 +4,11 @@ headless Chromium, against ``python -m imu_gateway run`` on simulated sensors.
 A simulated sensor leans past an alarm that ``capture.on_alarms`` names: the capture it
 triggers appears in the page's list (time, trigger, size as REST lists them), no sooner
 than ``post_s`` after the trigger, and its link's ``href`` downloads the ZIP (httpx, then
-``zipfile``).  A viewer without the token clicks "Take a capture" and is told why not,
-and no capture is taken (seen through REST); the operator with the token takes one and
-sees it listed.  With a read token the link is clicked in the browser and the ZIP lands
-in its download folder.  A gateway without a ``capture:`` section shows a note, no list
-and no button, and the page logs no error.  Waits are deadlines on a condition."""
+``zipfile``).  A viewer (not logged in) has no "Take a capture" button; the operator,
+logged in with the form, takes one and sees it listed.  With a read token the link is
+clicked in the browser and the ZIP lands in its download folder.  A gateway without a
+``capture:`` section shows a note, no list and no button, and the page logs no error.
+Waits are deadlines on a condition."""
 
 from __future__ import annotations
 
@@ -22,7 +22,17 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-from test_dashboard import FAST, bus, chromium, console_errors, gateway, get_json, screenshot, wait
+from test_dashboard import (
+    FAST,
+    bus,
+    chromium,
+    console_errors,
+    gateway,
+    get_json,
+    log_in,
+    screenshot,
+    wait,
+)
 
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import make_sensor, simulated
@@ -88,10 +98,10 @@ def test_a_capture_on_an_alarm_is_listed_and_the_button_is_the_operators(
         cfg = config(line.path, tmp_path / "captures",
                      {"token": TOKEN, "allow_commands": True}, on_alarms=["boom_lean"])
         with gateway(tmp_path, cfg) as base, chromium(tmp_path) as driver:
-            # A viewer without the token: the list, empty, and the button.
+            # A viewer, not logged in: the list, empty, and no button.
             driver.get(base + "/")
             empty = page_when(driver, lambda p: p["mode"] == "on", "the captures' section")
-            assert empty["listed"] and empty["button"] and empty["note"] is None
+            assert empty["listed"] and not empty["button"] and empty["note"] is None
             assert empty["captures"] == []
 
             line.call(boom.lean, 7.5, 0.0).result(5)
@@ -121,19 +131,11 @@ def test_a_capture_on_an_alarm_is_listed_and_the_button_is_the_operators(
             assert meta["id"] == entry["id"] and meta["trigger"]["alarm"] == "boom/boom_lean"
             assert len(response.content) == entry["size"]
 
-            # The button without the token: refused, in words, and no capture taken.
-            driver.find_element("id", "capture-take").click()
-            refused = page_when(driver, lambda p: p["result"]["ok"] == "false",
-                                "the refusal shown")
-            assert refused["result"]["text"] == (
-                "refused: unauthorised: taking a capture needs the operator's token: "
-                "open this page with ?token=… in its address")
-            assert len(get_json(f"{base}/api/v1/captures")) == 1
-            console_errors(driver)  # (the 401 is logged by the browser)
-
-            # The operator, with the token: taken, and listed once written.
-            driver.get(f"{base}/?token={TOKEN}")
-            page_when(driver, lambda p: len(p["captures"]) == 1, "the list with the page")
+            # The operator (the admin's token, logged in with the form): the button; a
+            # capture taken, and listed once written.
+            log_in(driver, base, "", TOKEN, "admin")
+            page_when(driver, lambda p: len(p["captures"]) == 1 and p["button"],
+                      "the list and the button with the page")
             driver.find_element("id", "capture-take").click()
             taken = page_when(driver, lambda p: p["result"]["capture"] is not None,
                               "the capture taken")
@@ -155,7 +157,7 @@ def test_a_capture_on_an_alarm_is_listed_and_the_button_is_the_operators(
 
 
 def test_with_a_read_token_the_link_downloads_in_the_browser(tmp_path: Path) -> None:
-    """Reads need the token: a plain link could not send it, so the page fetches the
+    """Reads need a credential: a plain link could not send it, so the page fetches the
     ZIP with it; the file lands in the browser's download folder whole."""
     boom = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST)
     downloads = tmp_path / "downloads"
@@ -166,7 +168,8 @@ def test_with_a_read_token_the_link_downloads_in_the_browser(tmp_path: Path) -> 
         with gateway(tmp_path, cfg, token=TOKEN) as base, chromium(tmp_path) as driver:
             driver.execute_cdp_cmd("Browser.setDownloadBehavior",
                                    {"behavior": "allow", "downloadPath": str(downloads)})
-            driver.get(f"{base}/?token={TOKEN}")
+            log_in(driver, base, "", TOKEN, "admin")
+            console_errors(driver)  # (GET /me's 401 before the login)
             page_when(driver, lambda p: p["mode"] == "on", "the captures' section")
             driver.find_element("id", "capture-take").click()
             entry = page_when(driver, lambda p: len(p["captures"]) == 1,
@@ -187,7 +190,7 @@ def test_without_a_capture_section_a_note_and_no_error(tmp_path: Path) -> None:
         cfg = config(line.path, tmp_path / "captures", {"token": TOKEN, "allow_commands": True})
         del cfg["capture"]
         with gateway(tmp_path, cfg) as base, chromium(tmp_path) as driver:
-            driver.get(f"{base}/?token={TOKEN}")
+            log_in(driver, base, "", TOKEN, "admin")
             off = page_when(driver, lambda p: p["mode"] == "off", "the note")
             assert off["note"] == ("Event capture is off: the gateway's config has no "
                                    'capture: section (docs/alarms.md, "Captures").')

@@ -17,6 +17,7 @@ from test_dashboard import (
     console_errors,
     gateway,
     get_json,
+    log_in,
     screenshot,
     wait,
 )
@@ -58,7 +59,8 @@ def test_the_magnetic_calibration_wizard_reaches_done_with_full_coverage(
             {"name": "compass", "series": "AH", "poll_hz": 20}])],
             "http": {"token": TOKEN, "allow_commands": True}}
         with gateway(tmp_path, cfg) as base, chromium(tmp_path) as driver:
-            driver.get(f"{base}/wizards?token={TOKEN}")
+            log_in(driver, base, "", TOKEN, "admin")  # (http.token is an admin's)
+            driver.find_element("css selector", 'a[href="wizards"]').click()
             button = driver.find_element("css selector", '[data-procedure="mag_calibration"]')
             wait(lambda: button.is_enabled() and driver.find_element(
                 "id", "sensor").get_attribute("value") == "compass", "the sensor is listed")
