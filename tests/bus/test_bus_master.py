@@ -240,7 +240,7 @@ async def test_dead_address_costs_the_live_sensors_little_and_comes_back() -> No
             await until(lambda: gw.cache.snapshot("ah").seq > seq + 10)
             assert gw.cache.snapshot("ah").status is Status.OK
             dead.stalled = False
-            await until(lambda: gw.cache.snapshot("dead").status is Status.OK, 15)
+            await until(lambda: gw.cache.snapshot("dead").status is Status.OK, 40)
         no_overlap(sim)
 
 
