@@ -34,6 +34,7 @@ NDEATH), beside the plain topics of [mqtt.md](mqtt.md) or instead of them
 traffic of its own. Tested against Eclipse Tahu's decoder (npm `sparkplug-payload`).
 
 ```yaml
+# fragment: a section shown alone, not a whole config
 mqtt:
   url: mqtt://broker:1883
   sparkplug:
