@@ -231,7 +231,7 @@ CATALOGUE: Mapping[str, CommandSpec] = MappingProxyType({
         CommandSpec(
             "read_settings", NoArgs, "zero type, address, declination (AH)", ALL,
             learns=lambda args, answer: KnownSettings(zero_type=answer.get("zero_type"),
-                                                      declination=answer.get("degrees")),
+                                                      declination=answer.get("declination")),
             idempotent=True),
     )
 })

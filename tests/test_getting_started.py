@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import re
 import shlex
+import statistics
 import subprocess
 import textwrap
 import time
@@ -124,11 +125,15 @@ def test_steps_4_to_7_on_the_simulator(guide: Guide, tmp_path: Path) -> None:
     # 6. run: the log lines the guide shows come, in its words
     (run,) = [b for b in blocks(6) if b.startswith("$ imu-gateway run")]
     command, shown = _shown(run)
+    # the one change to a command: the statistics every 2 s, not every minute, so the
+    # line the guide shows comes while the test waits
+    command = command.replace("--stats-interval 60", "--stats-interval 2")
     log = (tmp_path / "run.log").open("w+")
     process = subprocess.Popen(guide.argv(command), cwd=tmp_path, stdout=log,
                                stderr=subprocess.STDOUT, text=True)
     try:
         _expect_log(guide, shown, tmp_path / "run.log")
+        _expect_stats(shown, tmp_path / "run.log")
         _step_7(guide)
     finally:
         process.terminate()
@@ -150,6 +155,27 @@ def _expect_log(guide: Guide, shown: list[str], path: Path) -> None:
             return
         assert time.monotonic() < deadline, (missing, text)
         time.sleep(0.1)
+
+
+STATS = re.compile(r"bus line-a: ([\d.]+) transactions/s, utilisation ([\d.]+), errors none")
+
+
+def _expect_stats(shown: list[str], path: Path) -> None:
+    """The statistics line the guide shows, in figures the run prints: the median of
+    three spans (after the first, which starts mid-way), the rate within 0.3/s and the
+    utilisation within 0.05 (the guide says it moves with the sensor's answer delays;
+    the simulator's are the 5-40 ms of this module's docstring)."""
+    (line,) = [line for line in shown if "transactions/s" in line]
+    expected = STATS.search(line)
+    assert expected, line
+    deadline = time.monotonic() + 30
+    while len(printed := STATS.findall(path.read_text())[1:]) < 3:
+        assert time.monotonic() < deadline, path.read_text()
+        time.sleep(0.1)
+    rate = statistics.median(float(r) for r, _ in printed[:3])
+    utilisation = statistics.median(float(u) for _, u in printed[:3])
+    assert abs(rate - float(expected.group(1))) <= 0.3, (printed, line)
+    assert abs(utilisation - float(expected.group(2))) <= 0.05, (printed, line)
 
 
 def _step_7(guide: Guide) -> None:

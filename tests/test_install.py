@@ -51,6 +51,9 @@ def test_the_wheel_holds_the_package_data_and_nothing_of_the_checkout(wheel: Pat
     names = zipfile.ZipFile(wheel).namelist()
     assert "imu_gateway/py.typed" in names
     assert {"imu_gateway/static/index.html", "imu_gateway/static/dashboard.css"} <= set(names)
+    # the examples `imu-gateway init --example NAME` writes
+    assert {f"imu_gateway/examples/{name}.yaml" for name in
+            ("single-native", "mixed-bus", "modbus-rtu-only")} <= set(names)
     assert not [n for n in names if n.startswith(("tests/", "bench/", "gateway/"))]
     assert any(n.endswith("licenses/LICENSE") for n in names)
 

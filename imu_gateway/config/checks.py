@@ -12,9 +12,11 @@ from typing import Any
 from ..model import WireProtocol
 from .fields import (
     ADDRESS_RANGE,
+    DEFAULT_ADDRESS,
     MODBUS_STREAM_INTERVAL_MS,
     NATIVE_STREAM_HZ,
     protocol_name,
+    protocol_or_none,
     show,
     show_number,
 )
@@ -117,3 +119,24 @@ def cross_problems(buses: list[BusView]) -> list[str]:
     return problems
 
 
+
+
+def address_warnings(data: Any) -> list[str]:
+    """Warnings on the config as written (before defaults are filled in): a Modbus RTU
+    sensor with a ``unit_id`` and no ``address``.  Its address then defaults to 1, and
+    ``unit_id: 5`` for a sensor at address 5 polls address 1: the two keys look alike
+    but name two sides (the gateway's Modbus TCP unit, the sensor's RTU address)."""
+    buses = data.get("buses") if isinstance(data, dict) else None
+    warnings: list[str] = []
+    for i, bus in enumerate(buses if isinstance(buses, list) else []):
+        if not isinstance(bus, dict) or \
+                protocol_or_none(bus.get("protocol")) is not WireProtocol.MODBUS:
+            continue
+        sensors = bus.get("sensors")
+        for j, sensor in enumerate(sensors if isinstance(sensors, list) else []):
+            if isinstance(sensor, dict) and "unit_id" in sensor and sensor.get("address") is None:
+                warnings.append(
+                    f"buses[{i}].sensors[{j}]: unit_id is the Modbus TCP side; the sensor's "
+                    f"RTU address is `address` (not given, so {show(sensor.get('name'))} is "
+                    f"polled at address {DEFAULT_ADDRESS[WireProtocol.MODBUS]})")
+    return warnings

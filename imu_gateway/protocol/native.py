@@ -339,7 +339,9 @@ COMMANDS: tuple[NativeCommand, ...] = (
     _command("set_declination", "2.21", AH_ONLY,
              (0x06, _fields(("degrees", DECL))), (0x86, _fields(("degrees", DECL)))),
     _command("read_declination", "2.22", AH_ONLY,
-             (0x07, NO_DATA), (0x87, _fields(("degrees", DECL)))),
+             # "declination", not "degrees": read_settings answers with it, and the settings
+             # everywhere else (KnownSettings, the settings topic) call it so
+             (0x07, NO_DATA), (0x87, _fields(("declination", DECL)))),
     _command("read_mag", "2.23", AH_ONLY, (0x55, NO_DATA), (0x55, MAG3)),
     _command("clear_mag_calibration", "2.24", AH_ONLY,
              (0x10, NO_DATA), (0x90, _fields(("result", RESULT)))),

@@ -411,7 +411,7 @@ class NativeSensor(SimSensor):
                 self.settings.declination = args["degrees"]
                 answer = dict(args)
             case "read_declination":
-                answer = {"degrees": self.settings.declination}
+                answer = {"declination": self.settings.declination}
             case "start_mag_calibration" | "finish_mag_calibration" | "clear_mag_calibration":
                 answer = {"result": "success"}
         frame = native.encode_answer(command.name, self.series, self.address, **answer)

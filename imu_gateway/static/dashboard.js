@@ -557,32 +557,52 @@
   }
 
   const COLOURS = ["#2f7fd1", "#d1462f", "#2f9d5a", "#8a5a2b"];
+  const HEAD = 13; // the band above a chart's plot: its name and its colour legend
+  const AXIS = 52; // the gutter left of the plot: its highest and lowest value ("-0.851519")
+  // Directions, 0-360 with a wrap: on a shared axis they flatten the other fields
+  // (pitch and roll beside yaw) to lines, so each has a chart of its own.
+  const DIRECTIONS = new Set(["yaw", "tilt_direction"]);
 
-  /** One small chart per value group: each field's band (lowest to highest of each
-   *  second) and its line (the last value), over the last TREND_S seconds. */
+  /** The charts of a value group: one, and one more per direction in it. */
+  function chartsOf(g) {
+    const rest = g.members.filter(([, f]) => !DIRECTIONS.has(f));
+    const apart = g.members.filter(([, f]) => DIRECTIONS.has(f));
+    return [
+      ...(rest.length ? [{ key: g.key, label: g.label, group: g, members: rest }] : []),
+      ...apart.map((m) => ({ key: m[1], label: m[1].replace(/_/g, " "), group: g, members: [m] })),
+    ];
+  }
+
+  /** One small chart per value group (angles: two): each field's band (lowest to highest
+   *  of each second) and its line (the last value), over the last TREND_S seconds, with
+   *  its own axis and a legend of its colours.  Test hooks: data-legend (the fields in
+   *  colour order), data-axis ("lowest highest" as labelled). */
   function drawTrends(s) {
     const trend = s.trend;
-    const present = GROUPS.filter((g) => g.members.some(([, f]) => trend.fields[f]));
-    if (s.trends.dataset.groups !== present.map((g) => g.key).join(",")) {
-      s.trends.replaceChildren(...present.map((g) => {
+    const charts = GROUPS.flatMap(chartsOf)
+      .filter((c) => c.members.some(([, f]) => trend.fields[f]));
+    const keys = charts.map((c) => c.key).join(",");
+    if (s.trends.dataset.groups !== keys) {
+      s.trends.replaceChildren(...charts.map((c) => {
         const canvas = document.createElement("canvas");
         canvas.className = "trend";
-        canvas.dataset.group = g.key;
-        canvas.setAttribute("aria-label", `${g.label} over the last ${TREND_S / 60} minutes`);
+        canvas.dataset.group = c.key;
+        canvas.setAttribute("aria-label", `${c.label} over the last ${TREND_S / 60} minutes`);
         return canvas;
       }));
-      s.trends.dataset.groups = present.map((g) => g.key).join(",");
+      s.trends.dataset.groups = keys;
     }
     const now = Date.now() / 1000;
     for (const canvas of s.trends.querySelectorAll("canvas")) {
-      const group = GROUPS.find((g) => g.key === canvas.dataset.group);
-      drawTrend(canvas, group, trend, now, marksFor(s, group, now - TREND_S));
+      const chart = charts.find((c) => c.key === canvas.dataset.group);
+      drawTrend(canvas, chart, trend, now, marksFor(s, chart, now - TREND_S));
     }
   }
 
-  function drawTrend(canvas, group, trend, now, marks) {
+  function drawTrend(canvas, chart, trend, now, marks) {
     const { ctx, w, h } = prepare(canvas);
-    const fields = group.members.map(([, f]) => trend.fields[f]).filter(Boolean);
+    const shown = chart.members.filter(([, f]) => trend.fields[f]);
+    const fields = shown.map(([, f]) => trend.fields[f]);
     let lo = Infinity;
     let hi = -Infinity;
     for (const f of fields) {
@@ -593,15 +613,18 @@
     canvas.dataset.points = String(trend.t.length);
     canvas.dataset.seconds = String(trend.t.length ? trend.t[trend.t.length - 1] - trend.t[0] : 0);
     canvas.dataset.marks = String(marks.length);
-    canvas.setAttribute("aria-label", `${group.label} over the last ${TREND_S / 60} minutes` +
+    canvas.dataset.legend = shown.map(([m]) => m).join(",");
+    canvas.setAttribute("aria-label", `${chart.label} over the last ${TREND_S / 60} minutes` +
       (marks.length ? `, ${marks.length} alarm transition${marks.length === 1 ? "" : "s"}` : ""));
-    const x = (t) => ((t - (now - TREND_S)) / TREND_S) * w;
+    const x = (t) => AXIS + ((t - (now - TREND_S)) / TREND_S) * (w - AXIS);
+    drawChartFrame(ctx, chart, shown, w, h);
     if (!Number.isFinite(lo)) {
+      canvas.dataset.axis = "";
       drawMarks(ctx, marks, x, h);
       return;
     }
     if (hi - lo < 1e-9) { hi += 0.5; lo -= 0.5; }
-    const y = (v) => h - 2 - ((v - lo) / (hi - lo)) * (h - 4);
+    const y = (v) => h - 2 - ((v - lo) / (hi - lo)) * (h - HEAD - 4);
     fields.forEach((f, k) => {
       ctx.fillStyle = COLOURS[k % COLOURS.length] + "33";
       ctx.strokeStyle = COLOURS[k % COLOURS.length];
@@ -619,10 +642,40 @@
       ctx.stroke();
     });
     drawMarks(ctx, marks, x, h); // over the values: a transition is what the eye looks for
+    // the axis: its highest value at the top of the plot, its lowest at the bottom, both
+    // in this chart's own gutter (never on the next chart's name)
+    const digits = chart.group.digits;
     ctx.fillStyle = "#888";
     ctx.font = "10px sans-serif";
-    ctx.fillText(`${group.label} ${hi.toFixed(group.digits)}`, 2, 10);
-    ctx.fillText(lo.toFixed(group.digits), 2, h - 3);
+    ctx.textAlign = "right";
+    ctx.textBaseline = "top";
+    ctx.fillText(hi.toFixed(digits), AXIS - 4, HEAD + 1);
+    ctx.textBaseline = "bottom";
+    ctx.fillText(lo.toFixed(digits), AXIS - 4, h - 1);
+    ctx.textAlign = "left";
+    ctx.textBaseline = "alphabetic";
+    canvas.dataset.axis = `${lo.toFixed(digits)} ${hi.toFixed(digits)}`;
+  }
+
+  /** The chart's name and unit, a legend of its colours, and the axis line. */
+  function drawChartFrame(ctx, chart, shown, w, h) {
+    ctx.font = "10px sans-serif";
+    ctx.fillStyle = "#888";
+    const unit = chart.group.unit ? ` (${chart.group.unit})` : "";
+    ctx.fillText(chart.label + unit, 2, 10);
+    let at = Math.max(AXIS, ctx.measureText(chart.label + unit).width + 10);
+    shown.forEach(([member], k) => {
+      ctx.fillStyle = COLOURS[k % COLOURS.length];
+      ctx.fillRect(at, 3, 8, 8);
+      ctx.fillStyle = "#888";
+      ctx.fillText(member, at + 11, 10);
+      at += ctx.measureText(member).width + 20;
+    });
+    ctx.strokeStyle = "#8884";
+    ctx.beginPath();
+    ctx.moveTo(AXIS + 0.5, HEAD);
+    ctx.lineTo(AXIS + 0.5, h);
+    ctx.stroke();
   }
 
   // ------------------------------------------------------------------ commands

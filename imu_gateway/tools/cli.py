@@ -22,11 +22,13 @@ from ..model import Series, WireProtocol
 from ..protocol.modbus_rtu import UNIT_IDS
 from ..protocol.native import BAUD_CODES
 from .decode import decode_all, to_json_line
+from .init import InitError
 
 if TYPE_CHECKING:
     from ..config import GatewayConfig
     from ..simulator import PtyBus, SimSensor
     from ..simulator.control import ControlSocket
+    from .scan import Found, Progress
 
 EXIT_BAD_INPUT = 2
 
@@ -134,6 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
     _simulate_control_parser(commands)
     _check_config_parser(commands)
     _hash_password_parser(commands)
+    _init_parser(commands)
     return parser
 
 
@@ -329,6 +332,34 @@ def cmd_hash_password(args: argparse.Namespace) -> int:
     return 0
 
 
+def _init_parser(commands: Subcommands) -> None:
+    init = commands.add_parser(
+        "init",
+        help="write a commented starter config",
+        description="Write a commented starter config: from a scan of a port (--scan), "
+        "from questions on stdin (each with a default; --yes takes them all), or a copy "
+        "of a shipped example (--example). What it writes passes check-config. An "
+        "existing file is never overwritten without --force.",
+    )
+    source = init.add_mutually_exclusive_group()
+    source.add_argument("--scan", metavar="PORT", help="scan this port (as 'imu-gateway "
+                        "scan' does; the gateway must not be running on it)")
+    source.add_argument("--example", metavar="NAME",
+                        help="copy a shipped example: single-native, mixed-bus, "
+                        "modbus-rtu-only")
+    source.add_argument("--yes", action="store_true",
+                        help="take every question's default without asking")
+    init.add_argument("-o", "--output", default="gateway.yaml", metavar="FILE",
+                      help="the file to write (default gateway.yaml)")
+    init.add_argument("--force", action="store_true", help="overwrite FILE if it exists")
+    init.add_argument("--gateway-id", default="gateway-1", help="with --scan (default "
+                      "gateway-1)")
+    init.add_argument("--protocol", type=_protocol, action="append",
+                      help="with --scan: only this protocol (repeatable; default both)")
+    init.add_argument("--baud", type=_baud, action="append",
+                      help="with --scan: only this baud rate (repeatable; default all)")
+
+
 def cmd_decode(args: argparse.Namespace) -> int:
     status = 0
     for index, item in enumerate(decode_all(args.frames, args.protocol, args.series, args.start)):
@@ -405,8 +436,6 @@ def cmd_scan(args: argparse.Namespace) -> int:
 
     from .scan import (
         BAUD_ORDER,
-        Found,
-        Progress,
         Throttle,
         modbus_units,
         next_time,
@@ -592,6 +621,10 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     if config is None:
         return EXIT_BAD_INPUT
     print(f"config OK: {config.summary()}")
+    for line in _sensor_lines(config):
+        print(line)
+    for warning in _written_warnings(args.config):
+        print(f"warning: {warning}")
     for load in line_loads(config.buses):
         print(load.describe())
         for warning in load.warnings():
@@ -605,6 +638,76 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     return 0
 
 
+def _ask(question: str, default: str) -> str:
+    """One question on stdout, its answer from stdin; at the end of stdin, the default."""
+    try:
+        return input(f"{question} [{default}]: ")
+    except EOFError:
+        print()
+        return default
+
+
+def _scanned(args: argparse.Namespace) -> list[Found]:
+    import serial
+
+    from .scan import BAUD_ORDER, Throttle, port_problem, scan
+
+    def show(progress: Progress) -> None:
+        print(progress.line(), file=sys.stderr, flush=True)
+
+    sensors = scan(args.scan, args.protocol or list(WireProtocol), args.baud or BAUD_ORDER,
+                   progress=Throttle(show))
+    try:
+        return list(sensors)
+    except serial.SerialException as exc:
+        raise InitError(f"--scan: {port_problem(args.scan, exc)}") from None
+    finally:
+        sensors.close()
+
+
+def cmd_init(args: argparse.Namespace) -> int:
+    from .init import example, from_questions, from_scan, render, write
+
+    try:
+        if args.example:
+            text = example(args.example)
+        elif args.scan:
+            text = render(from_scan(args.scan, _scanned(args), args.gateway_id))
+        else:
+            text = render(from_questions((lambda q, d: "") if args.yes else _ask))
+        write(args.output, text, args.force)
+    except InitError as exc:
+        print(f"imu-gateway init: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(f"wrote {args.output}; check it after each edit: imu-gateway check-config -c "
+          f"{args.output}")
+    return 0
+
+
+def _sensor_lines(config: GatewayConfig) -> list[str]:
+    """Each sensor's two numbers side by side: the address it is polled at on its bus,
+    and the unit a Modbus TCP client asks for it (they are easily confused)."""
+    lines = []
+    for bus in config.buses:
+        for s in bus.sensors:
+            raw = f", raw unit {s.raw_unit_id}" if s.raw_unit_id is not None else ""
+            lines.append(f"sensor {s.name} ({s.series.name}) on {bus.name}: "
+                         f"{bus.protocol.name.lower()} address {s.address}, "
+                         f"Modbus TCP unit {s.unit_id}{raw}")
+    return lines
+
+
+def _written_warnings(path: str) -> list[str]:
+    """The warnings about what the file says, not what it means once defaults are
+    filled in (a Modbus RTU sensor's unit_id without an address)."""
+    import yaml
+
+    from ..config.checks import address_warnings
+
+    with open(path, encoding="utf-8-sig") as file:  # load_config read it a moment ago
+        return address_warnings(yaml.safe_load(file))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -614,6 +717,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "decode": cmd_decode, "check-config": cmd_check_config, "run": cmd_run,
         "scan": cmd_scan, "demo": cmd_demo, "simulate-control": cmd_simulate_control,
         "hash-password": cmd_hash_password,
+        "init": cmd_init,
     }
     return handlers[args.command](args)
 

@@ -16,14 +16,19 @@ import secrets
 import shlex
 import sys
 import tempfile
+import threading
 from collections.abc import Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
+
+import paho.mqtt.client as paho
+from paho.mqtt.enums import CallbackAPIVersion
 
 from ..app import Gateway, run_until_signalled
 from ..commands import CATALOGUE
-from ..config import GatewayConfig, config_from_dict
+from ..config import Broker, GatewayConfig, config_from_dict
 from ..model import Series, WireProtocol
 from ..simulator import SimulatorThread, make_sensor
 from ..simulator.motion import Motion
@@ -144,8 +149,10 @@ def banner(gateway: Gateway, token: str) -> str:
         prefix = f"{mqtt.base_topic}/{config.gateway_id}"
         broker = mqtt.brokers[0]
         lines.append(f"MQTT        mosquitto_sub -h {broker.host} -p {broker.port} -v "
-                     f"-t '{prefix}/#'   (MQTT 5, broker {mqtt.url}, "
-                     "retried in the background while it is not there)")
+                     f"-t '{prefix}/#'   (MQTT 5; the demo publishes to the broker it "
+                     f"finds at {mqtt.url}, yours if one runs there, and clears its retained "
+                     "messages when it stops; retried in the background while none is "
+                     "there)")
         lines.append(f"            mosquitto_rr -h {broker.host} -p {broker.port} "
                      f"-t {prefix}/{first}/cmd/read_settings -e {prefix}/replies -m '{{}}'")
     lines += [f"Token       {token}   (for commands over REST)", "", "Stop with Ctrl-C."]
@@ -166,7 +173,61 @@ def run_demo(options: DemoOptions) -> None:
             ports[line.name] = stack.enter_context(SimulatorThread(sims)).path
         config = demo_config(ports, options, token)
 
+        retained: list[str] = []
+
         def started(gateway: Gateway) -> None:
+            if gateway.mqtt is not None:  # what it retains: its own topics, its claims
+                # of the gateway id and client id (docs/mqtt.md), its discovery
+                retained.extend([f"{gateway.mqtt.prefix}/#", *gateway.mqtt.identity.claim_topics,
+                                 *gateway.mqtt.discovery])
             print(banner(gateway, token), flush=True)
 
         asyncio.run(run_until_signalled(config, on_started=started))
+        if config.mqtt is not None and retained:
+            cleared = clear_retained(config.mqtt.brokers[0], config.mqtt.tls, retained)
+            if cleared:
+                print(f"imu-gateway demo: cleared its {cleared} retained messages from "
+                      f"{config.mqtt.brokers[0]}", file=sys.stderr, flush=True)
+
+
+def clear_retained(broker: Broker, tls: bool, topics: list[str],
+                   timeout: float = 10.0) -> int:
+    """Deletes the retained messages on ``topics`` (filters) from the broker: the demo
+    publishes to a broker it did not set up, often the user's own, and must not leave
+    sensors there saying "ok" after it stopped.  Returns how many were cleared (0 when
+    the broker is not reachable: nothing was left there then)."""
+    client = paho.Client(CallbackAPIVersion.VERSION2, protocol=paho.MQTTv311)
+    if tls:
+        client.tls_set()
+    found: set[str] = set()
+    # A message published after the subscriptions comes back after their retained
+    # messages (the broker sends those at the SUBSCRIBE): its arrival ends the wait.
+    marker = f"{topics[0].removesuffix('/#')}/demo-stopped/{secrets.token_hex(4)}"
+    done = threading.Event()
+
+    def on_connect(c: paho.Client, *_: Any) -> None:
+        c.subscribe([(topic, 0) for topic in [*topics, marker]])
+        c.publish(marker, b"", qos=1)
+
+    def on_message(c: paho.Client, _: Any, message: paho.MQTTMessage) -> None:
+        if message.topic == marker:
+            done.set()
+        elif message.retain and message.payload:
+            found.add(message.topic)
+
+    client.on_connect, client.on_message = on_connect, on_message
+    try:
+        client.connect(broker.host, broker.port, keepalive=10)
+    except OSError:
+        return 0
+    client.loop_start()
+    try:
+        if not done.wait(timeout):
+            return 0
+        sent = [client.publish(topic, b"", qos=1, retain=True) for topic in sorted(found)]
+        for info in sent:
+            info.wait_for_publish(timeout)
+        return len(sent)
+    finally:
+        client.disconnect()
+        client.loop_stop()

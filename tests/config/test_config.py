@@ -786,8 +786,10 @@ def test_yaml_merge_keys_are_not_duplicates() -> None:
 def test_check_config_ok() -> None:
     done = cli("check-config", "-c", str(SPEC_EXAMPLE))
     assert done.returncode == 0, done.stderr
-    first, load, *warnings = done.stdout.splitlines()
+    first, sensor, load, *warnings = done.stdout.splitlines()
     assert first == "config OK: gateway lab-1, 1 bus, 1 sensor; interfaces: modbus, mqtt, http"
+    # its two numbers, side by side: the bus address and the Modbus TCP unit
+    assert sensor == "sensor boom (AH) on line-a: native address 0, Modbus TCP unit 1"
     # what the rates ask of the line; the example's port is not on this machine
     assert load.startswith("bus line-a at 9600 baud: boom 10/s (poll): wire 0.65 s/s")
     missing = ["warning: bus line-a: the port /dev/ttyUSB0 does not exist now (an adapter "
@@ -806,6 +808,30 @@ def test_check_config_summary_counts(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     assert done.stdout.splitlines()[0] == "config OK: gateway lab-1, 2 buses, 3 sensors; " \
         "interfaces: modbus, http"
+
+
+def test_check_config_warns_of_a_modbus_unit_id_without_an_address(tmp_path: Path) -> None:
+    """``unit_id: 5`` for a Modbus RTU sensor at address 5 passed and then polled address
+    1: check-config says which key is which, and shows the address that will be polled."""
+    path = tmp_path / "g.yaml"
+    path.write_text("""
+buses:
+  - {name: rtu, port: /dev/null, protocol: modbus, sensors: [
+      {name: tilt, series: VG, unit_id: 5, poll_hz: 1},
+      {name: told, series: VG, address: 6, unit_id: 6, poll_hz: 1}]}
+  - {name: nat, port: /dev/zero, protocol: native, sensors: [{name: boom, series: AH, unit_id: 7}]}
+modbus: {}
+""")
+    done = cli("check-config", "-c", str(path))
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert "sensor tilt (VG) on rtu: modbus address 1, Modbus TCP unit 5" in lines
+    assert "sensor told (VG) on rtu: modbus address 6, Modbus TCP unit 6" in lines
+    warnings = [line for line in lines if line.startswith("warning:")]
+    # one: the native sensor's address defaults to 0 as documented; told has both
+    assert warnings == [
+        "warning: buses[0].sensors[0]: unit_id is the Modbus TCP side; the sensor's RTU "
+        'address is `address` (not given, so "tilt" is polled at address 1)']
 
 
 def test_check_config_lists_every_problem_and_exits_2(tmp_path: Path) -> None:

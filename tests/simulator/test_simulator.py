@@ -563,7 +563,7 @@ def test_native_declination_ah() -> None:
     with line(sensor(WireProtocol.NATIVE, Series.AH, {"yaw": 10.0})) as port:
         exchange(port, native.encode_request("set_declination", degrees=-5.5), 7)
         assert native.decode(exchange(port, native.encode_request("read_declination"), 7)) \
-            .values == {"degrees": -5.5}
+            .values == {"declination": -5.5}
         angles = native.decode(exchange(port, native.encode_request("read_angles"), 14))
         assert angles.values["yaw"] == 4.5
 

@@ -18,7 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import httpx
-from support.broker import Mosquitto
+from support.broker import Mosquitto, recording
 from support.harness import free_port
 
 
@@ -116,10 +116,29 @@ def test_demo_serves_every_interface_and_stops_on_ctrl_c(tmp_path: Path) -> None
                                     timeout=30)
             assert json.loads(answer.stdout)["ok"] is True, (answer.stdout, answer.stderr)
 
+            # the banner says whose broker it is, and that the demo cleans up after itself
+            assert f"the demo publishes to the broker it finds at {broker.url}" in \
+                next(line for line in lines if line.startswith("MQTT"))
+            before = retained_topics(broker)
+            assert "imu/demo/status" in before and any("/state" in t for t in before)
+
             demo.send_signal(signal.SIGINT)
             code = demo.wait(30)
         finally:
             if demo.poll() is None:
                 demo.kill()
-            demo.communicate()
+            _, stderr = demo.communicate()
         assert code == 0
+        # nothing of it is left on the broker: no state saying "ok" after it stopped
+        assert retained_topics(broker) == set()
+        assert f"cleared its {len(before)} retained messages" in stderr
+
+
+def retained_topics(broker: Mosquitto) -> set[str]:
+    """Every retained topic on the broker: those the broker sends at a subscription to
+    '#', before a message published after that subscription (which ends the wait)."""
+    marker = "test/marker"
+    with recording(broker, "#", qos=1) as recorder:
+        recorder.client.publish(marker, b"end", qos=1)
+        recorder.wait(lambda: recorder.on(marker))
+        return {m.topic for m in recorder.messages if m.retain and m.payload}

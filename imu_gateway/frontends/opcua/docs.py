@@ -35,6 +35,7 @@ with asyncua's client (its high-level one, and sessions built by hand from its
 low-level one) and Node's node-opcua.
 
 ```yaml
+# fragment: a section shown alone, not a whole config
 opcua:
   listen: 0.0.0.0:4840         # opc.tcp://HOST:4840/
   allow_none: false            # true: also security mode None

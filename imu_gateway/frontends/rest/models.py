@@ -180,9 +180,11 @@ class HealthOut(_Out):
     interfaces: list[str]
     capture: bool = Field(description=(
         "event capture is on (a `capture:` section): `GET /api/v1/captures` lists them"))
-    frontends: dict[str, dict[str, float]] = Field(description=(
-        "front end -> its counters: clients, requests, restarts (after a failure) and "
-        "those of docs/reliability.md"))
+    # int | bool, not float: a count is a whole number (``"clients": 0``, not 0.0) and
+    # ``connected`` stays true/false.
+    frontends: dict[str, dict[str, int | bool]] = Field(description=(
+        "front end -> its counters (whole numbers; `connected` is true/false): clients, "
+        "requests, restarts (after a failure) and those of docs/reliability.md"))
 
 
 class CommandOut(_Out):

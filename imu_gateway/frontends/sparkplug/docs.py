@@ -34,6 +34,7 @@ NDEATH), beside the plain topics of [mqtt.md](mqtt.md) or instead of them
 traffic of its own. Tested against Eclipse Tahu's decoder (npm `sparkplug-payload`).
 
 ```yaml
+# fragment: a section shown alone, not a whole config
 mqtt:
   url: mqtt://broker:1883
   sparkplug:
@@ -91,7 +92,7 @@ mqtt:
   `Commands/Result` metric in a DDATA: `{{command}}: ok`, followed by the sensor's
   answer as JSON when it has one, or `{{command}}: {{kind}}: {{message}}` (the error
   kinds REST and MQTT answer with). `read_settings` answers with the settings read:
-  `read_settings: ok {{"zero_type": "absolute", "degrees": 0.0, "address": 0}}`.
+  `read_settings: ok {{"zero_type": "absolute", "declination": 0.0, "address": 0}}`.
 - A write the node refuses before it reaches the bus gets a `Commands/Result` too,
   and runs nothing: a metric that is not a command
   (`{{metric}}: unknown_command: …`), a value of the wrong datatype

@@ -335,7 +335,8 @@ if (!card) return null;
 const trends = {};
 for (const c of card.querySelectorAll("canvas.trend"))
   trends[c.dataset.group] = {points: Number(c.dataset.points || 0),
-                             seconds: Number(c.dataset.seconds || 0)};
+                             seconds: Number(c.dataset.seconds || 0),
+                             legend: c.dataset.legend, axis: c.dataset.axis};
 const filter = getComputedStyle(card.querySelector("canvas.horizon")).filter;
 return {classes: [...card.classList], reason: card.querySelector(".reason").textContent,
         filter, trends, rate: card.querySelector('[data-field="rate"]').textContent,
@@ -386,6 +387,16 @@ def test_the_dashboard_is_honest_keeps_trends_and_runs_commands(tmp_path: Path) 
                               and c["trends"]["angles"]["seconds"] >= past[-1] - past[0],
                               "boom ok, with its past")
             assert fresh["filter"] == "none" and not fresh["reason"]
+            # each chart has a legend of its fields and an axis of its own; a direction
+            # (0-360: yaw, tilt_direction) is drawn apart, not on its group's axis
+            assert fresh["trends"]["angles"]["legend"] == "pitch,roll"
+            assert fresh["trends"]["yaw"]["legend"] == "yaw"
+            assert fresh["trends"]["accel"]["legend"] == "x,y,z"
+            assert fresh["trends"]["tilt"]["legend"] == "tilt"
+            assert fresh["trends"]["tilt_direction"]["legend"] == "tilt_direction"
+            for chart in fresh["trends"].values():
+                low, high = map(float, chart["axis"].split())
+                assert low < high, fresh["trends"]
             assert "gauss" in fresh["units"] and "G" not in fresh["units"]
             assert "/" in fresh["rate"] and "/min" in fresh["errors"]
             # the sensor that never answers: offline, and it says so (after its tries)

@@ -182,6 +182,9 @@ async def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
         assert health["buses"] == {"a": True, "b": True}
         assert health["sensors"] == {"ok": 2, "stale": 0, "offline": 0}
         assert health["interfaces"] == ["http"]
+        # counters are whole numbers ("clients": 1, never 1.0), connected stays true/false
+        counters = [v for front in health["frontends"].values() for v in front.values()]
+        assert counters and all(type(v) is int for v in counters)
 
         # the recent past, a bucket a second
         history = (await http.get(f"{API}/sensors/boom/history", params={"seconds": 60}))
@@ -401,6 +404,11 @@ async def test_commands_status_codes(two_lines: Any) -> None:
         declination = await post(http, "boom/commands/set_declination", {"degrees": 0.25})
         assert declination.json()["answer"] == {"degrees": 0.3}
         assert ah.settings.declination == 0.3
+        # read_settings names it as the settings do: declination (never "degrees")
+        settings = (await post(http, "boom/commands/read_settings")).json()["answer"]
+        assert settings["declination"] == 0.3 and "degrees" not in settings
+        assert (await http.get(f"{API}/sensors/boom")).json()["settings"][
+            "declination"] == 0.3
         # busy: during the save's deaf period
         saving = asyncio.create_task(post(http, "boom/commands/save"))
         await until(lambda: gateway.cache.snapshot("boom").busy)
