@@ -13,8 +13,10 @@ front ends answer with.
      │    └── ProbeFailed      a broker answered the probe before a connect, but with a
      │                         refusal, or not all the way
      ├── RequestFailed    a client's request was not carried out; ``kind`` says why
-     └── BadCommand       (imu_gateway/simulator/control.py) a simulator control command
-                          that cannot be carried out
+     ├── BadCommand       (imu_gateway/simulator/control.py) a simulator control command
+     │                    that cannot be carried out
+     └── InitError        (imu_gateway/tools/init.py) a bad answer or option of
+                          ``imu-gateway init``
 
 A ``RequestFailed`` is what a command, an on-demand read or a pass-through ends in
 when it cannot be done, whichever front end asked.  Its ``kind`` is one row of

@@ -10,7 +10,8 @@ The rule, which the docs follow:
   if it has its own). :data:`MINIMAL` is the docs' running example: a native AH named
   ``boom`` with the alarm ``boom_lean`` of docs/alarms.md, which fragments refer to.
 * ``${VAR}`` references are set in the environment (the docs keep secrets out of the
-  file, as a reader should).
+  file, as a reader should): each to a value of its own (two tokens are two tokens),
+  and a ``…_HASH`` to a password hash (``imu-gateway hash-password``'s).
 * One kind of problem is left out: a file or folder the block names that is not on
   this machine ("no such file", "no such folder": a certificate in /etc/imu-gateway, a
   journal in /var/lib/imu-gateway). Those paths are the reader's gateway's, and
@@ -28,6 +29,7 @@ import yaml
 
 from imu_gateway.config import config_from_dict
 from imu_gateway.errors import ConfigError
+from imu_gateway.passwords import hash_password
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = [*sorted((ROOT / "docs").glob("*.md")), ROOT / "README.md"]
@@ -35,6 +37,7 @@ FRAGMENT = "# fragment"
 MINIMAL = {"buses": [{"name": "line-a", "port": "/dev/ttyUSB0", "protocol": "native",
                       "sensors": [{"name": "boom", "series": "AH", "alarms": [
                           {"name": "boom_lean", "field": "tilt", "above": 5.0}]}]}]}
+HASH = hash_password("a password of the docs")
 ABSENT_PATH = re.compile(r": no such (file|folder): ")
 BLOCK = re.compile(r"^( *)```yaml\n(.*?)^\1```", re.M | re.S)
 
@@ -64,7 +67,8 @@ def problems(block: str) -> list[str]:
         data = {**MINIMAL, **data}
     names = re.findall(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}", block)
     try:
-        config_from_dict(data, env={name: "secret" for name in names})
+        config_from_dict(data, env={name: HASH if name.endswith("_HASH") else f"secret-{name}"
+                                    for name in names})
     except ConfigError as exc:
         return [p for p in exc.problems if not ABSENT_PATH.search(p)]
     return []

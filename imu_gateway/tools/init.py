@@ -19,6 +19,7 @@ from pathlib import Path
 from ..capacity import line_loads
 from ..config import load_config_text
 from ..config.fields import ADDRESS_RANGE, DEFAULT_ADDRESS
+from ..errors import GatewayError
 from ..model import Series, WireProtocol
 from ..protocol.native import BAUD_CODES
 from .scan import Found
@@ -31,8 +32,9 @@ NAME = re.compile(r"[a-z0-9_-]+")  # the config's rules for a sensor's name
 GATEWAY_ID = re.compile(r"[A-Za-z0-9_.-]+")  # and for gateway_id
 
 
-class InitError(ValueError):
-    """A bad answer or option: its text says what was wrong and what is allowed."""
+class InitError(GatewayError, ValueError):
+    """A bad answer or option: its text says what was wrong and what is allowed (a leaf
+    of ``imu_gateway.errors``'s tree)."""
 
 
 @dataclass(frozen=True, slots=True)
