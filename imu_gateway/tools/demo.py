@@ -155,7 +155,8 @@ def banner(gateway: Gateway, token: str) -> str:
                      "there)")
         lines.append(f"            mosquitto_rr -h {broker.host} -p {broker.port} "
                      f"-t {prefix}/{first}/cmd/read_settings -e {prefix}/replies -m '{{}}'")
-    lines += [f"Token       {token}   (for commands over REST)", "", "Stop with Ctrl-C."]
+    lines += [f"Token       {token}   (an admin's: REST's bearer token, and the dashboard's "
+              "Log in with no user name)", "", "Stop with Ctrl-C."]
     return "\n".join(lines)
 
 
