@@ -65,7 +65,11 @@ def config_routes(app: FastAPI, gateway: GatewayLike, roles: Roles) -> None:
     responses: dict[int | str, dict[str, Any]] = {
         code: {"model": ErrorOut} for code in (401, 403, 404, 413)}
 
-    @app.get(f"{API}/config", dependencies=[roles.admin], responses=responses,
+    shown_as: dict[int | str, dict[str, Any]] = {200: {"content": {
+        "application/json": {"schema": {"type": "object"}},
+        "application/yaml": {"schema": {"type": "object"}}}}}  # (the config itself)
+
+    @app.get(f"{API}/config", dependencies=[roles.admin], responses={**responses, **shown_as},
              summary="the config as written: every secret as its ${VAR} reference, or ***",
              tags=["config"])
     async def get_config(
