@@ -130,7 +130,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     app.mount("/static", StaticFiles(packages=[("imu_gateway", "static")]), name="static")
     docs_policy = _docs_routes(app, routes.roles)
     app.add_middleware(SecurityHeaders, pages={"/": PAGE_POLICY, "/docs": docs_policy,
-                                               "/wizards": PAGE_POLICY})
+                                               "/wizards": PAGE_POLICY, "/setup": PAGE_POLICY})
     counts = counters if counters is not None else {"requests": 0}
     app.add_middleware(CountRequests, counts=counts)  # outermost: counts every request
     return app
