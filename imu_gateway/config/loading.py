@@ -163,12 +163,14 @@ def load_config(path: str | os.PathLike[str], env: Mapping[str, str] | None = No
 
 # ------------------------------------------------------- the file as written: a reload
 
-#: The config's secrets, by YAML path (``*``: any key): shown as their ``${VAR}``
-#: reference, or as ``***`` when written literally (``GET /api/v1/config``).
+#: The config's secrets, by YAML path (``*``: any key of a mapping, ``[]``: any item of a
+#: list): shown as their ``${VAR}`` reference, or as ``***`` when written literally
+#: (``GET /api/v1/config``).  A user's or a token's role stays visible.
 SECRET_PATHS = (("mqtt", "password"), ("http", "token"), ("opcua", "users", "*"),
-                ("http", "tokens", "*"), ("http", "users", "*"))
+                ("http", "tokens", "[]", "token"), ("http", "users", "*", "password"))
 HIDDEN = "***"
 _ONLY_REFS = re.compile(r"(?:\$\{[A-Za-z_][A-Za-z0-9_]*\}|\$\$\{|[^$])*")
+Place = tuple[Any, Any, tuple[Any, ...]]  # (mapping or list, key or index, its YAML path)
 
 
 @dataclass
@@ -193,14 +195,33 @@ def round_trip_load(text: str) -> Any:
     return YAML(typ="rt").load(text)
 
 
-def _secret_keys(data: Any, pattern: tuple[str, ...]) -> list[tuple[Any, Any]]:
-    """(mapping, key) of each secret the pattern finds in ``data``."""
-    *parents, last = pattern
-    found = [data]
-    for step in parents:
-        found = [m[step] for m in found if isinstance(m, Mapping) and isinstance(
-            m.get(step), Mapping)]
-    return [(m, k) for m in found for k in list(m) if last in ("*", k)]
+def _secret_places(data: Any, pattern: tuple[str, ...]) -> list[Place]:
+    """Where each secret the pattern names is in ``data``: its container, its key (or
+    index) there, and its path from the top."""
+    places: list[Place] = [(None, None, ())]
+    found: list[tuple[Any, tuple[Any, ...]]] = [(data, ())]
+    for step in pattern:
+        places = []
+        for node, path in found:
+            if step == "[]" and isinstance(node, list):
+                places += [(node, n, (*path, n)) for n in range(len(node))]
+            elif step != "[]" and isinstance(node, Mapping):
+                keys = list(node) if step == "*" else [step] if step in node else []
+                places += [(node, k, (*path, k)) for k in keys]
+        found = [(c[k], path) for c, k, path in places]
+    return places
+
+
+def _at(data: Any, path: tuple[Any, ...]) -> Any:
+    """The value at ``path`` in ``data`` (``None``: nothing there)."""
+    for step in path:
+        in_mapping = isinstance(data, Mapping) and step in data
+        if in_mapping or (isinstance(data, list) and isinstance(step, int)
+                          and step < len(data)):
+            data = data[step]
+        else:
+            return None
+    return data
 
 
 def shown(data: Any) -> Any:
@@ -208,11 +229,11 @@ def shown(data: Any) -> Any:
     ``${VAR}`` references stays as written; a literal one becomes ``***``."""
     copy = copy_plain(data)
     for pattern in SECRET_PATHS:
-        for mapping, key in _secret_keys(copy, pattern):
-            value = mapping[key]
+        for container, key, _ in _secret_places(copy, pattern):
+            value = container[key]
             if not (isinstance(value, str) and "${" in value
                     and _ONLY_REFS.fullmatch(value) and _no_literal(value)):
-                mapping[key] = None if value is None else HIDDEN
+                container[key] = None if value is None else HIDDEN
     return copy
 
 
@@ -222,17 +243,36 @@ def _no_literal(value: str) -> bool:
 
 
 def with_secrets_kept(new: Any, old: Any) -> Any:
-    """``new`` (a PUT's data) where each secret sent back as ``***`` takes its value
-    from ``old`` (the config as written): a client that read a hidden secret can send
-    the whole config back without knowing it."""
+    """``new`` (a PUT's data) where each secret sent back as ``***`` takes the value at
+    the same place of ``old`` (the config as written): a client that read a hidden
+    secret can send the whole config back without knowing it.  A ``***`` in a list
+    (``http.tokens``) is kept only where the entry around it is the one that was there
+    (the same role): a list reordered around it would otherwise give a token another
+    role.  Raises ``ConfigError`` for a ``***`` with nothing, or something else, there."""
     merged = copy_plain(new)
+    problems = []
     for pattern in SECRET_PATHS:
-        for mapping, key in _secret_keys(merged, pattern):
-            if mapping[key] == HIDDEN:
-                previous = [m[k] for m, k in _secret_keys(old, pattern) if k == key]
-                if previous:
-                    mapping[key] = previous[0]
+        for container, key, path in _secret_places(merged, pattern):
+            if container[key] != HIDDEN:
+                continue
+            previous, entry = _at(old, path), path[:-1]
+            same_entry = "[]" not in pattern or _without(_at(old, entry), key) == \
+                _without(_at(merged, entry), key)
+            if previous is None or previous == HIDDEN or not same_entry:
+                problems.append(f"{yaml_path(tuple(path))}: \"***\" stands for the secret "
+                                "that was at this place, and none (or another entry) is there "
+                                "now: give the secret itself, or its ${VAR}")
+            else:
+                container[key] = previous
+    if problems:
+        raise ConfigError(problems)
     return merged
+
+
+def _without(entry: Any, key: Any) -> Any:
+    """A list entry without its secret (what must be equal for ``***`` to be kept)."""
+    return {k: v for k, v in entry.items() if k != key} if isinstance(entry, Mapping) \
+        else entry
 
 
 def copy_plain(data: Any) -> Any:

@@ -3,6 +3,7 @@ against a running gateway on a simulated line, its config in a real file."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +16,7 @@ from imu_gateway.app import Gateway
 from imu_gateway.config import load_config
 from imu_gateway.config.loading import ConfigSource
 from imu_gateway.model import Series, WireProtocol
+from imu_gateway.passwords import hash_password
 from imu_gateway.simulator import hold, make_sensor, simulated
 from imu_gateway.simulator.motion import Motion
 
@@ -159,3 +161,43 @@ async def _applied_not_saved(setup: Path) -> None:
                            (await http.get("/api/v1/config")).json()["config"]["buses"][0]
                            ["sensors"]]
     assert setup.read_text() == before
+
+
+ROLES_TAIL = """\
+  tokens:
+    - {{token: {operator}, role: operator}}
+    - {{token: {viewer}, role: viewer}}
+  users:
+    anna: {{role: admin, password: "{hash}"}}
+"""
+
+
+@pytest.mark.anyio
+async def test_tokens_and_users_are_hidden_and_cannot_change_role_through_a_put(
+        setup: Path) -> None:
+    """``http.tokens`` is a list: each token is hidden (its role shown), and a ``***``
+    sent back keeps the token that was at its place only while the entry around it is
+    the same one. An admin who inserts a token before the others and sends the rest
+    back hidden gets 422, not the viewer's token turned operator."""
+    operator, viewer = "op-t0ken-secret-1", "viewer-t0ken-secret-2"
+    setup.write_text(setup.read_text() + ROLES_TAIL.format(
+        operator=operator, viewer=viewer, hash=hash_password("anna's password")))
+    async with await _running(setup) as gw, client(gw) as http:
+        shown = (await http.get("/api/v1/config", headers=AUTH)).json()["config"]
+        text = json.dumps(shown)
+        assert operator not in text and viewer not in text and "scrypt$" not in text
+        assert shown["http"]["tokens"] == [{"token": "***", "role": "operator"},
+                                           {"token": "***", "role": "viewer"}]
+        assert shown["http"]["users"] == {"anna": {"role": "admin", "password": "***"}}
+        same = await http.put("/api/v1/config", json=shown, headers=AUTH)
+        assert same.status_code == 200, same.text  # sent back as it was: kept
+        who = (await http.get("/api/v1/me", headers={"Authorization": f"Bearer {viewer}"}))
+        assert who.json()["role"] == "viewer"
+        shifted = json.loads(text)
+        shifted["http"]["tokens"].insert(0, {"token": "a-new-t0ken-3", "role": "viewer"})
+        refused = await http.put("/api/v1/config", json=shifted, headers=AUTH)
+        assert refused.status_code == 422, refused.text
+        assert any(p.startswith("http.tokens[1].token:") for p in refused.json()["problems"])
+        who = (await http.get("/api/v1/me", headers={"Authorization": f"Bearer {viewer}"}))
+        assert who.json()["role"] == "viewer"  # nothing changed
+    assert viewer in setup.read_text() and "a-new-t0ken-3" not in setup.read_text()
