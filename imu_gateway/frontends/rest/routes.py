@@ -64,7 +64,9 @@ from .models import (
     SensorOut,
     TransitionOut,
 )
+from .scan_routes import scan_routes
 from .streams import StreamHub, stream_peer
+from .traffic import traffic_routes
 
 #: Each error status's body, for the OpenAPI document.
 ERRORS: dict[int | str, dict[str, Any]] = {
@@ -112,6 +114,8 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     for spec in CATALOGUE.values():
         _command_route(app, routes, spec)
     capture_routes(app, gateway, routes.reads, routes.commands)
+    traffic_routes(app, gateway, routes.streams)
+    scan_routes(app, gateway, config, routes.streams)
     _metrics_route(app, routes)
     app.add_middleware(BodyGuard, config=config)
     app.openapi = _openapi_of(app)  # type: ignore[method-assign]
