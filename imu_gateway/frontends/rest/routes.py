@@ -127,7 +127,8 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
 
     app.mount("/static", StaticFiles(packages=[("imu_gateway", "static")]), name="static")
     docs_policy = _docs_routes(app)
-    app.add_middleware(SecurityHeaders, pages={"/": PAGE_POLICY, "/docs": docs_policy})
+    app.add_middleware(SecurityHeaders, pages={"/": PAGE_POLICY, "/traffic": PAGE_POLICY,
+                                                 "/docs": docs_policy})
     counts = counters if counters is not None else {"requests": 0}
     app.add_middleware(CountRequests, counts=counts)  # outermost: counts every request
     return app

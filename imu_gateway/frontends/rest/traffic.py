@@ -13,10 +13,11 @@ import time
 from collections import deque
 from collections.abc import AsyncGenerator, Callable
 from datetime import UTC, datetime
+from importlib import resources
 from typing import Annotated, Any
 
 from fastapi import FastAPI, Query
-from fastapi.responses import StreamingResponse
+from fastapi.responses import HTMLResponse, StreamingResponse
 
 from ...errors import ErrorKind, RequestFailed
 from ...stats import Trace
@@ -74,8 +75,13 @@ class _Watch:
 
 
 def traffic_routes(app: FastAPI, gateway: GatewayLike, streams: list[Any]) -> None:
-    """``GET /api/v1/buses/{bus}/traffic``."""
+    """``GET /api/v1/buses/{bus}/traffic``, and its page ``GET /traffic`` (with the scan)."""
     open_now = [0]
+    page = resources.files("imu_gateway") / "static" / "traffic.html"
+
+    @app.get("/traffic", response_class=HTMLResponse, include_in_schema=False)
+    async def traffic_page() -> HTMLResponse:
+        return HTMLResponse(page.read_text(encoding="utf-8"))
 
     async def follow(watch: _Watch, stop: Callable[[], None]) -> AsyncGenerator[bytes, None]:
         try:
