@@ -98,6 +98,11 @@ class ScanJob:
                 await self.pause(f"polling paused for a scan of {self.request.port} "
                                  f"(scan {self.id})")
             await asyncio.to_thread(self._scan, loop)
+        except asyncio.CancelledError:
+            # The gateway stops (its loop's last tasks are cancelled, then its threads
+            # joined): the scan must end now, not after its minutes.
+            self._cancel.set()
+            raise
         except Exception as exc:  # a bug: said, and the bus still resumes
             log.exception("scan %s: internal error", self.id)
             self._add(ScanEvent("failed", {"error": f"internal error ({exc})"}))

@@ -11,7 +11,7 @@ import asyncio
 import contextlib
 import time
 from collections import deque
-from collections.abc import AsyncGenerator, Callable
+from collections.abc import AsyncGenerator
 from datetime import UTC, datetime
 from importlib import resources
 from typing import Annotated, Any
@@ -83,7 +83,11 @@ def traffic_routes(app: FastAPI, gateway: GatewayLike, streams: list[Any]) -> No
     async def traffic_page() -> HTMLResponse:
         return HTMLResponse(page.read_text(encoding="utf-8"))
 
-    async def follow(watch: _Watch, stop: Callable[[], None]) -> AsyncGenerator[bytes, None]:
+    async def follow(bus: str, watch: _Watch) -> AsyncGenerator[bytes, None]:
+        # Watching starts here, not in the route: a response never sent (its client
+        # gone at once) never runs this, and must leave no watcher behind.
+        stop = await gateway.watch_traffic(bus, watch.on_trace)
+        open_now[0] += 1
         try:
             yield b": watching\n\n"  # (the headers and a first line go at once)
             said = time.monotonic()
@@ -120,13 +124,15 @@ def traffic_routes(app: FastAPI, gateway: GatewayLike, streams: list[Any]) -> No
                       errors: Annotated[bool, Query(
                           description="only the exchanges that failed")] = False,
                       ) -> StreamingResponse:
+        buses = [b.name for b in gateway.config.buses]
+        if bus not in buses:
+            raise RequestFailed(ErrorKind.NOT_FOUND, f"no bus {bus!r} (the buses: "
+                                f"{', '.join(buses) or 'none'})")
         if sensor is not None:
             gateway.cache.snapshot(sensor)  # (unknown_sensor, 404)
         if open_now[0] >= TRAFFIC_CLIENTS:
             raise RequestFailed(ErrorKind.TOO_MANY_STREAMS,
                                 f"{TRAFFIC_CLIENTS} traffic monitors are open")
-        watch = _Watch(sensor, errors)
-        stop = await gateway.watch_traffic(bus, watch.on_trace)
-        open_now[0] += 1
-        return StreamingResponse(follow(watch, stop), media_type="text/event-stream",
+        return StreamingResponse(follow(bus, _Watch(sensor, errors)),
+                                 media_type="text/event-stream",
                                  headers={"X-Accel-Buffering": "no"})

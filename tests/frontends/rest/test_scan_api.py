@@ -7,12 +7,17 @@ simulator's, behind real pseudo-terminals."""
 
 from __future__ import annotations
 
+import contextlib
 import json
+import subprocess
+import sys
+import time
+from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
-from support.harness import running, until
+from support.harness import free_port, interrupt, running, until
 
 from imu_gateway.app import Gateway
 from imu_gateway.model import Series, WireProtocol
@@ -128,3 +133,35 @@ async def test_a_scan_can_be_cancelled_and_a_missing_port_is_said() -> None:
             got = await events(http, long.json()["events"])
             assert (await http.get(f"{API}/scan/nope")).status_code == 404
     assert got[-1][0] == "cancelled"
+
+
+def test_a_scan_under_way_does_not_hold_the_gateways_stop(tmp_path: Path) -> None:
+    """SIGINT during a scan of minutes: the scan ends at its next address and the
+    process exits 0 (the stop's own grace, not the scan's length)."""
+    polled = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST)
+    with simulated([]) as empty, simulated([polled]) as used:
+        cfg = config(used.path)
+        port = free_port()
+        cfg["http"]["listen"] = f"127.0.0.1:{port}"
+        path = tmp_path / "gateway.yaml"
+        path.write_text(json.dumps(cfg))  # (JSON is YAML)
+        base = f"http://127.0.0.1:{port}"
+        with (tmp_path / "gateway.log").open("wb") as log:
+            process = subprocess.Popen([sys.executable, "-m", "imu_gateway", "run", "-c",
+                                        str(path)], stdout=log, stderr=subprocess.STDOUT)
+        try:
+            started = None
+            deadline = time.monotonic() + 30
+            while started is None and time.monotonic() < deadline:
+                with contextlib.suppress(httpx.TransportError):
+                    started = httpx.post(f"{base}{API}/scan", headers=AUTH, timeout=5,
+                                         json={"port": empty.path, "protocols": ["modbus"]})
+                time.sleep(0.05)
+            assert started is not None and started.status_code == 202
+            assert started.json()["estimate_s"] > 60
+            with httpx.stream("GET", f"{base}{started.json()['events']}", timeout=10) as r:
+                next(line for line in r.iter_lines() if line == "event: progress")
+        finally:
+            code = interrupt(process, timeout=15)
+    assert code == 0, (tmp_path / "gateway.log").read_text()[-2000:]
+    assert "Traceback" not in (tmp_path / "gateway.log").read_text()
