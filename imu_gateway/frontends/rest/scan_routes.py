@@ -18,7 +18,7 @@ from pydantic import BaseModel, Field, model_validator
 from ...config import HttpConfig
 from ...errors import ErrorKind, RequestFailed
 from ...model import WireProtocol
-from ...scanning import ScanJob, ScanRequest
+from ...scanning import ScanJob, ScanRequest, same_port
 from ..common import GatewayLike, json_bytes
 from .access import Credentials, token_matches
 from .limits import API
@@ -112,7 +112,8 @@ def scan_routes(app: FastAPI, gateway: GatewayLike, config: HttpConfig,
               summary="scan a port for sensors (a bus on that port pauses: confirm)")
     async def start(body: ScanIn) -> JSONResponse:
         request = body.request()
-        if any(j.request.port == request.port and not j.finished for j in jobs.values()):
+        if any(same_port(j.request.port, request.port) and not j.finished
+               for j in jobs.values()):
             raise RequestFailed(ErrorKind.BUSY, f"a scan of {request.port} is under way")
         job = gateway.scan(request)
         if job.bus is not None and not body.confirm:
