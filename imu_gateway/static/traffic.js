@@ -197,6 +197,6 @@
   $("scan-form").addEventListener("submit", (e) => { e.preventDefault(); startScan(false); });
   $("scan-confirm").addEventListener("click", () => startScan(true));
   $("scan-cancel").addEventListener("click", () => {
-    if (scan) fetch(`api/v1/scan/${scan.id}`, { method: "DELETE", headers });
+    if (scan) fetch(`api/v1/scan/${scan.id}/cancel`, { method: "POST", headers });
   });
 })();

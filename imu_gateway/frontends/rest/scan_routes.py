@@ -1,6 +1,6 @@
 """Scanning a line from the browser (docs/rest.md, "Scan"): ``POST /api/v1/scan``
 starts one (the admin's: the bearer token), ``GET /api/v1/scan/{id}/events`` follows
-it as Server-Sent Events, ``DELETE /api/v1/scan/{id}`` cancels it.
+it as Server-Sent Events, ``POST /api/v1/scan/{id}/cancel`` cancels it.
 
 A port one of the gateway's buses uses is scanned only when the request says
 ``confirm: true``: that bus's polling pauses for the scan, and the refusal says so,
@@ -31,7 +31,7 @@ BAUDS = (2400, 4800, 9600, 19200, 38400, 57600, 115200, 460800)
 class ScanIn(BaseModel):
     """What to scan: as `imu-gateway scan`'s options."""
 
-    model_config = {"extra": "forbid"}
+    model_config = {"extra": "forbid", "strict": True}  # (0 is not false, "5" not 5)
     port: str = Field(min_length=1, max_length=256, description="a device path or a "
                       "pyserial URL")
     protocols: list[str] = Field(default=["native", "modbus"], min_length=1,
@@ -88,7 +88,8 @@ def _out(job: ScanJob) -> dict[str, Any]:
 
 def scan_routes(app: FastAPI, gateway: GatewayLike, config: HttpConfig,
                 streams: list[Any]) -> None:
-    """``POST /api/v1/scan``, ``GET /api/v1/scan/{id}``, ``…/events``, ``DELETE``."""
+    """``POST /api/v1/scan``, ``GET /api/v1/scan`` and ``…/{id}``, ``…/events``,
+    ``…/cancel``."""
     jobs: dict[str, ScanJob] = {}
     errors: dict[int | str, dict[str, Any]] = {
         c: {"model": ErrorOut} for c in (401, 403, 404, 409, 422)}
@@ -127,15 +128,21 @@ def scan_routes(app: FastAPI, gateway: GatewayLike, config: HttpConfig,
         job.start()
         return JSONResponse(_out(job), 202)
 
+    @app.get(f"{API}/scan", response_model=list[ScanOut], dependencies=streams,
+             responses=errors, tags=["scan"],
+             summary="the scans under way and the last finished ones, oldest first")
+    async def listed() -> list[dict[str, Any]]:  # role: viewer
+        return [_out(job) for job in jobs.values()]
+
     @app.get(f"{API}/scan/{{scan_id}}", response_model=ScanOut, dependencies=streams,
              responses=errors, tags=["scan"], summary="a scan: what it found so far")
     async def one(scan_id: str) -> dict[str, Any]:  # role: viewer
         return _out(job_or_404(scan_id))
 
     # role: admin
-    @app.delete(f"{API}/scan/{{scan_id}}", response_model=ScanOut,
-                dependencies=[Depends(admin)], responses=errors, tags=["scan"],
-                summary="cancel a scan (the bus it paused resumes)")
+    @app.post(f"{API}/scan/{{scan_id}}/cancel", response_model=ScanOut,
+              dependencies=[Depends(admin)], responses=errors, tags=["scan"],
+              summary="cancel a scan (the bus it paused resumes); it stays listed")
     async def cancel(scan_id: str) -> dict[str, Any]:
         job = job_or_404(scan_id)
         job.cancel()

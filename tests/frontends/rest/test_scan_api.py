@@ -75,12 +75,14 @@ async def test_a_scan_of_a_free_port_finds_the_sensor() -> None:
             assert job["paused_bus"] is None and job["estimate_s"] > 0
             got = await events(http, job["events"])
             after = (await http.get(f"{API}/scan/{job['id']}")).json()
+            listed = (await http.get(f"{API}/scan")).json()
     names = [name for name, _ in got]
     assert names[0] == "progress" and names[-1] == "done"
     assert "seconds_left" in got[0][1] and "9600 baud" in got[0][1]["text"]
     found = [data for name, data in got if name == "found"]
     assert found == [{"protocol": "native", "baudrate": 19200, "address": 7, "series": "AH"}]
     assert after["finished"] and after["found"] == found
+    assert listed == [after]
 
 
 @pytest.mark.anyio
@@ -128,8 +130,9 @@ async def test_a_scan_can_be_cancelled_and_a_missing_port_is_said() -> None:
             scan_id = long.json()["id"]
             again = await http.post(f"{API}/scan", json={"port": empty.path}, headers=AUTH)
             assert again.status_code == 409 and "under way" in again.json()["error"]
-            assert (await http.delete(f"{API}/scan/{scan_id}")).status_code == 401
-            assert (await http.delete(f"{API}/scan/{scan_id}", headers=AUTH)).status_code == 200
+            assert (await http.post(f"{API}/scan/{scan_id}/cancel")).status_code == 401
+            cancelled = await http.post(f"{API}/scan/{scan_id}/cancel", headers=AUTH)
+            assert cancelled.status_code == 200, cancelled.text
             got = await events(http, long.json()["events"])
             assert (await http.get(f"{API}/scan/nope")).status_code == 404
     assert got[-1][0] == "cancelled"
