@@ -49,6 +49,10 @@ class _Watch:
         self.second = -1.0  # the start of the second being counted (monotonic)
         self.shown = 0
         self.held = 0  # frames of that second not sent
+        # One offset from the bus's clock to the wall's for the whole watch: the frames'
+        # times keep the bus's spacing exactly (read anew per frame, a preemption
+        # between the two clock reads would shift one by as much).
+        self.wall = time.time() - time.monotonic()
 
     def on_trace(self, t: Trace) -> None:
         if (self.sensor is not None and t.sensor != self.sensor) or \
@@ -59,8 +63,8 @@ class _Watch:
             self.held += 1
             return
         self.shown += 1
-        wall = time.time() - (time.monotonic() - t.at)
-        self.events.append(b"event: frame\ndata: %s\n\n" % json_bytes(frame_json(t, wall)))
+        self.events.append(b"event: frame\ndata: %s\n\n" % json_bytes(
+            frame_json(t, t.at + self.wall)))
         self.wake.set()
 
     def tick(self, now: float) -> None:
