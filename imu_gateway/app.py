@@ -37,11 +37,12 @@ from .config import (
 )
 from .config.loading import ConfigSource
 from .derived import values_of
-from .errors import RequestFailed, StartupError, unknown_sensor
+from .errors import ErrorKind, RequestFailed, StartupError, unknown_sensor
 from .history import History
 from .journal import JournalFile
 from .reload import Reloader
-from .stats import BusStats, FrontendCounts, SensorStats
+from .scanning import ScanJob, ScanRequest, same_port
+from .stats import BusStats, FrontendCounts, SensorStats, Trace
 from .supervise import Frontend, Supervisor
 
 if TYPE_CHECKING:  # the front ends' modules are imported when configured (below)
@@ -345,6 +346,25 @@ class Gateway:
     async def bus_frames(self) -> dict[str, list[Frame]]:
         """Every line's recent frames (event capture), copied on the bus thread."""
         return {name: await runner.frames() for name, runner in self.runners.items()}
+
+    async def watch_traffic(self, bus: str,
+                            watcher: Callable[[Trace], None]) -> Callable[[], None]:
+        """Tell ``watcher`` (on this loop) every exchange of ``bus`` from now on; returns
+        what stops it.  The bus traces only while someone watches."""
+        if bus not in self.runners:
+            raise RequestFailed(ErrorKind.NOT_FOUND, f"no bus {bus!r} (the buses: "
+                                f"{', '.join(self.runners) or 'none'})")
+        return await self.runners[bus].watch(watcher)
+
+    def scan(self, request: ScanRequest) -> ScanJob:
+        """A scan of ``request.port``, not started yet (``ScanJob.start``): its ``bus``
+        says which of the gateway's buses uses that port, paused for the scan."""
+        bus = next((b.name for b in self.config.buses
+                    if same_port(b.port, request.port)), None)
+        if bus is None:
+            return ScanJob(request, None)
+        runner = self.runners[bus]
+        return ScanJob(request, bus, runner.pause, runner.resume)
 
     def stats(self) -> list[BusStats]:
         return self.cache.bus_stats()

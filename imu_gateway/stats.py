@@ -60,6 +60,22 @@ def ms(seconds: float | None) -> float | None:
 
 
 @dataclass(frozen=True, slots=True)
+class Trace:
+    """One exchange for the frame trace (made by the bus, shown by the log and by
+    REST's traffic monitor): what went out, what came in, how long from
+    the request's start to the last byte in, and the outcome ("ok", "late",
+    "timeout", "garbled", "refused", …)."""
+
+    sensor: str
+    tx: bytes
+    rx: bytes
+    took: float
+    outcome: str
+    placed: str = ""  # next to a stream: the rule that placed the request
+    at: float = 0.0  # when it ended (time.monotonic() on the bus thread)
+
+
+@dataclass(frozen=True, slots=True)
 class SensorStats:
     """One sensor as its bus master sees it."""
 

@@ -14,6 +14,7 @@ from typing import Any
 from ..commands import Command, CommandResult
 from ..errors import RequestFailed
 from ..protocol.exchanges import Answer, Exchange
+from ..stats import Trace as Trace  # (defined there: the front ends read it)
 from .sensor_state import SensorState
 
 
@@ -118,20 +119,6 @@ class Finished:
     job: Job
     outcome: Outcome
     error: RequestFailed | None = None
-
-
-@dataclass(frozen=True, slots=True)
-class Trace:
-    """One exchange for the frame trace: what went out, what came in, how long from
-    the request's start to the last byte in, and the outcome ("ok", "late",
-    "timeout", "garbled", "refused", …)."""
-
-    sensor: str
-    tx: bytes
-    rx: bytes
-    took: float
-    outcome: str
-    placed: str = ""  # next to a stream: the rule that placed the request
 
 
 @dataclass(frozen=True, slots=True)

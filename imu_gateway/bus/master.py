@@ -50,7 +50,7 @@ from .link import SerialLink
 from .reactor import Reactor
 from .schedule import Schedule
 from .sensor_state import OFFLINE_AFTER, SensorState
-from .trace import TraceLog
+from .trace import TraceTap, Watcher
 
 log = logging.getLogger("imu_gateway.bus")
 
@@ -100,9 +100,11 @@ class BusMaster:
         self._reopen_delay = REOPEN_MIN
         self._port_problem_logged = False
         self._finished = False
-        self.trace_log = TraceLog(self.name)
-        if logging.getLogger("imu_gateway").isEnabledFor(logging.DEBUG):
-            self.schedule.trace_all()  # --log-level debug: every bus
+        # (--log-level debug: every bus's trace in the log)
+        self.traces = TraceTap(self.name, config.trace or logging.getLogger(
+            "imu_gateway").isEnabledFor(logging.DEBUG))
+        self.schedule.trace(self.traces.wanted)
+        self._paused = False  # the port released for a scan of the line
 
     @property
     def sensors(self) -> dict[str, SensorState]:
@@ -164,6 +166,26 @@ class BusMaster:
         self.schedule.stop(self._now())
         self._dispatch()
         self._poke()
+
+    def watch(self, watcher: Watcher, on: bool = True) -> None:
+        """Tell ``watcher`` every exchange from now on (a traffic monitor), or no more
+        (``on`` False)."""
+        self.traces.watch(watcher, on)
+        self.schedule.trace(self.traces.wanted)
+
+    def pause(self, reason: str | None) -> None:
+        """Release the port for ``reason`` (a scan of the line uses it): the exchange in
+        flight and every job waiting fail with it, and nothing goes out until
+        ``pause(None)`` opens it again.  The sensors keep their state and counters."""
+        if self._finished or (reason is not None) == self._paused:
+            return
+        self._paused = reason is not None
+        log.warning("bus %s: %s", self.name, reason or "polling resumed")
+        self._reopen_at = math.inf if reason else self._now()
+        if reason:
+            self.link.close()
+            self.schedule.close(self._now(), reason)
+            self._dispatch()
 
     # ------------------------------------------------------------ the loop's client
 
@@ -257,7 +279,7 @@ class BusMaster:
         self.link.open(self.reactor, self._on_bytes, self._on_lost, self._opened)
 
     def _opened(self, error: LinkError | None) -> None:
-        if self._finished:
+        if self._finished or self._paused:  # (paused while it was opening)
             self.link.close()
             return
         if error is None:
@@ -333,29 +355,9 @@ class BusMaster:
             self._publish_stats()
         for event in events:
             try:
-                self._carry_out(event)
+                _carry_out(self, event)
             except Exception:  # one event's failure must not lose the others
                 log.exception("bus %s: internal error carrying out %s", self.name, event)
-
-    def _carry_out(self, event: Event) -> None:
-        match event:
-            case Publish(name, answer, at):
-                reading = to_reading(answer.values, self.sensors[name].config.series)
-                if reading is not None:
-                    self.cache.publish(name, reading, at)
-                    self.schedule.count_reading(name, at)
-            case StateChange(name, online, busy, streaming):
-                self.cache.set_state(name, online=online, busy=busy, streaming=streaming)
-            case ErrorCounted(name):
-                self.cache.count_error(name)
-            case Finished(job, outcome, error):
-                if (shown := _learned(job, outcome)) is not None:
-                    self.cache.learn(job.sensor.name, shown)
-                self._resolve(job, outcome, error)
-            case Note(level, text):
-                log.log(level, "%s", text)
-            case Trace():
-                self.trace_log.write(event, self._now())
 
     def _resolve(self, job: Job, outcome: Outcome, error: RequestFailed | None) -> None:
         # (each job's error is its own: made when it ended)
@@ -379,6 +381,28 @@ class BusMaster:
 
     def bus_stats(self) -> BusStats:
         return bus_stats_of(self, self._now())
+
+
+def _carry_out(master: BusMaster, event: Event) -> None:
+    """One event of the schedule, carried out: the cache, the log, whoever asked."""
+    match event:
+        case Publish(name, answer, at):
+            reading = to_reading(answer.values, master.sensors[name].config.series)
+            if reading is not None:
+                master.cache.publish(name, reading, at)
+                master.schedule.count_reading(name, at)
+        case StateChange(name, online, busy, streaming):
+            master.cache.set_state(name, online=online, busy=busy, streaming=streaming)
+        case ErrorCounted(name):
+            master.cache.count_error(name)
+        case Finished(job, outcome, error):
+            if (shown := _learned(job, outcome)) is not None:
+                master.cache.learn(job.sensor.name, shown)
+            master._resolve(job, outcome, error)
+        case Note(level, text):
+            log.log(level, "%s", text)
+        case Trace():
+            master.traces.write(event, master._now())
 
 
 #: Events passed on after the counters (``_dispatch``).

@@ -68,6 +68,7 @@ class Outcomes:
         self.emit = emit
         self.diagnosis = diagnosis
         self.tracing = config.trace  # emit a Trace per exchange (the driver may turn it on)
+        self.traced = 0  # Trace events made: none while nobody traces (a test holds it)
 
     def frame(self, frame: Frame, at: float) -> None:
         """A whole frame came in at ``at``: the answer in flight, a stream frame, a
@@ -277,9 +278,10 @@ class Outcomes:
 
     def _trace(self, a: Attempt, at: float, outcome: str) -> None:
         """(Called only while tracing: the outcome's words are not built otherwise.)"""
+        self.traced += 1
         self.emit(Trace(a.job.sensor.name, a.exchange.request, bytes(self.line.heard),
                         at - a.sent, outcome if a.exchange.answer_bytes else "sent",
-                        a.placed))
+                        a.placed, at))
 
     def _offline(self, s: SensorState, kind: str, never: bool) -> str:
         """The log line for a sensor going offline: where it was asked, and for one

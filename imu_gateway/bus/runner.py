@@ -35,7 +35,7 @@ from ..commands import Command, CommandResult
 from ..config import BusConfig
 from ..errors import ErrorKind, RequestFailed
 from ..model import KnownSettings, Reading
-from ..stats import BusStats, SensorStats
+from ..stats import BusStats, SensorStats, Trace
 from .events import Outcome
 from .frames import Frame, RecordingLink
 from .master import BusMaster, Done
@@ -192,6 +192,27 @@ class BusRunner:
         if not isinstance(link, RecordingLink) or not self.reactor.running:
             return []
         return await self.call(link.copy)
+
+    async def watch(self, watcher: Callable[[Trace], None]) -> Callable[[], None]:
+        """Tell ``watcher`` (on the cache's loop, in order) every exchange of the line
+        from now on; returns what stops it.  The bus makes Trace events only while
+        someone watches (or its log traces)."""
+        def on_bus_thread(event: Trace) -> None:
+            self.writer.hand(watcher, event)
+
+        await self.call(functools.partial(self.master.watch, on_bus_thread))
+
+        def unwatch() -> None:
+            self.reactor.post(functools.partial(self.master.watch, on_bus_thread, False))
+
+        return unwatch
+
+    async def pause(self, reason: str) -> None:
+        """Release the line's port (``BusMaster.pause``)."""
+        await self.call(functools.partial(self.master.pause, reason))
+
+    async def resume(self) -> None:
+        await self.call(functools.partial(self.master.pause, None))
 
     def stop(self) -> None:
         """Ask the master to finish its exchange in flight and stop."""

@@ -84,9 +84,10 @@ class Schedule:
         for s in self.sensors.values():
             s.stats.rate.started = now
 
-    def trace_all(self) -> None:
-        """A ``Trace`` event for every exchange from now on (``--log-level debug``)."""
-        self.outcomes.tracing = True
+    def trace(self, on: bool) -> None:
+        """A ``Trace`` event for every exchange from now on, or none (its driver's
+        log or traffic monitors want them, or nobody does)."""
+        self.outcomes.tracing = on
 
     def count_reading(self, name: str, at: float) -> None:
         """A reading of ``name`` reached the cache (the driver normalises answers)."""

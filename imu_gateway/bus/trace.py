@@ -11,6 +11,7 @@ and said in one line.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 from .events import Trace
 
@@ -53,3 +54,33 @@ class TraceLog:
             return
         self.shown += 1
         log.info("%s", format_trace(self.bus, event))
+
+
+#: Told each ``Trace`` of the bus, on the bus thread (a traffic monitor's watch).
+Watcher = Callable[[Trace], None]
+
+
+class TraceTap:
+    """Where a bus's Trace events go: its log (``logged``: ``trace: true``, or debug)
+    and the traffic monitors watching.  The schedule makes them only while ``wanted``:
+    with nobody watching and no log, an exchange costs nothing more."""
+
+    def __init__(self, bus: str, logged: bool) -> None:
+        self.log = TraceLog(bus) if logged else None
+        self.watchers: list[Watcher] = []
+
+    @property
+    def wanted(self) -> bool:
+        return self.log is not None or bool(self.watchers)
+
+    def watch(self, watcher: Watcher, on: bool) -> None:
+        if on:
+            self.watchers.append(watcher)
+        elif watcher in self.watchers:
+            self.watchers.remove(watcher)
+
+    def write(self, event: Trace, now: float) -> None:
+        if self.log is not None:
+            self.log.write(event, now)
+        for watcher in self.watchers:
+            watcher(event)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any, Protocol
 
 from ..alarms import AlarmCounts, AlarmState, Transition
@@ -13,7 +13,8 @@ from ..config import GatewayConfig, SensorConfig
 from ..derived import json_bytes as json_bytes  # (where the front ends have it from)
 from ..errors import ErrorKind, RequestFailed
 from ..history import History
-from ..stats import BusStats, FrontendCounts, SensorStats
+from ..scanning import ScanJob, ScanRequest
+from ..stats import BusStats, FrontendCounts, SensorStats, Trace
 
 if TYPE_CHECKING:  # (imported by the app only when capture is configured)
     from ..capture import Captures
@@ -68,6 +69,18 @@ class GatewayLike(Protocol):
 
     def alarm_counts(self) -> AlarmCounts:
         """Transitions per alarm since start, and the journal file's counters."""
+        ...
+
+    # Scan and traffic (docs/rest.md, "Traffic" and "Scan").
+
+    async def watch_traffic(self, bus: str,
+                            watcher: Callable[[Trace], None]) -> Callable[[], None]:
+        """Tell ``watcher`` every exchange of ``bus``; returns what stops it.  Raises
+        ``RequestFailed`` (``not_found``) for a bus it does not have."""
+        ...
+
+    def scan(self, request: ScanRequest) -> ScanJob:
+        """A scan of a port, not started; its ``bus``: the one paused for it."""
         ...
 
 

@@ -111,11 +111,11 @@
     const take = (event) => render(JSON.parse(event.data));
     source.addEventListener("progress", take);
     source.addEventListener("end", (event) => { take(event); source.close(); });
-    source.onerror = () => {
+    source.addEventListener("error", () => {
       // A stream that ends is reconnected by the browser; one that cannot be had is
       // asked once more by GET, so the page still shows the end.
       if (source.readyState === 2) refresh(); // CLOSED
-    };
+    });
   }
 
   async function refresh() {

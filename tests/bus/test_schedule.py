@@ -611,7 +611,7 @@ def test_the_frame_trace_says_why_a_request_went_when_it_did_next_to_a_stream() 
         {"name": "st", "series": "AH", "address": 0, "stream_hz": 20},
         {"name": "po", "series": "VG", "address": 1, "poll_hz": 10}]),
         [sim("native", "AH", 0), sim("native", "VG", 1)])
-    line.schedule.trace_all()
+    line.schedule.trace(True)
     line.run(3.0)
     polls = [e for e in line.events if isinstance(e, Trace) and e.sensor == "po"]
     assert polls and all(e.placed for e in polls[-10:]), polls[-10:]
@@ -621,7 +621,7 @@ def test_the_frame_trace_says_why_a_request_went_when_it_did_next_to_a_stream() 
     # with no stream on the line, nothing is said
     quiet = VirtualLine(bus("native", [{"name": "po", "series": "VG", "address": 1,
                                         "poll_hz": 10}]), [sim("native", "VG", 1)])
-    quiet.schedule.trace_all()
+    quiet.schedule.trace(True)
     quiet.run(1.0)
     assert all(not e.placed for e in quiet.events if isinstance(e, Trace))
 

@@ -68,7 +68,9 @@ from .models import (
     TransitionOut,
 )
 from .procedures import procedure_routes
+from .scan_routes import scan_routes
 from .streams import StreamHub, stream_peer
+from .traffic import traffic_routes
 
 #: Each error status's body, for the OpenAPI document.
 ERRORS: dict[int | str, dict[str, Any]] = {
@@ -118,6 +120,8 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     capture_routes(app, gateway, routes.roles)
     config_routes(app, gateway, routes.roles)
     procedure_routes(app, gateway, routes.roles)
+    traffic_routes(app, gateway, routes.roles)
+    scan_routes(app, gateway, routes.roles)
     _metrics_route(app, routes)
     app.add_middleware(BodyGuard, authority=authority)
     app.openapi = _openapi_of(app)  # type: ignore[method-assign]
@@ -130,7 +134,8 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     app.mount("/static", StaticFiles(packages=[("imu_gateway", "static")]), name="static")
     docs_policy = _docs_routes(app, routes.roles)
     app.add_middleware(SecurityHeaders, pages={"/": PAGE_POLICY, "/docs": docs_policy,
-                                               "/wizards": PAGE_POLICY, "/setup": PAGE_POLICY})
+                                               "/wizards": PAGE_POLICY, "/setup": PAGE_POLICY,
+                                               "/traffic": PAGE_POLICY})
     counts = counters if counters is not None else {"requests": 0}
     app.add_middleware(CountRequests, counts=counts)  # outermost: counts every request
     return app

@@ -1,0 +1,380 @@
+"""A scan: which sensors are on this port, at which rate and address?
+
+Used by ``imu-gateway scan`` (``tools/scan.py``) and by REST's ``POST /api/v1/scan``
+(``scanning.py``).  It talks to the port directly: a port one of the gateway's own
+buses uses is released by that bus for the scan (``BusMaster.pause``).  For each baud
+rate, most likely first:
+
+* native: the 2.6 address query ``77 04 00 1F 23`` is answered by any sensor, so one
+  request finds a lone sensor; when the answer is garbled (several sensors answering
+  at once) every address is asked for its zero type instead.  The combined read
+  (0x59) then tells the series by the answer's shape: IMU 0x84/LEN 0x16, VG or MINS
+  0x59/0x2F (the protocol cannot tell those two apart), AH 0x59/0x38.
+* Modbus: every unit 1-247 (248-255 too with ``all_addresses``) is asked for register
+  0x04 (its product address); a sensor that answers is read once more (the float
+  block) to guess its series from which values are zero.
+
+Nothing is written to a sensor: only reads and the address query are sent.  Each
+request waits its wire time plus ``margin`` for an answer: by default the gateway's own
+first timeout (``bus.timing.RTO_INITIAL``), generous enough for a sensor that answers
+40 ms late behind a USB adapter's 16 ms latency timer.  That wait is also what the
+progress reports' estimate of the time left is made of (``time_left``).
+"""
+
+from __future__ import annotations
+
+import errno
+import math
+import os
+import time
+from collections.abc import Callable, Generator, Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import serial
+
+from ..modbus_codes import READ_HOLDING
+from ..model import CAPABILITIES, VALUE_GROUPS, Series, WireProtocol
+from ..protocol import modbus_rtu as rtu
+from ..protocol import native
+from ..protocol.exchanges import NativeAdapter, char_time, poll_span, rtu_silence
+from .timing import RTO_INITIAL
+
+#: Baud rates in the order they are tried: the factory default first, then the rates
+#: the documents recommend for fast output, then the rest.
+BAUD_ORDER = (9600, 115200, 460800, 19200, 38400, 57600, 4800, 2400)
+NATIVE_ADDRESSES = range(256)
+#: Units Modbus reserves, which the config refuses, but which a sensor's address
+#: register (0x00-0xFF in the document) can be set to by another tool.  Unit 0 is not
+#: among them on purpose: it is broadcast, which a device carries out without
+#: answering, so a read sent to it can never find anything.
+RESERVED_UNITS = range(248, 256)
+
+#: The wire sizes of the requests a sweep makes, which ``Prober.ask`` and the estimate
+#: of the time left both go by.
+_QUERY = native.encode_request("read_address")
+_QUERY_ANSWER_BYTES = 6
+_ZERO_TYPE_REQUEST_BYTES = len(native.encode_request("read_zero_type", 0))
+_UNIT_REQUEST_BYTES = len(rtu.read_request(1, 0x04, 1))  # FC03 of register 0x04
+_UNIT_ANSWER_BYTES = 7  # unit, function, byte count, one register, CRC
+
+#: What opening a port someone else holds fails with: EAGAIN (EWOULDBLOCK) from the
+#: flock pyserial's ``exclusive=True`` takes, as the gateway's does; EBUSY when the
+#: holder set TIOCEXCL on the tty.
+BUSY_ERRNOS = frozenset({errno.EAGAIN, errno.EWOULDBLOCK, errno.EBUSY})
+
+
+def _zero_type_answer_bytes() -> int:
+    shape = native.COMMANDS_BY_NAME["read_zero_type"].answer_for(Series.VG)
+    assert shape is not None
+    return int(shape.length_byte) + 1
+
+
+def listen_time(baud: int, request_bytes: int, answer_bytes: int, margin: float,
+                gap: float = 0.0) -> float:
+    """How long after its silent gap a request may wait for its answer: both frames'
+    wire time, the silence the sensor needs to see the request end (RTU), ``margin``."""
+    return (request_bytes + answer_bytes) * char_time(baud) + gap + margin
+
+
+@dataclass(frozen=True, slots=True)
+class Found:
+    protocol: WireProtocol
+    baudrate: int
+    address: int
+    series: str  # "AH", "VG or MINS", … or "unknown"
+
+    def line(self) -> str:
+        return (f"{self.protocol.name.lower():6} {self.baudrate:6} baud  "
+                f"address {self.address:3}  series {self.series}")
+
+
+@dataclass(frozen=True, slots=True)
+class Step:
+    """One protocol at one baud rate, and the addresses it may ask one by one."""
+
+    protocol: WireProtocol
+    baudrate: int
+    addresses: tuple[int, ...]
+
+    def address_time(self, margin: float) -> float:
+        """The longest one address's request takes (when nothing answers)."""
+        if self.protocol is WireProtocol.NATIVE:
+            return listen_time(self.baudrate, _ZERO_TYPE_REQUEST_BYTES,
+                               _zero_type_answer_bytes(), margin)
+        gap = rtu_silence(self.baudrate)
+        return gap + listen_time(self.baudrate, _UNIT_REQUEST_BYTES, _UNIT_ANSWER_BYTES,
+                                 margin, gap)
+
+    def start_time(self, margin: float) -> float:
+        """The step's time when nothing answers: native, the address query alone (the
+        addresses are asked one by one only when several sensors answer it); Modbus,
+        every unit."""
+        if self.protocol is WireProtocol.NATIVE:
+            return listen_time(self.baudrate, len(_QUERY), _QUERY_ANSWER_BYTES, margin)
+        return len(self.addresses) * self.address_time(margin)
+
+
+def time_left(steps: Sequence[Step], index: int, left: int | None, margin: float) -> float:
+    """Seconds the scan still takes if nothing more answers: step ``index`` from its
+    start (``left`` None) or with ``left`` addresses still to ask one by one, then every
+    later step.  Answers end requests early and each sensor found costs one more read,
+    so it is an estimate, not a bound."""
+    step = steps[index]
+    here = step.start_time(margin) if left is None else left * step.address_time(margin)
+    return here + sum(later.start_time(margin) for later in steps[index + 1:])
+
+
+def modbus_units(addresses: Iterable[int] | None = None,
+                 all_addresses: bool = False) -> list[int]:
+    """The units a Modbus sweep asks, in order: 1-247, with ``all_addresses`` 248-255
+    too; ``addresses`` narrows them.  Never 0 (see ``RESERVED_UNITS``)."""
+    allowed = range(1, RESERVED_UNITS.stop) if all_addresses else rtu.UNIT_IDS
+    return sorted({a for a in (addresses or allowed) if a in allowed})
+
+
+def plan(protocols: Iterable[WireProtocol], bauds: Iterable[int],
+         addresses: Iterable[int] | None = None, all_addresses: bool = False) -> list[Step]:
+    """The steps of a scan, in the order they are taken."""
+    native_addresses = tuple(sorted(set(addresses or NATIVE_ADDRESSES)))
+    units = tuple(modbus_units(addresses, all_addresses))
+    return [Step(protocol, baud, native_addresses if protocol is WireProtocol.NATIVE else units)
+            for baud in dict.fromkeys(bauds) for protocol in dict.fromkeys(protocols)]
+
+
+@dataclass(frozen=True, slots=True)
+class Progress:
+    """Where a scan is: a step starting (``address`` None), or about to ask ``address``,
+    the ``asked + 1``-th of the step's addresses."""
+
+    step: Step
+    address: int | None
+    asked: int
+    seconds_left: float
+
+    def line(self) -> str:
+        step = self.step
+        left = f"about {_duration(self.seconds_left)} left"
+        if self.address is not None:
+            where = f"address {self.address} ({self.asked + 1} of {len(step.addresses)}; {left})"
+        elif step.protocol is WireProtocol.NATIVE:
+            where = f"address query ({left})"
+        else:
+            count = len(step.addresses)
+            where = f"{count} address{'es' if count != 1 else ''} ({left})"
+        return f"scanning {step.protocol.name.lower()} {step.baudrate} baud, {where}"
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 90:
+        return f"{max(1, math.ceil(seconds))} s"
+    # To 10 s: finer would claim a precision the estimate does not have, coarser would
+    # leave the line unchanged for a minute.
+    minutes, rest = divmod(round(seconds / 10) * 10, 60)
+    return f"{minutes} min {rest} s" if rest else f"{minutes} min"
+
+
+class Throttle:
+    """Passes each step's start on, and then at most one report every ``interval``
+    seconds: a sign of life for whoever waits, not 247 lines a minute."""
+
+    def __init__(self, report: Callable[[Progress], None], interval: float = 1.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self._report = report
+        self._interval = interval
+        self._clock = clock
+        self._last = -math.inf
+
+    def __call__(self, progress: Progress) -> None:
+        now = self._clock()
+        if progress.address is None or now - self._last >= self._interval:
+            self._last = now
+            self._report(progress)
+
+
+#: Told the address about to be asked and how many of the step's were asked before.
+Tick = Callable[[int, int], None]
+
+
+def _no_tick(address: int, asked: int) -> None:
+    pass
+
+
+class Prober:
+    """Requests and the frames that come back, with a per-request time budget."""
+
+    def __init__(self, port: serial.Serial, margin: float) -> None:
+        self.port = port
+        self.margin = margin
+
+    def ask(self, request: bytes, answer_bytes: int, framer: Any, gap: float = 0.0,
+            all_answers: bool = False) -> tuple[list[Any], int]:
+        """Send ``request``; return the frames heard and how many bytes arrived.  With
+        ``all_answers`` it listens for the whole time allowed, not just the first."""
+        time.sleep(gap)
+        self.port.reset_input_buffer()
+        self.port.write(request)
+        deadline = time.monotonic() + listen_time(self.port.baudrate, len(request),
+                                                  answer_bytes, self.margin, gap)
+        frames: list[Any] = []
+        heard = 0
+        while time.monotonic() < deadline and (all_answers or not frames):
+            self.port.timeout = max(0.0, deadline - time.monotonic())
+            data = self.port.read(max(1, self.port.in_waiting))
+            heard += len(data)
+            frames += framer.feed(data)
+        return frames, heard
+
+
+def _native_series(prober: Prober, address: int) -> str:
+    exchange = NativeAdapter().poll(Series.VG, address)  # the request is the same for all
+    frames, _ = prober.ask(exchange.request, native.MAX_FRAME,
+                           native.NativeFramer(native.ANSWER_SHAPES))
+    for frame in frames:
+        if frame.address != address:
+            continue
+        key = (frame.command, len(frame.data) + 4)
+        for series, label in ((Series.IMU, "IMU"), (Series.VG, "VG or MINS"), (Series.AH, "AH")):
+            shape = native.COMMANDS_BY_NAME["read_all"].answer_for(series)
+            if shape is not None and shape.key == key:
+                return label
+    return "unknown"
+
+
+def scan_native(prober: Prober, addresses: Iterable[int],
+                tick: Tick = _no_tick) -> Iterator[tuple[int, str]]:
+    # Every sensor answers the address query: listen for all of them (they may answer
+    # one after another without colliding).
+    frames, heard = prober.ask(_QUERY, _QUERY_ANSWER_BYTES,
+                               native.NativeFramer(native.ANSWER_SHAPES), all_answers=True)
+    answers = sorted({native.interpret(f).values["address"] for f in frames
+                      if f.command == 0x1F})
+    if answers and heard == _QUERY_ANSWER_BYTES * len(answers):
+        found = answers
+    elif heard:  # something answered, garbled: several sensors at once
+        found = []
+        for asked, address in enumerate(addresses):
+            tick(address, asked)
+            request = native.encode_request("read_zero_type", address)
+            frames, _ = prober.ask(request, _zero_type_answer_bytes(),
+                                   native.NativeFramer(native.ANSWER_SHAPES))
+            if any(f.address == address for f in frames):
+                found.append(address)
+    else:
+        return
+    for address in found:
+        yield address, _native_series(prober, address)
+
+
+class ReservedUnitAnswers:
+    """A framer for FC03 answers from one unit in 248-255.  The shared RTU framer takes
+    such a unit byte for noise (no device may use it) and skips it, so the scan checks
+    the one answer it waits for itself: re-encoded, the bytes must match, CRC and all."""
+
+    def __init__(self, unit: int) -> None:
+        self.unit = unit
+        self._buf = bytearray()
+
+    def feed(self, data: bytes) -> list[rtu.ReadResponse]:
+        self._buf += data
+        buf = self._buf
+        for start in range(len(buf) - 4):
+            count = buf[start + 2]
+            end = start + 5 + count
+            if (buf[start] != self.unit or buf[start + 1] != READ_HOLDING or count % 2
+                    or not count or end > len(buf)):
+                continue
+            answer = rtu.ReadResponse(self.unit, tuple(
+                int.from_bytes(buf[i:i + 2], "big") for i in range(start + 3, end - 2, 2)))
+            if rtu.encode(answer) == buf[start:end]:
+                del buf[:end]
+                return [answer]
+        return []
+
+
+def _answers_from(unit: int) -> Any:
+    return ReservedUnitAnswers(unit) if unit in RESERVED_UNITS else rtu.RtuFramer(
+        requests=False)
+
+
+def _modbus_series(prober: Prober, unit: int) -> str:
+    start, count = poll_span(Series.AH)
+    gap = rtu_silence(prober.port.baudrate)
+    frames, _ = prober.ask(rtu.read_request(unit, start, count), 5 + 2 * count,
+                           _answers_from(unit), gap)
+    for frame in frames:
+        if isinstance(frame, rtu.ReadResponse) and frame.unit == unit:
+            values = rtu.read_values(start, frame.registers)
+            measured = {g for g, spec in VALUE_GROUPS.items()
+                        if any(values.get(n) for n in spec.fields)}
+            # A series leaves what it does not measure at zero: the smallest series
+            # whose groups cover what is non-zero is the best guess.
+            for series, label in ((Series.IMU, "IMU"), (Series.VG, "VG or MINS"),
+                                  (Series.AH, "AH")):
+                if measured <= CAPABILITIES[series].groups:
+                    return f"{label} (guessed from its values)"
+    return "unknown"
+
+
+def scan_modbus(prober: Prober, units: Iterable[int],
+                tick: Tick = _no_tick) -> Iterator[tuple[int, str]]:
+    gap = rtu_silence(prober.port.baudrate)
+    for asked, unit in enumerate(units):
+        tick(unit, asked)
+        frames, _ = prober.ask(rtu.read_request(unit, 0x04, 1), _UNIT_ANSWER_BYTES,
+                               _answers_from(unit), gap)
+        if any(getattr(f, "unit", None) == unit for f in frames):
+            yield unit, _modbus_series(prober, unit)
+
+
+def _ticker(progress: Callable[[Progress], None], steps: Sequence[Step], index: int,
+            margin: float) -> Tick:
+    step = steps[index]
+
+    def tick(address: int, asked: int) -> None:
+        left = len(step.addresses) - asked
+        progress(Progress(step, address, asked, time_left(steps, index, left, margin)))
+
+    return tick
+
+
+def _open(port: str) -> serial.Serial:
+    try:
+        return serial.serial_for_url(port, baudrate=9600, timeout=0.1,
+                                     exclusive=None if "://" in port else True)
+    except ValueError as exc:  # an unknown URL scheme: bad input, worded like the rest
+        raise serial.SerialException(str(exc)) from None
+
+
+def scan(port: str, protocols: Iterable[WireProtocol], bauds: Iterable[int],
+         addresses: Iterable[int] | None = None, margin: float = RTO_INITIAL,
+         progress: Callable[[Progress], None] | None = None,
+         all_addresses: bool = False) -> Generator[Found, None, None]:
+    """Every sensor that answers, as it is found; closing the generator ends the scan
+    and frees the port.  Raises ``serial.SerialException`` when the port cannot be
+    opened (``port_problem`` words it)."""
+    steps = plan(protocols, bauds, addresses, all_addresses)
+    with _open(port) as ser:
+        prober = Prober(ser, margin)
+        for index, step in enumerate(steps):
+            ser.baudrate = step.baudrate
+            tick: Tick = _no_tick
+            if progress:
+                progress(Progress(step, None, 0, time_left(steps, index, None, margin)))
+                tick = _ticker(progress, steps, index, margin)
+            scanner = scan_native if step.protocol is WireProtocol.NATIVE else scan_modbus
+            for address, series in scanner(prober, step.addresses, tick):
+                yield Found(step.protocol, step.baudrate, address, series)
+
+
+def port_problem(port: str, exc: serial.SerialException) -> str:
+    """One line for a port that cannot be opened or used."""
+    code = exc.errno
+    if code in BUSY_ERRNOS:
+        return (f"{port} is in use by another process: stop the gateway first (it holds "
+                f"{port}); `fuser -v {port}` shows who has it")
+    if code is not None:  # pyserial's own text says the errno and the port twice
+        hint = {errno.ENOENT: " (unplugged? see ls /dev/serial/by-id/)",
+                errno.EACCES: " (is your user in the dialout group?)"}.get(code, "")
+        return f"cannot open {port}: {os.strerror(code)}{hint}"
+    return str(exc) if port in str(exc) else f"{port}: {exc}"
