@@ -65,7 +65,70 @@ SHUTDOWN_GRACE = 10.0  # seconds the bus masters get to finish the exchange in f
 GIL_SWITCH_INTERVAL = 0.0005
 
 
-class Gateway:
+class _GatewayAlarms:
+    """The gateway's alarms (docs/alarms.md): evaluated here on each sample whichever
+    front ends are on, published as the cache's ``ALARM`` events, journalled, and
+    acknowledged through the front ends (``GatewayLike``'s alarm methods)."""
+
+    cache: Cache
+    sensors: dict[str, SensorConfig]
+    captures: Captures | None
+
+    def _alarms_setup(self, config: GatewayConfig) -> None:
+        """Every alarm, evaluated here on each sample whichever front ends are on (they
+        hear the transitions as the cache's ``ALARM`` events), and the journal's file,
+        whose last transitions give the alarms the states they had."""
+        self.journal_file = JournalFile(config.alarm_journal) if config.alarm_journal else None
+        self.alarms = Alarms([a.row(s.name) for _, s in config.iter_sensors() for a in s.alarms],
+                             self.sensors, self.journal_file.read() if self.journal_file else ())
+        self._evaluating = True  # off once stopping: a sensor going then is no alarm
+        self.cache.subscribe(self._on_sample)
+
+    def _on_sample(self, kind: EventKind, snap: Snapshot) -> None:
+        if kind is EventKind.READING and self._evaluating and snap.timestamp is not None:
+            for change in self.alarms.sample(snap.name, values_of(snap), time.monotonic(),
+                                             snap.timestamp.timestamp()):
+                self._publish(change)
+
+    def _check_communication(self) -> None:
+        """The communication alarms, at each staleness tick.  A sensor its bus has not
+        tried yet is no alarm: at start every sensor is "offline" until then."""
+        at, wall = time.monotonic(), time.time()
+        for name in self.sensors:
+            if self.cache.reached(name):
+                ok = self.cache.snapshot(name).status is Status.OK
+                change = self.alarms.communication(name, ok, at, wall)
+                if change is not None:
+                    self._publish(change)
+
+    def _publish(self, change: Transition) -> None:
+        if self.journal_file is not None:
+            self.journal_file.append(change)
+        state = self.alarms.evaluator(change.sensor, change.alarm).snapshot()
+        self.cache.publish_alarm(AlarmEvent(change, state))
+        if change.to_state.active and not change.from_state.active and \
+                self.captures is not None:  # (``capture.on_alarms`` decides)
+            self.captures.alarm_active(change.sensor, change.alarm, change.at)
+
+    def alarm_states(self) -> list[AlarmState]:
+        return self.alarms.states()
+
+    def alarm_journal(self, since: float | None = None) -> list[Transition]:
+        return self.alarms.since(since)
+
+    def acknowledge(self, sensor: str, alarm: str, who: str) -> AlarmState:
+        change = self.alarms.acknowledge(sensor, alarm, who, time.time())
+        self._publish(change)
+        return self.alarms.evaluator(sensor, alarm).snapshot()
+
+    def alarm_counts(self) -> AlarmCounts:
+        file = self.journal_file
+        return AlarmCounts(dict(self.alarms.transitions), file.written if file else 0,
+                           file.errors if file else 0)
+
+
+
+class Gateway(_GatewayAlarms):
     """The running gateway as the front ends see it: the cache, and commands."""
 
     def __init__(self, config: GatewayConfig, source: ConfigSource | None = None) -> None:
@@ -171,60 +234,6 @@ class Gateway:
                 log.error("%s: could not start after the reload: %s", name, exc)
                 made.fail(exc)
             self._watch(made)
-
-    # ------------------------------------------------------------ alarms
-
-    def _alarms_setup(self, config: GatewayConfig) -> None:
-        """Every alarm, evaluated here on each sample whichever front ends are on (they
-        hear the transitions as the cache's ``ALARM`` events), and the journal's file,
-        whose last transitions give the alarms the states they had."""
-        self.journal_file = JournalFile(config.alarm_journal) if config.alarm_journal else None
-        self.alarms = Alarms([a.row(s.name) for _, s in config.iter_sensors() for a in s.alarms],
-                             self.sensors, self.journal_file.read() if self.journal_file else ())
-        self._evaluating = True  # off once stopping: a sensor going then is no alarm
-        self.cache.subscribe(self._on_sample)
-
-    def _on_sample(self, kind: EventKind, snap: Snapshot) -> None:
-        if kind is EventKind.READING and self._evaluating and snap.timestamp is not None:
-            for change in self.alarms.sample(snap.name, values_of(snap), time.monotonic(),
-                                             snap.timestamp.timestamp()):
-                self._publish(change)
-
-    def _check_communication(self) -> None:
-        """The communication alarms, at each staleness tick.  A sensor its bus has not
-        tried yet is no alarm: at start every sensor is "offline" until then."""
-        at, wall = time.monotonic(), time.time()
-        for name in self.sensors:
-            if self.cache.reached(name):
-                ok = self.cache.snapshot(name).status is Status.OK
-                change = self.alarms.communication(name, ok, at, wall)
-                if change is not None:
-                    self._publish(change)
-
-    def _publish(self, change: Transition) -> None:
-        if self.journal_file is not None:
-            self.journal_file.append(change)
-        state = self.alarms.evaluator(change.sensor, change.alarm).snapshot()
-        self.cache.publish_alarm(AlarmEvent(change, state))
-        if change.to_state.active and not change.from_state.active and \
-                self.captures is not None:  # (``capture.on_alarms`` decides)
-            self.captures.alarm_active(change.sensor, change.alarm, change.at)
-
-    def alarm_states(self) -> list[AlarmState]:
-        return self.alarms.states()
-
-    def alarm_journal(self, since: float | None = None) -> list[Transition]:
-        return self.alarms.since(since)
-
-    def acknowledge(self, sensor: str, alarm: str, who: str) -> AlarmState:
-        change = self.alarms.acknowledge(sensor, alarm, who, time.time())
-        self._publish(change)
-        return self.alarms.evaluator(sensor, alarm).snapshot()
-
-    def alarm_counts(self) -> AlarmCounts:
-        file = self.journal_file
-        return AlarmCounts(dict(self.alarms.transitions), file.written if file else 0,
-                           file.errors if file else 0)
 
     async def command(self, sensor: str, name: str,
                       args: Mapping[str, Any] | None = None) -> CommandResult:

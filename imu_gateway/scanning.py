@@ -24,6 +24,7 @@ from typing import Any
 import serial
 
 from .bus.scan import Found, Progress, Throttle, plan, port_problem, scan, time_left
+from .errors import GatewayError
 from .model import WireProtocol
 
 log = logging.getLogger("imu_gateway.scan")
@@ -59,8 +60,9 @@ class ScanEvent:
         return self.kind in ("done", "failed", "cancelled")
 
 
-class _Cancelled(Exception):
-    """Raised in the scan's thread (from its progress report) to end it."""
+class _Cancelled(GatewayError):
+    """Raised in the scan's thread (from its progress report) to end it; it never
+    leaves this module (a leaf of ``imu_gateway.errors``'s tree all the same)."""
 
 
 #: What pauses the bus on the scanned port, and what resumes it.

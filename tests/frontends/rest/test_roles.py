@@ -35,7 +35,7 @@ USERS = {"vera": {"role": "viewer", "password": hash_password(PASSWORDS["vera"])
 LOWER = {"viewer": None, "operator": "viewer", "admin": "operator"}
 #: A value for each path parameter of the document (a refusal comes before they matter).
 PARAMS = {"name": "boom", "sensor": "boom", "alarm": "boom_lean", "capture_id": "x",
-          "command": "save", "procedure": "zero", "run_id": "1"}
+          "command": "save", "procedure": "zero", "run_id": "1", "bus": "a", "scan_id": "1"}
 
 
 def bearer(token: str) -> dict[str, str]:
@@ -95,6 +95,8 @@ async def test_every_route_declares_a_role_and_refuses_a_lower_one(line: str) ->
         assert declared[f"GET {API}/config"] == declared[f"PUT {API}/config"] == "admin"
         assert declared[f"POST {API}/sensors/{{name}}/procedures/{{procedure}}"] == "operator"
         assert declared[f"GET {API}/sensors/{{name}}/procedures"] == "viewer"
+        assert declared[f"POST {API}/scan"] == "admin"
+        assert declared[f"GET {API}/buses/{{bus}}/traffic"] == "viewer"
         for method, path, role in table:
             if role == "public":
                 continue
