@@ -302,6 +302,7 @@ class Run:
     in_flight: bool = False  # a command is sent and not answered
     sent_any: bool = False
     cleaning: bool = False  # the cleanup command after a cancel is due or sent
+    cleanup_sent: bool = False  # (the answer that ends the cleaning is the cleanup's own)
     error: str | None = None
     kind: ErrorKind | None = None
     answers: dict[str, Any] = field(default_factory=dict)
@@ -372,11 +373,15 @@ class Run:
     def sending(self) -> None:
         """The driver sent the command ``action`` gave."""
         self.in_flight = self.sent_any = True
+        self.cleanup_sent = self.cleanup_sent or self.cleaning
 
     def answered(self, result: CommandResult, now: float) -> None:
         self.in_flight = False
         if self.cleaning:
-            self.cleaning = False  # (its outcome changes nothing: it was cancelled)
+            # The cleanup's answer ends it (its outcome changes nothing: it was
+            # cancelled); the answer of a command in flight when the cancel came does
+            # not: the cleanup goes after it.
+            self.cleaning = not self.cleanup_sent
             return
         if self.state is not State.RUNNING:
             return

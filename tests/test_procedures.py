@@ -211,3 +211,21 @@ def test_the_circle_ignores_readings_without_a_direction() -> None:
     trace.add(0.0, 0.0)
     trace.add(math.nan, 0.1)
     assert trace.coverage_percent == 0.0
+
+
+def test_a_cancel_while_a_command_is_in_flight_still_clears_after_its_answer() -> None:
+    """The answer to the command in flight when the cancel came is not the clear's:
+    the clear is still sent after it (the sensor is not left half calibrated)."""
+    run = start("mag_calibration")
+    ok(run, {}, 100.0)  # clear
+    action = run.action(100.1)
+    assert action == SendCommand("mag_calibration", {"action": "start"})
+    run.sending()  # start in flight
+    run.cancel(100.2)
+    assert run.action(100.2) == Wait(None)  # its answer first
+    run.answered(CommandResult("s", "mag_calibration", True, {}), 100.3)
+    assert not run.over
+    assert run.action(100.3) == SendCommand("mag_calibration", {"action": "clear"})
+    run.sending()
+    run.answered(CommandResult("s", "mag_calibration", True, {}), 100.4)
+    assert run.over and run.action(100.5) is None

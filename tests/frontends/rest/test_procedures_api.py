@@ -163,6 +163,9 @@ async def test_cancel_clears_the_calibration_and_a_second_one_waits_for_it(
         cancelled = await http.delete(location, headers=AUTH)
         assert cancelled.status_code == 200 and cancelled.json()["state"] == "cancelled"
         await until(lambda: held_ah.writes_heard["clear_mag_calibration"] == 2)  # put back
+        # (the sensor is the procedure's until the clear is answered: its events end then)
+        async for _ in events(http, location):
+            pass
         assert (await http.get(location)).json()["state"] == "cancelled"
         assert held_ah.writes_heard["finish_mag_calibration"] == 0
         await start(http, "zero", {"type": "absolute"})  # the sensor is free again
