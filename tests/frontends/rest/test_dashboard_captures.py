@@ -138,7 +138,7 @@ def test_a_capture_on_an_alarm_is_listed_and_the_button_is_the_operators(
                       "the list and the button with the page")
             driver.find_element("id", "capture-take").click()
             taken = page_when(driver, lambda p: p["result"]["capture"] is not None,
-                              "the capture taken")
+                              "the capture taken", timeout=30)  # (burners: 15 s was short)
             assert taken["result"]["ok"] == "true"
             assert "recording, written in" in taken["result"]["text"]
             manual = page_when(driver, lambda p: len(p["captures"]) == 2,
