@@ -19,6 +19,7 @@ The plan, by part:
 from __future__ import annotations
 
 import asyncio
+import inspect
 import logging
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
@@ -398,6 +399,8 @@ class Reloader:
                 await gateway.replace_frontend(name)
             elif diff.sensor_set_changed and current is not None:
                 if hasattr(current, "sensors_changed"):
-                    current.sensors_changed()
+                    done = current.sensors_changed()
+                    if inspect.isawaitable(done):  # a front end may need its loop
+                        await done
                 else:
                     await gateway.replace_frontend(name)
