@@ -59,7 +59,13 @@ SIM_NICE = -15
 
 #: Held off the CPU this long, the simulator has stopped playing hardware (its loop
 #: otherwise wakes within a couple of milliseconds of when it asks, ``WATCH_TICK``).
-HELD, WATCH_TICK = 0.02, 0.01
+#: A hold is a silence of ``WATCH_TICK + HELD`` (18 ms) or more.  It must be noticed
+#: when it is long enough to make a master's retry meet a late answer: a master waits
+#: at least its timeout and the hold after it, 2 x 10 ms, from a request before it
+#: sends again, so a simulator held 18 ms behind an answer it gives in 2 ms already
+#: answers into the retry.  (At 20 ms, an overlap of that kind went unexplained beside
+#: CPU burners: the simulator held about 25 ms, below the threshold of then, 30.)
+HELD, WATCH_TICK = 0.008, 0.01
 #: Overlaps and collisions this soon after such a hold are its doing: a
 #: request read late, or a frame sent late, affects the exchange it belongs to, which
 #: is over within a sensor's longest answer timeout (0.4 s).

@@ -516,7 +516,9 @@ async def test_on_demand_reads_of_an_offline_sensor_fail_at_once() -> None:
             {"name": "ah", "series": "AH", "address": 0, "poll_hz": 0},
             {"name": "dead", "series": "VG", "address": 1, "poll_hz": 0}])) as gw:
             m = master(gw)
-            await until(lambda: m.sensors["dead"].online is False, 20)
+            # offline after 3 failed exchanges, the probes among them spaced for the
+            # line's probe budget: 10-20 s at idle, longer on a busy machine
+            await until(lambda: m.sensors["dead"].online is False, 60)
             before = m.sensors["dead"].stats.transactions + sum(
                 m.sensors["dead"].stats.errors.values())
             for _ in range(20):
