@@ -15,7 +15,7 @@ JSON object, ``{}`` or ``{"by": "alice"}`` (who acknowledges, for the journal).
 from __future__ import annotations
 
 import re
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from typing import Any
 
 from ...alarms import AlarmState
@@ -47,10 +47,12 @@ class AlarmDesk:
         self.connected = connected
         self._json = json_properties(config)
 
-    def announce(self) -> None:
-        """After a connect: every alarm's state."""
+    def announce(self, sensors: Collection[str] | None = None) -> None:
+        """After a connect: every alarm's state (after a reload: the alarms of the
+        ``sensors`` it added or changed)."""
         for state in self.gateway.alarm_states():
-            self._send(state)
+            if sensors is None or state.sensor in sensors:
+                self._send(state)
 
     def on_cache_event(self, kind: EventKind, snap: Snapshot) -> None:
         """The cache's ``ALARM`` events (the only kind this listens to)."""

@@ -43,9 +43,10 @@ from ...supervise import Frontend
 from ..common import GatewayLike, json_bytes
 from . import identity
 from .alarm_desk import AlarmDesk
-from .commands import CommandDesk
+from .commands import CommandDesk, ResponseTopics
 from .discovery import discovery_configs, setup_of
 from .identity import Identity
+from .live import sensor_set_change, through_outbox
 from .states import StateDesk
 from .sweep import SWEEP_S, RetainedSweep
 from .topics import (
@@ -83,9 +84,9 @@ class MqttClient(Frontend):
         self.session = Session(config, self.client_id, self, log, config.queue_size)
         self.counters, self.pipe = self.session.counters, self.session.pipe
         self.failover, self.outbox = self.session.failover, self.pipe.outbox
-        # The sensors are fixed for the process's life, so their discovery configs are.
-        self.discovery = discovery_configs(setup_of(gateway.config, self.topics)) \
-            if config.homeassistant_discovery else {}
+        # Made anew when a reload changes the sensors (``sensors_changed``).
+        self.discovery = self._discovery()
+        self._sensors = dict(gateway.sensors)  # as the retained messages show them
         self.states = StateDesk(gateway, config, self.topics, self.pipe.send,
                                 self._send_control, lambda: self.connected, self.pipe.waiting)
         self.alarms = AlarmDesk(gateway, config, self.topics, self._send_control,
@@ -110,6 +111,10 @@ class MqttClient(Frontend):
     @property
     def connected(self) -> bool:
         return self.session.connected
+
+    def _discovery(self) -> dict[str, Any]:
+        return discovery_configs(setup_of(self.gateway.config, self.topics)) \
+            if self.config.homeassistant_discovery else {}
 
     @property
     def taking_commands(self) -> bool:
@@ -165,6 +170,34 @@ class MqttClient(Frontend):
                    for name in self.gateway.sensors]
         await self.session.stop(self._runner, [
             *offline, Message(self.status_topic, OFFLINE, CONTROL_QOS, True)])
+
+    def sensors_changed(self) -> None:
+        """A reload changed the sensors (``live.py``): on the same connection, the
+        discovery configs and retained topics that changed are said.  While the broker
+        is away, nothing is queued: the next connect's announcement and sweep, made
+        from the new sets, do it."""
+        gateway, leaves = self.gateway, retained_leaves(self.config, self.gateway.sensors)
+        discovery, sensors = self._discovery(), dict(gateway.sensors)
+        change = sensor_set_change(self.topics, (self.discovery, discovery),
+                                   (self.sweep.leaves, leaves), (self._sensors, sensors))
+        self.discovery = self.sweep.discovery = discovery
+        self.sweep.leaves, self._sensors = leaves, sensors
+        self.desk.response_topics = ResponseTopics.of(self.config, gateway.config.gateway_id,
+                                                      sensors)
+        if self.connected:
+            described = json_properties(self.config)
+            for topic in change.swept:
+                self._send_control(Message(topic, b"", CONTROL_QOS, True))
+            for topic in change.configs:
+                self._send_control(Message(topic, json_bytes(discovery[topic]), CONTROL_QOS,
+                                           True, described))
+            for topic in change.cleared:
+                clear = Message(topic, b"", CONTROL_QOS, True)
+                (self.pipe.send if through_outbox(self.topics, topic) else self._send_control)(
+                    clear)
+        self.states.sensors_changed(change.announced)
+        self.alarms.announce(change.announced)
+        log.info("mqtt: the sensors changed, the connection stays: %s", change.summary())
 
     # ------------------------------------------------------------ the session's owner
 

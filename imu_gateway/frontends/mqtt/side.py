@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from typing import Any
 
 from ...cache import EventKind, Snapshot, Status
@@ -52,14 +52,26 @@ class SideTopics:
         self._ha_trailing: dict[str, asyncio.TimerHandle] = {}
         self._diagnostics: asyncio.TimerHandle | None = None
 
-    def announce(self) -> None:
+    def announce(self, sensors: Collection[str] | None = None) -> None:
         """After a connect: every sensor's settings and Home Assistant state, and the
-        diagnostics (then every ``DIAGNOSTICS_S``)."""
+        diagnostics (then every ``DIAGNOSTICS_S``); after a reload, those of the
+        ``sensors`` it added or changed."""
         for snap in self.gateway.cache.snapshots():
+            if sensors is not None and snap.name not in sensors:
+                continue
             self._send_settings(snap.name)
             if snap.has_reading:
                 self._ha_state(snap)
-        self._send_diagnostics()
+        if sensors is None:
+            self._send_diagnostics()
+
+    def forget(self, sensors: Collection[str]) -> None:
+        """Sensors a reload removed: their deferred Home Assistant states dropped."""
+        for name in sensors:
+            self._ha_sent.pop(name, None)
+            timer = self._ha_trailing.pop(name, None)
+            if timer is not None:
+                timer.cancel()
 
     def cancel(self) -> None:
         for timer in (*self._ha_trailing.values(), self._diagnostics):

@@ -16,7 +16,7 @@ import asyncio
 import json
 import math
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 
 from ...cache import EventKind, Snapshot, Status
@@ -104,6 +104,13 @@ class Backfill:
             self._timer.cancel()
             self._timer = None
 
+    def forget(self, sensors: Collection[str]) -> None:
+        """The states kept of sensors a reload removed: dropped (they publish no more)."""
+        gone = {self.topics.sensor(name, "history") for name in sensors}
+        kept = [m for m in self.kept if m.topic not in gone]
+        self.kept.clear()
+        self.kept.extend(kept)
+
 
 class StateDesk:
     """Sends what the cache says of the sensors, as the MQTT client's config asks.
@@ -138,7 +145,7 @@ class StateDesk:
         for message in reversed(self.take_waiting()):  # the newest first, each in front
             self._miss(message, older=True)
         for snap in self.gateway.cache.snapshots():
-            self._sensors[snap.name].availability = None
+            self._out(snap.name).availability = None
             self._publish_availability(snap)
         for snap in self.gateway.cache.snapshots():
             if snap.has_reading:
@@ -148,6 +155,32 @@ class StateDesk:
         if self.backfill is not None:
             self.backfill.resume()
         self.side.announce()
+
+    def sensors_changed(self, announced: Collection[str]) -> None:
+        """A reload changed the gateway's sensors: the removed ones are forgotten
+        (their deferred sends dropped), and the ``announced`` ones (added or changed)
+        have their availability and settings sent anew; their state goes with their
+        next reading."""
+        gone = [name for name in self._sensors if name not in self.gateway.sensors]
+        for name in gone:
+            trailing = self._sensors.pop(name).trailing
+            if trailing is not None:
+                trailing.cancel()
+        self.side.forget(gone)
+        if self.backfill is not None:
+            self.backfill.forget(gone)
+        for name in announced:
+            self._out(name).availability = None
+            self._publish_availability(self.gateway.cache.snapshot(name))
+        self.side.announce(announced)
+
+    def _out(self, name: str) -> _SensorOut:
+        """What was sent for a sensor (a sensor a reload just added: nothing yet; its
+        events may come before the reload tells this desk of it)."""
+        out = self._sensors.get(name)
+        if out is None:
+            out = self._sensors[name] = _SensorOut()
+        return out
 
     def _miss(self, message: Message, older: bool = False) -> None:
         sensor, _, leaf = message.topic.removeprefix(self.topics.prefix + "/").rpartition("/")
@@ -169,7 +202,7 @@ class StateDesk:
     def on_cache_event(self, kind: EventKind, snap: Snapshot) -> None:
         if kind is EventKind.STATUS:
             self._publish_availability(snap)
-            out = self._sensors[snap.name]
+            out = self._out(snap.name)
             if snap.has_reading and out.status is not None and snap.status is not out.status:
                 self._publish_state(snap)
         elif kind is EventKind.READING:
@@ -179,7 +212,7 @@ class StateDesk:
     def _publish_availability(self, snap: Snapshot) -> None:
         if not self.connected():
             return  # not queued: the next connect publishes the availability of then
-        out = self._sensors[snap.name]
+        out = self._out(snap.name)
         payload = OFFLINE if snap.status is Status.OFFLINE else ONLINE
         if payload != out.availability:
             out.availability = payload
@@ -188,7 +221,7 @@ class StateDesk:
 
     def _consider(self, snap: Snapshot) -> None:
         """A new reading: send it now, later (min_interval) or not (deadband)."""
-        out = self._sensors[snap.name]
+        out = self._out(snap.name)
         if out.trailing is not None:
             return  # the deferred send will take the latest reading
         if self._within_deadband(snap, out):
@@ -226,7 +259,7 @@ class StateDesk:
             for message in (state, *fields):
                 self._miss(message)
             return None
-        out = self._sensors[snap.name]
+        out = self._out(snap.name)
         out.sent_at = asyncio.get_running_loop().time()
         out.values = values
         out.status = snap.status

@@ -58,17 +58,10 @@ class SparkplugClient(Frontend):
         assert mqtt.sparkplug is not None
         self.gateway, self.config = gateway, mqtt.sparkplug
         sp: SparkplugConfig = mqtt.sparkplug
-        protocols = {s.name: b.protocol for b, s in gateway.config.iter_sensors()}
-        alarms: dict[str, list[str]] = {name: [] for name in gateway.sensors}
-        for state in gateway.alarm_states():  # (in the gateway's order)
-            alarms[state.sensor].append(state.name)
-        devices = [Device(s.name, tuple(device_rows(s, protocols[s.name], sp.allow_commands)),
-                          tuple(alarms[s.name]))
-                   for s in gateway.sensors.values()]
         gid = gateway.config.gateway_id
         kept = Path(sp.bdseq_file) if sp.bdseq_file else None
-        buses = [b.name for b in gateway.config.buses]
-        self.node = EdgeNode(sp.group_id, gid, devices, BdSeq(kept), buses)
+        self.node = EdgeNode(sp.group_id, gid, devices_of(gateway, sp), BdSeq(kept),
+                             [b.name for b in gateway.config.buses])
         self.session = Session(mqtt, sp.client_id or f"imu-gateway-{gid}-sparkplug", self,
                                log, mqtt.queue_size, connect_sent=self.node.connect_sent)
         self.counters, self.pipe = self.session.counters, self.session.pipe
@@ -109,6 +102,22 @@ class SparkplugClient(Frontend):
             self._held.cancel()
         last = [self.node.death(_now_ms())] if self.node.born else []
         await self.session.stop(self._runner, last)
+
+    def sensors_changed(self) -> None:
+        """A reload changed the sensors: a rebirth on the same MQTT session (same
+        bdSeq), as for a Rebirth NCMD: a DDEATH for each device gone, then the NBIRTH
+        (seq 0) and a DBIRTH for each device online.  Not born now (not connected, or
+        the primary host away): the next births have the new set."""
+        gateway = self.gateway
+        deaths = self.node.set_devices(devices_of(gateway, self.config),
+                                       [b.name for b in gateway.config.buses], _now_ms())
+        if not (self.node.born and self.connected and self.host_online):
+            return
+        for message in deaths:
+            self.pipe.send(message)
+        log.info("sparkplug: the sensors changed; rebirth with %d devices (bdSeq %d)",
+                 len(self.node.devices), self.node.session)
+        self._birth()
 
     # ------------------------------------------------------------ the session's owner
 
@@ -269,6 +278,17 @@ class SparkplugClient(Frontend):
                 "connects": self.counters.connects, "bdseq": self.node.session,
                 "commands": self.counters.commands,
                 "command_errors": self.counters.command_errors, "ignored": self.ignored}
+
+
+def devices_of(gateway: GatewayLike, sp: SparkplugConfig) -> list[Device]:
+    """The gateway's sensors as Sparkplug devices (at start, and after a reload)."""
+    protocols = {s.name: b.protocol for b, s in gateway.config.iter_sensors()}
+    alarms: dict[str, list[str]] = {name: [] for name in gateway.sensors}
+    for state in gateway.alarm_states():  # (in the gateway's order)
+        alarms[state.sensor].append(state.name)
+    return [Device(s.name, tuple(device_rows(s, protocols[s.name], sp.allow_commands)),
+                   tuple(alarms[s.name]))
+            for s in gateway.sensors.values()]
 
 
 def result_text(result: CommandResult) -> str:

@@ -103,6 +103,20 @@ mqtt:
 - Anything else (not a Sparkplug payload, an unknown device, a DCMD while commands
   are not allowed) is ignored, counted and logged (rate-limited); the node goes on.
 
+## A reload
+
+A reload that adds, removes or changes sensors (`SIGHUP`, `PUT /api/v1/config`:
+[configuration.md](configuration.md), "Changing the config while running") is a
+rebirth on the same MQTT session, as for a Rebirth NCMD: no new CONNECT, the same
+bdSeq, no NDEATH. First a DDEATH for each device removed that was born, then the
+NBIRTH (seq 0, the node metrics of the buses now) and a DBIRTH for each device online
+in the new set; a device added is born when it first answers. A metric kept (of a
+device kept, or a bus's) keeps its alias; a new metric takes a number no other
+metric of the process has had. While the node is not born (the broker away, the
+primary host offline), the reload changes only the device set: the next births carry
+it. A change of the `mqtt` section itself (the broker, the `sparkplug` settings)
+restarts the Sparkplug client instead: an NDEATH, a new connection, the next bdSeq.
+
 ## Primary host
 
 With `primary_host_id`, the node subscribes to `{ns}/STATE/{{primary_host_id}}` (the
@@ -133,7 +147,8 @@ connects again (a new bdSeq), to be born when the host is back. Which STATE coun
 #: (message, topic after ``{ns}/{group}/``, when, what it carries): one row each.
 MESSAGES = (
     ("NBIRTH", "NBIRTH/{gateway_id}",
-     "after each connect (once the primary host is online), and on a rebirth",
+     "after each connect (once the primary host is online), on a rebirth, and after "
+     "a reload that changed the sensors",
      f"seq 0; `{BDSEQ}` (Int64, this connection's), `{REBIRTH}` (Boolean, false), "
      "the node metrics below"),
     ("DBIRTH", "DBIRTH/{gateway_id}/{sensor}",
@@ -144,7 +159,8 @@ MESSAGES = (
      "each alarm transition, in a DDATA of its own",
      "only the metrics that changed, by alias (with their datatype: Tahu's decoder needs "
      "it), stamped with the sample's wire time (an alarm's, with its transition's time)"),
-    ("DDEATH", "DDEATH/{gateway_id}/{sensor}", "the sensor went offline", "seq only"),
+    ("DDEATH", "DDEATH/{gateway_id}/{sensor}",
+     "the sensor went offline; a reload removed it (before the NBIRTH)", "seq only"),
     ("NDATA", "NDATA/{gateway_id}", "a bus's counters changed (checked every few seconds)",
      "the node metrics that changed, by alias"),
     ("NDEATH", "NDEATH/{gateway_id}",

@@ -17,6 +17,9 @@ each sensor a device.  The rules kept (Sparkplug 3.0):
   device that goes offline gets a DDEATH; when it answers again, a DBIRTH with its
   values.
 * **NCMD** ``Node Control/Rebirth`` = true: all the births again (same bdSeq).
+* **A reload** that changes the sensors (``set_devices``): a DDEATH for each device
+  born and gone, then all the births again, as for a Rebirth (same bdSeq, same MQTT
+  session).  A metric kept keeps its alias; a new one takes a number never used.
 * **DCMD** writes a command metric: the catalogue's command, when commands are allowed;
   a write refused here (not a command, the wrong type, no value) is answered in
   ``Commands/Result`` like a command the sensor refused.
@@ -160,17 +163,36 @@ class EdgeNode:
         self.alive: set[str] = set()  # devices born and not dead since
         self.last: dict[str, dict[str, Value | None]] = {}  # last values sent, per device
         self.last_node: dict[str, Value] = {}  # the node metrics' last values sent
-        # aliases: unique in the node, stable for the process
-        names = [(None, BDSEQ), (None, REBIRTH),
-                 *((None, r.metric(bus)) for bus in buses for r in BUS_ROWS),
-                 *((d.name, r.name) for d in devices for r in d.rows),
-                 *((d.name, r.metric(a)) for d in devices for a in d.alarms for r in ALARM_ROWS)]
-        self.alias = {key: number for number, key in enumerate(names, start=1)}
-        self.by_alias = {number: key for key, number in self.alias.items()}
+        self.alias: dict[tuple[str | None, str], int] = {}
+        self._aliases = 0  # the aliases given so far (the last number used)
         # each alarm's latest state, by (device, alarm): the births carry it
         self.alarms: dict[tuple[str, str], AlarmState] = {}
+        self._set_devices(devices, buses)
+
+    def _set_devices(self, devices: Sequence[Device], buses: Sequence[str]) -> None:
+        """The devices and buses, and their metrics' aliases (``_aliases``)."""
+        self.devices = {d.name: d for d in devices}
+        self.alias, self._aliases = _aliases(_metric_keys(devices, buses), self.alias,
+                                             self._aliases)
+        self.by_alias = {number: key for key, number in self.alias.items()}
         self._acks = {(d.name, r.metric(a)): a for d in devices for a in d.alarms
                       for r in ALARM_ROWS if r.acknowledges}
+
+    def set_devices(self, devices: Sequence[Device], buses: Sequence[str],
+                    now_ms: int) -> list[Message]:
+        """A reload changed the sensors: a DDEATH for each device born and gone (none
+        while the node is not born); the rebirth that follows is the caller's."""
+        out = []
+        for name in sorted(self.alive - {d.name for d in devices}):
+            if self.born:
+                payload = Payload(timestamp=now_ms, seq=self._next_seq())
+                out.append(Message(self.topic("DDEATH", name), payload.SerializeToString(),
+                                   DATA_QOS, False))
+            self.alive.discard(name)
+            self.last.pop(name, None)
+        self._set_devices(devices, buses)
+        self.alarms = {k: state for k, state in self.alarms.items() if k[0] in self.devices}
+        return out
 
     # ------------------------------------------------------------ topics
 
@@ -325,7 +347,7 @@ class EdgeNode:
         rows = {r.name: r for r in self.devices[device].rows}
         key = (device, m.name) if m.HasField("name") else self.by_alias.get(m.alias)
         if key is not None and key[0] == device and key in self._acks:
-            return self._acknowledge(device, key[1], self._acks[key], m)
+            return _acknowledge(device, key[1], self._acks[key], m)
         row = rows.get(key[1]) if key is not None and key[0] == device else None
         if row is None or row.command is None:
             written = m.name if m.HasField("name") else f"alias {m.alias}"
@@ -344,18 +366,6 @@ class EdgeNode:
             return Refused(device, row.command, ErrorKind.BAD_ARGUMENTS,
                            "false written: write true to run a command without arguments")
         return Write(device, row.command, value)
-
-    @staticmethod
-    def _acknowledge(device: str, metric: str, alarm: str,
-                     m: Payload.Metric) -> Acknowledge | Refused:
-        """A write to an alarm's ``Acked``: true acknowledges; anything else is refused."""
-        if _value_of(m, DataType.BOOLEAN) is True:
-            return Acknowledge(device, alarm, metric)
-        written = "false" if _value_of(m, DataType.BOOLEAN) is False else \
-            "no value" if m.is_null or m.WhichOneof("value") is None else _written_type(m)
-        return Refused(device, metric, ErrorKind.BAD_ARGUMENTS,
-                       f"{metric} is Boolean: write true to acknowledge (the DCMD wrote "
-                       f"{written})")
 
     # ------------------------------------------------------------ the payloads
 
@@ -437,6 +447,40 @@ class EdgeNode:
     def _next_seq(self) -> int:
         self.seq = (self.seq + 1) % 256
         return self.seq
+
+
+def _metric_keys(devices: Sequence[Device], buses: Sequence[str]
+                 ) -> list[tuple[str | None, str]]:
+    """Every metric of the node, as (device or None, metric name)."""
+    return [(None, BDSEQ), (None, REBIRTH),
+            *((None, r.metric(bus)) for bus in buses for r in BUS_ROWS),
+            *((d.name, r.name) for d in devices for r in d.rows),
+            *((d.name, r.metric(a)) for d in devices for a in d.alarms for r in ALARM_ROWS)]
+
+
+def _aliases(names: Sequence[tuple[str | None, str]], kept: dict[tuple[str | None, str], int],
+             last: int) -> tuple[dict[tuple[str | None, str], int], int]:
+    """The alias of each metric of ``names``: unique in the node and stable for the
+    process (a metric kept across a reload keeps its ``kept`` one; a new one takes the
+    next number after ``last``, never used before); with the new last."""
+    alias = {}
+    for key in names:
+        if key not in kept:
+            last += 1
+        alias[key] = kept.get(key, last)
+    return alias, last
+
+
+def _acknowledge(device: str, metric: str, alarm: str,
+                 m: Payload.Metric) -> Acknowledge | Refused:
+    """A write to an alarm's ``Acked``: true acknowledges; anything else is refused."""
+    if _value_of(m, DataType.BOOLEAN) is True:
+        return Acknowledge(device, alarm, metric)
+    written = "false" if _value_of(m, DataType.BOOLEAN) is False else \
+        "no value" if m.is_null or m.WhichOneof("value") is None else _written_type(m)
+    return Refused(device, metric, ErrorKind.BAD_ARGUMENTS,
+                   f"{metric} is Boolean: write true to acknowledge (the DCMD wrote "
+                   f"{written})")
 
 
 def _sample_ms(snap: Snapshot, now_ms: int) -> int:
