@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Iterator
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
@@ -131,6 +132,9 @@ async def test_a_reload_adds_and_removes_sensors_in_the_same_session(
             for path in ("arm", "arm.Angles.pitch", "arm.Series", "arm.Alarms.communication"):
                 with pytest.raises(uaerrors.BadNodeIdUnknown):
                     await node(path).read_browse_name()
+            with pytest.raises(uaerrors.BadNodeIdUnknown):
+                await node("arm.Angles.pitch").read_raw_history(
+                    datetime.now(UTC) - timedelta(minutes=1), datetime.now(UTC))
             # the event: from the Server object, jib added, arm deleted
             await until(lambda: len(seen.events) >= 1)
             event = seen.events[0]
@@ -139,4 +143,58 @@ async def test_a_reload_adds_and_removes_sensors_in_the_same_session(
             assert verbs[f"{GID}.Sensors.jib"] & NODE_ADDED
             assert verbs[f"{GID}.Sensors.arm"] & NODE_DELETED
             assert client.uaclient.session.authentication_token == token
+            await subscription.delete()
+
+
+@pytest.mark.anyio
+async def test_a_changed_sensor_is_rebuilt_or_written_in_place(
+        tmp_path: Path, paths: tuple[str, str]) -> None:
+    """An alarm added to arm rebuilds arm's subtree: its new condition is there, the
+    item on its old pitch is told BadNodeIdUnknown, and the event names arm deleted
+    and added.  Then arm's address alone changed: written into its Address variable,
+    whose monitored item hears the new value (the subtree is kept, not rebuilt); boom,
+    unchanged, goes on in the same subscription throughout."""
+    port = free_port()
+    first = _config(port, tmp_path / "pki", *paths)
+    async with running(first) as gw:
+        await until(lambda: all(gw.cache.snapshot(n).seq >= 2 for n in ("boom", "arm")))
+        async with Client(f"opc.tcp://127.0.0.1:{port}/") as client:
+            idx = await client.get_namespace_index(NS)
+
+            def node(path: str) -> Any:
+                return client.get_node(ua.NodeId(f"{GID}.Sensors.{path}", idx))
+
+            seen = _Seen()
+            subscription = await client.create_subscription(50, seen)
+            await subscription.subscribe_data_change([node("boom.Angles.pitch"),
+                                                      node("arm.Angles.pitch")])
+            await subscription.subscribe_events(
+                client.nodes.server, ua.NodeId(ua.ObjectIds.GeneralModelChangeEventType))
+            await until(lambda: len(seen.of("arm.Angles.pitch")) >= 1)
+            alarmed = copy.deepcopy(first)
+            alarmed["buses"][1]["sensors"][0]["alarms"] = [
+                {"name": "arm_lean", "field": "pitch", "above": 80}]
+            await gw.reloader._apply(config_from_dict(alarmed, env={}))
+
+            conditions = await node("arm.Alarms").get_children()
+            assert {(await c.read_browse_name()).Name for c in conditions} \
+                == {"arm_lean", "communication"}
+            await until(lambda: any(v.StatusCode.value == ua.StatusCodes.BadNodeIdUnknown
+                                    for v in seen.of("arm.Angles.pitch")))
+            await until(lambda: len(seen.events) >= 1)
+            verbs = [(str(c.Affected.Identifier), c.Verb) for c in seen.events[0].Changes]
+            assert (f"{GID}.Sensors.arm", NODE_DELETED) in verbs
+            assert (f"{GID}.Sensors.arm", NODE_ADDED) in verbs
+            assert await node("arm.Address").read_value() == 1
+
+            await subscription.subscribe_data_change([node("arm.Address")])
+            await until(lambda: len(seen.of("arm.Address")) >= 1)
+            moved = copy.deepcopy(alarmed)
+            moved["buses"][1]["sensors"][0]["address"] = 3
+            count = len(seen.of("boom.Angles.pitch"))
+            await gw.reloader._apply(config_from_dict(moved, env={}))
+            await until(lambda: any(v.Value.Value == 3 for v in seen.of("arm.Address")))
+            assert all(v.StatusCode.is_good() for v in seen.of("arm.Address"))
+            assert len(seen.events) == 1  # nothing added or deleted: no event
+            await until(lambda: len(seen.of("boom.Angles.pitch")) >= count + 5)
             await subscription.delete()
