@@ -134,9 +134,10 @@ leaves alone do not change, and their subscriptions go on with no gap.
 - **A sensor removed** loses its subtree: the sensor object and every node below it
   (folders, variables, properties, methods, conditions).  Read, Browse and
   HistoryRead of them are `BadNodeIdUnknown`, a Call `BadNodeIdInvalid` (asyncua's).
-  Each monitored item on one of its nodes gets one last data change, StatusCode
-  `BadNodeIdUnknown` and no value (OPC UA Part 4, 5.12: the item stays valid until
-  the client deletes it); nothing more comes on it.
+  Each monitored item on the Value of one of its nodes gets one last data change,
+  StatusCode `BadNodeIdUnknown` and no value (OPC UA Part 4, 5.12: the item stays
+  valid until the client deletes it); nothing more comes on it, nor on an item on the
+  sensor object's events.
   Its conditions are in no event and no ConditionRefresh again; its values are
   written no more.
 - **A sensor changed:** when its series, its bus's protocol or its alarms changed,
