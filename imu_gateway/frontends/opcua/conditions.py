@@ -161,38 +161,51 @@ class Conditions:
 
     # ------------------------------------------------------------ the address space
 
-    async def build(self, server: Server, gateway_node: Node, sensors: dict[str, Node],
-                    inputs: dict[str, dict[str, ua.NodeId]], ns: int, gid: str) -> None:
-        """The notifiers, and a condition object per alarm under its sensor."""
+    async def build(self, server: Server, gateway_node: Node) -> None:
+        """The notifiers above the sensors, and the condition methods (the sensors'
+        conditions are added by ``add_sensor``)."""
         self._server = server
         top = ua.NodeId(ua.ObjectIds.Server)
         await _notifier(server, top, gateway_node.nodeid)
         self.notifiers = [top, gateway_node.nodeid]
-        for name, alarms in _rows(self.gateway).items():
-            sensor = sensors[name]
-            await _notifier(server, gateway_node.nodeid, sensor.nodeid)
-            self.notifiers.append(sensor.nodeid)
-            ids = Ids(f"{gid}.Sensors.{name}.{ALARMS}", ns)
-            folder = await sensor.add_folder(ids(), ids.name(ALARMS))
-            for row in alarms:
-                node = await _condition_node(folder, ids, row)
-                await sensor.add_reference(node.nodeid, ua.ObjectIds.HasCondition, True, False)
-                watched = inputs[name].get(row.field or "Status")
-                cond = Condition(row, node.nodeid, sensor.nodeid, watched)
-                self.by_node[node.nodeid] = self.by_alarm[(name, row.name)] = cond
-        now = datetime.now(UTC).timestamp()
-        for state in self.gateway.alarm_states():  # as the journal left them
-            found = self.by_alarm.get((state.sensor, state.name))
-            if found is not None:
-                since = None if state.since is None else datetime.fromtimestamp(state.since, UTC)
-                self._keep(found, event_of(found, state, state.since or now, None,
-                                           since if state.active else None))
         session = server.iserver.isession
         session.add_method_callback(ua.NodeId(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge),
                                     self.acknowledge)
         for method in (ua.ObjectIds.ConditionType_ConditionRefresh,
                        ua.ObjectIds.ConditionType_ConditionRefresh2):
             session.add_method_callback(ua.NodeId(method), self.refresh)
+
+    async def add_sensor(self, name: str, sensor: Node, inputs: dict[str, ua.NodeId],
+                         ns: int, gid: str) -> None:
+        """A sensor a notifier under the gateway object, with a condition object per
+        alarm, each in the state the alarms have now (at start: as the journal left
+        them)."""
+        assert self._server is not None, "build() first"
+        await _notifier(self._server, self.notifiers[1], sensor.nodeid)
+        self.notifiers.append(sensor.nodeid)
+        ids = Ids(f"{gid}.Sensors.{name}.{ALARMS}", ns)
+        folder = await sensor.add_folder(ids(), ids.name(ALARMS))
+        for row in _rows(self.gateway).get(name, []):
+            node = await _condition_node(folder, ids, row)
+            await sensor.add_reference(node.nodeid, ua.ObjectIds.HasCondition, True, False)
+            watched = inputs.get(row.field or "Status")
+            cond = Condition(row, node.nodeid, sensor.nodeid, watched)
+            self.by_node[node.nodeid] = self.by_alarm[(name, row.name)] = cond
+        now = datetime.now(UTC).timestamp()
+        for state in self.gateway.alarm_states():
+            found = self.by_alarm.get((state.sensor, state.name))
+            if state.sensor == name and found is not None:
+                since = None if state.since is None else datetime.fromtimestamp(state.since, UTC)
+                self._keep(found, event_of(found, state, state.since or now, None,
+                                           since if state.active else None))
+
+    def remove_sensor(self, name: str, sensor: ua.NodeId) -> None:
+        """Forget a sensor's conditions (a reload removed it; its nodes are deleted by
+        the caller): no event, Acknowledge or ConditionRefresh names them again."""
+        for key in [k for k in self.by_alarm if k[0] == name]:
+            del self.by_node[self.by_alarm.pop(key).node]
+        if sensor in self.notifiers[2:]:
+            self.notifiers.remove(sensor)
 
     def _keep(self, cond: Condition, event: Any) -> None:
         cond.last = event
@@ -220,12 +233,12 @@ class Conditions:
         while True:
             event = await self._queue.get()
             try:
-                await self._send(event, (event.SourceNode, *self.notifiers[:2]))
+                await self.send(event, (event.SourceNode, *self.notifiers[:2]))
             except Exception:  # (a bug here must not end the server for the others)
                 log.exception("opcua: an alarm event could not be sent")
 
-    async def _send(self, event: Any, notifiers: Iterable[ua.NodeId],
-                    subscription: int | None = None) -> None:
+    async def send(self, event: Any, notifiers: Iterable[ua.NodeId],
+                   subscription: int | None = None) -> None:
         """Give ``event`` to the monitored items on each of ``notifiers`` (of one
         subscription, or of all)."""
         if self._server is None:
@@ -280,12 +293,12 @@ class Conditions:
         found = server.iserver.subscription_service.subscriptions.get(subscription)
         if found is None or found.session_id != caller.session:  # (only the session's own)
             return ua.StatusCode(_S.BadSubscriptionIdInvalid)
-        await self._send(_refresh_event(event_objects.RefreshStartEvent()), self.notifiers,
+        await self.send(_refresh_event(event_objects.RefreshStartEvent()), self.notifiers,
                          subscription)
         for cond in self.by_node.values():
             if cond.last is not None and cond.last.Retain:
-                await self._send(cond.last, (cond.source, *self.notifiers[:2]), subscription)
-        await self._send(_refresh_event(event_objects.RefreshEndEvent()), self.notifiers,
+                await self.send(cond.last, (cond.source, *self.notifiers[:2]), subscription)
+        await self.send(_refresh_event(event_objects.RefreshEndEvent()), self.notifiers,
                          subscription)
         return []
 

@@ -16,6 +16,7 @@ from .guard import (
 )
 from .history import HISTORY_DOC
 from .identity import MANUFACTURER, PRODUCT_NAME, PRODUCT_URI
+from .live import RELOAD_DOC
 from .methods import declared_type
 from .nodes import COMMON_GROUPS
 from .server import CALL_STATUS, MAX_CLIENTS
@@ -356,7 +357,7 @@ def markdown() -> str:
     lines = [INTRO.replace("{type_rows}", _type_rows()), *_values(), *_quality(),
              *_rows("### A sensor's status and identity", sensor_rows),
              *_rows("### Buses (written every second)", bus_rows), *_methods(),
-             *_alarms(), HISTORY_DOC, *_identity(), security]
+             *_alarms(), HISTORY_DOC, RELOAD_DOC, *_identity(), security]
     return "\n".join(lines)
 
 

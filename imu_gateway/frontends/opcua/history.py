@@ -293,10 +293,12 @@ def _stamped(dv: ua.DataValue, stamps: ua.TimestampsToReturn) -> ua.DataValue:
 
 
 async def install(server: Server, history: History,
-                  variables: Mapping[ua.NodeId, tuple[str, str]]) -> None:
+                  variables: Mapping[ua.NodeId, tuple[str, str]]) -> GatewayHistory:
     """Serve HistoryRead from ``history`` and say so in the Server object's
-    HistoryServerCapabilities and AggregateFunctions (clients read them first)."""
-    server.iserver.history_manager = GatewayHistory(server.iserver, history, variables)
+    HistoryServerCapabilities and AggregateFunctions (clients read them first).
+    Returns the service, whose ``variables`` a reload changes."""
+    manager = GatewayHistory(server.iserver, history, variables)
+    server.iserver.history_manager = manager
     for node, value, kind in (
             (ua.ObjectIds.HistoryServerCapabilities_AccessHistoryDataCapability, True, "Boolean"),
             (ua.ObjectIds.HistoryServerCapabilities_ServerTimestampSupported, True, "Boolean"),
@@ -310,6 +312,7 @@ async def install(server: Server, history: History,
             if ua.NodeId(aggregate.value) not in have:
                 await server.get_node(folder).add_reference(
                     ua.NodeId(aggregate.value), ua.ObjectIds.Organizes, bidirectional=False)
+    return manager
 
 
 HISTORY_DOC = f"""## History

@@ -17,7 +17,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from asyncua import Server, ua
+from asyncua import Node, Server, ua
 
 from ...cache import ALL_EVENTS, EventKind, Snapshot
 from ...commands import CATALOGUE, CommandSpec, commands_for
@@ -31,8 +31,10 @@ from ..common import GatewayLike
 from . import standard_space
 from .conditions import Conditions
 from .guard import MAX_SUBSCRIPTIONS_PER_SESSION, GatewayUaServer
+from .history import GatewayHistory
 from .history import install as install_history
 from .identity import MANUFACTURER, PRODUCT_URI, describe
+from .live import ModelChange, Shape, Verb, model_change_event, retire
 from .methods import Caller, instance_caller, type_caller
 from .nodes import VALUE_TYPE, Callers, Ids, build_sensor, build_type, variant
 from .security import ConfigUsers, secure
@@ -126,6 +128,11 @@ class OpcUaServer(Frontend):
         self._bus_timer: asyncio.Task[None] | None = None
         self._events: asyncio.Task[None] | None = None
         self.conditions = Conditions(gateway, config.allow_commands)
+        self.shapes: dict[str, Shape] = {}  # sensor -> what its subtree was built from
+        self._history: GatewayHistory | None = None
+        self._sensors: Node | None = None  # the Sensors folder
+        self._type_id = ua.NodeId()  # ImuSensorType's
+        self._changing = asyncio.Lock()  # one reload's changes at a time
 
     @property
     def listening(self) -> bool:
@@ -165,7 +172,7 @@ class OpcUaServer(Frontend):
                                "folder it can write)") from None
         self.idx = await server.register_namespace(NAMESPACE)
         await self._build(server)
-        await install_history(server, self.gateway.history, {
+        self._history = await install_history(server, self.gateway.history, {
             node: (s, f) for s, pairs in self.values.items() for f, node in pairs})
         try:
             await server.start()
@@ -202,27 +209,13 @@ class OpcUaServer(Frontend):
         ids = Ids(gid, self.idx)
         top = await server.nodes.objects.add_folder(ids("IMU Gateway"), ids.name("IMU Gateway"))
         gateway = await top.add_folder(ids(), ids.name(gid))
-        sensors = await gateway.add_folder(ids("Sensors"), ids.name("Sensors"))
-        commands = list(CATALOGUE.values()) if self.config.allow_commands else []
-        type_id = await build_type(server.nodes.base_object_type, self.idx, commands,
-                                   lambda spec, _: type_caller(spec, self.callers))
-        protocols = {s.name: b.protocol for b, s in self.gateway.config.iter_sensors()}
-        inputs: dict[str, dict[str, ua.NodeId]] = {}
-        for sensor in self.gateway.sensors.values():
-            protocol = protocols[sensor.name]
-            have = commands_for(sensor.series, protocol)
-            built = await build_sensor(
-                sensors, Ids(f"{gid}.Sensors.{sensor.name}", self.idx), sensor.name, type_id,
-                set(CAPABILITIES[sensor.series].groups),
-                {"Series": sensor.series.name, "Protocol": protocol.name.lower(),
-                 "Address": sensor.address},
-                [c for c in commands if c.name in have], self._method_of(sensor.name))
-            self.values[sensor.name], self.status_nodes[sensor.name] = built.values, built.status
-            inputs[sensor.name] = {**dict(built.values),
-                                   **{row.name: node for row, node in built.status}}
-        await self.conditions.build(
-            server, gateway, {name: server.get_node(Ids(f"{gid}.Sensors.{name}", self.idx)())
-                              for name in self.gateway.sensors}, inputs, self.idx, gid)
+        self._sensors = await gateway.add_folder(ids("Sensors"), ids.name("Sensors"))
+        self._type_id = await build_type(server.nodes.base_object_type, self.idx,
+                                         self._commands,
+                                         lambda spec, _: type_caller(spec, self.callers))
+        await self.conditions.build(server, gateway)
+        for name in self.gateway.sensors:
+            await self._add_sensor(server, name)
         buses = await gateway.add_folder(ids("Buses"), ids.name("Buses"))
         for bus in self.gateway.config.buses:
             bus_ids = Ids(f"{gid}.Buses.{bus.name}", self.idx)
@@ -236,6 +229,94 @@ class OpcUaServer(Frontend):
                 await var.write_attribute(ua.AttributeIds.Description, ua.DataValue(
                     ua.Variant(ua.LocalizedText(row.description))))
                 self.bus_nodes[bus.name].append((row, var.nodeid))
+
+    @property
+    def _commands(self) -> list[CommandSpec]:
+        return list(CATALOGUE.values()) if self.config.allow_commands else []
+
+    def _ids(self, sensor: str) -> Ids:
+        return Ids(f"{self.gateway.config.gateway_id}.Sensors.{sensor}", self.idx)
+
+    def _shape(self, sensor: str) -> Shape:
+        """What the sensor's subtree is built from, in the config now."""
+        config = self.gateway.sensors[sensor]
+        protocol = next(b.protocol for b, s in self.gateway.config.iter_sensors()
+                        if s.name == sensor)
+        have = commands_for(config.series, protocol)
+        return Shape(config.series.name, protocol.name.lower(),
+                     tuple(c.name for c in self._commands if c.name in have),
+                     tuple(a.row(sensor) for a in config.alarms))
+
+    async def _add_sensor(self, server: Server, name: str) -> ua.NodeId:
+        """One sensor's subtree (values, status, identity, methods, conditions) and its
+        history; returns its object's NodeId."""
+        sensor, shape = self.gateway.sensors[name], self._shape(name)
+        ids = self._ids(name)
+        built = await build_sensor(
+            self._sensors, ids, name, self._type_id, set(CAPABILITIES[sensor.series].groups),
+            {"Series": shape.series, "Protocol": shape.protocol, "Address": sensor.address},
+            [c for c in self._commands if c.name in shape.commands], self._method_of(name))
+        self.values[name], self.status_nodes[name] = built.values, built.status
+        self.shapes[name] = shape
+        inputs = {**dict(built.values), **{row.name: node for row, node in built.status}}
+        await self.conditions.add_sensor(name, server.get_node(ids()), inputs, self.idx,
+                                         self.gateway.config.gateway_id)
+        if self._history is not None:
+            self._history.variables.update({node: (name, f) for f, node in built.values})
+        return ids()
+
+    async def _remove_sensor(self, server: Server, name: str) -> None:
+        """A sensor's subtree gone: its writes stop at once, its methods and conditions
+        are forgotten, its monitored items are told ``BadNodeIdUnknown``."""
+        root = self._ids(name)()
+        values = self.values.pop(name, [])
+        self.status_nodes.pop(name, None)
+        self.shapes.pop(name, None)
+        for key in [k for k in self.callers if k[0] == root]:
+            del self.callers[key]
+        self.conditions.remove_sensor(name, root)
+        if self._history is not None:
+            for _, node in values:
+                self._history.variables.pop(node, None)
+        await retire(server, server.get_node(root))
+
+    async def sensors_changed(self) -> None:
+        """A reload changed the sensors (docs/opcua.md, "A reload"): a sensor added
+        gets its subtree, one removed loses it, one whose subtree's makings changed
+        (``Shape``) is rebuilt, one whose address changed has it written.  Sessions,
+        subscriptions and the other sensors' nodes stay; one GeneralModelChangeEvent
+        tells the clients."""
+        server, folder = self.server, self._sensors
+        if server is None or folder is None:  # (not started: ``start`` builds it then)
+            return
+        async with self._changing:
+            wanted = self.gateway.sensors
+            changes: list[ModelChange] = []
+            for name in list(self.shapes):
+                if name not in wanted or self.shapes[name] != self._shape(name):
+                    await self._remove_sensor(server, name)
+                    changes.append(ModelChange(self._ids(name)(), self._type_id,
+                                               Verb.NODE_DELETED))
+            for name, sensor in wanted.items():
+                if name in self.shapes:
+                    await server.write_attribute_value(self._ids(name)("Address"), ua.DataValue(
+                        variant(sensor.address, "UInt16")))
+                    continue
+                changes.append(ModelChange(await self._add_sensor(server, name), self._type_id,
+                                           Verb.NODE_ADDED))
+                await self._write_sensor(self.gateway.cache.snapshot(name))
+            if changes:
+                verbs = Verb(0)
+                for change in changes:
+                    verbs |= Verb.REFERENCE_ADDED if change.verb is Verb.NODE_ADDED \
+                        else Verb.REFERENCE_DELETED
+                changes.append(ModelChange(folder.nodeid,
+                                           ua.NodeId(ua.ObjectIds.FolderType), verbs))
+                await self.conditions.send(model_change_event(changes),
+                                           [ua.NodeId(ua.ObjectIds.Server)])
+                log.info("opcua: the address space follows the reload: %s", ", ".join(
+                    f"{'+' if c.verb is Verb.NODE_ADDED else '-'}{c.affected.Identifier}"
+                    for c in changes[:-1]))
 
     def _method_of(self, sensor: str) -> Callers:
         def make(spec: CommandSpec, object_id: ua.NodeId) -> Caller:
