@@ -21,6 +21,7 @@ from asyncua.ua.uaerrors import UaStatusCodeError
 from cryptography.x509.oid import ExtendedKeyUsageOID
 from support.harness import free_port, running, until
 from test_opcua_security import (
+    GID,
     PASSWORD,
     Mode,
     Rig,
@@ -374,3 +375,55 @@ async def test_a_chunk_that_never_ends_is_refused_from_its_header(rig: Rig) -> N
         (code,) = struct.unpack("<I", said[8:12])
         assert code == ua.StatusCodes.BadTcpMessageTooLarge
     assert grown < 16, f"the gateway grew {grown:.0f} MiB"
+
+
+def _watch(item: int, node: ua.NodeId, queue: int,
+           attribute: int = ua.AttributeIds.Value) -> ua.MonitoredItemCreateRequest:
+    return ua.MonitoredItemCreateRequest(
+        ItemToMonitor=ua.ReadValueId(NodeId=node, AttributeId=attribute),
+        MonitoringMode=ua.MonitoringMode.Reporting,
+        RequestedParameters=ua.MonitoringParameters(
+            ClientHandle=item, SamplingInterval=0.0, QueueSize=queue, DiscardOldest=True,
+            Filter=ua.EventFilter() if attribute == ua.AttributeIds.EventNotifier else None))
+
+
+@pytest.mark.anyio
+async def test_a_client_that_asks_the_default_queue_holds_one_value(rig: Rig) -> None:
+    """Part 4 7.21: a value item's requested queueSize 0 or 1 is one value, the newest.
+    asyncua made 0 its cap, 10 000: a client asking the default and publishing slowly
+    (or never) had every sample of every item queued for it, and then encoded.  An
+    event item's 0 is the server's default; nothing is more than the gateway's cap."""
+    port = free_port()
+    async with running(rig.config(port)) as gw:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+        assert gw.opcua is not None and gw.opcua.server is not None
+        subscriptions = gw.opcua.server.iserver.subscription_service.subscriptions
+        async with channel(rig, port, Mode.SignAndEncrypt) as slow:
+            await create_session(slow)
+            await activate(slow)
+            ns = await namespace(slow)
+            sub = (await _subscribe(slow, 60_000.0)).SubscriptionId  # no publish comes
+            sequence = ua.NodeId(f"{GID}.Sensors.boom.Sequence", ns)
+            server = ua.NodeId(ua.ObjectIds.Server)
+            made = await slow.uaclient.create_monitored_items(ua.CreateMonitoredItemsParameters(
+                SubscriptionId=sub, TimestampsToReturn=ua.TimestampsToReturn.Both,
+                ItemsToCreate=[_watch(1, sequence, 0), _watch(2, sequence, 1),
+                               _watch(3, sequence, 5), _watch(4, sequence, 10**6),
+                               _watch(5, server, 0, ua.AttributeIds.EventNotifier)]))
+            assert all(m.StatusCode.is_good() for m in made), made
+            assert [m.RevisedQueueSize for m in made] == [1, 1, 5, 1000, 1000]
+            seq = gw.cache.snapshot("boom").seq
+            await until(lambda: gw.cache.snapshot("boom").seq >= seq + 8)
+            queued = subscriptions[sub]._triggered_datachanges
+            ids = [m.MonitoredItemId for m in made]
+            assert [len(queued[i]) for i in ids[:3]] == [1, 1, 5]
+            newest = queued[ids[0]][0].Value.Value.Value
+            assert newest == queued[ids[2]][-1].Value.Value.Value  # the newest kept
+            changed = await slow.uaclient.modify_monitored_items(
+                ua.ModifyMonitoredItemsParameters(
+                    SubscriptionId=sub, ItemsToModify=[
+                        ua.MonitoredItemModifyRequest(
+                            MonitoredItemId=i, RequestedParameters=ua.MonitoringParameters(
+                                ClientHandle=n, QueueSize=0))
+                        for n, i in enumerate((ids[2], ids[4]))]))
+            assert [c.RevisedQueueSize for c in changed] == [1, 1000]
