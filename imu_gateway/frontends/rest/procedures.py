@@ -297,14 +297,7 @@ def procedure_routes(app: FastAPI, gateway: GatewayLike, roles: Roles) -> None:
         live = procedures.start(name, procedure, args)
         return JSONResponse(live.to_json(), 201, headers={"Location": live.path})
 
-    # Those that change the config are an admin's (and send commands: commands must be
-    # on), each its own route, matched before the one for the others.
-    for spec in PROCEDURES.values():
-        if spec.admin:
-            app.post(f"{base}/{spec.name}", status_code=201, response_model=ProcedureOut,
-                     dependencies=[roles.commands, roles.admin], tags=tags,
-                     responses=_responses(401, 403, 404, 409, 413, 422),
-                     summary=f"start {spec.name}: {spec.summary}")(_admin_start(spec.name, begin))
+    _admin_routes(app, base, roles, begin)  # (matched before the one for the others)
 
     @app.post(f"{base}/{{procedure}}", status_code=201, response_model=ProcedureOut,
               dependencies=[roles.commands], tags=tags,
@@ -357,9 +350,21 @@ def procedure_routes(app: FastAPI, gateway: GatewayLike, roles: Roles) -> None:
         return live.to_json()
 
 
-def _admin_start(procedure: str, begin: Callable[[str, str, Any], JSONResponse],
-                 ) -> Callable[..., Awaitable[JSONResponse]]:
-    """The route that starts ``procedure`` (one per procedure that changes the config)."""
+def _admin_routes(app: FastAPI, base: str, roles: Roles,
+                  begin: Callable[[str, str, Any], JSONResponse]) -> None:
+    """The procedures that change the config are an admin's (and send commands: commands
+    must be on), each its own route: ``POST {base}/change_address``, …"""
+    for spec in PROCEDURES.values():
+        if spec.admin:
+            app.post(f"{base}/{spec.name}", status_code=201, response_model=ProcedureOut,
+                     dependencies=[roles.commands, roles.admin], tags=["procedures"],
+                     responses=_responses(401, 403, 404, 409, 413, 422),
+                     summary=f"start {spec.name}: {spec.summary}")(_start_of(spec.name, begin))
+
+
+def _start_of(procedure: str, begin: Callable[[str, str, Any], JSONResponse],
+              ) -> Callable[..., Awaitable[JSONResponse]]:
+    """The route that starts ``procedure``."""
     async def start(name: str, args: Annotated[Any, Depends(_arguments)]) -> JSONResponse:
         return begin(name, procedure, args)
     return start

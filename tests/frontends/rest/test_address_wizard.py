@@ -181,3 +181,22 @@ async def test_an_operator_may_not_change_the_address(tmp_path: Path) -> None:
         nobody = await http.post(url, json={"address": 7})
         assert nobody.status_code == 401
         assert sensor.writes_heard == {} and sensor.address == 0
+
+
+@pytest.mark.anyio
+async def test_a_lost_answer_is_read_back_never_sent_again_and_the_config_kept(
+        tmp_path: Path) -> None:
+    """The sensor takes the new address but its answer is lost: the procedure does not
+    send set_address again on a guess; it reads back, hears nothing at the old address,
+    and fails saying where the sensor may be.  The config is not changed."""
+    sensor = held(WireProtocol.NATIVE)
+    async with gateway_from(tmp_path, WireProtocol.NATIVE, [sensor], ["boom"]) as (_, http,
+                                                                                  path):
+        before = path.read_text()
+        sensor.faults.drop_rate = 1.0  # every answer from now on is lost
+        last = (await run_to_end(http, "change_address", {"address": 7}))[-1]
+        assert (last["state"], last["kind"]) == ("failed", "unconfirmed"), last
+        assert "the read back was not answered either: boom may be at address 7 now, or " \
+               "still at address 0. The config was not changed" in last["error"]
+        assert sensor.writes_heard["set_address"] == 1 and sensor.address == 7
+        assert path.read_text() == before
