@@ -24,9 +24,11 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from .commands import CATALOGUE, CommandResult
+from .commands import CATALOGUE, AddressArgs, BaudrateArgs, CommandResult
+from .config import GatewayConfig
+from .config.fields import ADDRESS_RANGE
 from .errors import ErrorKind, RequestFailed
-from .model import Angles, Reading, Series
+from .model import Angles, Reading, Series, WireProtocol
 from .protocol.exchanges import GYRO_CAL_SECONDS
 
 Args = Mapping[str, Any]
@@ -57,6 +59,90 @@ class ZeroArgs(_Args):
     relative_heading: float | None = Field(
         None, ge=-999.99, le=999.99, allow_inf_nan=False,
         description="MINS only: the heading start point, degrees (set_relative_heading)")
+
+
+class AddressChangeArgs(AddressArgs):
+    """The new bus address (``set_address``'s own argument, checked by the catalogue)."""
+
+
+class BaudChangeArgs(BaudrateArgs):
+    """The new baud rate (``set_baudrate``'s own argument, checked by the catalogue)."""
+
+
+# ------------------------------------------------------------------ where it is
+
+
+@dataclass(frozen=True, slots=True)
+class Placement:
+    """A sensor's place as the running gateway has it: what an address or baud change
+    is checked against, and what its messages name."""
+
+    sensor: str
+    bus: str
+    protocol: WireProtocol
+    port: str
+    baudrate: int
+    address: int
+    #: the bus's other sensors and the addresses they hold (the config's, and the
+    #: live one where a ``set_address`` moved it)
+    others: tuple[tuple[str, int], ...] = ()
+
+    @classmethod
+    def of(cls, config: GatewayConfig, sensor: str,
+           live: Mapping[str, int] | None = None) -> Placement:
+        """``live``: the address each sensor is talked to at now, by name."""
+        live = live or {}
+        bus = next(b for b, s in config.iter_sensors() if s.name == sensor)
+        me = next(s for s in bus.sensors if s.name == sensor)
+        others = tuple(dict.fromkeys(
+            (s.name, a) for s in bus.sensors if s.name != sensor
+            for a in (s.address, live.get(s.name, s.address))))
+        return cls(sensor, bus.name, bus.protocol, bus.port, bus.baudrate,
+                   live.get(sensor, me.address), others)
+
+
+def _check_address(args: Args, where: Placement) -> None:
+    new = args["address"]
+    low, high = ADDRESS_RANGE[where.protocol]
+    if not low <= new <= high:
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"address: a {where.protocol.name.lower()} "
+                            f"address is {low}-{high}, not {new}")
+    if new == where.address:
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"{where.sensor} is at address {new} "
+                            "already: give another")
+    taken = sorted({name for name, address in where.others if address == new})
+    if taken:
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, (
+            f"address {new} is taken on bus {where.bus} by {', '.join(taken)}: two "
+            "sensors at one address garble each other's answers; choose a free one"))
+
+
+def _check_baud(args: Args, where: Placement) -> None:
+    new = args["baudrate"]
+    if new == where.baudrate:
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"bus {where.bus} runs at {new} baud "
+                            "already: give another rate")
+    others = sorted({name for name, _ in where.others})
+    if others:
+        # One sensor moved leaves the line split: the others would go offline at the
+        # rate the gateway follows.  Each is moved by hand (docs/wizards.md).
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, (
+            f"bus {where.bus} has other sensors ({', '.join(others)}), which would stay at "
+            f"{where.baudrate} baud and go offline: the wizard changes a bus of one "
+            "sensor only (docs/wizards.md says how to move a whole bus by hand)"))
+    if where.port.startswith("socket://"):
+        raise RequestFailed(ErrorKind.UNSUPPORTED, (
+            f"bus {where.bus} is a raw TCP port ({where.port}): the gateway cannot change "
+            "the serial server's rate, so the sensor would be lost; change the rate on the "
+            "server and the sensor together by hand"))
+
+
+def _address_change(args: Args, where: Placement) -> ConfigChange:
+    return ConfigChange(where.bus, where.sensor, "address", args["address"])
+
+
+def _baud_change(args: Args, where: Placement) -> ConfigChange:
+    return ConfigChange(where.bus, None, "baudrate", args["baudrate"])
 
 
 # ------------------------------------------------------------------ the steps
@@ -108,7 +194,54 @@ class Look:
     prompt: str = "reading the angles"
 
 
-Step = Countdown | Send | UntilIdle | Circle | Look
+@dataclass(frozen=True, slots=True)
+class Reconfigure:
+    """Change the config to match the sensor (``ProcedureSpec.change``), through the
+    reload: the driver applies and saves it, and calls ``Run.reconfigured``."""
+
+    prompt: str = "updating the config (a reload) and saving it"
+
+
+@dataclass(frozen=True, slots=True)
+class Heard:
+    """Wait for a reading newer than this step (the gateway hears the sensor where it
+    is now); fail after ``limit_s``."""
+
+    prompt: str
+    limit_s: float
+
+
+Step = Countdown | Send | UntilIdle | Circle | Look | Reconfigure | Heard
+
+
+@dataclass(frozen=True, slots=True)
+class ConfigChange:
+    """One value of the config: a sensor's (``sensor`` given) or its bus's."""
+
+    bus: str
+    sensor: str | None
+    key: str
+    value: int
+
+    def applied_to(self, data: Any) -> Any:
+        """The config's data (as ``GET /api/v1/config`` shows it) with this value set;
+        raises ``ValueError`` when the bus or the sensor is not in it."""
+        buses = data.get("buses") if isinstance(data, Mapping) else None
+        bus: dict[str, Any] | None = next((b for b in buses or () if isinstance(b, dict)
+                                           and b.get("name") == self.bus), None)
+        if bus is None:
+            raise ValueError(f"the config has no bus {self.bus!r} now")
+        target: dict[str, Any] | None = bus
+        if self.sensor is not None:
+            target = next((s for s in bus.get("sensors") or () if isinstance(s, dict)
+                           and s.get("name") == self.sensor), None)
+        if target is None:
+            raise ValueError(f"bus {self.bus} has no sensor {self.sensor!r} now")
+        target[self.key] = self.value
+        return data
+
+    def where(self) -> str:
+        return f"sensor {self.sensor} of bus {self.bus}" if self.sensor else f"bus {self.bus}"
 
 
 @dataclass(frozen=True, slots=True)
@@ -118,12 +251,28 @@ class ProcedureSpec:
     name: str
     summary: str
     series: frozenset[Series]
-    args: type[_Args]
+    args: type[BaseModel]
     steps: tuple[Step, ...]
     #: sent when it is cancelled after its first command (put the sensor back)
     cleanup: Send | None = None
     #: what the person is offered once it is done (a command's name)
     offers: tuple[str, ...] = ()
+    #: checks the arguments against the sensor's place (raises ``RequestFailed``)
+    check: Callable[[Args, Placement], None] | None = None
+    #: the config change that follows the sensor (a ``Reconfigure`` step applies it):
+    #: it changes the config, so it is an admin's (docs/wizards.md)
+    change: Callable[[Args, Placement], ConfigChange] | None = None
+    #: once its command was sent it cannot be undone, nor cancelled
+    cancellable_after_send: bool = True
+    #: sent when a command's answer was lost (``unconfirmed``): did it take?
+    read_back: str | None = None
+    #: the protocols on which an answered read back proves the change took (Modbus
+    #: baud: the line switched before the read); on the others it proves it did not
+    taken_if_read_back: frozenset[WireProtocol] = frozenset()
+
+    @property
+    def admin(self) -> bool:
+        return self.change is not None
 
     @property
     def commands(self) -> frozenset[str]:
@@ -158,6 +307,25 @@ PROCEDURES: Mapping[str, ProcedureSpec] = MappingProxyType({spec.name: spec for 
             Send("set_relative_heading", _heading, optional=True),
             Look("after")),
         offers=("save",)),
+    ProcedureSpec(
+        "change_address", "a new bus address: checked free, set, verified, the config "
+        "changed to match", frozenset(Series), AddressChangeArgs, (
+            Send("set_address", lambda a: {"address": a["address"]},
+                 prompt="Setting the address: keep the sensor powered"),
+            Reconfigure(),
+            Heard("waiting for a reading from the new address", 10.0)),
+        offers=("save",), check=_check_address, change=_address_change,
+        cancellable_after_send=False, read_back="read_settings"),
+    ProcedureSpec(
+        "change_baudrate", "a new baud rate for a bus of one sensor: set, verified, the "
+        "config changed to match", frozenset(Series), BaudChangeArgs, (
+            Send("set_baudrate", lambda a: {"baudrate": a["baudrate"]},
+                 prompt="Setting the baud rate: keep the sensor powered"),
+            Reconfigure(),
+            Heard("waiting for a reading at the new rate", 10.0)),
+        offers=("save",), check=_check_baud, change=_baud_change,
+        cancellable_after_send=False, read_back="read_settings",
+        taken_if_read_back=frozenset({WireProtocol.MODBUS})),
 )})
 
 
@@ -173,10 +341,11 @@ def unknown_procedure(name: str) -> RequestFailed:
                                               f"{', '.join(PROCEDURES)})")
 
 
-def validate(name: str, args: Args | None, series: Series,
-             commands: frozenset[str]) -> tuple[ProcedureSpec, Args]:
+def validate(name: str, args: Args | None, series: Series, commands: frozenset[str],
+             where: Placement | None = None) -> tuple[ProcedureSpec, Args]:
     """The procedure and its checked arguments for a sensor of ``series`` that can carry
-    ``commands`` (``commands.commands_for``); raises ``RequestFailed``."""
+    ``commands`` (``commands.commands_for``), at ``where`` (needed by those that
+    ``check`` it); raises ``RequestFailed``."""
     spec = PROCEDURES.get(name)
     if spec is None:
         raise unknown_procedure(name)
@@ -188,9 +357,9 @@ def validate(name: str, args: Args | None, series: Series,
     try:
         values = spec.args.model_validate(dict(args or {})).model_dump()
     except ValidationError as exc:
-        where = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'arguments'}: {e['msg']}"
+        wrong = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'arguments'}: {e['msg']}"
                           for e in exc.errors())
-        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"{name}: {where}") from None
+        raise RequestFailed(ErrorKind.BAD_ARGUMENTS, f"{name}: {wrong}") from None
     # the commands these arguments need (a zero without relative_heading needs no heading)
     needed = {s.command for s in spec.steps if isinstance(s, Send)
               and s.args_of(values) is not None}
@@ -198,6 +367,10 @@ def validate(name: str, args: Args | None, series: Series,
     if missing:
         raise RequestFailed(ErrorKind.UNSUPPORTED, f"{name} needs {', '.join(missing)}, "
                             f"which this {series.name} sensor cannot carry (docs/commands.md)")
+    if spec.check is not None:
+        if where is None:
+            raise RequestFailed(ErrorKind.UNSUPPORTED, f"{name} needs the sensor's bus")
+        spec.check(values, where)
     return spec, values
 
 
@@ -276,6 +449,14 @@ class SendCommand:
 
 
 @dataclass(frozen=True, slots=True)
+class ChangeConfig:
+    """What the driver does next: apply ``change`` to the config through the reload
+    (and save it), then call ``Run.reconfigured``."""
+
+    change: ConfigChange
+
+
+@dataclass(frozen=True, slots=True)
 class Wait:
     """What the driver does next: wait until ``until`` (``None``: for the next input)
     and call ``Run.tick``, or feed what comes (``observe``, ``user``, ``cancel``)."""
@@ -283,7 +464,7 @@ class Wait:
     until: float | None
 
 
-Action = SendCommand | Wait | None  # None: over
+Action = SendCommand | ChangeConfig | Wait | None  # None: over
 
 
 @dataclass(slots=True)
@@ -293,6 +474,7 @@ class Run:
     spec: ProcedureSpec
     args: Args
     started: float
+    where: Placement | None = None  # (the procedures that ``check`` it have it)
     state: State = State.RUNNING
     index: int = -1  # the step under way
     step_began: float = 0.0
@@ -303,6 +485,8 @@ class Run:
     sent_any: bool = False
     cleaning: bool = False  # the cleanup command after a cancel is due or sent
     cleanup_sent: bool = False  # (the answer that ends the cleaning is the cleanup's own)
+    reading_back: bool = False  # a command's answer was lost: ``spec.read_back`` is due
+    lost: str | None = None  # that command's error
     error: str | None = None
     kind: ErrorKind | None = None
     answers: dict[str, Any] = field(default_factory=dict)
@@ -349,11 +533,17 @@ class Run:
         if self.state is not State.RUNNING:
             return None
         step = self.step
+        if self.reading_back:
+            assert self.spec.read_back is not None
+            return SendCommand(self.spec.read_back, {})
         if isinstance(step, Send):
             return SendCommand(step.command, step.args_of(self.args) or {})
+        if isinstance(step, Reconfigure):
+            assert self.spec.change is not None and self.where is not None
+            return ChangeConfig(self.spec.change(self.args, self.where))
         if isinstance(step, Countdown):
             return Wait(self.step_began + step.seconds_of(self.args))
-        if isinstance(step, UntilIdle):
+        if isinstance(step, UntilIdle | Heard):
             return Wait(self.step_began + step.limit_s)
         return Wait(None)
 
@@ -369,6 +559,11 @@ class Run:
             elif now >= self.step_began + step.limit_s:
                 self._end(State.FAILED, now, f"the sensor was still busy after "
                           f"{step.limit_s:g} s", ErrorKind.TIMEOUT)
+        elif isinstance(step, Heard) and now >= self.step_began + step.limit_s:
+            self._end(State.FAILED, now, f"no reading came within {step.limit_s:g} s of "
+                      f"the reload, though the sensor answered {self._at(new=True)} and "
+                      "the config says so now: look at its power and wiring, and at the "
+                      "bus's errors (GET /api/v1/buses)", ErrorKind.TIMEOUT)
 
     def sending(self) -> None:
         """The driver sent the command ``action`` gave."""
@@ -385,6 +580,12 @@ class Run:
             return
         if self.state is not State.RUNNING:
             return
+        if self.reading_back:
+            self._read_back(result, now)
+            return
+        if not result.ok and result.kind is ErrorKind.UNCONFIRMED and self.spec.read_back:
+            self.reading_back, self.lost = True, f"{result.command}: {result.error}"
+            return
         if not result.ok:
             self._end(State.FAILED, now, f"{result.command}: {result.error}", result.kind)
             return
@@ -394,6 +595,65 @@ class Run:
         key = f"{result.command} {action['action']}" if "action" in action else result.command
         self.answers[key] = dict(result.answer)
         self._next(now)
+
+    def _read_back(self, result: CommandResult, now: float) -> None:
+        """The answer to ``spec.read_back`` after a command's was lost: did it take?"""
+        self.reading_back = False
+        assert self.where is not None
+        self.answers[f"{result.command} (read back)"] = \
+            dict(result.answer) if result.ok else {"error": result.error}
+        sensor = self.where.sensor
+        if result.ok and self.where.protocol in self.spec.taken_if_read_back:
+            self._next(now)  # it answered where only the change puts it: it took
+        elif result.ok:
+            self._end(State.FAILED, now, f"{self.lost}; read back, {sensor} still answers "
+                      f"{self._at(new=False)}: it was not changed, nor was the config; "
+                      "run the wizard again", ErrorKind.UNCONFIRMED)
+        else:
+            self._end(State.FAILED, now, f"{self.lost}; the read back was not answered "
+                      f"either: {sensor} may be {self._at(new=True)} now, or still "
+                      f"{self._at(new=False)}. The config was not changed. Find it with a "
+                      "scan of the line (the Setup page), then put what the scan found in "
+                      "the config", ErrorKind.UNCONFIRMED)
+
+    def _at(self, new: bool) -> str:
+        """Where the sensor is (``new``: after the change): ``at address 5``."""
+        assert self.spec.change is not None and self.where is not None
+        change = self.spec.change(self.args, self.where)
+        if change.key == "address":
+            return f"at address {change.value if new else self.where.address}"
+        return f"at {change.value if new else self.where.baudrate} baud"
+
+    def reconfigured(self, outcome: Mapping[str, Any] | None, error: str | None,
+                     now: float) -> None:
+        """The driver applied the config change (``outcome``: the reload's, as
+        ``PUT /api/v1/config`` answers), or could not (``error``)."""
+        self.in_flight = False
+        if self.state is not State.RUNNING:
+            return
+        if error is not None or outcome is None:
+            self._end(State.FAILED, now, self._stranded(error or "no reload"))
+            return
+        self.answers["config"] = dict(outcome)
+        self._next(now)
+
+    def _stranded(self, why: str) -> str:
+        """What state the sensor is in when the config could not follow it, and the fix."""
+        assert self.spec.change is not None and self.where is not None
+        change = self.spec.change(self.args, self.where)
+        w = self.where
+        if change.key == "address":
+            state = (f"{w.sensor} now answers at address {change.value} (verified), and the "
+                     "gateway talks to it there until it restarts")
+            after = f"after a restart the gateway looks for it at address {w.address}"
+        else:
+            state = (f"{w.sensor} and bus {w.bus} now run at {change.value} baud (verified), "
+                     "and the gateway follows until it restarts")
+            after = f"after a restart the gateway opens the line at {w.baudrate} baud " \
+                "and does not hear it"
+        return (f"{state}; but the config could not follow: {why}. Put `{change.key}: "
+                f"{change.value}` on {change.where()} in the config (the Setup page, or PUT "
+                f"/api/v1/config), and send save to the sensor; else {after}")
 
     def observe(self, seq: int, reading: Reading | None, busy: bool, now: float) -> None:
         """The sensor's latest snapshot (its reading's ``seq``, and whether it is busy)."""
@@ -406,6 +666,8 @@ class Run:
                 self._end(State.FAILED, now, "the readings carry no angles")
                 return
             self.angles[step.label] = _angles(reading.angles)
+            self._next(now)
+        elif isinstance(step, Heard) and seq > self.look_after and reading is not None:
             self._next(now)
         elif isinstance(step, Circle) and fresh and reading is not None:
             if reading.mag is None:
@@ -427,9 +689,14 @@ class Run:
             raise RequestFailed(ErrorKind.BUSY, "there is no circle under way to finish")
         self._next(now)
 
-    def cancel(self, now: float) -> None:
+    def cancel(self, now: float, force: bool = False) -> None:
+        """The person's cancel (refused once a command that cannot be undone was
+        sent), or the driver's (``force``)."""
         if self.state is not State.RUNNING:
             return
+        if self.sent_any and not self.spec.cancellable_after_send and not force:
+            raise RequestFailed(ErrorKind.BUSY, f"{self.spec.name} cannot be cancelled: "
+                                "its command was sent to the sensor; it ends by itself")
         self._end(State.CANCELLED, now, "cancelled")
         self.cleaning = self.spec.cleanup is not None and self.sent_any
 
@@ -481,4 +748,8 @@ def _step_name(step: Step | None, args: Args) -> str | None:
             return "circle"
         case Look(label=label):
             return f"angles_{label}"
+        case Reconfigure():
+            return "config"
+        case Heard():
+            return "reading"
     return None

@@ -14,7 +14,10 @@ from imu_gateway.model import Angles, Reading, Series, Vector3, WireProtocol
 from imu_gateway.procedures import (
     PROCEDURES,
     SECTORS,
+    ChangeConfig,
     CircleTrace,
+    ConfigChange,
+    Placement,
     Run,
     SendCommand,
     State,
@@ -169,7 +172,7 @@ def test_zero_on_a_mins_sets_the_relative_heading_too() -> None:
 
 @pytest.mark.parametrize(("name", "args", "series", "protocol", "kind", "message"), [
     ("spin", None, Series.AH, NATIVE, ErrorKind.NOT_FOUND, "unknown procedure 'spin' "
-     "(known: gyro_calibration, mag_calibration, zero)"),
+     "(known: gyro_calibration, mag_calibration, zero, change_address, change_baudrate)"),
     ("mag_calibration", None, Series.VG, NATIVE, ErrorKind.UNSUPPORTED,
      "VG sensors have no mag_calibration (it is for AH)"),
     ("mag_calibration", None, Series.AH, MODBUS, ErrorKind.UNSUPPORTED,
@@ -198,12 +201,13 @@ def test_every_procedure_uses_catalogue_commands_only() -> None:
 
 
 def test_what_each_sensor_can_run() -> None:
+    changes = ["change_address", "change_baudrate"]
     assert available(Series.AH, commands_for(Series.AH, NATIVE)) == [
-        "gyro_calibration", "mag_calibration", "zero"]
-    assert available(Series.AH, commands_for(Series.AH, MODBUS)) == ["gyro_calibration",
-                                                                     "zero"]
-    assert available(Series.MINS, commands_for(Series.MINS, MODBUS)) == ["gyro_calibration",
-                                                                         "zero"]
+        "gyro_calibration", "mag_calibration", "zero", *changes]
+    assert available(Series.AH, commands_for(Series.AH, MODBUS)) == [
+        "gyro_calibration", "zero", *changes]
+    assert available(Series.MINS, commands_for(Series.MINS, MODBUS)) == [
+        "gyro_calibration", "zero", *changes]
 
 
 def test_the_circle_ignores_readings_without_a_direction() -> None:
@@ -229,3 +233,136 @@ def test_a_cancel_while_a_command_is_in_flight_still_clears_after_its_answer() -
     run.sending()
     run.answered(CommandResult("s", "mag_calibration", True, {}), 100.4)
     assert run.over and run.action(100.5) is None
+
+
+# ------------------------------------------------------------ address and baud changes
+
+
+def placed(protocol: WireProtocol = NATIVE, address: int = 0, baudrate: int = 9600,
+           others: tuple[tuple[str, int], ...] = (), port: str = "/dev/ttyUSB0") -> Placement:
+    return Placement("boom", "line", protocol, port, baudrate, address, others)
+
+
+def change(name: str, args: dict[str, Any], where: Placement, now: float = 100.0) -> Run:
+    spec, values = validate(name, args, Series.AH, commands_for(Series.AH, where.protocol),
+                            where)
+    return Run(spec, values, now, where)
+
+
+def test_an_address_change_sends_then_changes_the_config_then_hears_the_sensor() -> None:
+    run = change("change_address", {"address": 7}, placed())
+    assert run.action(100.0) == SendCommand("set_address", {"address": 7})
+    run.sending()
+    with pytest.raises(RequestFailed) as caught:  # sent: no way back, no cancel
+        run.cancel(100.1)
+    assert caught.value.kind is ErrorKind.BUSY and "cannot be cancelled" in str(caught.value)
+    run.answered(CommandResult("boom", "set_address", True, {"result": "success"}), 100.2)
+    action = run.action(100.2)
+    assert action == ChangeConfig(ConfigChange("line", "boom", "address", 7))
+    run.sending()
+    assert run.action(100.3) == Wait(None)  # the reload under way
+    run.reconfigured({"applied": True, "saved": True}, None, 100.5)
+    assert run.action(100.5) == Wait(110.5)  # a reading, within 10 s
+    run.observe(1, Reading(angles=Angles(1.0, 2.0, 3.0)), False, 101.0)
+    assert run.state is State.DONE and run.action(101.0) is None
+    assert run.answers["config"] == {"applied": True, "saved": True}
+    assert run.to_json(101.0)["offers"] == ["save"]
+
+
+def test_an_address_change_is_cancelled_before_its_command_only() -> None:
+    run = change("change_address", {"address": 7}, placed())
+    run.cancel(100.0)
+    assert run.state is State.CANCELLED and run.action(100.0) is None
+
+
+@pytest.mark.parametrize(("name", "args", "where", "message"), [
+    ("change_address", {"address": 3}, placed(others=(("arm", 3),)),
+     "address 3 is taken on bus line by arm"),
+    ("change_address", {"address": 0}, placed(), "boom is at address 0 already"),
+    ("change_address", {"address": 0}, placed(MODBUS, address=1),
+     "a modbus address is 1-247, not 0"),
+    ("change_baudrate", {"baudrate": 19200}, placed(others=(("arm", 1), ("tip", 2))),
+     "bus line has other sensors (arm, tip), which would stay at 9600 baud"),
+    ("change_baudrate", {"baudrate": 9600}, placed(), "runs at 9600 baud already"),
+    ("change_baudrate", {"baudrate": 12345}, placed(), "must be one of"),
+])
+def test_a_change_the_bus_cannot_take_is_refused_before_anything_is_sent(
+        name: str, args: dict[str, Any], where: Placement, message: str) -> None:
+    with pytest.raises(RequestFailed) as caught:
+        change(name, args, where)
+    assert caught.value.kind is ErrorKind.BAD_ARGUMENTS and message in str(caught.value)
+
+
+def test_a_baud_change_on_a_serial_server_is_refused() -> None:
+    with pytest.raises(RequestFailed) as caught:
+        change("change_baudrate", {"baudrate": 19200}, placed(port="socket://10.0.0.9:4001"))
+    assert caught.value.kind is ErrorKind.UNSUPPORTED
+    assert "cannot change the serial server's rate" in str(caught.value)
+
+
+def lost(run: Run, now: float) -> None:
+    run.action(now)
+    run.sending()
+    run.answered(CommandResult("boom", run.spec.steps[0].command, False,  # type: ignore[union-attr]
+                               error="boom: it was sent but not confirmed (timeout)",
+                               kind=ErrorKind.UNCONFIRMED), now)
+
+
+def test_a_lost_answer_is_read_back_and_never_sent_again() -> None:
+    run = change("change_address", {"address": 7}, placed())
+    lost(run, 100.0)
+    assert run.action(100.0) == SendCommand("read_settings", {})  # not set_address again
+    ok(run, {"zero_type": "absolute"}, 100.5)
+    assert run.state is State.FAILED and run.kind is ErrorKind.UNCONFIRMED
+    assert "read back, boom still answers at address 0: it was not changed, nor was the " \
+           "config" in (run.error or "")
+
+
+def test_a_lost_answer_and_no_read_back_says_where_the_sensor_may_be() -> None:
+    run = change("change_address", {"address": 7}, placed())
+    lost(run, 100.0)
+    run.action(100.0)
+    run.sending()
+    run.answered(CommandResult("boom", "read_settings", False, error="timeout",
+                               kind=ErrorKind.TIMEOUT), 101.0)
+    assert run.state is State.FAILED
+    assert "boom may be at address 7 now, or still at address 0" in (run.error or "")
+    assert "scan" in (run.error or "")
+
+
+def test_a_modbus_baud_change_read_back_at_the_new_rate_took() -> None:
+    """Modbus: the line switched before the verifying read; a read back answered there
+    proves the sensor is at the new rate: on to the config."""
+    run = change("change_baudrate", {"baudrate": 19200}, placed(MODBUS, address=1))
+    lost(run, 100.0)
+    ok(run, {"zero_type": "absolute", "product_address": 1}, 100.5)
+    assert run.action(100.5) == ChangeConfig(ConfigChange("line", None, "baudrate", 19200))
+
+
+def test_a_config_that_cannot_follow_says_what_state_the_sensor_is_in() -> None:
+    run = change("change_baudrate", {"baudrate": 19200}, placed())
+    ok(run, {"result": "success"}, 100.0)
+    run.action(100.0)
+    run.sending()
+    run.reconfigured(None, "the new config was refused: buses[0].baudrate: …", 100.5)
+    assert run.state is State.FAILED
+    assert run.error == (
+        "boom and bus line now run at 19200 baud (verified), and the gateway follows until "
+        "it restarts; but the config could not follow: the new config was refused: "
+        "buses[0].baudrate: …. Put `baudrate: 19200` on bus line in the config (the Setup "
+        "page, or PUT /api/v1/config), and send save to the sensor; else after a restart "
+        "the gateway opens the line at 9600 baud and does not hear it")
+
+
+def test_the_config_change_keeps_the_rest_of_the_config() -> None:
+    data = {"gateway_id": "g", "buses": [
+        {"name": "other", "baudrate": 9600, "sensors": [{"name": "boom", "address": 0}]},
+        {"name": "line", "baudrate": 9600, "sensors": [{"name": "arm"}, {"name": "boom"}]}]}
+    ConfigChange("line", "boom", "address", 9).applied_to(data)
+    ConfigChange("line", None, "baudrate", 19200).applied_to(data)
+    assert data["buses"] == [
+        {"name": "other", "baudrate": 9600, "sensors": [{"name": "boom", "address": 0}]},
+        {"name": "line", "baudrate": 19200, "sensors": [{"name": "arm"},
+                                                        {"name": "boom", "address": 9}]}]
+    with pytest.raises(ValueError, match="bus line has no sensor 'tip' now"):
+        ConfigChange("line", "tip", "address", 9).applied_to(data)

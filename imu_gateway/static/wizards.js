@@ -3,7 +3,8 @@
  * Server-Sent Events until it ends.  No framework, no build step, nothing from a CDN.
  *
  * Test hooks: <body data-state> is the procedure's state (running, done, failed,
- * cancelled), data-step its step; #coverage the circle's coverage in percent.
+ * cancelled), data-step its step; #coverage the circle's coverage in percent;
+ * #change-checks the address and baud change's checks, each <li data-ok>.
  *
  * The credential: the dashboard's login (static/auth.js, sent as "Authorization:
  * Bearer"; never in a URL): log in on the dashboard, then open this page from it.
@@ -16,6 +17,8 @@
   const $ = (id) => document.getElementById(id);
   let current = null; // {sensor, path, source, state}
   let ticking = null; // the local countdown's timer
+  let sensors = []; // GET /api/v1/sensors: each one's bus, protocol and live address
+  let rates = {}; // each bus's baud rate (GET /api/v1/buses)
 
   async function call(method, path, body) {
     const init = { method, headers: auth.headers(), cache: "no-store" };
@@ -47,6 +50,11 @@
   async function loadSensors() {
     try {
       const { data } = await call("GET", `${API}/sensors`);
+      sensors = data;
+      try {
+        rates = Object.fromEntries((await call("GET", `${API}/buses`)).data
+          .map((b) => [b.name, b.baudrate]));
+      } catch (e) { rates = {}; }
       const select = $("sensor");
       for (const s of data) {
         const option = document.createElement("option");
@@ -71,15 +79,19 @@
     const { data } = await call("GET", `${API}/sensors/${encodeURIComponent(name)}/procedures`);
     for (const button of document.querySelectorAll("[data-procedure]")) {
       button.disabled = !data.available.includes(button.dataset.procedure);
+      button.dataset.unavailable = button.disabled ? "1" : "";
     }
     $("choices-note").textContent = data.available.includes("mag_calibration") ? ""
       : "Magnetic calibration is for an AH sensor on the native protocol.";
+    checkChange();
     const running = data.runs.find((r) => r.state === "running");
     if (running) follow(name, `${API}/sensors/${encodeURIComponent(name)}/procedures/` +
                         `${running.procedure}/${running.id}`, running);
   }
 
   function argumentsOf(procedure) {
+    if (procedure === "change_address") return { address: Number($("new-address").value) };
+    if (procedure === "change_baudrate") return { baudrate: Number($("new-baud").value) };
     if (procedure !== "zero") return {};
     const args = { type: $("zero-type").value };
     const heading = $("zero-heading").value;
@@ -100,6 +112,48 @@
     }
   }
 
+  // The address and baud change's checks, as the gateway makes them again when it is
+  // started (docs/wizards.md): shown before, so nobody has to be refused to learn them.
+  function checkChange() {
+    const me = sensors.find((s) => s.name === $("sensor").value);
+    const list = $("change-checks");
+    list.replaceChildren();
+    if (!me) return;
+    const others = sensors.filter((s) => s.bus === me.bus && s.name !== me.name);
+    const [low, high] = me.protocol === "modbus" ? [1, 247] : [0, 255];
+    const raw = $("new-address").value;
+    const address = Number(raw);
+    const taken = others.filter((s) => s.address === address).map((s) => s.name);
+    let addressOk = raw !== "" && Number.isInteger(address) && address >= low &&
+      address <= high && address !== me.address && taken.length === 0;
+    const addressSays = raw === "" ? `${me.name} is at address ${me.address}: give the new one`
+      : !Number.isInteger(address) || address < low || address > high
+        ? `a ${me.protocol} address is ${low}-${high}`
+        : address === me.address ? `${me.name} is at address ${address} already`
+          : taken.length ? `address ${address} is taken on bus ${me.bus} by ${taken.join(", ")}`
+            : `address ${address} is free on bus ${me.bus}`;
+    const baud = Number($("new-baud").value);
+    const rate = rates[me.bus];
+    const baudOk = others.length === 0 && baud !== rate;
+    const baudSays = others.length
+      ? `bus ${me.bus} has other sensors (${others.map((s) => s.name).join(", ")}): the ` +
+        "baud rate wizard changes a bus of one sensor only"
+      : baud === rate ? `bus ${me.bus} runs at ${baud} baud already`
+        : `bus ${me.bus} has ${me.name} alone: ${rate || "?"} → ${baud} baud`;
+    for (const [ok, text, what] of [[addressOk, addressSays, "address"],
+                                    [baudOk, baudSays, "baud"]]) {
+      const li = document.createElement("li");
+      li.textContent = text;
+      li.dataset.ok = ok ? "1" : "";
+      li.dataset.check = what;
+      list.append(li);
+    }
+    const button = (name) => document.querySelector(`[data-procedure="${name}"]`);
+    addressOk = addressOk && !button("change_address").dataset.unavailable;
+    button("change_address").disabled = !addressOk;
+    button("change_baudrate").disabled = !baudOk || !!button("change_baudrate").dataset.unavailable;
+  }
+
   // ------------------------------------------------------------------ following
 
   function follow(sensor, path, state) {
@@ -116,6 +170,16 @@
       // asked once more by GET, so the page still shows the end.
       if (source.readyState === 2) refresh(); // CLOSED
     });
+  }
+
+  async function refreshSensors() {
+    // the address or rate the wizard changed, for the next checks
+    try {
+      sensors = (await call("GET", `${API}/sensors`)).data;
+      rates = Object.fromEntries((await call("GET", `${API}/buses`)).data
+        .map((b) => [b.name, b.baudrate]));
+    } catch (e) { /* the checks keep what they had */ }
+    checkChange();
   }
 
   async function refresh() {
@@ -138,6 +202,11 @@
     $("answers").textContent = Object.entries(state.answers || {})
       .map(([k, v]) => `${k}: ${JSON.stringify(v)}`).join("\n");
     $("cancel").hidden = state.state !== "running";
+    const config = (state.answers || {}).config;
+    if (config && state.state === "done") {
+      say(`the config follows: ${config.note}`, config.saved);
+      refreshSensors();
+    }
     $("save").hidden = !(state.state === "done" && (state.offers || []).includes("save"));
   }
 
@@ -239,6 +308,8 @@
     button.addEventListener("click", () => start(button.dataset.procedure));
   }
   $("sensor").addEventListener("change", chooseSensor);
+  $("new-address").addEventListener("input", checkChange);
+  $("new-baud").addEventListener("change", checkChange);
   $("cancel").addEventListener("click", () => act("DELETE", "", "cancel"));
   $("finish").addEventListener("click", () => act("POST", "/finish", "finish"));
   $("save").addEventListener("click", save);

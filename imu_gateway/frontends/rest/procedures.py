@@ -1,8 +1,10 @@
 """The procedures' routes (docs/wizards.md, docs/rest.md "Procedures"): a calibration
 or setup wizard as a resource.  ``POST …/procedures/{procedure}`` starts one (an
-operator's: the bearer token and ``http.allow_commands``, as commands); it runs here,
-one catalogue command after the other through ``gateway.command`` (``imu_gateway.procedures``
-says which and when); ``GET`` shows it, ``…/events`` streams it, ``DELETE`` cancels it.
+operator's: the bearer token and ``http.allow_commands``, as commands; an admin's too for
+those that change the config: the address and baud changes); it runs here, one
+catalogue command after the other through ``gateway.command`` (``imu_gateway.procedures``
+says which and when), a config change through the gateway's reloader (as ``PUT
+/api/v1/config``); ``GET`` shows it, ``…/events`` streams it, ``DELETE`` cancels it.
 """
 
 from __future__ import annotations
@@ -13,10 +15,10 @@ import enum
 import itertools
 import logging
 from collections import OrderedDict
-from collections.abc import AsyncGenerator
+from collections.abc import AsyncGenerator, Awaitable, Callable
 from dataclasses import dataclass, field
 from importlib import resources
-from typing import Annotated, Any
+from typing import Annotated, Any, Protocol, runtime_checkable
 
 from fastapi import Depends, FastAPI, Request
 from fastapi.responses import HTMLResponse, JSONResponse, StreamingResponse
@@ -24,8 +26,16 @@ from pydantic import BaseModel, Field
 
 from ...cache import EventKind, Snapshot
 from ...commands import commands_for
-from ...errors import ErrorKind, RequestFailed
-from ...procedures import Run, SendCommand, available, validate
+from ...errors import ConfigError, ErrorKind, RequestFailed
+from ...procedures import (
+    PROCEDURES,
+    ChangeConfig,
+    Placement,
+    Run,
+    SendCommand,
+    available,
+    validate,
+)
 from ..common import GatewayLike, json_bytes, peer_json
 from .access import Roles
 from .limits import API, KEEPALIVE_S, MAX_BODY
@@ -40,19 +50,31 @@ KEEP = 32
 EVENT_INTERVAL_S = 0.2
 
 
+@runtime_checkable
+class _Reloader(Protocol):
+    """What a procedure that changes the config needs of ``reload.Reloader``."""
+
+    def shown(self) -> Any: ...
+
+    async def put(self, data: Any, dry_run: bool) -> Any: ...
+
+
 class ProcedureOut(BaseModel):
     """A procedure and where it stands (docs/wizards.md)."""
 
     id: str = Field(description="its number in `…/procedures/{procedure}/{id}`")
     sensor: str
-    procedure: str = Field(description="gyro_calibration, mag_calibration or zero")
+    procedure: str = Field(description="gyro_calibration, mag_calibration, zero, "
+                           "change_address or change_baudrate")
     state: str = Field(description="running, done, failed or cancelled")
     step: str | None = Field(description="the step under way (running only)")
     steps: list[str | None]
     prompt: str = Field(description="what the person should do now")
     countdown_s: float | None = Field(description="seconds left of a countdown")
     elapsed_s: float
-    answers: dict[str, Any] = Field(description="each command's answer, by command")
+    answers: dict[str, Any] = Field(description="each command's answer, by command; "
+                                    "`config`: the reload's outcome (an address or baud "
+                                    "change)")
     angles: dict[str, dict[str, float]] = Field(description="zero: the angles before and after")
     coverage_percent: float | None = Field(description="magnetic calibration: the share of "
                                            "the circle's 36 sectors of 10° covered")
@@ -109,13 +131,15 @@ class Procedures:
     def start(self, sensor: str, name: str, args: Any) -> _Live:
         bus = next(b for b, s in self.gateway.config.iter_sensors() if s.name == sensor)
         series = self.gateway.sensors[sensor].series
-        spec, values = validate(name, args, series, commands_for(series, bus.protocol))
+        where = Placement.of(self.gateway.config, sensor, {
+            s.name: self.gateway.sensor_stats(s.name).address for s in bus.sensors})
+        spec, values = validate(name, args, series, commands_for(series, bus.protocol), where)
         for other in self.runs.values():
             if other.sensor == sensor and not other.run.over:
                 raise RequestFailed(ErrorKind.BUSY, f"{sensor} is in {other.run.spec.name} "
                                     f"{other.id}: wait for it, or cancel it ({other.path})")
         loop = asyncio.get_running_loop()
-        live = _Live(str(next(self._ids)), sensor, Run(spec, values, loop.time()))
+        live = _Live(str(next(self._ids)), sensor, Run(spec, values, loop.time(), where))
         self.runs[live.id] = live
         while len(self.runs) > KEEP:
             oldest = next(iter(self.runs.values()))
@@ -153,6 +177,11 @@ class Procedures:
                     run.answered(result, loop.time())
                     observe(cache.snapshot(live.sensor))  # busy from the answer on
                     continue
+                if isinstance(action, ChangeConfig):
+                    run.sending()
+                    outcome, error = await self._reconfigure(action)
+                    run.reconfigured(outcome, error, loop.time())
+                    continue
                 live.wake.clear()
                 wait = None if action.until is None else max(0.0, action.until - loop.time())
                 with contextlib.suppress(TimeoutError):
@@ -160,13 +189,34 @@ class Procedures:
                         await live.wake.wait()
         except Exception as exc:  # (a bug: the procedure says so, the server goes on)
             log.exception("procedure %s failed", live.id)
-            run.cancel(loop.time())
+            run.cancel(loop.time(), force=True)
             run.cleaning, run.error = False, f"internal error: {exc}"
         finally:
             unsubscribe()
             log.info("procedure %s on %s: %s%s", live.id, live.sensor, run.state.value,
                      f" ({run.error})" if run.error else "")
             live.touch()
+
+    async def _reconfigure(self, action: ChangeConfig
+                           ) -> tuple[dict[str, Any] | None, str | None]:
+        """The config with the change, applied and saved by the reloader: its outcome
+        (as ``PUT /api/v1/config`` answers), or why it could not be."""
+        reloader = getattr(self.gateway, "reloader", None)
+        if not isinstance(reloader, _Reloader):
+            return None, "this gateway cannot change its config"
+        try:
+            # the config as written, secrets as ***: the reloader puts them back
+            data = action.change.applied_to(reloader.shown())
+            outcome = await reloader.put(data, dry_run=False)
+        except ConfigError as exc:
+            return None, f"the new config was refused: {'; '.join(exc.problems)}"
+        except (ValueError, OSError) as exc:
+            return None, str(exc)
+        log.info("procedure: %s set to %s on %s", action.change.key, action.change.value,
+                 action.change.where())
+        answer: dict[str, Any] = outcome.to_json()
+        return {"applied": answer["applied"], "saved": answer["saved"],
+                "note": answer["note"], "summary": answer["diff"]["summary"]}, None
 
     async def events(self, live: _Live) -> AsyncGenerator[bytes, None]:
         """Server-Sent Events: the state whenever it changed (at most every
@@ -242,15 +292,23 @@ def procedure_routes(app: FastAPI, gateway: GatewayLike, roles: Roles) -> None:
         return HTMLResponse((resources.files("imu_gateway") / "static" / "wizards.html")
                             .read_text(encoding="utf-8"))
 
+    def begin(name: str, procedure: str, args: Any) -> JSONResponse:
+        gateway.cache.snapshot(name)
+        live = procedures.start(name, procedure, args)
+        return JSONResponse(live.to_json(), 201, headers={"Location": live.path})
+
+    _admin_routes(app, base, roles, begin)  # (matched before the one for the others)
+
     @app.post(f"{base}/{{procedure}}", status_code=201, response_model=ProcedureOut,
               dependencies=[roles.commands], tags=tags,
               responses=_responses(401, 403, 404, 409, 413, 422),
               summary="start a procedure (gyro_calibration, mag_calibration, zero)")
     async def start(name: str, procedure: str,
                     args: Annotated[Any, Depends(_arguments)]) -> JSONResponse:
-        gateway.cache.snapshot(name)
-        live = procedures.start(name, procedure, args)
-        return JSONResponse(live.to_json(), 201, headers={"Location": live.path})
+        spec = PROCEDURES.get(procedure)
+        if spec is not None and spec.admin:  # (its own route is matched first)
+            raise RequestFailed(ErrorKind.FORBIDDEN, f"{procedure} is an admin's")
+        return begin(name, procedure, args)
 
     @app.get(f"{base}/{{procedure}}/{{run_id}}", response_model=ProcedureOut,
              dependencies=[roles.viewer], tags=tags, responses=_responses(401, 404),
@@ -282,10 +340,31 @@ def procedure_routes(app: FastAPI, gateway: GatewayLike, roles: Roles) -> None:
 
     @app.delete(f"{base}/{{procedure}}/{{run_id}}", response_model=ProcedureOut,
                 dependencies=[roles.commands], tags=tags,
-                responses=_responses(401, 403, 404),
-                summary="cancel a procedure (a magnetic calibration is cleared)")
+                responses=_responses(401, 403, 404, 409),
+                summary="cancel a procedure (a magnetic calibration is cleared; an address "
+                        "or baud change only before its command is sent: 409 after)")
     async def cancel(name: str, procedure: str, run_id: str) -> dict[str, Any]:
         live = live_of(name, procedure, run_id)
         live.run.cancel(asyncio.get_running_loop().time())
         live.touch()
         return live.to_json()
+
+
+def _admin_routes(app: FastAPI, base: str, roles: Roles,
+                  begin: Callable[[str, str, Any], JSONResponse]) -> None:
+    """The procedures that change the config are an admin's (and send commands: commands
+    must be on), each its own route: ``POST {base}/change_address``, …"""
+    for spec in PROCEDURES.values():
+        if spec.admin:
+            app.post(f"{base}/{spec.name}", status_code=201, response_model=ProcedureOut,
+                     dependencies=[roles.commands, roles.admin], tags=["procedures"],
+                     responses=_responses(401, 403, 404, 409, 413, 422),
+                     summary=f"start {spec.name}: {spec.summary}")(_start_of(spec.name, begin))
+
+
+def _start_of(procedure: str, begin: Callable[[str, str, Any], JSONResponse],
+              ) -> Callable[..., Awaitable[JSONResponse]]:
+    """The route that starts ``procedure``."""
+    async def start(name: str, args: Annotated[Any, Depends(_arguments)]) -> JSONResponse:
+        return begin(name, procedure, args)
+    return start

@@ -197,7 +197,8 @@ async def test_what_the_sensor_cannot_do_is_refused_naming_why(held_ah: SimSenso
     async with gateway_on(held_ah, "native", "AH") as (_, http, _sim):
         base = f"{API}/sensors/boom/procedures"
         listed = (await http.get(base)).json()
-        assert listed["available"] == ["gyro_calibration", "mag_calibration", "zero"]
+        assert listed["available"] == ["gyro_calibration", "mag_calibration", "zero",
+                                       "change_address", "change_baudrate"]
         unknown = await http.post(f"{base}/spin", headers=AUTH)
         assert unknown.status_code == 404 and "known: gyro_calibration" in unknown.text
         heading = await http.post(f"{base}/zero", headers=AUTH,
