@@ -318,6 +318,7 @@ def save_atomically(path: Path, data: Any) -> None:
     temp = path.with_name(f".{path.name}.new")
     yaml_rt = YAML(typ="rt")
     yaml_rt.preserve_quotes = True
+    yaml_rt.indent(**indentation_of(text))
     with open(temp, "w", encoding="utf-8") as out:
         yaml_rt.dump(tree, out)
         out.flush()
@@ -334,6 +335,26 @@ def save_atomically(path: Path, data: Any) -> None:
             temp.unlink()
         raise
     _fsync_dir(path.parent)
+
+
+#: a top-level key alone on its line, then (past blank and comment lines) its first key
+_NESTED_KEY = re.compile(r"^[^\s#-][^\n]*:[ \t]*(?:#[^\n]*)?\n"
+                         r"((?:[ \t]*(?:#[^\n]*)?\n)*)( +)[^\s#-]", re.MULTILINE)
+
+
+def indentation_of(text: str) -> dict[str, int]:
+    """The file's own indentation, for ruamel's ``indent()``, so that a save changes only
+    what changed: a mapping's (``mqtt:`` then ``  url:``), and a list's (``buses:`` then
+    ``  - name:``: the dash 2 in, its entries 4).  ruamel's default puts the dash at its
+    parent's column, which made every list of a saved file move."""
+    from ruamel.yaml.util import load_yaml_guess_indent
+
+    nested = _NESTED_KEY.search(text)
+    mapping = len(nested.group(2)) if nested else 2
+    _, sequence, offset = load_yaml_guess_indent(text)
+    if sequence is None or offset is None:
+        return {"mapping": mapping, "sequence": mapping, "offset": 0}
+    return {"mapping": mapping, "sequence": sequence, "offset": offset}
 
 
 def _fsync_dir(folder: Path) -> None:

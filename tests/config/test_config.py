@@ -905,3 +905,27 @@ def test_opcua_access_rules_are_checked(opcua: dict[str, object], message: str) 
                                      "sensors": [{"name": "s", "series": "AH"}]}],
                           "opcua": opcua}, env={})
     assert any(p.startswith(message) for p in failed.value.problems), failed.value.problems
+
+
+@pytest.mark.parametrize("style", [
+    ("  ", "  - ", "    "),   # the dash 2 in (the examples' style)
+    ("    ", "- ", "  "),     # the dash at its parent's column, mappings by 4
+    ("  ", "    - ", "      "),
+])
+def test_a_save_keeps_the_files_own_indentation(tmp_path: Path,
+                                                 style: tuple[str, str, str]) -> None:
+    """Only what changed changes: a user diffing the saved file against its ``.bak``
+    sees the one line (ruamel's default moved every list's dash to its parent's column)."""
+    from imu_gateway.config.loading import ConfigSource, save_atomically
+
+    key, dash, entry = style
+    text = (f"# the plant's gateway\nmqtt:\n{key}url: mqtt://broker:1883  # ours\n"
+            f"buses:\n{dash}name: line-a\n{entry}port: /dev/ttyUSB0\n{entry}sensors:\n"
+            f"{entry}{dash}name: boom\n{entry}{entry}series: AH\n")
+    path = tmp_path / "gateway.yaml"
+    path.write_text(text)
+    data = ConfigSource.read(path).data
+    data["buses"][0]["port"] = "/dev/ttyUSB1"
+    save_atomically(path, data)
+    assert path.read_text() == text.replace("ttyUSB0", "ttyUSB1")
+    assert (tmp_path / "gateway.yaml.bak").read_text() == text
