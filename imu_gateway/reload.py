@@ -8,7 +8,10 @@ The plan, by part:
 
 - a bus equal to its old self (its settings and its sensors' bus settings) is left
   alone: its port stays open, its schedule, learned timeouts and counters go on;
-- a bus whose settings changed, or that gained or lost a sensor, is restarted alone;
+- a bus that gained or lost a sensor, its own settings and its other sensors' bus
+  settings the same, keeps running: only its schedule changes (the new sensor joins,
+  the gone one leaves after its exchange in flight), its port stays open;
+- a bus whose settings changed (or a kept sensor's bus settings) is restarted alone;
 - a front end whose own section changed is restarted alone; one whose section is the
   same hears ``sensors_changed`` when the sensors did (Modbus TCP: its unit map at
   once; the others are restarted);
@@ -115,21 +118,28 @@ class ConfigDiff:
 
     @property
     def buses_restarted(self) -> tuple[str, ...]:
-        """The buses kept whose master is started anew: changed, or a sensor more or
-        less (removed buses are stopped, added ones started)."""
-        moved = {m.bus for m in (*self.sensors_added, *self.sensors_removed)}
-        named = [c.name for c in self.buses_changed] + sorted(moved)
+        """The buses kept whose master is started anew: their own settings changed, or
+        a kept sensor's bus settings (removed buses are stopped, added ones started)."""
         gone = set(self.buses_added) | set(self.buses_removed)
-        return tuple(dict.fromkeys(n for n in named if n not in gone))
+        return tuple(c.name for c in self.buses_changed if c.name not in gone)
+
+    @property
+    def buses_rescheduled(self) -> tuple[str, ...]:
+        """The buses kept running that gained or lost a sensor: only their schedule
+        changes (``BusRunner.change_sensors``)."""
+        moved = dict.fromkeys(m.bus for m in (*self.sensors_added, *self.sensors_removed))
+        other = {*self.buses_added, *self.buses_removed, *self.buses_restarted}
+        return tuple(n for n in moved if n not in other)
 
     def summary(self) -> str:
-        """The one log line: ``reload: +1 sensor (boom2 on line-a, line-a restarted),
+        """The one log line: ``reload: +1 sensor (boom2 on line-a, its schedule only),
         line-b restarted (baudrate 9600→19200), unchanged: line-c, modbus``."""
         if self.empty:
             return "reload: no change"
         restarted = set(self.buses_restarted)
-        parts = [_count("+", self.sensors_added, restarted),
-                 _count("-", self.sensors_removed, restarted)]
+        rescheduled = set(self.buses_rescheduled)
+        parts = [_count("+", self.sensors_added, restarted, rescheduled),
+                 _count("-", self.sensors_removed, restarted, rescheduled)]
         parts += [f"bus {name} added" for name in self.buses_added]
         parts += [f"bus {name} removed" for name in self.buses_removed]
         parts += [f"{c.name} restarted ({', '.join(c.details)})" for c in self.buses_changed]
@@ -155,6 +165,7 @@ class ConfigDiff:
             "buses": {"added": list(self.buses_added), "removed": list(self.buses_removed),
                       "changed": changes(self.buses_changed),
                       "restarted": list(self.buses_restarted),
+                      "rescheduled": list(self.buses_rescheduled),
                       "unchanged": list(self.buses_unchanged)},
             "sensors": {"added": moves(self.sensors_added),
                         "removed": moves(self.sensors_removed),
@@ -165,11 +176,13 @@ class ConfigDiff:
         }
 
 
-def _count(sign: str, moves: tuple[SensorMove, ...], restarted: set[str]) -> str:
+def _count(sign: str, moves: tuple[SensorMove, ...], restarted: set[str],
+           rescheduled: set[str]) -> str:
     if not moves:
         return ""
     what = ", ".join(f"{m.sensor} on {m.bus}"
-                     + (f", {m.bus} restarted" if m.bus in restarted else "")
+                     + (f", {m.bus} restarted" if m.bus in restarted else
+                        ", its schedule only" if m.bus in rescheduled else "")
                      for m in moves)
     return f"{sign}{len(moves)} sensor{'s' if len(moves) != 1 else ''} ({what})"
 
@@ -375,10 +388,14 @@ class Reloader:
         applied = new.model_copy(update=kept)
         for name in (*diff.buses_removed, *diff.buses_restarted):
             await gateway.buses.stop_one(name, SHUTDOWN_GRACE)
+        # a sensor removed leaves its bus before the cache forgets it, one added
+        # joins after the cache knows it
+        await self._reschedule(diff, old, applied, kept_only=True)
         gateway.adopt(applied)  # the sensors' maps, the cache, history, alarms
         for bus in applied.buses:
             if bus.name in diff.buses_added or bus.name in diff.buses_restarted:
                 gateway.start_bus(bus)
+        await self._reschedule(diff, old, applied, kept_only=False)
         gateway.index_buses()
         await self._frontends(diff)
         log.info("%s", diff.summary())
@@ -386,6 +403,19 @@ class Reloader:
             log.warning("reload: %s needs a restart (kept as it was until then)",
                         change.describe())
         return diff
+
+    async def _reschedule(self, diff: ConfigDiff, old: GatewayConfig, new: GatewayConfig,
+                          kept_only: bool) -> None:
+        """The buses kept running that gained or lost a sensor get their new sensors
+        (``kept_only``: the sensors they had and keep, the removed ones gone)."""
+        before = {b.name: {s.name for s in b.sensors} for b in old.buses}
+        for bus in new.buses:
+            if bus.name in diff.buses_rescheduled:
+                if kept_only:
+                    bus = bus.model_copy(update={"sensors": [
+                        s for s in bus.sensors if s.name in before[bus.name]]})
+                await self.gateway.buses.runners[bus.name].change_sensors(
+                    bus, SHUTDOWN_GRACE)
 
     async def _frontends(self, diff: ConfigDiff) -> None:
         """A front end whose section changed restarts; one whose sensors changed

@@ -42,8 +42,8 @@ def test_an_unchanged_config_is_no_change() -> None:
 
 
 def test_the_diff_names_each_part_and_its_change() -> None:
-    """A sensor added restarts its bus only; a baud rate changed restarts that bus; a
-    bus and a front end untouched are named unchanged; http needs a restart."""
+    """A sensor added changes its bus's schedule only; a baud rate changed restarts that
+    bus; a bus and a front end untouched are named unchanged; http needs a restart."""
     old = config_from_dict(gateway(
         [bus("line-a", "/dev/null", [{"name": "boom", "series": "AH"}]),
          bus("line-b", "/dev/zero", [{"name": "arm", "series": "VG"}], baudrate=9600),
@@ -57,16 +57,29 @@ def test_the_diff_names_each_part_and_its_change() -> None:
         modbus={"listen": "127.0.0.1:0"}, http={"listen": "127.0.0.1:8081"}), env={})
     diff = diff_configs(old, new)
     assert [(m.sensor, m.bus) for m in diff.sensors_added] == [("boom2", "line-a")]
-    assert diff.buses_restarted == ("line-b", "line-a")
+    assert diff.buses_restarted == ("line-b",) and diff.buses_rescheduled == ("line-a",)
     assert diff.buses_unchanged == ("line-c",)
     assert [c.describe() for c in diff.buses_changed] == ["line-b (baudrate 9600→19200)"]
     assert diff.frontends_unchanged == ("modbus",)
     assert [c.name for c in diff.needs_restart] == ["http"]
     assert diff.summary() == (
-        "reload: +1 sensor (boom2 on line-a, line-a restarted), line-b restarted "
+        "reload: +1 sensor (boom2 on line-a, its schedule only), line-b restarted "
         "(baudrate 9600→19200), sensor arm (unit_id 2→3), sensor mast (unit_id 3→4), "
         "needs a restart: http (listen 127.0.0.1:8080→127.0.0.1:8081), "
         "unchanged: line-c, modbus")
+
+
+def test_a_kept_sensor_s_bus_setting_changed_restarts_its_bus() -> None:
+    """A sensor removed beside a kept one whose rate changed: the bus restarts (the
+    summary says so), it is not merely rescheduled."""
+    old = config_from_dict(gateway([bus("a", "/dev/null", [
+        {"name": "s", "series": "AH"}, {"name": "t", "series": "AH", "address": 1}])]))
+    new = config_from_dict(gateway([bus("a", "/dev/null", [
+        {"name": "s", "series": "AH", "poll_hz": 5}])]))
+    diff = diff_configs(old, new)
+    assert diff.buses_restarted == ("a",) and diff.buses_rescheduled == ()
+    assert diff.summary().startswith("reload: -1 sensor (t on a, a restarted), a restarted")
+    assert diff.to_json()["buses"]["rescheduled"] == []
 
 
 def test_unit_ids_and_alarms_restart_no_bus() -> None:
@@ -128,7 +141,7 @@ async def test_a_reload_under_load_keeps_the_unchanged_bus_running() -> None:
             buses[1]["sensors"].append({"name": "arm2", "series": "AH", "address": 1,
                                          "unit_id": 3})
             diff = await gw.reloader._apply(config_from_dict(first, env={}))
-            assert diff.buses_restarted == ("b",) and diff.buses_unchanged == ("a",)
+            assert diff.buses_rescheduled == ("b",) and diff.buses_unchanged == ("a",)
             count = len(gaps)
             await until(lambda: len(gaps) > count + 20)
             stop.set()

@@ -87,6 +87,20 @@ class JobQueue:
         for job in list(self.reads.values()):
             self.finish(job, error=RequestFailed(kind, message))
 
+    def drop(self, s: SensorState, error: RequestFailed) -> None:
+        """Every job of ``s`` that waits (not the one going out) fails with ``error``."""
+        for job in [j for j in self.commands if j.sensor is s]:
+            self.commands.remove(job)
+            self.finish(job, error=error)
+        read = self.reads.get(s.name)
+        if read is not None and read is not self.current:
+            self.finish(read, error=error)
+
+    def holds(self, s: SensorState) -> bool:
+        """Is a job of ``s`` going out, or waiting?"""
+        return (self.current is not None and self.current.sensor is s) or \
+            any(j.sensor is s for j in self.commands) or s.name in self.reads
+
     def finish(self, job: Job, outcome: Outcome = None,
                error: RequestFailed | None = None) -> None:
         """The job is over: whoever waits for it is told (a command always gets a

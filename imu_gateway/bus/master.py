@@ -105,6 +105,7 @@ class BusMaster:
             "imu_gateway").isEnabledFor(logging.DEBUG))
         self.schedule.trace(self.traces.wanted)
         self._paused = False  # the port released for a scan of the line
+        self._swept: list[Callable[[], None]] = []  # told once removed sensors have left
 
     @property
     def sensors(self) -> dict[str, SensorState]:
@@ -186,6 +187,25 @@ class BusMaster:
             self.link.close()
             self.schedule.close(self._now(), reason)
             self._dispatch()
+
+    def change_sensors(self, config: BusConfig, done: Callable[[], None]) -> None:
+        """A reload: from now on the bus's sensors are ``config``'s (its own settings
+        are the same).  New ones join the schedule, gone ones leave it once nothing of
+        theirs is in flight (``Schedule.remove``); the port stays open and the others go
+        on untouched.  ``done`` is called once the gone ones have left, after the
+        counters (which name the new ones) were published."""
+        now = self._now()
+        wanted = {s.name: s for s in config.sensors}
+        for name, state in list(self.sensors.items()):
+            if name not in wanted and not state.leaving:
+                self.schedule.remove(name, now)
+        for name, sensor in wanted.items():
+            if name not in self.sensors or self.sensors[name].leaving:
+                self.schedule.add(sensor, now)
+        self.config = config
+        self._swept.append(done)
+        self._dispatch()
+        self._poke()
 
     # ------------------------------------------------------------ the loop's client
 
@@ -358,6 +378,11 @@ class BusMaster:
                 _carry_out(self, event)
             except Exception:  # one event's failure must not lose the others
                 log.exception("bus %s: internal error carrying out %s", self.name, event)
+        if self._swept and not self.schedule.leaving:
+            self._publish_stats()
+            swept, self._swept = self._swept, []
+            for done in swept:
+                done()
 
     def _resolve(self, job: Job, outcome: Outcome, error: RequestFailed | None) -> None:
         # (each job's error is its own: made when it ended)
@@ -387,7 +412,10 @@ def _carry_out(master: BusMaster, event: Event) -> None:
     """One event of the schedule, carried out: the cache, the log, whoever asked."""
     match event:
         case Publish(name, answer, at):
-            reading = to_reading(answer.values, master.sensors[name].config.series)
+            state = master.sensors.get(name)
+            if state is None:
+                return  # (a removed sensor's last answer: it is no longer the bus's)
+            reading = to_reading(answer.values, state.config.series)
             if reading is not None:
                 master.cache.publish(name, reading, at)
                 master.schedule.count_reading(name, at)

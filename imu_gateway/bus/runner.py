@@ -214,6 +214,25 @@ class BusRunner:
     async def resume(self) -> None:
         await self.call(functools.partial(self.master.pause, None))
 
+    async def change_sensors(self, config: BusConfig, grace: float) -> None:
+        """(A reload) The bus's sensors are ``config``'s from now on
+        (``BusMaster.change_sensors``): returns once the gone ones have left (or after
+        ``grace``), and what the bus handed the cache by then has reached it."""
+        if not self.reactor.running:  # (nothing else touches the master)
+            self.master.change_sensors(config, lambda: None)
+            return
+        future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+
+        def done() -> None:  # (on the bus thread: after the writes before it)
+            self.writer.hand(_settle_none, future)
+
+        await self.call(functools.partial(self.master.change_sensors, config, done))
+        try:
+            await asyncio.wait_for(asyncio.shield(future), grace)
+        except TimeoutError:
+            log.warning("bus %s: a removed sensor's exchange not over after %.0f s; "
+                        "going on", self.master.name, grace)
+
     def stop(self) -> None:
         """Ask the master to finish its exchange in flight and stop."""
         self.reactor.post(self.master.stop)

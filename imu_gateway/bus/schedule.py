@@ -26,8 +26,8 @@ import logging
 import math
 
 from ..commands import Command
-from ..config import BusConfig
-from ..errors import ErrorKind, RequestFailed
+from ..config import BusConfig, SensorConfig
+from ..errors import ErrorKind, RequestFailed, unknown_sensor
 from ..protocol.exchanges import (
     Answer,
     Exchange,
@@ -59,9 +59,10 @@ class Schedule:
         fixed = None if config.timeout_ms is None else config.timeout_ms / 1000
         self.sensors = {s.name: SensorState(s, s.address, AnswerTimer(fixed))
                         for s in config.sensors}
-        line = list(self.sensors.values())
-        for state in line:
-            state.line = line  # (its probes' spacing counts the line's dead sensors)
+        self._line = list(self.sensors.values())
+        for state in self._line:
+            state.line = self._line  # (its probes' spacing counts the line's dead sensors)
+        self.leaving: set[str] = set()  # removed by a reload, something of theirs in flight
         self.stats = Counters()
         self.started = 0.0
         self.port_open = False
@@ -96,6 +97,10 @@ class Schedule:
         stats.rate.add(at)
 
     def take_events(self) -> list[Event]:
+        """What happened since last asked (the removed sensors with nothing in flight
+        leave now: ``sweep``)."""
+        if self.leaving:
+            self.sweep()
         events = self._events[:]
         self._events.clear()  # the same list: the job queue appends to it too
         return events
@@ -107,7 +112,11 @@ class Schedule:
 
         An offline sensor is not asked on demand: that would undo its back-off and
         hand the line to a dead address (it is still retried in the background)."""
-        s = self.sensors[name]
+        s = self.sensors.get(name)
+        if s is None:
+            return unknown_sensor(name)
+        if s.leaving:
+            return RequestFailed(ErrorKind.OFFLINE, f"{name} was removed from the config")
         if self.stopping:
             return RequestFailed(ErrorKind.OFFLINE, "the gateway is stopping")
         if not self.port_open:
@@ -132,6 +141,56 @@ class Schedule:
 
     def queue_depth(self) -> int:
         return len(self.jobs)
+
+    # ------------------------------------------------------------ a reload
+
+    def add(self, config: SensorConfig, now: float) -> None:
+        """A sensor a reload added: polled from ``now`` on, in turn with the others,
+        whose state (learned timeouts, counters, a stream's phase) goes on untouched."""
+        if config.name in self.sensors:  # (still leaving: it comes back anew)
+            self._forget(self.sensors[config.name])
+        fixed = None if self.config.timeout_ms is None else self.config.timeout_ms / 1000
+        s = SensorState(config, config.address, AnswerTimer(fixed))
+        s.line = self._line
+        self._line.append(s)
+        s.stats.rate.started = s.next_due = now
+        self.sensors[config.name] = s
+
+    def remove(self, name: str, now: float) -> None:
+        """A sensor a reload removed: it gets no new job, and the requests waiting for
+        it fail.  It leaves once nothing of it is in flight (``sweep``, at
+        ``take_events``): an exchange with it is never cut, and its answer never sent
+        over.  A stream of it is stopped first, as at shutdown (the gateway set it up,
+        or found it streaming unasked): its frames would meet the others' exchanges."""
+        s = self.sensors[name]
+        s.leaving = True
+        self.leaving.add(name)
+        removed = RequestFailed(ErrorKind.OFFLINE, f"{name} was removed from the config")
+        self.jobs.drop(s, removed)
+        current = self.jobs.current
+        if current is not None and current.sensor is s and self.line.attempt is None \
+                and not current.tries and not current.step:  # (not sent yet)
+            self.jobs.current = None
+            self.jobs.finish(current, error=removed)
+            current = None
+        setting_up = current is not None and current.kind is Kind.STREAM_START and \
+            current.sensor is s
+        if self.port_open and not self.stopping and \
+                (s.streaming or s.stop_stream or setting_up):
+            self.jobs.commands.append(Job(Kind.STREAM_STOP, s))
+
+    def sweep(self) -> None:
+        """The removed sensors with nothing in flight leave."""
+        for name in list(self.leaving):
+            s = self.sensors[name]
+            if not self.jobs.holds(s) and \
+                    (self.line.attempt is None or self.line.attempt.job.sensor is not s):
+                self._forget(s)
+
+    def _forget(self, s: SensorState) -> None:
+        self.leaving.discard(s.name)
+        del self.sensors[s.name]
+        self._line.remove(s)
 
     # ------------------------------------------------------------ the port
 
@@ -218,7 +277,8 @@ class Schedule:
             # a poll (or settings read) not sent yet gives way to a command
             job = self.jobs.current = None
         if job is None:
-            job = self.jobs.current = self.jobs.pick(now, self.sensors.values(), self.stopping)
+            job = self.jobs.current = self.jobs.pick(
+                now, (s for s in self.sensors.values() if not s.leaving), self.stopping)
             if job is None:
                 return None
             if not self.jobs.begin(job, self.adapter):
@@ -267,6 +327,8 @@ class Schedule:
         times = [now + 1.0]  # housekeeping: busy periods and streams that end
         work = [now] if self.jobs.current or self.jobs.ready(self.stopping) else []
         for s in self.sensors.values():
+            if s.leaving:
+                continue  # (its stream's stop is a command)
             if s.busy_until > now:
                 times.append(s.busy_until)
                 if not s.read_while_busy:

@@ -66,6 +66,8 @@ class SensorState:
     #: every sensor on its line, itself too (one list, shared): how many are dead
     line: list[SensorState] = field(default_factory=list, repr=False)
     probes: int = 0  # probe attempts sent (one in ``WIDE_EVERY`` waits longer)
+    #: removed by a reload: no new job; it leaves once nothing of it is in flight
+    leaving: bool = False
     _busy_mark: float = 0.0  # its line time when its last poll ended
     _probing: bool = True  # its next poll is a probe (it was not answering when it was set)
     _poll: tuple[int, Exchange] | None = None

@@ -99,6 +99,10 @@ class BusStats:
     held_s: float = 0.0
     overlaps_after_hold: int = 0
     collisions_after_hold: int = 0
+    #: (``watch_port``) times a client opened the line's port, and closed it (the last
+    #: of its descriptors: the pty's master sees the hangup)
+    port_opens: int = 0
+    port_closes: int = 0
 
     @property
     def masters_overlaps(self) -> int:
@@ -125,6 +129,7 @@ class HoldWatch:
         self.note = note
         self.last_beat = math.inf  # when it last ran (none yet: no hold either)
         self.last_hold_end = -math.inf
+        self.on_tick: Callable[[], None] | None = None  # (the port's watch)
 
     def beat(self) -> None:
         """The simulator is running now: was it held since it last was?"""
@@ -147,6 +152,8 @@ class HoldWatch:
         while True:
             await asyncio.sleep(WATCH_TICK)
             self.beat()
+            if self.on_tick is not None:
+                self.on_tick()
 
 
 class PtyBus:
@@ -161,9 +168,15 @@ class PtyBus:
         link: str | None = None,
         verbose: bool = False,
         on_sent: Callable[[float, bytes, bool], None] | None = None,
+        watch_port: bool = False,
     ) -> None:
         """``on_sent(t, frame, solicited)`` is told of every frame a sensor sent, at the
-        monotonic time its last byte was written (benchmarks time the path from there)."""
+        monotonic time its last byte was written (benchmarks time the path from there).
+        ``watch_port``: the simulator keeps no descriptor of the pty's slave side
+        open itself, so it sees each time a client opens the port and closes it (the
+        master's hangup), counted and logged (``port_opens``, ``port_closes``)."""
+        self.watch_port = watch_port
+        self._client = False  # (watch_port) a client has the port open now
         self.sensors = list(sensors)
         self.on_sent = on_sent
         self.noise_rate = noise_rate  # bursts of line noise per second, while idle
@@ -181,6 +194,8 @@ class PtyBus:
         self._wakeup: asyncio.Event | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._holds = HoldWatch(self.stats, self._timeline)
+        if watch_port:
+            self._holds.on_tick = self._port_watch
 
     # ------------------------------------------------------------ the pty
 
@@ -196,6 +211,9 @@ class PtyBus:
         tty.setraw(self._slave)
         os.set_blocking(self._master, False)
         self.path = os.ttyname(self._slave)
+        if self.watch_port:  # (the line's rate is read through the master: the same tty)
+            os.close(self._slave)
+            self._slave = -1
         if self.link:
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(self.link)
@@ -204,7 +222,7 @@ class PtyBus:
             except OSError:
                 self.close()
                 raise
-        if self._loop is not None:
+        if self._loop is not None and not self.watch_port:
             self._loop.add_reader(self._master, self._on_readable)
         return self.path
 
@@ -214,7 +232,9 @@ class PtyBus:
         if self._loop is not None:
             self._loop.remove_reader(self._master)
         os.close(self._master)
-        os.close(self._slave)
+        if self._slave >= 0:
+            os.close(self._slave)
+        self._client = False
         self._master = self._slave = -1
         if self.link:
             with contextlib.suppress(FileNotFoundError):
@@ -231,7 +251,31 @@ class PtyBus:
 
     def line_baud(self) -> int:
         """The rate the client set on its side of the line."""
-        return _SPEEDS.get(termios.tcgetattr(self._slave)[5], 0)
+        return _SPEEDS.get(termios.tcgetattr(self._slave if self._slave >= 0
+                                             else self._master)[5], 0)
+
+    def _port_watch(self) -> None:
+        """(``watch_port``, each ``WATCH_TICK``) A client opened the port: the master's
+        hangup is gone.  Its bytes are listened to from now on."""
+        if self._client or self._master < 0 or self._loop is None:
+            return
+        hangup = select.poll()
+        hangup.register(self._master, select.POLLIN)
+        if any(e & select.POLLHUP for _, e in hangup.poll(0)):
+            return
+        self._client = True
+        self.stats.port_opens += 1
+        self._note("PORT: opened by a client")
+        self._loop.add_reader(self._master, self._on_readable)
+
+    def _hung_up(self) -> None:
+        """(``watch_port``) The client closed the port (the master reads EIO)."""
+        if not self._client or self._loop is None:
+            return
+        self._client = False
+        self.stats.port_closes += 1
+        self._note("PORT: closed by its client (hangup)")
+        self._loop.remove_reader(self._master)
 
     # ------------------------------------------------------------ the wire
 
@@ -261,7 +305,11 @@ class PtyBus:
         self._holds.beat()  # a hold that ends here is noted before what it did to the line
         try:
             data = os.read(self._master, 4096)
-        except (BlockingIOError, OSError):
+        except BlockingIOError:
+            return
+        except OSError:  # EIO: no client has the port open
+            if self.watch_port:
+                self._hung_up()
             return
         if not data:
             return
@@ -315,6 +363,9 @@ class PtyBus:
                     os.write(self._master, frame[written:done])
                 except BlockingIOError:
                     self.stats.overrun_bytes += done - written
+                except OSError:  # (watch_port) nobody has the port open: lost
+                    if not self.watch_port:
+                        raise
                 written = done
             if written < len(frame):
                 # Only the last byte's release ends the exchange: that wait is exact,
@@ -361,7 +412,7 @@ class PtyBus:
         tighten_timers(SIM_NICE)
         if self._master < 0:
             self.open()
-        else:
+        elif not self.watch_port:
             self._loop.add_reader(self._master, self._on_readable)
         if on_ready is not None:
             on_ready()
@@ -412,7 +463,8 @@ class PtyBus:
         if seconds <= 0 or self._master < 0:
             return
         deadline = time.monotonic() + seconds
-        ready, _, _ = select.select([self._master], [], [],
+        listened = [self._master] if self._client or not self.watch_port else []
+        ready, _, _ = select.select(listened, [], [],
                                     max(0.0, seconds - SPIN) if exact else seconds)
         self._holds.beat()
         if ready:
@@ -446,8 +498,10 @@ class SimulatorThread:
     """
 
     def __init__(self, sensors: Sequence[SimSensor], *, noise_rate: float = 0.0, seed: int = 0,
-                 link: str | None = None, verbose: bool = False) -> None:
-        self.bus = PtyBus(sensors, noise_rate=noise_rate, seed=seed, link=link, verbose=verbose)
+                 link: str | None = None, verbose: bool = False,
+                 watch_port: bool = False) -> None:
+        self.bus = PtyBus(sensors, noise_rate=noise_rate, seed=seed, link=link, verbose=verbose,
+                          watch_port=watch_port)
         self._thread = threading.Thread(target=self._run, name="simulator", daemon=True)
         self._ready = threading.Event()
         self._loop: asyncio.AbstractEventLoop | None = None

@@ -292,6 +292,9 @@
     if (diff.buses.restarted.length) {
       lines.push(["buses restarted (their port closed and opened again)", diff.buses.restarted.join(", ")]);
     }
+    if (diff.buses.rescheduled.length) {
+      lines.push(["buses rescheduled (their port kept open)", diff.buses.rescheduled.join(", ")]);
+    }
     if (diff.frontends.changed.length) lines.push(["restarted", changes(diff.frontends.changed)]);
     if (diff.needs_restart.length) {
       lines.push(["needs a restart (kept as it is until then)", changes(diff.needs_restart)]);

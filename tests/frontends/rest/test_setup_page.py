@@ -114,7 +114,7 @@ def test_an_admin_adds_a_sensor_in_the_form_previews_and_applies_it(
         wait(lambda: page_state(driver) == "previewed", "the preview")
         shown = driver.find_element("id", "diff-list").text
         assert "sensors added: boom2 on line" in shown, shown
-        assert "buses restarted (their port closed and opened again): line" in shown, shown
+        assert "buses rescheduled (their port kept open): line" in shown, shown
         assert names(base) == ["boom"]  # a preview applies nothing
         screenshot(driver, tmp_path, "setup-preview.png")
         driver.find_element("id", "apply").click()

@@ -1,0 +1,153 @@
+"""A reload under load (docs/configuration.md, "Changing the config while running";
+docs/bus-master.md, "A sensor added or removed by a reload"): a sensor added to a
+running bus, then removed again.  Modbus TCP and REST pollers of an unchanged sensor
+on that bus, and of one on another bus, see no new reading come later than their
+normal period (measured before, in the same run); the simulator, which sees each
+open and close of its port (``watch_port``), saw each line's port opened once and
+never closed."""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import httpx
+import pytest
+from pymodbus.client import AsyncModbusTcpClient
+from support.harness import free_port, running, until
+
+from imu_gateway.config import config_from_dict
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.simulator import hold, make_sensor, simulated
+from imu_gateway.simulator.motion import Motion
+
+FAST = 115200
+RATE = 20  # polls a second of each sensor: a new reading every 50 ms
+LOOK_EVERY = 0.005  # how often a poller asks (well inside a period)
+#: new readings each poller sees before the reloads (its normal period: the longest
+#: gap between two of them), and after each reload
+BEFORE, AFTER = 100, 20
+#: Beside CPU burners a period now and then comes late by more than the poller's
+#: look; "no longer than the normal period" allows the longest seen before, with this
+#: much of it again as the machine's wobble.
+WOBBLE = 1.5
+READING = Motion.from_seed(5).sample(3.0)
+
+Seq = Callable[[], Awaitable[int]]
+
+
+class Poller:
+    """A client asking for a sensor's reading every ``LOOK_EVERY``: when each new one
+    (a new ``seq``) was first seen."""
+
+    def __init__(self, name: str, seq: Seq) -> None:
+        self.name = name
+        self.seq = seq
+        self.seen: list[float] = []
+        self.errors: list[str] = []
+
+    async def run(self, stop: asyncio.Event) -> None:
+        loop = asyncio.get_running_loop()
+        last = -1
+        while not stop.is_set():
+            try:
+                seq = await self.seq()
+            except Exception as exc:  # (kept, and failed on below: a gap in service)
+                self.errors.append(f"{type(exc).__name__}: {exc}")
+                seq = last
+            if seq != last:
+                self.seen.append(loop.time())
+                last = seq
+            await asyncio.sleep(LOOK_EVERY)
+
+    def longest_gap(self, since: int) -> float:
+        times = self.seen[since:]
+        return max(b - a for a, b in itertools.pairwise(times))
+
+
+def native_line(addresses: list[int]) -> list[Any]:
+    return [make_sensor(WireProtocol.NATIVE, Series.AH, address=a, baud=FAST,
+                        source=hold(READING)) for a in addresses]
+
+
+def config(line_a: str, line_b: str, http: int, with_arm2: bool) -> dict[str, Any]:
+    def ah(name: str, address: int, unit: int) -> dict[str, Any]:
+        return {"name": name, "series": "AH", "address": address, "unit_id": unit,
+                "poll_hz": RATE}
+
+    b = [ah("arm", 0, 2)] + ([ah("arm2", 1, 3)] if with_arm2 else [])
+    return {"gateway_id": "load", "modbus": {"listen": "127.0.0.1:0"},
+            "http": {"listen": f"127.0.0.1:{http}"},
+            "buses": [{"name": "a", "port": line_a, "protocol": "native", "baudrate": FAST,
+                       "sensors": [ah("boom", 0, 1)]},
+                      {"name": "b", "port": line_b, "protocol": "native", "baudrate": FAST,
+                       "sensors": b}]}
+
+
+@pytest.mark.anyio
+async def test_a_sensor_added_and_removed_under_load_costs_the_others_no_reading() -> None:
+    http = free_port()
+    with simulated(native_line([0]), watch_port=True) as sim_a, \
+            simulated(native_line([0, 1]), watch_port=True) as sim_b:
+        first = config(sim_a.path, sim_b.path, http, with_arm2=False)
+        async with running(first) as gw, \
+                AsyncModbusTcpClient("127.0.0.1", port=gw.modbus.port if gw.modbus else 0) \
+                as modbus, httpx.AsyncClient(base_url=f"http://127.0.0.1:{http}") as rest:
+
+            def by_modbus(unit: int) -> Seq:
+                async def seq() -> int:
+                    answer = await modbus.read_input_registers(2, count=2, device_id=unit)
+                    assert not answer.isError(), answer
+                    return int(answer.registers[0] << 16 | answer.registers[1])
+                return seq
+
+            def by_rest(name: str) -> Seq:
+                async def seq() -> int:
+                    answer = await rest.get(f"/api/v1/sensors/{name}/reading")
+                    answer.raise_for_status()
+                    return int(answer.json()["seq"])
+                return seq
+
+            pollers = [Poller("modbus arm (bus b)", by_modbus(2)),
+                       Poller("modbus boom (bus a)", by_modbus(1)),
+                       Poller("rest arm (bus b)", by_rest("arm")),
+                       Poller("rest boom (bus a)", by_rest("boom"))]
+            stop = asyncio.Event()
+            tasks = [asyncio.create_task(p.run(stop)) for p in pollers]
+            try:
+                await until(lambda: all(len(p.seen) > 5 for p in pollers), 30)
+                start = {p.name: len(p.seen) - 1 for p in pollers}  # (past the start-up)
+                await until(lambda: all(len(p.seen) > start[p.name] + BEFORE
+                                        for p in pollers), 60)
+                normal = {p.name: p.longest_gap(start[p.name]) for p in pollers}
+                for with_arm2 in (True, False):
+                    marks = {p.name: len(p.seen) - 1 for p in pollers}
+                    began = asyncio.get_running_loop().time()
+                    diff = await gw.reloader._apply(config_from_dict(
+                        config(sim_a.path, sim_b.path, http, with_arm2), env={}))
+                    took = asyncio.get_running_loop().time()
+                    assert diff.buses_rescheduled == ("b",) and diff.buses_restarted == ()
+                    assert "its schedule only" in diff.summary(), diff.summary()
+                    if with_arm2:
+                        await until(lambda: gw.cache.snapshot("arm2").has_reading)
+                        assert 3 in gw.modbus.units if gw.modbus else False
+                    else:
+                        assert "arm2" not in gw.masters["b"].sensors
+                    await until(lambda m=marks: all(  # type: ignore[misc]
+                        len(p.seen) > m[p.name] + AFTER for p in pollers), 30)
+                    for p in pollers:
+                        after = p.longest_gap(marks[p.name])
+                        print(f"{'+' if with_arm2 else '-'}arm2: {p.name}: normal "
+                              f"{normal[p.name] * 1000:.0f} ms, across the reload "
+                              f"{after * 1000:.0f} ms (the reload took "
+                              f"{(took - began) * 1000:.0f} ms)")
+                        assert after <= WOBBLE * normal[p.name], (p.name, after, normal)
+                for sim in (sim_a, sim_b):  # the simulator's own log of its port
+                    assert (sim.bus.stats.port_opens, sim.bus.stats.port_closes) == (1, 0), \
+                        [e for e in sim.bus.stats.events if e.startswith("PORT")]
+            finally:
+                stop.set()
+                await asyncio.gather(*tasks)
+            assert [p.errors for p in pollers] == [[]] * 4
