@@ -13,8 +13,9 @@ The plan, by part:
   the gone one leaves after its exchange in flight), its port stays open;
 - a bus whose settings changed (or a kept sensor's bus settings) is restarted alone;
 - a front end whose own section changed is restarted alone; one whose section is the
-  same hears ``sensors_changed`` when the sensors did (Modbus TCP: its unit map at
-  once; the others are restarted);
+  same hears ``sensors_changed`` when the sensors did (Modbus TCP: its unit map;
+  MQTT: discovery published and swept; Sparkplug: a rebirth; OPC UA: the sensors'
+  nodes added and deleted), with its connections kept;
 - what cannot change live (the section of the HTTP server answering the request, the
   gateway id, the journal's file, capture) is named as "needs a restart".
 """
