@@ -10,8 +10,8 @@ its own (the same machine) subscribes to what the case turns on:
 * ``mqtt``: the gateway publishes to a real mosquitto (started here), Home Assistant
   discovery on; one paho subscriber to ``imu/bench/+/state``;
 * ``sse``: one client of ``/api/v1/stream`` (every sensor's readings);
-* ``opcua``: one asyncua client, one subscription (50 ms) to every measured value of
-  every sensor (16 a sample: each sample changes 16 monitored values; ``--items N``:
+* ``opcua``: one asyncua client, one subscription (50 ms, a queue of 10 for each
+  item, so that every sample is delivered) to every measured value of every sensor (16 a sample: each sample changes 16 monitored values; ``--items N``:
   the first N values of each sensor);
 * ``modbus``: Modbus TCP listening, no client (a PLC polls at its own pace; what a
   sample costs there is the register image);
@@ -146,7 +146,9 @@ async def _opcua(port: int, items: int, counts: dict[str, int], done: asyncio.Ev
         nodes = [client.get_node(ua.NodeId(f"bench.Sensors.s{s}.{field}", idx))
                  for s in range(FED_SENSORS) for field in FIELDS[:items]]
         subscription = await client.create_subscription(50, Handler())
-        await subscription.subscribe_data_change(nodes)
+        # a queue of 10: every sample delivered (the default queue, one value, would
+        # carry only the newest at each 50 ms publish)
+        await subscription.subscribe_data_change(nodes, queuesize=10)
         await done.wait()
         await subscription.delete()
 
