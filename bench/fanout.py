@@ -11,8 +11,9 @@ its own (the same machine) subscribes to what the case turns on:
   discovery on; one paho subscriber to ``imu/bench/+/state``;
 * ``sse``: one client of ``/api/v1/stream`` (every sensor's readings);
 * ``opcua``: one asyncua client, one subscription (50 ms, a queue of 10 for each
-  item, so that every sample is delivered) to every measured value of every sensor (16 a sample: each sample changes 16 monitored values; ``--items N``:
-  the first N values of each sensor);
+  item, so that every sample is delivered) to every measured value of every sensor
+  (16 a sample: each sample changes 16 monitored values; ``--items N``: the first N
+  values of each sensor);
 * ``modbus``: Modbus TCP listening, no client (a PLC polls at its own pace; what a
   sample costs there is the register image);
 * ``all``: all of them at once; ``none``: no front end (the reference);
