@@ -11,6 +11,7 @@ from ...model import CAPABILITIES, VALUE_GROUPS, Series, WireProtocol
 from .conditions import EVENT_IDS_KEPT, SEVERITY
 from .guard import (
     MAX_PUBLISHING_INTERVAL_MS,
+    MAX_QUEUE_SIZE,
     MAX_SUBSCRIPTION_LIFETIME_S,
     MAX_SUBSCRIPTIONS_PER_SESSION,
 )
@@ -138,6 +139,12 @@ SECURITY = """
   CloseSession asked (a client cannot leave them behind to hold the server's); a
   message chunk larger than the receive buffer ({buffer} bytes) is refused from its
   header (`BadTcpMessageTooLarge`) and the connection closed.
+- **Monitored items' queues** (Part 4 7.21): a value's requested queueSize of 0 or 1 is
+  a queue of one value, the newest (a client that wants every sample of a fast sensor
+  asks more than its publishing interval holds, say 10); an event item's 0 is
+  {queue}; none is more than {queue}, the revised queueSize says so. (asyncua made 0
+  its cap of 10 000 for both: a client that asked the default and published slowly had
+  every sample queued for it.)
 - **The server's certificate** is made at the first start (self-signed, one year) in
   `pki_dir`, with the key; a client trusts it once (or you replace both files by a
   certificate of your own CA). It names the application URI
@@ -353,7 +360,7 @@ def markdown() -> str:
     security = SECURITY.format(
         clients=MAX_CLIENTS, subs=MAX_SUBSCRIPTIONS_PER_SESSION,
         interval=MAX_PUBLISHING_INTERVAL_MS / 1000, lifetime=MAX_SUBSCRIPTION_LIFETIME_S,
-        buffer=TransportLimits().max_recv_buffer)
+        buffer=TransportLimits().max_recv_buffer, queue=MAX_QUEUE_SIZE)
     lines = [INTRO.replace("{type_rows}", _type_rows()), *_values(), *_quality(),
              *_rows("### A sensor's status and identity", sensor_rows),
              *_rows("### Buses (written every second)", bus_rows), *_methods(),
