@@ -25,7 +25,7 @@ from support.harness import running
 from imu_gateway.bus.link import SerialLink
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import make_sensor, simulated
-from imu_gateway.simulator.bus import PtyBus
+from imu_gateway.simulator.bus import LineLog
 
 
 class Timings:
@@ -36,19 +36,19 @@ class Timings:
         self.heard: list[float] = []
 
     def install(self) -> None:
-        write, timeline = SerialLink.write, PtyBus._timeline
+        write, timeline = SerialLink.write, LineLog.timeline
 
-        def timed_write(link: SerialLink, data: bytes, expect: int = 0) -> None:
+        def timed_write(link: SerialLink, data: bytes, *args: Any, **kwargs: Any) -> bool:
             self.written.append(time.monotonic())
-            write(link, data, expect)
+            return write(link, data, *args, **kwargs)
 
-        def timed_timeline(bus: PtyBus, text: str) -> None:
+        def timed_timeline(log: LineLog, text: str) -> None:
             if text.startswith("master ->"):
                 self.heard.append(time.monotonic())
-            timeline(bus, text)
+            timeline(log, text)
 
         SerialLink.write = timed_write  # type: ignore[method-assign,assignment]
-        PtyBus._timeline = timed_timeline  # type: ignore[method-assign,assignment]
+        LineLog.timeline = timed_timeline  # type: ignore[method-assign,assignment]
 
     def report(self) -> str:
         n = min(len(self.written), len(self.heard))

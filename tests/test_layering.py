@@ -288,8 +288,8 @@ BUS = GATEWAY / "bus"
 #: The bus's decisions: no clock, no port, no thread, no loop (time is an argument, as
 #: in the protocol package).  ``line`` is one of them: the wire as the schedule sees it
 #: (the schedule and its outcomes import it).  The edge that does the I/O is
-#: ``master``, ``link``, ``reactor`` and ``runner``.
-BUS_CORE = ("schedule", "jobs", "phase", "timing", "sensor_state", "outcomes",
+#: ``master``, ``port``, ``link``, ``reactor`` and ``runner``.
+BUS_CORE = ("schedule", "membership", "jobs", "phase", "timing", "sensor_state", "outcomes",
             "diagnosis", "events", "trace", "line")
 BUS_FORBIDDEN = FORBIDDEN | {"select"}
 #: What the core may import of the project besides itself: the protocol, the model,

@@ -47,6 +47,7 @@ from .events import (
     Trace,
 )
 from .link import SerialLink
+from .port import PortKeeper
 from .reactor import Reactor
 from .schedule import Schedule
 from .sensor_state import OFFLINE_AFTER, SensorState
@@ -54,7 +55,6 @@ from .trace import TraceTap, Watcher
 
 log = logging.getLogger("imu_gateway.bus")
 
-REOPEN_MIN, REOPEN_MAX = 0.5, 5.0  # seconds between tries to reopen a lost port
 #: The shortest wait for the schedule's timer: a guard against a spin, never a rule.
 MIN_WAIT = 0.0001
 #: After an internal error, the bus waits this long before it goes on.
@@ -96,15 +96,13 @@ class BusMaster:
         self.reactor: Reactor | None = None
         self._waiters: dict[Job, list[Done]] = {}
         # the turns it asks the loop for: the schedule's, the counters', the reopening's
-        self._wake = self._stats_at = self._reopen_at = math.inf
-        self._reopen_delay = REOPEN_MIN
-        self._port_problem_logged = False
+        self._wake = self._stats_at = math.inf
         self._finished = False
+        self.port = PortKeeper(self)
         # (--log-level debug: every bus's trace in the log)
         self.traces = TraceTap(self.name, config.trace or logging.getLogger(
             "imu_gateway").isEnabledFor(logging.DEBUG))
         self.schedule.trace(self.traces.wanted)
-        self._paused = False  # the port released for a scan of the line
         self._swept: list[Callable[[], None]] = []  # told once removed sensors have left
 
     @property
@@ -156,17 +154,17 @@ class BusMaster:
         job, new = self.schedule.read(sensor)
         self._waiters.setdefault(job, []).append(done)
         if new:
-            self._poke()
+            self.poke()
 
     def _wait_for(self, job: Job, done: Done) -> None:
         self._waiters[job] = [done]
-        self._poke()
+        self.poke()
 
     def stop(self) -> None:
         """Finish the exchange in flight, stop the streams, then stop."""
-        self.schedule.stop(self._now())
-        self._dispatch()
-        self._poke()
+        self.schedule.stop(self.now())
+        self.dispatch()
+        self.poke()
 
     def watch(self, watcher: Watcher, on: bool = True) -> None:
         """Tell ``watcher`` every exchange from now on (a traffic monitor), or no more
@@ -174,27 +172,13 @@ class BusMaster:
         self.traces.watch(watcher, on)
         self.schedule.trace(self.traces.wanted)
 
-    def pause(self, reason: str | None) -> None:
-        """Release the port for ``reason`` (a scan of the line uses it): the exchange in
-        flight and every job waiting fail with it, and nothing goes out until
-        ``pause(None)`` opens it again.  The sensors keep their state and counters."""
-        if self._finished or (reason is not None) == self._paused:
-            return
-        self._paused = reason is not None
-        log.warning("bus %s: %s", self.name, reason or "polling resumed")
-        self._reopen_at = math.inf if reason else self._now()
-        if reason:
-            self.link.close()
-            self.schedule.close(self._now(), reason)
-            self._dispatch()
-
     def change_sensors(self, config: BusConfig, done: Callable[[], None]) -> None:
         """A reload: from now on the bus's sensors are ``config``'s (its own settings
         are the same).  New ones join the schedule, gone ones leave it once nothing of
         theirs is in flight (``Schedule.remove``); the port stays open and the others go
         on untouched.  ``done`` is called once the gone ones have left, after the
         counters (which name the new ones) were published."""
-        now = self._now()
+        now = self.now()
         wanted = {s.name: s for s in config.sensors}
         for name, state in list(self.sensors.items()):
             if name not in wanted and not state.leaving:
@@ -204,36 +188,36 @@ class BusMaster:
                 self.schedule.add(sensor, now)
         self.config = config
         self._swept.append(done)
-        self._dispatch()
-        self._poke()
+        self.dispatch()
+        self.poke()
 
     # ------------------------------------------------------------ the loop's client
 
     def start(self, reactor: Reactor) -> None:
         """Join the bus thread's loop (called on that thread)."""
         self.reactor = reactor
-        now = self._now()
+        now = self.now()
         self.schedule.start(now)
         self._stats_at = now + STATS_EVERY
-        self._reopen_at = now
+        self.port.reopen_at = now
         reactor.clients.append(self)
 
     def next_at(self) -> float:
-        return min(self._wake, self._stats_at, self._reopen_at, self.link.rest_at)
+        return min(self._wake, self._stats_at, self.port.reopen_at, self.link.rest_at)
 
     def on_timer(self, now: float) -> None:
         if self.link.rest_at <= now:
-            self.link.on_timer(now)  # the rest of an answer: on to _on_bytes
+            self.link.on_timer(now)  # the rest of an answer: on to on_bytes
         if self._stats_at <= now:
             self._stats_at = now + STATS_EVERY
             self._publish_stats()
-        if self._reopen_at <= now:
-            self._reopen_at = math.inf
-            self._open_port()
+        if self.port.reopen_at <= now:
+            self.port.reopen_at = math.inf
+            self.port.open()
         if self._wake <= now:
-            self._turn()
+            self.turn()
 
-    def _turn(self, drained: bool = False) -> None:
+    def turn(self, drained: bool = False) -> None:
         """Deadlines, the next request, the events; then when the next turn is due.
         ``drained``: the port was read empty just now (no need to ask it)."""
         self._wake = math.inf
@@ -243,20 +227,20 @@ class BusMaster:
         if self.schedule.finished:
             self.finish()
             return
-        now = self._now()
+        now = self.now()
         self._wake = max(wake if wake is not None else now + BUG_PAUSE, now + MIN_WAIT)
 
     def _step(self, drained: bool = False) -> float:
         """The timer's turn: deadlines, the next request, the events; when to wake."""
-        now = self._now()
-        # (asked once: bytes reach the schedule only through _on_bytes, after this; not
+        now = self.now()
+        # (asked once: bytes reach the schedule only through on_bytes, after this; not
         # after a read took all there was, nor when nothing decided now depends on it:
         # an ioctl is a tenth of an exchange's CPU)
         pending = 0 if drained or not self.schedule.needs_pending() else self.link.pending()
         self.schedule.handle_timer(now, pending)
         self._send(now, pending)
-        wake = self.schedule.next_wake(self._now(), pending)
-        self._dispatch()  # (next_wake may have flushed a half frame: its events too)
+        wake = self.schedule.next_wake(self.now(), pending)
+        self.dispatch()  # (next_wake may have flushed a half frame: its events too)
         return wake
 
     def finish(self) -> None:
@@ -265,10 +249,10 @@ class BusMaster:
         if self._finished:
             return
         self._finished = True
-        self._wake = self._stats_at = self._reopen_at = math.inf
+        self._wake = self._stats_at = self.port.reopen_at = math.inf
         self.link.close()
-        self.schedule.close(self._now(), "the gateway is stopping")
-        self._dispatch()
+        self.schedule.close(self.now(), "the gateway is stopping")
+        self.dispatch()
         self._publish_stats()
 
     def _guarded(self, step: Callable[[], T]) -> T | None:
@@ -280,73 +264,25 @@ class BusMaster:
             log.exception("bus %s: internal error; the request in flight is dropped",
                           self.name)
             with contextlib.suppress(Exception):
-                self.schedule.abort(self._now(), "internal error in the gateway (logged)")
-                self._dispatch()
+                self.schedule.abort(self.now(), "internal error in the gateway (logged)")
+                self.dispatch()
             return None
 
     @staticmethod
-    def _now() -> float:
+    def now() -> float:
         return time.monotonic()
 
-    def _poke(self) -> None:
+    def poke(self) -> None:
         """Something changed (a job queued, a stop, the port lost): a turn at once."""
         self._wake = 0.0
 
-    # ------------------------------------------------------------ the port
-
-    def _open_port(self) -> None:
-        assert self.reactor is not None
-        self.link.open(self.reactor, self._on_bytes, self._on_lost, self._opened)
-
-    def _opened(self, error: LinkError | None) -> None:
-        if self._finished or self._paused:  # (paused while it was opening)
-            self.link.close()
-            return
-        if error is None:
-            try:
-                self.link.set_baudrate(self.schedule.baud)
-            except LinkError as exc:
-                self.link.close()
-                error = exc
-        if error is not None:
-            if not self._port_problem_logged:
-                log.warning("bus %s: %s; retrying", self.name, error)
-                self._port_problem_logged = True
-            self.schedule.lost(self._now(), str(error))
-            self._dispatch()
-            self._reopen_at = self._now() + self._reopen_delay
-            self._reopen_delay = min(self._reopen_delay * 2, REOPEN_MAX)
-            self._poke()  # a stop that came meanwhile finishes now
-            return
-        if self._port_problem_logged:
-            log.warning("bus %s: port %s is back", self.name, self.config.port)
-        else:
-            log.info("bus %s: port %s open at %d baud", self.name, self.config.port,
-                     self.schedule.baud)
-        self._port_problem_logged = False
-        self._reopen_delay = REOPEN_MIN
-        self.schedule.open(self._now())
-        self._turn()
-
-    def _on_lost(self, exc: Exception) -> None:
-        """The port is gone (reported by the reader or by a failed write): once."""
-        if not self.port_open:
-            return
-        self.link.close()
-        log.warning("bus %s: port %s lost (%s); reopening", self.name, self.config.port, exc)
-        self._port_problem_logged = True
-        self.schedule.lost(self._now(), str(exc))
-        self._dispatch()
-        self._reopen_at = self._now()
-        self._poke()
-
     # ------------------------------------------------------------ bytes in, bytes out
 
-    def _on_bytes(self, data: bytes, at: float) -> None:
+    def on_bytes(self, data: bytes, at: float) -> None:
         """From the link, on the bus thread; ``at``: when the bytes came in.  The turn
         that follows sends the next request before the answer is published."""
         self._guarded(lambda: self.schedule.receive(data, at))
-        self._turn(drained=self.link.watched)
+        self.turn(drained=self.link.watched)
 
     def _send(self, now: float, pending: int) -> None:
         request = self.schedule.next_request(now, pending)
@@ -363,11 +299,11 @@ class BusMaster:
                 # given (a busy machine): it goes back, and waits for the next place.
                 self.schedule.withdraw()
                 return
-            self.schedule.written(self._now())  # held in the write, it left by then
+            self.schedule.written(self.now())  # held in the write, it left by then
         except LinkError as exc:
-            self._on_lost(exc)
+            self.port.lost(exc)
 
-    def _dispatch(self) -> None:
+    def dispatch(self) -> None:
         """Carry out what the schedule says happened, in order.  A state change or a
         job's end is passed on after the counters: whoever it wakes reads them new."""
         events = self.schedule.take_events()
@@ -402,10 +338,10 @@ class BusMaster:
         return self.bus_stats(), {name: self.sensor_stats(name) for name in self.sensors}
 
     def sensor_stats(self, name: str) -> SensorStats:
-        return sensor_stats_of(self, name, self._now())
+        return sensor_stats_of(self, name, self.now())
 
     def bus_stats(self) -> BusStats:
-        return bus_stats_of(self, self._now())
+        return bus_stats_of(self, self.now())
 
 
 def _carry_out(master: BusMaster, event: Event) -> None:
@@ -430,10 +366,10 @@ def _carry_out(master: BusMaster, event: Event) -> None:
         case Note(level, text):
             log.log(level, "%s", text)
         case Trace():
-            master.traces.write(event, master._now())
+            master.traces.write(event, master.now())
 
 
-#: Events passed on after the counters (``_dispatch``).
+#: Events passed on after the counters (``dispatch``).
 _PASSED_ON = (StateChange, Finished)
 
 

@@ -208,11 +208,11 @@ class BusRunner:
         return unwatch
 
     async def pause(self, reason: str) -> None:
-        """Release the line's port (``BusMaster.pause``)."""
-        await self.call(functools.partial(self.master.pause, reason))
+        """Release the line's port (``PortKeeper.pause``)."""
+        await self.call(functools.partial(self.master.port.pause, reason))
 
     async def resume(self) -> None:
-        await self.call(functools.partial(self.master.pause, None))
+        await self.call(functools.partial(self.master.port.pause, None))
 
     async def change_sensors(self, config: BusConfig, grace: float) -> None:
         """(A reload) The bus's sensors are ``config``'s from now on

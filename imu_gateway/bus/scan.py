@@ -2,7 +2,7 @@
 
 Used by ``imu-gateway scan`` (``tools/scan.py``) and by REST's ``POST /api/v1/scan``
 (``scanning.py``).  It talks to the port directly: a port one of the gateway's own
-buses uses is released by that bus for the scan (``BusMaster.pause``).  For each baud
+buses uses is released by that bus for the scan (``PortKeeper.pause``).  For each baud
 rate, most likely first:
 
 * native: the 2.6 address query ``77 04 00 1F 23`` is answered by any sensor, so one

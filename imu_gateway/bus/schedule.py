@@ -26,7 +26,7 @@ import logging
 import math
 
 from ..commands import Command
-from ..config import BusConfig, SensorConfig
+from ..config import BusConfig
 from ..errors import ErrorKind, RequestFailed, unknown_sensor
 from ..protocol.exchanges import (
     Answer,
@@ -47,12 +47,13 @@ from .events import (
 )
 from .jobs import JobQueue
 from .line import Due, Line, Place, stream_wait
+from .membership import Membership
 from .outcomes import Outcomes
-from .sensor_state import STREAM_RETRY, SensorState
-from .timing import WIDE_EVERY, AnswerTimer, probe_timeout
+from .sensor_state import STREAM_RETRY, SensorState, probe_times
+from .timing import AnswerTimer
 
 
-class Schedule:
+class Schedule(Membership):
     def __init__(self, config: BusConfig, adapter: ProtocolAdapter) -> None:
         self.config = config
         self.adapter = adapter
@@ -141,56 +142,6 @@ class Schedule:
 
     def queue_depth(self) -> int:
         return len(self.jobs)
-
-    # ------------------------------------------------------------ a reload
-
-    def add(self, config: SensorConfig, now: float) -> None:
-        """A sensor a reload added: polled from ``now`` on, in turn with the others,
-        whose state (learned timeouts, counters, a stream's phase) goes on untouched."""
-        if config.name in self.sensors:  # (still leaving: it comes back anew)
-            self._forget(self.sensors[config.name])
-        fixed = None if self.config.timeout_ms is None else self.config.timeout_ms / 1000
-        s = SensorState(config, config.address, AnswerTimer(fixed))
-        s.line = self._line
-        self._line.append(s)
-        s.stats.rate.started = s.next_due = now
-        self.sensors[config.name] = s
-
-    def remove(self, name: str, now: float) -> None:
-        """A sensor a reload removed: it gets no new job, and the requests waiting for
-        it fail.  It leaves once nothing of it is in flight (``sweep``, at
-        ``take_events``): an exchange with it is never cut, and its answer never sent
-        over.  A stream of it is stopped first, as at shutdown (the gateway set it up,
-        or found it streaming unasked): its frames would meet the others' exchanges."""
-        s = self.sensors[name]
-        s.leaving = True
-        self.leaving.add(name)
-        removed = RequestFailed(ErrorKind.OFFLINE, f"{name} was removed from the config")
-        self.jobs.drop(s, removed)
-        current = self.jobs.current
-        if current is not None and current.sensor is s and self.line.attempt is None \
-                and not current.tries and not current.step:  # (not sent yet)
-            self.jobs.current = None
-            self.jobs.finish(current, error=removed)
-            current = None
-        setting_up = current is not None and current.kind is Kind.STREAM_START and \
-            current.sensor is s
-        if self.port_open and not self.stopping and \
-                (s.streaming or s.stop_stream or setting_up):
-            self.jobs.commands.append(Job(Kind.STREAM_STOP, s))
-
-    def sweep(self) -> None:
-        """The removed sensors with nothing in flight leave."""
-        for name in list(self.leaving):
-            s = self.sensors[name]
-            if not self.jobs.holds(s) and \
-                    (self.line.attempt is None or self.line.attempt.job.sensor is not s):
-                self._forget(s)
-
-    def _forget(self, s: SensorState) -> None:
-        self.leaving.discard(s.name)
-        del self.sensors[s.name]
-        self._line.remove(s)
 
     # ------------------------------------------------------------ the port
 
@@ -292,22 +243,11 @@ class Schedule:
             return None
         job.blocked_since = None
         s = job.sensor
-        timeout, hold = (s.timer.rto, s.timer.hold) if s.online else self._probe(s)
+        timeout, hold = (s.timer.rto, s.timer.hold) if s.online else \
+            probe_times(s, self.sensors.values())
         # A retry, or a sensor that is not answering as it did, is watched for at once.
         early = s.timer.look_after() if s.online and not job.tries else 0.0
         return self.line.send(job, exchange, now, timeout, hold, latest, early, placed)
-
-    def _probe(self, s: SensorState) -> tuple[float, float]:
-        """The timeout and hold of a probe of a sensor not answering (never yet, or
-        offline): from its live neighbours' latency, without back-off, for it must cost
-        them little; one attempt in ``WIDE_EVERY`` waits longer (``timing``)."""
-        if s.timer.fixed is not None:
-            return s.timer.fixed, s.timer.fixed  # (the config's own word)
-        s.probes += 1
-        live = [t.timer for t in self.sensors.values() if t.online]
-        hold = probe_timeout(live, s.timer)
-        wide = s.probes % WIDE_EVERY == 1
-        return (probe_timeout(live, s.timer, wide=True) if wide else hold), hold
 
     def written(self, at: float) -> None:
         """The request ``next_request`` handed out was written by ``at``."""

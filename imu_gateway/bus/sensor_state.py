@@ -7,13 +7,14 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 from ..config import SensorConfig
 from ..protocol.exchanges import Exchange, ProtocolAdapter
 from ..stats import Counters
 from .phase import StreamPhase
-from .timing import AnswerTimer
+from .timing import WIDE_EVERY, AnswerTimer, probe_timeout
 
 OFFLINE_AFTER = 3  # consecutive failed exchanges before a sensor is called offline
 BACKOFF_MIN, BACKOFF_MAX = 0.25, 10.0  # seconds between tries of a failing sensor
@@ -217,3 +218,16 @@ class SensorState:
             self.evidence.clear()
             return True
         return False
+
+
+def probe_times(s: SensorState, sensors: Iterable[SensorState]) -> tuple[float, float]:
+    """The timeout and hold of a probe of a sensor not answering (never yet, or
+    offline): from its live neighbours' latency, without back-off, for it must cost
+    them little; one attempt in ``WIDE_EVERY`` waits longer (``timing``)."""
+    if s.timer.fixed is not None:
+        return s.timer.fixed, s.timer.fixed  # (the config's own word)
+    s.probes += 1
+    live = [t.timer for t in sensors if t.online]
+    hold = probe_timeout(live, s.timer)
+    wide = s.probes % WIDE_EVERY == 1
+    return (probe_timeout(live, s.timer, wide=True) if wide else hold), hold

@@ -156,6 +156,71 @@ class HoldWatch:
                 self.on_tick()
 
 
+class LineLog:
+    """What happened lately on the line, timed, and the incidents with that context;
+    overlaps and collisions right after a hold (``HoldWatch``) counted apart."""
+
+    def __init__(self, stats: BusStats, verbose: bool) -> None:
+        self.stats = stats
+        self.verbose = verbose
+        self.holds: HoldWatch | None = None
+        self._recent: deque[str] = deque(maxlen=8)
+
+    def note(self, text: str) -> None:
+        incident = text.startswith(("OVERLAP", "COLLISION"))
+        if incident and self.holds is not None and self.holds.in_shadow():
+            if text.startswith("OVERLAP"):
+                self.stats.overlaps_after_hold += 1
+            else:
+                self.stats.collisions_after_hold += 1
+            text += " (right after the simulator was held)"
+        self.timeline(text)
+        if incident and len(self.stats.incidents) < 10:
+            self.stats.incidents.append(list(self._recent))
+        self.stats.events.append(text)
+
+    def timeline(self, text: str) -> None:
+        """What happened lately, timed: the context of an incident."""
+        self._recent.append(f"{time.monotonic():.4f} {text}")
+        if self.verbose:
+            print(f"sim: {text}", file=sys.stderr, flush=True)
+
+
+class PortWatch:
+    """(``watch_port``) Who has the line's port open.  The simulator keeps no descriptor
+    of the pty's slave side itself, so its master sees a hangup while no client has the
+    port open: each open and close is counted (``port_opens``, ``port_closes``) and
+    noted."""
+
+    def __init__(self, stats: BusStats, note: Callable[[str], None]) -> None:
+        self.stats = stats
+        self.note = note
+        self.client = False  # a client has the port open now
+
+    def opened(self, master: int) -> bool:
+        """(Each ``WATCH_TICK``) True when a client has opened the port since the last
+        look: the master's hangup is gone."""
+        if self.client or master < 0:
+            return False
+        hangup = select.poll()
+        hangup.register(master, select.POLLIN)
+        if any(e & select.POLLHUP for _, e in hangup.poll(0)):
+            return False
+        self.client = True
+        self.stats.port_opens += 1
+        self.note("PORT: opened by a client")
+        return True
+
+    def closed(self) -> bool:
+        """The master read EIO: True when that is the client closing the port."""
+        if not self.client:
+            return False
+        self.client = False
+        self.stats.port_closes += 1
+        self.note("PORT: closed by its client (hangup)")
+        return True
+
+
 class PtyBus:
     """Several simulated sensors on one pseudo-terminal."""
 
@@ -176,7 +241,6 @@ class PtyBus:
         open itself, so it sees each time a client opens the port and closes it (the
         master's hangup), counted and logged (``port_opens``, ``port_closes``)."""
         self.watch_port = watch_port
-        self._client = False  # (watch_port) a client has the port open now
         self.sensors = list(sensors)
         self.on_sent = on_sent
         self.noise_rate = noise_rate  # bursts of line noise per second, while idle
@@ -188,14 +252,15 @@ class PtyBus:
         self._slave = -1
         self.path = ""
         self._queue: list[Outgoing] = []
-        self._recent: deque[str] = deque(maxlen=8)
         self._rx_wire_end = 0.0
         self._tx_end = 0.0
         self._wakeup: asyncio.Event | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._holds = HoldWatch(self.stats, self._timeline)
+        self.log = LineLog(self.stats, verbose)
+        self._holds = self.log.holds = HoldWatch(self.stats, self.log.timeline)
+        self.port_watch = PortWatch(self.stats, self.log.note) if watch_port else None
         if watch_port:
-            self._holds.on_tick = self._port_watch
+            self._holds.on_tick = self._port_tick
 
     # ------------------------------------------------------------ the pty
 
@@ -234,7 +299,8 @@ class PtyBus:
         os.close(self._master)
         if self._slave >= 0:
             os.close(self._slave)
-        self._client = False
+        if self.port_watch is not None:
+            self.port_watch.client = False
         self._master = self._slave = -1
         if self.link:
             with contextlib.suppress(FileNotFoundError):
@@ -254,49 +320,13 @@ class PtyBus:
         return _SPEEDS.get(termios.tcgetattr(self._slave if self._slave >= 0
                                              else self._master)[5], 0)
 
-    def _port_watch(self) -> None:
-        """(``watch_port``, each ``WATCH_TICK``) A client opened the port: the master's
-        hangup is gone.  Its bytes are listened to from now on."""
-        if self._client or self._master < 0 or self._loop is None:
-            return
-        hangup = select.poll()
-        hangup.register(self._master, select.POLLIN)
-        if any(e & select.POLLHUP for _, e in hangup.poll(0)):
-            return
-        self._client = True
-        self.stats.port_opens += 1
-        self._note("PORT: opened by a client")
-        self._loop.add_reader(self._master, self._on_readable)
-
-    def _hung_up(self) -> None:
-        """(``watch_port``) The client closed the port (the master reads EIO)."""
-        if not self._client or self._loop is None:
-            return
-        self._client = False
-        self.stats.port_closes += 1
-        self._note("PORT: closed by its client (hangup)")
-        self._loop.remove_reader(self._master)
+    def _port_tick(self) -> None:
+        """(``watch_port``, each ``WATCH_TICK``) A client's bytes are listened to once
+        it has opened the port."""
+        if self._loop is not None and self.port_watch and self.port_watch.opened(self._master):
+            self._loop.add_reader(self._master, self._on_readable)
 
     # ------------------------------------------------------------ the wire
-
-    def _note(self, text: str) -> None:
-        incident = text.startswith(("OVERLAP", "COLLISION"))
-        if incident and self._holds.in_shadow():
-            if text.startswith("OVERLAP"):
-                self.stats.overlaps_after_hold += 1
-            else:
-                self.stats.collisions_after_hold += 1
-            text += " (right after the simulator was held)"
-        self._timeline(text)
-        if incident and len(self.stats.incidents) < 10:
-            self.stats.incidents.append(list(self._recent))
-        self.stats.events.append(text)
-
-    def _timeline(self, text: str) -> None:
-        """What happened lately, timed: the context of an incident."""
-        self._recent.append(f"{time.monotonic():.4f} {text}")
-        if self.verbose:
-            print(f"sim: {text}", file=sys.stderr, flush=True)
 
     def _noise(self, count: int) -> bytes:
         return bytes(self.rng.randrange(256) for _ in range(count))
@@ -308,8 +338,8 @@ class PtyBus:
         except BlockingIOError:
             return
         except OSError:  # EIO: no client has the port open
-            if self.watch_port:
-                self._hung_up()
+            if self.port_watch and self.port_watch.closed() and self._loop is not None:
+                self._loop.remove_reader(self._master)
             return
         if not data:
             return
@@ -319,9 +349,9 @@ class PtyBus:
         pending_answer = any(o.solicited for o in self._queue)
         if now < self._tx_end or pending_answer:
             self.stats.overlaps += 1
-            self._note(f"OVERLAP: master sent {data.hex(' ')} while a sensor was answering")
+            self.log.note(f"OVERLAP: master sent {data.hex(' ')} while a sensor was answering")
         self.stats.requests_bytes += len(data)
-        self._timeline(f"master -> {data.hex(' ')}")
+        self.log.timeline(f"master -> {data.hex(' ')}")
         # A gap of more than 3.5 characters ends any frame in progress (RTU's rule; the
         # native sensors' own inter-character timeout is modelled the same way).
         after_silence = now - self._rx_wire_end > 3.5 * char_time(baud or 9600)
@@ -346,7 +376,7 @@ class PtyBus:
             if other.sender != out.sender:
                 self._queue.remove(other)
                 self.stats.collisions += 1
-                self._note(f"COLLISION: {out.sender} and {other.sender}")
+                self.log.note(f"COLLISION: {out.sender} and {other.sender}")
                 frame = bytes(a ^ b for a, b in zip(frame.ljust(len(other.frame), b"\0"),
                                                     other.frame.ljust(len(frame), b"\0"),
                                                     strict=True))
@@ -375,7 +405,7 @@ class PtyBus:
         self.stats.answer_frames += 1
         if self.on_sent is not None:
             self.on_sent(time.monotonic(), frame, out.solicited)
-        self._note(f"{out.sender} -> {out.frame.hex(' ')}")
+        self.log.note(f"{out.sender} -> {out.frame.hex(' ')}")
 
     def _inject_noise(self) -> None:
         burst = self._noise(self.rng.randint(1, 8))
@@ -395,11 +425,11 @@ class PtyBus:
             out = act()
             for o in out:
                 if o.solicited:
-                    self._timeline(f"{o.sender} answers from {o.not_before:.4f}")
+                    self.log.timeline(f"{o.sender} answers from {o.not_before:.4f}")
             self._queue.extend(out)
         except Exception:
             self.stats.internal_errors += 1
-            self._note(f"INTERNAL ERROR in {sensor.name}")
+            self.log.note(f"INTERNAL ERROR in {sensor.name}")
             print(f"sim: internal error in {sensor.name}:\n{traceback.format_exc()}",
                   file=sys.stderr, flush=True)
 
@@ -463,7 +493,7 @@ class PtyBus:
         if seconds <= 0 or self._master < 0:
             return
         deadline = time.monotonic() + seconds
-        listened = [self._master] if self._client or not self.watch_port else []
+        listened = [self._master] if self.port_watch is None or self.port_watch.client else []
         ready, _, _ = select.select(listened, [], [],
                                     max(0.0, seconds - SPIN) if exact else seconds)
         self._holds.beat()

@@ -287,11 +287,7 @@ def procedure_routes(app: FastAPI, gateway: GatewayLike, roles: Roles) -> None:
         return {"available": able, "runs": [live.to_json() for live in
                                             procedures.runs.values() if live.sensor == name]}
 
-    @app.get("/wizards", response_class=HTMLResponse, include_in_schema=False)
-    async def page() -> HTMLResponse:
-        return HTMLResponse((resources.files("imu_gateway") / "static" / "wizards.html")
-                            .read_text(encoding="utf-8"))
-
+    _wizards_page(app)
     def begin(name: str, procedure: str, args: Any) -> JSONResponse:
         gateway.cache.snapshot(name)
         live = procedures.start(name, procedure, args)
@@ -348,6 +344,13 @@ def procedure_routes(app: FastAPI, gateway: GatewayLike, roles: Roles) -> None:
         live.run.cancel(asyncio.get_running_loop().time())
         live.touch()
         return live.to_json()
+
+
+def _wizards_page(app: FastAPI) -> None:
+    @app.get("/wizards", response_class=HTMLResponse, include_in_schema=False)
+    async def page() -> HTMLResponse:
+        return HTMLResponse((resources.files("imu_gateway") / "static" / "wizards.html")
+                            .read_text(encoding="utf-8"))
 
 
 def _admin_routes(app: FastAPI, base: str, roles: Roles,
