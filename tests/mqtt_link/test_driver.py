@@ -1,12 +1,16 @@
 """paho driven from the gateway's event loop (``mqtt_link/driver.py``): no thread of
-paho's while the gateway is connected, and a socket whose buffer is full (a broker
-that stops reading) loses and reorders nothing; against a real mosquitto."""
+paho's while the gateway is connected, a socket whose buffer is full (a broker that
+stops reading) loses and reorders nothing, and a TLS record holding several MQTT
+packets is read whole; against a real mosquitto."""
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import logging
 import os
 import signal
+import ssl
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -15,8 +19,9 @@ from typing import Any
 
 import paho.mqtt.client as paho
 import pytest
-from support.broker import Mosquitto, recording
-from support.harness import running, until
+from paho.mqtt import publish
+from support.broker import Mosquitto, Tls, make_tls, recording
+from support.harness import free_port, running, until
 
 from imu_gateway.config import Broker, MqttConfig
 from imu_gateway.model import Series, WireProtocol
@@ -34,6 +39,7 @@ class Owner:
 
     def __init__(self) -> None:
         self.failures: list[BaseException] = []
+        self.messages: list[tuple[str, bytes]] = []
 
     async def before_connect(self, brokers: tuple[Broker, ...]) -> Ready:
         return Ready(brokers[0], None)
@@ -45,7 +51,7 @@ class Owner:
         pass
 
     def on_message(self, message: paho.MQTTMessage) -> None:
-        pass
+        self.messages.append((message.topic, bytes(message.payload)))
 
     def fail(self, exc: BaseException) -> None:
         self.failures.append(exc)
@@ -117,3 +123,92 @@ async def test_no_thread_of_paho_runs_while_the_gateway_is_connected(
             await until(lambda: gw.mqtt is not None and gw.mqtt.counters.written > written)
             assert [t.name for t in threading.enumerate()
                     if t.name.startswith(PAHO_THREAD)] == []
+
+
+class TlsFront:
+    """A TLS-terminating relay in front of a plain broker, as stunnel or a load
+    balancer would be.  While ``hold`` is set, what the broker sends is kept; at
+    ``release`` it goes on in one write: several MQTT packets in one TLS record."""
+
+    def __init__(self, tls: Tls, broker_port: int) -> None:
+        self.tls, self.broker_port, self.port = tls, broker_port, free_port()
+        self.hold = False
+        self.held = bytearray()
+        self._to_client: asyncio.StreamWriter | None = None
+        self._writers: list[asyncio.StreamWriter] = []
+        self._relays: list[asyncio.Task[None]] = []
+        self._server: asyncio.Server | None = None
+
+    async def __aenter__(self) -> TlsFront:
+        context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+        context.load_cert_chain(self.tls.server_cert, self.tls.server_key)
+        self._server = await asyncio.start_server(self._relay, "127.0.0.1", self.port,
+                                                  ssl=context)
+        return self
+
+    async def __aexit__(self, *_: object) -> None:
+        assert self._server is not None
+        self._server.close()
+        for writer in self._writers:
+            writer.close()
+        await asyncio.gather(*self._relays, return_exceptions=True)
+
+    def release(self) -> None:
+        assert self._to_client is not None
+        self.hold = False
+        self._to_client.write(bytes(self.held))
+        self.held.clear()
+
+    async def _relay(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self._to_client = writer
+        up_reader, up_writer = await asyncio.open_connection("127.0.0.1", self.broker_port)
+        self._writers += [writer, up_writer]
+        self._relays.append(asyncio.current_task())  # type: ignore[arg-type]
+
+        async def copy(source: asyncio.StreamReader, sink: asyncio.StreamWriter,
+                       held: bool) -> None:
+            with contextlib.suppress(OSError, asyncio.IncompleteReadError):
+                while data := await source.read(65536):
+                    if held and self.hold:
+                        self.held += data
+                    else:
+                        sink.write(data)
+            sink.close()
+
+        await asyncio.gather(copy(reader, up_writer, False), copy(up_reader, writer, True))
+
+
+@pytest.mark.anyio
+async def test_several_packets_in_one_tls_record_are_all_read(tmp_path: Path) -> None:
+    # one TLS record is decrypted whole, and paho reads one packet of it per read:
+    # the rest waits in the SSL socket (pending()), with nothing more on the wire
+    count = 40
+    tls = make_tls(tmp_path / "tls")
+    owner = Owner()
+    with Mosquitto(tmp_path) as broker:
+        await asyncio.to_thread(publish.multiple, [
+            {"topic": f"drv/in/{n}", "payload": f"{n}", "qos": 1, "retain": True}
+            for n in range(count)], hostname="127.0.0.1", port=broker.port)
+        async with TlsFront(tls, broker.port) as front:
+            config = MqttConfig(url=f"mqtts://127.0.0.1:{front.port}", ca_file=str(tls.ca),
+                                certfile=str(tls.client_cert), keyfile=str(tls.client_key))
+            session = Session(config, "drv", owner, logging.getLogger("test"), 10)
+            runner = session.run()
+            try:
+                await until(lambda: session.connected)
+                front.hold = True
+                assert session.client is not None
+                # (QoS 0: mosquitto holds back QoS 1 messages past 20 in flight)
+                session.client.subscribe("drv/in/#", 0)
+                # the SUBACK (5 bytes) and every retained PUBLISH (QoS 0: 2 bytes of
+                # header, the topic with its length, the payload)
+                size = 5 + sum(2 + 2 + len(f"drv/in/{n}") + len(f"{n}")
+                               for n in range(count))
+                await until(lambda: len(front.held) >= size)
+                assert len(front.held) == size
+                front.release()
+                await until(lambda: len(owner.messages) == count)
+                assert sorted(owner.messages) == sorted(
+                    (f"drv/in/{n}", f"{n}".encode()) for n in range(count))
+            finally:
+                await session.stop(runner, [])
