@@ -41,6 +41,14 @@ import paho.mqtt.client as paho
 MISC_S = 1.0
 
 
+def close_sockets(client: paho.Client) -> None:
+    """paho 2.2 leaves the socket of a failed or lost connection to the garbage
+    collector; ``_reset_sockets`` (private, but the one place that closes it, and a
+    wake-up socket pair had ``loop()`` made one) closes it now."""
+    with contextlib.suppress(OSError):
+        client._reset_sockets()
+
+
 class Driver:
     """One connected paho client's network loop, on the running event loop."""
 
@@ -72,11 +80,10 @@ class Driver:
 
     def close(self) -> None:
         """Write what can be written at once (a DISCONNECT), then stop and close the
-        client's sockets (what ``close_sockets`` in probe.py does, with ``detach``)."""
+        client's socket (also when ``attach`` never came: a failed connect's)."""
         if self._fd is not None:
             self._write()
-        with contextlib.suppress(OSError):
-            self.client._reset_sockets()  # (private: the one place that closes them all)
+        close_sockets(self.client)
         self._detach()
 
     # ------------------------------------------------------------ the loop's events

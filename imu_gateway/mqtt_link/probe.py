@@ -32,7 +32,7 @@ from paho.mqtt.enums import MQTTErrorCode
 from paho.mqtt.reasoncodes import ReasonCode
 
 from ..config import Broker
-from .driver import Driver
+from .driver import Driver, close_sockets
 from .errors import BrokerUnreached, ProbeFailed
 
 #: How long the probe waits for the broker (connect, retained messages, its echo).
@@ -126,17 +126,8 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
             with contextlib.suppress(Exception):
                 client.disconnect()
             driver.close()  # (writes the DISCONNECT, if the socket takes it)
-            close_sockets(client)
         else:
             connecting.add_done_callback(lambda ended: _closed_late(client, ended))
-
-
-def close_sockets(client: paho.Client) -> None:
-    """paho 2.2 leaves the socket of a failed or lost connection to the garbage
-    collector; ``_reset_sockets`` (private, but the one place that closes it, and a
-    wake-up socket pair had ``loop()`` made one) closes it now."""
-    with contextlib.suppress(OSError):
-        client._reset_sockets()
 
 
 def _closed_late(client: paho.Client, connect: asyncio.Future[MQTTErrorCode]) -> None:

@@ -33,12 +33,12 @@ from paho.mqtt.reasoncodes import ReasonCode
 
 from ..config import Broker, MqttConfig
 from ..supervise import PeerLog
-from .driver import Driver
+from .driver import Driver, close_sockets
 from .errors import BrokerUnreached
 from .failover import Failover
 from .message import Counters, Message
 from .pipe import KEEPALIVE_S, WINDOW, Pipe
-from .probe import PROBE_TIMEOUT, close_sockets, reason_of
+from .probe import PROBE_TIMEOUT, reason_of
 
 #: a broker that says nothing after CONNECT (a TLS port, say); the probe's wait too
 CONNACK_TIMEOUT = PROBE_TIMEOUT
@@ -147,9 +147,10 @@ class Session:
         if client is not None:
             if said:
                 client.disconnect()  # (written by close(), at once)
-            if driver is not None:
+            if driver is not None and driver.client is client:
                 driver.close()
-            close_sockets(client)
+            else:
+                close_sockets(client)
         self.connected = False
 
     async def flushed(self, timeout: float) -> bool:
