@@ -55,7 +55,7 @@ class Pipe:
     in paho's hands and not yet written or acknowledged.
 
     ``client()`` is the paho client of the connection, ``connected()`` whether there
-    is one now.  paho's thread calls ``written_one`` and nothing else."""
+    is one now.  All on the event loop (paho's callbacks run there too: driver.py)."""
 
     def __init__(self, queue_size: int, counters: Counters, peers: PeerLog,
                  client: Callable[[], paho.Client | None],
@@ -69,17 +69,17 @@ class Pipe:
         self._peers = peers
         self._client = client
         self._connected = connected
-        # Messages in paho's hands: ``_handed - counters.written``.  Each of the two
-        # counters has one writer (this loop, paho's thread), so no lock is needed.
+        # Messages in paho's hands: ``_handed - counters.written``.
         self._handed = 0
-        self.waiting_for_window = False
+        self._window_full = False  # drain stopped at a full window: written_one drains
         self._stale: list[Message] = []  # states of before the last connect
 
-    def written_one(self) -> bool:
-        """paho wrote (or had acknowledged) a message; on paho's thread.  True when the
-        loop waits for room in the window and must be woken."""
+    def written_one(self) -> None:
+        """paho wrote (or had acknowledged) a message (its ``on_publish``): what waited
+        for room in the window goes on."""
         self.counters.written += 1
-        return self.waiting_for_window  # set before the loop looks at the window again
+        if self._window_full:
+            self.drain()
 
     def connected_anew(self) -> None:
         """What paho held when the last connection went is lost with it (each
@@ -119,13 +119,11 @@ class Pipe:
 
     def drain(self) -> None:
         """Hand paho what the window allows: control messages first, then the outbox."""
+        self._window_full = False
         while (self.control or self.outbox) and self._connected():
-            # The flag goes up before the window is read: an on_publish in between
-            # then still wakes this loop (paho's thread reads the flag).
-            self.waiting_for_window = True
             if self.in_window() >= WINDOW:
+                self._window_full = True
                 return
-            self.waiting_for_window = False
             if self.control:
                 key = next(iter(self.control))
                 if not self._hand_to_paho(self.control[key]):
@@ -136,7 +134,6 @@ class Pipe:
                 if not self._hand_to_paho(message):
                     self.outbox.put_back(message)
                     return
-        self.waiting_for_window = False
 
     def _hand_to_paho(self, message: Message) -> bool:
         """True when the message is done with: handed to paho, or dropped because

@@ -15,6 +15,9 @@ across the broker list (``read_retained_hedged``), and what it read tells the
 front end which retained messages the broker already serves.  A probe the broker
 refuses, or one whose echo does not come back (an ACL, say), leaves the decision
 to the real connect: the probe's client id and topic are not the gateway's.
+
+Like the session's, the probe's paho client runs on the event loop (``driver.py``):
+its connect in the executor, the rest on the loop, callbacks included.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from paho.mqtt.enums import MQTTErrorCode
 from paho.mqtt.reasoncodes import ReasonCode
 
 from ..config import Broker
+from .driver import Driver, close_sockets
 from .errors import BrokerUnreached, ProbeFailed
 
 #: How long the probe waits for the broker (connect, retained messages, its echo).
@@ -61,7 +65,7 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
     seen: dict[str, bytes] = {}
     done: asyncio.Future[object] = loop.create_future()
     client = make(client_id)
-    acked: list[bool] = []  # the broker answered the connect (set on paho's thread)
+    acked: list[bool] = []  # the broker answered the connect
 
     def settle(result: object) -> None:
         if not done.done():
@@ -71,9 +75,9 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
                    p: object) -> None:
         acked.append(True)
         if progress is not None:
-            loop.call_soon_threadsafe(progress.answered.set)
+            progress.answered.set()
         if reason.is_failure:
-            loop.call_soon_threadsafe(settle, ConnectionRefusedError(str(reason)))
+            settle(ConnectionRefusedError(str(reason)))
         else:
             # QoS 0: a read of retained messages needs no more, and NATS's MQTT makes a
             # JetStream consumer for every QoS 1 subscription (slow while a node is down)
@@ -81,14 +85,14 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
 
     def on_message(c: paho.Client, u: object, message: paho.MQTTMessage) -> None:
         if message.topic == echo:  # after the retained ones: all are in
-            loop.call_soon_threadsafe(settle, None)
+            settle(None)
         elif message.retain:
             seen[message.topic] = bytes(message.payload)
 
     def on_disconnect(c: paho.Client, u: object, f: object, reason: object,
                       p: object) -> None:
         if not acked:
-            loop.call_soon_threadsafe(settle, BrokerUnreached("closed"))
+            settle(BrokerUnreached("closed"))
 
     # (the gateway's own callbacks, which ``make`` set, are not the probe's)
     client.on_connect, client.on_message = on_connect, on_message
@@ -99,6 +103,7 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
     # wait for the connect, and what the connect opens is closed when it ends)
     connecting = asyncio.ensure_future(
         asyncio.to_thread(client.connect, broker.host, broker.port, 10))
+    driver = Driver(client)
     try:
         try:
             await asyncio.shield(connecting)
@@ -106,7 +111,7 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
             raise BrokerUnreached("unreachable", reason_of(exc)) from exc
         if progress is not None:
             progress.reached.set()
-        client.loop_start()
+        driver.attach()
         try:
             result = await asyncio.wait_for(done, timeout)
         except TimeoutError:
@@ -120,18 +125,9 @@ async def read_retained(make: Callable[[str], paho.Client], broker: Broker, clie
         if connecting.done():
             with contextlib.suppress(Exception):
                 client.disconnect()
-            await asyncio.to_thread(client.loop_stop)
-            close_sockets(client)
+            driver.close()  # (writes the DISCONNECT, if the socket takes it)
         else:
             connecting.add_done_callback(lambda ended: _closed_late(client, ended))
-
-
-def close_sockets(client: paho.Client) -> None:
-    """paho 2.2 leaves the socket of a failed or lost connection, and loop_start()'s
-    wake-up socket pair, to the garbage collector; ``_reset_sockets`` (private, but the
-    one place that closes all three) closes them now."""
-    with contextlib.suppress(OSError):
-        client._reset_sockets()
 
 
 def _closed_late(client: paho.Client, connect: asyncio.Future[MQTTErrorCode]) -> None:

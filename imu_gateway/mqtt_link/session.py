@@ -5,11 +5,10 @@ Two front ends use it, each with a session (a client id and a last will) of its 
 the plain topics (``frontends/mqtt``: will = status ``offline``) and Sparkplug B
 (``frontends/sparkplug``: will = NDEATH, whose ``bdSeq`` changes with every connection).
 
-Threads.  paho-mqtt's network loop runs on its own thread (``loop_start``); everything
-else runs on the gateway's event loop.  paho's callbacks only hand their event over
-(``call_soon_threadsafe``), so no state here is written from two threads: paho's
-thread increments one counter (``written``) and reads one flag
-(``Pipe.waiting_for_window``).
+Threads.  None of paho's: its network loop is the gateway's event loop
+(``driver.py``), so paho's callbacks, and everything here, run on the loop.  Only the
+blocking connect (DNS, TCP, TLS, CONNECT) runs in the loop's executor, before the
+socket is handed to the loop.
 
 Connecting.  The connect itself (TCP, TLS, CONNECT) is ours, in an executor: paho's
 own automatic reconnect swallows the reason a connection failed, and a user looking
@@ -34,11 +33,12 @@ from paho.mqtt.reasoncodes import ReasonCode
 
 from ..config import Broker, MqttConfig
 from ..supervise import PeerLog
+from .driver import Driver, close_sockets
 from .errors import BrokerUnreached
 from .failover import Failover
 from .message import Counters, Message
 from .pipe import KEEPALIVE_S, WINDOW, Pipe
-from .probe import PROBE_TIMEOUT, close_sockets, reason_of
+from .probe import PROBE_TIMEOUT, reason_of
 
 #: a broker that says nothing after CONNECT (a TLS port, say); the probe's wait too
 CONNACK_TIMEOUT = PROBE_TIMEOUT
@@ -86,12 +86,12 @@ class Session:
         self.counters = Counters()
         self.peers = PeerLog(log)
         self.client: paho.Client | None = None
+        self._driver: Driver | None = None  # the client's network loop, while connected
         self.connected = False
         self.stopping = False
         self.pipe = Pipe(queue_size, self.counters, self.peers,
                          lambda: self.client, lambda: self.connected)
         self.failover = Failover(config.brokers)
-        self._loop: asyncio.AbstractEventLoop | None = None
         self._lost = asyncio.Event()
         self._answered = asyncio.Event()  # the broker answered CONNECT (either way)
         self._last_problem: str | None = None
@@ -100,7 +100,6 @@ class Session:
 
     def run(self) -> asyncio.Task[None]:
         """Connect in the background, for as long as the task runs."""
-        self._loop = asyncio.get_running_loop()
         self.stopping = False
         self.connected = False
         return asyncio.create_task(self._keep_connected(), name=f"mqtt {self.client_id}")
@@ -144,12 +143,14 @@ class Session:
             runner.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await runner
-        client = self.client
+        client, driver = self.client, self._driver
         if client is not None:
             if said:
-                client.disconnect()
-            await asyncio.to_thread(client.loop_stop)
-            close_sockets(client)
+                client.disconnect()  # (written by close(), at once)
+            if driver is not None and driver.client is client:
+                driver.close()
+            else:
+                close_sockets(client)
         self.connected = False
 
     async def flushed(self, timeout: float) -> bool:
@@ -192,8 +193,8 @@ class Session:
         """One connection to ``broker``, until it is lost; True when it worked."""
         self._lost.clear()
         connects = self.counters.connects
-        # paho's loop_start() makes a new wake-up socket pair each time without
-        # closing the last; each client's sockets are closed when it is done.
+        # each client's socket is closed when it is done (paho leaves a failed
+        # connect's to the garbage collector)
         self.client = client = self.make_client()
         will = self.owner.will()
         client.will_set(will.topic, will.payload, will.qos, will.retain)
@@ -203,20 +204,20 @@ class Session:
             self._problem(self._unreached(broker, "unreachable", reason_of(exc)))
             close_sockets(client)
             return False
-        # paho's connect() returns once it has written the CONNECT (no network thread
-        # runs yet, so it writes it itself)
+        # paho's connect() returns once it has written the CONNECT (no write callback
+        # is set yet, so it writes it itself)
         self.connect_sent()
         self._answered.clear()
-        client.loop_start()
+        self._driver = driver = Driver(client)
+        driver.attach()
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(self._answered.wait(), CONNACK_TIMEOUT)
         if self._answered.is_set():
             await self._lost.wait()
         else:
             self._problem(self._unreached(broker, "silent"))
-            self.client = None  # an answer that comes now is not taken (_on_connect)
-        await asyncio.to_thread(client.loop_stop)
-        close_sockets(client)
+            self.client = None  # (no answer can come now: its socket is closed next)
+        driver.close()
         return self.counters.connects > connects
 
     def _problem(self, text: str) -> None:
@@ -234,15 +235,12 @@ class Session:
             return f"no answer from {broker} within {CONNACK_TIMEOUT:g} s of connecting{hint}"
         return f"{broker} closed the connection without answering{hint}"
 
-    # ------------------------------------------------------------ paho's thread
-
-    def _hand_over(self, fn: Callable[..., None], *args: Any) -> None:
-        assert self._loop is not None
-        with contextlib.suppress(RuntimeError):  # the loop closed during shutdown
-            self._loop.call_soon_threadsafe(self._guard, fn, *args)
+    # ------------------------------------------------------------ paho's callbacks
+    # (on the event loop, inside the driver's loop_read, loop_write or loop_misc)
 
     def _guard(self, fn: Callable[..., None], *args: Any) -> None:
-        """Run a handed-over event; a failure is the owner's, for its supervisor."""
+        """Run an event; a failure is the owner's, for its supervisor (not paho's,
+        which would pass it up through the driver to the event loop's log)."""
         try:
             fn(*args)
         except Exception as exc:  # the supervisor logs and restarts
@@ -250,25 +248,24 @@ class Session:
 
     def _paho_connect(self, client: paho.Client, userdata: Any, flags: Any,
                       reason: ReasonCode, properties: Properties | None) -> None:
-        self._hand_over(self._on_connect, reason, client)
+        self._guard(self._on_connect, reason, client)
 
     def _paho_disconnect(self, client: paho.Client, userdata: Any, flags: Any,
                          reason: ReasonCode, properties: Properties | None) -> None:
-        self._hand_over(self._on_disconnect, reason, client)
+        self._guard(self._on_disconnect, reason, client)
 
     def _paho_publish(self, client: paho.Client, userdata: Any, mid: int,
                       reason: ReasonCode, properties: Properties | None) -> None:
-        if self.pipe.written_one():
-            self._hand_over(self.pipe.drain)
+        self._guard(self.pipe.written_one)
 
     def _paho_message(self, client: paho.Client, userdata: Any,
                       message: paho.MQTTMessage) -> None:
-        self._hand_over(self.owner.on_message, message)
+        self._guard(self.owner.on_message, message)
 
     def _paho_subscribe(self, client: paho.Client, userdata: Any, mid: int,
                         reasons: list[ReasonCode], properties: Properties | None) -> None:
         if reasons and not any(r.is_failure for r in reasons):
-            self._hand_over(self.granted.add, mid)
+            self._guard(self.granted.add, mid)
 
     # ------------------------------------------------------------ connection events
 
