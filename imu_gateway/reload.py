@@ -28,7 +28,7 @@ from __future__ import annotations
 import asyncio
 import inspect
 import logging
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Awaitable, Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -215,7 +215,10 @@ def differences(old: Any, new: Any, prefix: str = "") -> list[str]:
     if old == new:
         return []
     if isinstance(old, BaseModel) and isinstance(new, BaseModel):
-        old, new = old.model_dump(mode="json"), new.model_dump(mode="json")
+        # (warnings off: capture.on_alarms can hold a list where its type says tuple, and
+        # pydantic's warning would fail the request; the values are what is compared)
+        old, new = old.model_dump(mode="json", warnings=False), \
+            new.model_dump(mode="json", warnings=False)
     if isinstance(old, Mapping) and isinstance(new, Mapping):
         found: list[str] = []
         for key in dict.fromkeys([*old, *new]):
@@ -329,7 +332,7 @@ class PutOutcome:
     note: str  # why it was not saved, or where it was
     after_answer: str | None = None  # what is applied once the answer is sent
     #: what does it (the REST route runs it after sending the answer)
-    then: Callable[[], None] | None = None
+    then: Callable[[], Awaitable[None]] | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {"applied": self.applied, "saved": self.saved, "note": self.note,

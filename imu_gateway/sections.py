@@ -83,9 +83,10 @@ class LiveSections:
         """Where the REST server moves once the answer is sent (None: it stays)."""
         return None if self._move_to is None else str(self._move_to.listen)
 
-    def spawn_move(self) -> None:
-        """(After the answer is sent.)  A task of its own: stopping the old server waits
-        for its requests, the one that sent the answer included."""
+    async def spawn_move(self) -> None:
+        """(After the answer is sent; async, so that Starlette runs it on the loop.)  A
+        task of its own: stopping the old server waits for its requests, the one that
+        sent the answer included."""
         task = asyncio.get_running_loop().create_task(self.move_http(), name="http move")
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
