@@ -27,11 +27,31 @@ class JournalFile:
 
     def __init__(self, path: str) -> None:
         self.path = path
-        self.written = 0  # transitions written
-        self.errors = 0  # transitions that could not be written
+        self._written = 0  # transitions written
+        self._errors = 0  # transitions that could not be written
+        self._carried = (0, 0)  # a previous file's counts (a reload: the counters go on)
         self._queue: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
         self._thread: threading.Thread | None = None
         self._failing = False
+
+    @property
+    def written(self) -> int:
+        return self._carried[0] + self._written
+
+    @property
+    def errors(self) -> int:
+        return self._carried[1] + self._errors
+
+    def follow(self, old: JournalFile) -> None:
+        """Count on from ``old``'s counts (a reload; ``old`` closed)."""
+        self._carried = (old.written, old.errors)
+
+    def is_empty(self) -> bool:
+        """No line in the file yet (missing, or empty)."""
+        try:
+            return os.path.getsize(self.path) == 0
+        except OSError:
+            return True
 
     def read(self) -> list[Transition]:
         """The file's last ``JOURNAL_SIZE`` transitions, oldest first: none when it is
@@ -91,7 +111,7 @@ class JournalFile:
                 out.flush()
                 os.fsync(out.fileno())
         except OSError as exc:
-            self.errors += len(lines)
+            self._errors += len(lines)
             if not self._failing:
                 self._failing = True
                 log.warning("alarm journal %s: cannot write (%s); transitions are kept "
@@ -99,7 +119,7 @@ class JournalFile:
                             "(imu_gateway_alarm_journal_errors_total) until it works again",
                             self.path, exc.strerror or exc)
             return
-        self.written += len(lines)
+        self._written += len(lines)
         if self._failing:
             self._failing = False
             log.info("alarm journal %s: writing again", self.path)

@@ -16,8 +16,11 @@ The plan, by part:
   same hears ``sensors_changed`` when the sensors did (Modbus TCP: its unit map;
   MQTT: discovery published and swept; Sparkplug: a rebirth; OPC UA: the sensors'
   nodes added and deleted), with its connections kept;
-- what cannot change live (the section of the HTTP server answering the request, the
-  gateway id, the journal's file, capture) is named as "needs a restart".
+- the sections that are no front end's are applied by the reloader itself
+  (``sections.py``): ``http``'s credentials and rules at once, its listen address
+  after the answer to the request; the alarm journal's file; the capture's settings;
+- what cannot change live (the gateway id; ``http`` or ``capture`` turned on or off)
+  is named as "needs a restart".
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from __future__ import annotations
 import asyncio
 import inspect
 import logging
-from collections.abc import Iterable, Mapping
+from collections.abc import Awaitable, Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -34,9 +37,13 @@ from pydantic import BaseModel
 from .config import BusConfig, GatewayConfig, config_from_dict, load_config
 from .config.loading import ConfigSource, save_atomically, shown, with_secrets_kept
 from .errors import ConfigError
+from .sections import LiveSections
 
 if TYPE_CHECKING:
+    from .alarms import Transition
     from .bus.runner import BusThread
+    from .capture import Captures
+    from .journal import JournalFile
     from .supervise import Frontend
 
 
@@ -46,6 +53,8 @@ class Gateway(Protocol):
     config: GatewayConfig
     source: ConfigSource | None
     buses: BusThread
+    journal_file: JournalFile | None
+    captures: Captures | None
 
     def adopt(self, config: GatewayConfig) -> None: ...
 
@@ -57,6 +66,8 @@ class Gateway(Protocol):
 
     async def replace_frontend(self, name: str) -> None: ...
 
+    def alarm_journal(self, since: float | None = None) -> list[Transition]: ...
+
 log = logging.getLogger("imu_gateway")
 
 SHUTDOWN_GRACE = 10.0  # seconds a bus stopped by a reload gets for its exchange in flight
@@ -66,8 +77,14 @@ SHUTDOWN_GRACE = 10.0  # seconds a bus stopped by a reload gets for its exchange
 NOT_THE_BUS = frozenset({"unit_id", "raw_unit_id", "alarms", "stale_after_ms"})
 #: The front ends a reload can restart, in the order they are started.
 LIVE_FRONTENDS = ("modbus", "opcua", "mqtt")
-#: Sections that only a restart applies (``http``: the server answering a PUT).
-RESTART_ONLY = ("http", "gateway_id", "alarm_journal", "capture")
+#: Sections the reloader applies itself (``sections.py``).
+LIVE_SECTIONS = ("http", "alarm_journal", "capture")
+#: Of these, those that only a restart turns on or off: the REST server answering the
+#: request; the lines' frame rings, sized when their ports open.
+ON_OFF_RESTART = ("http", "capture")
+#: Sections that only a restart applies: the gateway id names every front end's topics
+#: and nodes (docs/configuration.md).
+RESTART_ONLY = ("gateway_id",)
 #: Keys whose values are never shown in a diff (they may be secrets).
 SECRET_KEYS = frozenset({"password", "token", "users", "tokens"})
 
@@ -104,13 +121,15 @@ class ConfigDiff:
     sensors_changed: tuple[Change, ...] = ()  # any setting of a sensor kept
     frontends_changed: tuple[Change, ...] = ()  # their section changed: restarted
     frontends_unchanged: tuple[str, ...] = ()
+    sections_changed: tuple[Change, ...] = ()  # applied by the reloader (LIVE_SECTIONS)
     needs_restart: tuple[Change, ...] = ()
 
     @property
     def empty(self) -> bool:
         return not (self.buses_added or self.buses_removed or self.buses_changed
                     or self.sensors_added or self.sensors_removed or self.sensors_changed
-                    or self.frontends_changed or self.needs_restart)
+                    or self.frontends_changed or self.sections_changed
+                    or self.needs_restart)
 
     @property
     def sensor_set_changed(self) -> bool:
@@ -147,6 +166,7 @@ class ConfigDiff:
         parts += [f"sensor {c.describe()}" for c in self.sensors_changed]
         parts += [f"{c.name} restarted ({', '.join(c.details)})"
                   for c in self.frontends_changed]
+        parts += [f"{c.name} applied ({', '.join(c.details)})" for c in self.sections_changed]
         parts += [f"needs a restart: {c.describe()}" for c in self.needs_restart]
         unchanged = [*self.buses_unchanged, *self.frontends_unchanged]
         if unchanged:
@@ -173,6 +193,7 @@ class ConfigDiff:
                         "changed": changes(self.sensors_changed)},
             "frontends": {"changed": changes(self.frontends_changed),
                           "unchanged": list(self.frontends_unchanged)},
+            "sections": {"changed": changes(self.sections_changed)},
             "needs_restart": changes(self.needs_restart),
         }
 
@@ -194,7 +215,10 @@ def differences(old: Any, new: Any, prefix: str = "") -> list[str]:
     if old == new:
         return []
     if isinstance(old, BaseModel) and isinstance(new, BaseModel):
-        old, new = old.model_dump(mode="json"), new.model_dump(mode="json")
+        # (warnings off: capture.on_alarms can hold a list where its type says tuple, and
+        # pydantic's warning would fail the request; the values are what is compared)
+        old, new = old.model_dump(mode="json", warnings=False), \
+            new.model_dump(mode="json", warnings=False)
     if isinstance(old, Mapping) and isinstance(new, Mapping):
         found: list[str] = []
         for key in dict.fromkeys([*old, *new]):
@@ -239,11 +263,12 @@ def _bus_changes(old: BusConfig, new: BusConfig) -> tuple[str, ...]:
 
 
 def _frontends(old: GatewayConfig, new: GatewayConfig
-               ) -> tuple[list[Change], list[str], list[Change]]:
+               ) -> tuple[list[Change], list[str], list[Change], list[Change]]:
     changed: list[Change] = []
     unchanged: list[str] = []
+    sections: list[Change] = []
     restart: list[Change] = []
-    for name in (*LIVE_FRONTENDS, *RESTART_ONLY):
+    for name in (*LIVE_FRONTENDS, *LIVE_SECTIONS, *RESTART_ONLY):
         before, after = getattr(old, name), getattr(new, name)
         if before == after:
             if before is not None and name in (*LIVE_FRONTENDS, "http"):
@@ -253,8 +278,11 @@ def _frontends(old: GatewayConfig, new: GatewayConfig
             details: tuple[str, ...] = ("turned on" if before is None else "turned off",)
         else:
             details = tuple(differences(before, after)) or ("changed",)
-        (changed if name in LIVE_FRONTENDS else restart).append(Change(name, details))
-    return changed, unchanged, restart
+        on_off = before is None or after is None
+        (changed if name in LIVE_FRONTENDS else
+         sections if name in LIVE_SECTIONS and not (on_off and name in ON_OFF_RESTART)
+         else restart).append(Change(name, details))
+    return changed, unchanged, sections, restart
 
 
 def diff_configs(old: GatewayConfig, new: GatewayConfig) -> ConfigDiff:
@@ -278,7 +306,7 @@ def diff_configs(old: GatewayConfig, new: GatewayConfig) -> ConfigDiff:
     sensors_changed = tuple(
         Change(n, tuple(differences(old_sensors[n], new_sensors[n])))
         for n in new_sensors if n in old_sensors and old_sensors[n] != new_sensors[n])
-    frontends, unchanged, restart = _frontends(old, new)
+    frontends, unchanged, sections, restart = _frontends(old, new)
     order = [b.name for b in new.buses]
     return ConfigDiff(
         buses_added=tuple(n for n in order if n not in old_buses),
@@ -288,7 +316,7 @@ def diff_configs(old: GatewayConfig, new: GatewayConfig) -> ConfigDiff:
                               and not any(m.bus == n for m in (*added, *removed))),
         sensors_added=added, sensors_removed=removed, sensors_changed=sensors_changed,
         frontends_changed=tuple(frontends), frontends_unchanged=tuple(unchanged),
-        needs_restart=tuple(restart))
+        sections_changed=tuple(sections), needs_restart=tuple(restart))
 
 
 # ------------------------------------------------------------ carrying it out
@@ -302,11 +330,14 @@ class PutOutcome:
     applied: bool
     saved: bool
     note: str  # why it was not saved, or where it was
+    after_answer: str | None = None  # what is applied once the answer is sent
+    #: what does it (the REST route runs it after sending the answer)
+    then: Callable[[], Awaitable[None]] | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {"applied": self.applied, "saved": self.saved, "note": self.note,
                 "needs_restart": [c.describe() for c in self.diff.needs_restart],
-                "diff": self.diff.to_json()}
+                "after_answer": self.after_answer, "diff": self.diff.to_json()}
 
 
 class Reloader:
@@ -315,6 +346,7 @@ class Reloader:
     def __init__(self, gateway: Gateway) -> None:
         self.gateway = gateway
         self._lock = asyncio.Lock()
+        self.sections = LiveSections(gateway)
 
     async def from_file(self) -> ConfigDiff | None:
         """``SIGHUP``: the config file read again; a broken one changes nothing and its
@@ -334,6 +366,7 @@ class Reloader:
         async with self._lock:
             diff = await self._apply(new)
             source.data = data
+        await self.sections.move_http()  # (no answer to wait for)
         return diff
 
     def shown(self) -> Any:
@@ -361,7 +394,12 @@ class Reloader:
             else:
                 self.gateway.source = ConfigSource(None, data)
         (log.info if saved else log.warning)("reload: %s", note)
-        return PutOutcome(diff, True, saved, note)
+        moving = self.sections.moving()
+        if moving is None:
+            return PutOutcome(diff, True, saved, note)
+        return PutOutcome(diff, True, saved, note, after_answer=(
+            f"applied after this answer: the REST server moves to {moving} (its event "
+            "streams end: their clients reconnect there)"), then=self.sections.spawn_move)
 
     def _save(self, data: Any) -> tuple[bool, str]:
         source = self.gateway.source
@@ -398,6 +436,8 @@ class Reloader:
                 gateway.start_bus(bus)
         await self._reschedule(diff, old, applied, kept_only=False)
         gateway.index_buses()
+        await self.sections.apply((c.name for c in diff.sections_changed),
+                                  diff.sensor_set_changed)
         await self._frontends(diff)
         log.info("%s", diff.summary())
         for change in diff.needs_restart:

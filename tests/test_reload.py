@@ -43,7 +43,7 @@ def test_an_unchanged_config_is_no_change() -> None:
 
 def test_the_diff_names_each_part_and_its_change() -> None:
     """A sensor added changes its bus's schedule only; a baud rate changed restarts that
-    bus; a bus and a front end untouched are named unchanged; http needs a restart."""
+    bus; a bus and a front end untouched are named unchanged; http is applied live."""
     old = config_from_dict(gateway(
         [bus("line-a", "/dev/null", [{"name": "boom", "series": "AH"}]),
          bus("line-b", "/dev/zero", [{"name": "arm", "series": "VG"}], baudrate=9600),
@@ -61,11 +61,11 @@ def test_the_diff_names_each_part_and_its_change() -> None:
     assert diff.buses_unchanged == ("line-c",)
     assert [c.describe() for c in diff.buses_changed] == ["line-b (baudrate 9600→19200)"]
     assert diff.frontends_unchanged == ("modbus",)
-    assert [c.name for c in diff.needs_restart] == ["http"]
+    assert [c.name for c in diff.sections_changed] == ["http"] and not diff.needs_restart
     assert diff.summary() == (
         "reload: +1 sensor (boom2 on line-a, its schedule only), line-b restarted "
         "(baudrate 9600→19200), sensor arm (unit_id 2→3), sensor mast (unit_id 3→4), "
-        "needs a restart: http (listen 127.0.0.1:8080→127.0.0.1:8081), "
+        "http applied (listen 127.0.0.1:8080→127.0.0.1:8081), "
         "unchanged: line-c, modbus")
 
 

@@ -101,6 +101,32 @@ class Captures:
         if self._writing:
             await asyncio.gather(*self._writing, return_exceptions=True)
 
+    async def configure(self, config: CaptureConfig, gateway: GatewayConfig) -> None:
+        """A reload.  New settings: the capture being collected is written at once with
+        what it has (as at a stop, under the settings it was armed with), then they
+        apply; a new folder is made and its captures listed (the old folder's stay on
+        disk, no longer listed).  Each sensor kept keeps the newest rows of its ring
+        that fit ``pre_s``; one added gets an empty ring; a removed one's ring goes
+        (kept while a capture is collected: its rows are in it)."""
+        if config != self.config:
+            await self.stop()
+        old_rings = self.rings
+        self.config, self.gateway = config, gateway
+        self.rings = {name: ring for name, ring in old_rings.items()
+                      if self._pending is not None and name in self._pending.rows}
+        for _, sensor in gateway.iter_sensors():
+            ring = old_rings.get(sensor.name)
+            fields = series_fields(sensor.series)
+            if ring is None or ring.fields != fields:
+                ring = SensorRing(fields, config.pre_s)
+            elif ring.keep != config.pre_s:
+                ring = ring.resized(config.pre_s)
+            self.rings[sensor.name] = ring
+        if Path(config.dir) != self.folder:
+            self.folder = Path(config.dir)
+            self._failing = False
+            await self.start()
+
     def on_cache_event(self, kind: EventKind, snap: Snapshot) -> None:
         """(A cache listener: every reading and status change goes into its ring.)"""
         ring = self.rings.get(snap.name)
@@ -109,7 +135,7 @@ class Captures:
             return
         ring.add(row)
         if self._pending is not None:
-            self._pending.rows[snap.name].append(row)
+            self._pending.rows.setdefault(snap.name, []).append(row)
 
     def subscribe(self, listener: Listener) -> Callable[[], None]:
         """Call ``listener(info)`` for every capture written; returns the unsubscriber."""

@@ -82,6 +82,16 @@ class SensorRing:
                                   _STATUS << 4 | status, *(math.nan,) * len(self.fields))
         return None
 
+    def resized(self, keep: float, rate_hz: float = MAX_RATE_HZ) -> SensorRing:
+        """A ring of ``keep`` seconds with this one's newest rows that fit (a reload)."""
+        ring = SensorRing(self.fields, keep, rate_hz)
+        ring.rows.extend(self.rows)  # (the deque's length keeps the newest)
+        if ring.rows:
+            newest = _TIME.unpack_from(ring.rows[-1], 8)[0]
+            while _TIME.unpack_from(ring.rows[0], 8)[0] < newest - keep:
+                ring.rows.popleft()
+        return ring
+
     def add(self, row: bytes) -> None:
         self.rows.append(row)
         newest = _TIME.unpack_from(row, 8)[0]  # the receive time

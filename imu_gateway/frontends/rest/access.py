@@ -72,11 +72,23 @@ class Authority:
     (``http.token``: an admin's), and the sessions of ``POST /api/v1/login``."""
 
     def __init__(self, config: HttpConfig) -> None:
+        self.sessions: dict[str, _Session] = {}
+        self.configure(config)
+
+    def configure(self, config: HttpConfig) -> None:
+        """Take ``config``'s credentials and rules, at once (a reload): a token no longer
+        in it is refused from the next request on, and a session ends unless its user is
+        still there with the same role and password (docs/rest.md, "Roles")."""
+        old = getattr(self, "config", None)
         self.config = config
         self.tokens = [(token, Who("http.token" if token == config.token else
                                    f"token {i + 1} of http.tokens", Role[role.upper()]))
                        for i, (token, role) in enumerate(config.roles_of_tokens().items())]
-        self.sessions: dict[str, _Session] = {}
+        if old is not None:
+            kept = {name for name, user in config.users.items()
+                    if old.users.get(name) == user}
+            self.sessions = {token: session for token, session in self.sessions.items()
+                             if session.who.name in kept}
 
     @property
     def anybody_may_log_in(self) -> bool:

@@ -13,6 +13,7 @@ from typing import Annotated, Any, Literal, Protocol, runtime_checkable
 
 from fastapi import FastAPI, Query, Request
 from fastapi.responses import HTMLResponse, JSONResponse, Response
+from starlette.background import BackgroundTask
 
 from ...config import GatewayConfig
 from ...config.loading import copy_plain, parse_text
@@ -111,7 +112,9 @@ def config_routes(app: FastAPI, gateway: GatewayLike, roles: Roles) -> None:
             return JSONResponse({"error": f"the config has {len(exc.problems)} problem"
                                  f"{'s' if len(exc.problems) != 1 else ''}; nothing changed",
                                  "kind": "invalid_config", "problems": exc.problems}, 422)
-        return JSONResponse(outcome.to_json())
+        # (a move of this server comes after its answer: ``PutOutcome.then``)
+        return JSONResponse(outcome.to_json(), background=outcome.then and BackgroundTask(
+            outcome.then))
 
 
 async def _body(request: Request) -> str:

@@ -110,6 +110,7 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
     authority = Authority(config)
     routes = _Routes(gateway, Roles.of(authority))
     app.state.roles = routes.roles  # (for routes added beside these: roles.admin …)
+    app.state.authority = authority  # (a reload gives it new credentials)
     login_routes(app, authority, routes.roles)
     _status_routes(app, routes)
     _sensor_routes(app, routes)

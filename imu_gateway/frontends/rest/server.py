@@ -12,9 +12,10 @@ from http import HTTPStatus
 from typing import Any, ClassVar
 
 import uvicorn
+from fastapi import FastAPI
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
-from ...config import HttpConfig
+from ...config import HttpConfig, ListenAddress
 from ...errors import KINDS, ErrorKind
 from ...stats import FrontendCounts
 from ...supervise import Frontend, RepeatFilter
@@ -250,46 +251,63 @@ class HttpServer(Frontend):
         self._server: _Server | None = None
         self._task: asyncio.Task[None] | None = None
         self._on_stop: list[Any] = []  # the app's shutdown hooks (uvicorn's lifespan is off)
+        self._app: FastAPI | None = None
 
     async def start(self) -> None:
         """Listen; raises ``OSError`` when the address cannot be bound."""
-        listen = self.config.listen
-        family = socket.AF_INET6 if ":" in listen.host else socket.AF_INET
-        # proto given: asyncio sets TCP_NODELAY only on sockets that say they are TCP,
-        # and without it each keep-alive answer waits 40 ms for a delayed ACK.
-        sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
+        self._serve(_bound(self.config.listen))
+
+    def reconfigure(self, config: HttpConfig) -> None:
+        """A reload: ``config``'s credentials and rules apply from the next request on
+        (the listen address is ``move``'s)."""
+        self.config = config.model_copy(update={"listen": self.config.listen})
+        if self._app is not None:
+            self._app.state.authority.configure(self.config)
+
+    async def move(self, config: HttpConfig) -> bool:
+        """Listen at ``config.listen`` instead (a reload, after its answer was sent).
+        The new address is bound first: when it cannot be, the server stays where it
+        is, and says so.  Then the old server stops as at a shutdown: its streams end
+        (their clients reconnect to the new address), its requests finish; the
+        sessions go on at the new address."""
         try:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            # Accepted connections inherit this: the kernel's buffer for a client that
-            # stops reading stays small (it may otherwise grow to megabytes), so a
-            # stalled stream client is noticed, and dropped, within seconds.
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
-            sock.bind((listen.host, listen.port))
-            sock.listen(512)
-        except OSError:
-            sock.close()
-            raise
-        sock.setblocking(False)
+            sock = _bound(config.listen)
+        except OSError as exc:
+            log.error("http: cannot listen at %s (%s): the REST server stays at %s; fix "
+                      "http.listen and apply again", config.listen,
+                      exc.strerror or exc, self.config.listen)
+            return False
+        old = (self._server, self._task, self.hub, self._socket, self._on_stop)
+        sessions = self._app.state.authority.sessions if self._app is not None else {}
+        self.config = config
+        self._serve(sock)
+        assert self._app is not None
+        self._app.state.authority.sessions = sessions
+        await _stop(*old)
+        return True
+
+    def _serve(self, sock: socket.socket) -> None:
         self._socket = sock
         self.hub = StreamHub(self.gateway, on_error=self.fail)
         uvicorn_log = logging.getLogger("uvicorn.error")
         if not any(isinstance(f, RepeatFilter) for f in uvicorn_log.filters):
             uvicorn_log.addFilter(RepeatFilter())  # it warns once per odd request
         app = create_app(self.gateway, self.config, self.hub, self.counters)
+        self._app = app
         self._on_stop = list(app.router.on_shutdown)  # (the procedures in progress)
-        self._server = _Server(uvicorn.Config(
+        server = self._server = _Server(uvicorn.Config(
             app, log_config=None, log_level="warning", access_log=False, lifespan="off",
             timeout_graceful_shutdown=2, server_header=False,
             http=_protocol_for(self.counters), ws="none", timeout_keep_alive=IDLE_S,
             # every connection and request at once, stalled ones included: 503 beyond
             limit_concurrency=MAX_STREAMS + 100))
-        self._task = asyncio.create_task(self._server.serve(sockets=[sock]), name="http")
-        self._task.add_done_callback(self._ended)
-        log.info("HTTP on http://%s:%d/ (API %s)", listen.host, self.port, API)
+        self._task = asyncio.create_task(server.serve(sockets=[sock]), name="http")
+        self._task.add_done_callback(lambda task: self._ended(server, task))
+        log.info("HTTP on http://%s:%d/ (API %s)", self.config.listen.host, self.port, API)
 
-    def _ended(self, task: asyncio.Task[None]) -> None:
+    def _ended(self, server: _Server, task: asyncio.Task[None]) -> None:
         """uvicorn's server ends only when told to: otherwise it failed."""
-        if task.cancelled() or (self._server is not None and self._server.should_exit):
+        if task.cancelled() or server.should_exit:
             return
         self.fail(task.exception() or RuntimeError("the HTTP server stopped"))
 
@@ -312,14 +330,40 @@ class HttpServer(Frontend):
                 "skipped_events": self.hub.skipped if self.hub is not None else 0}
 
     async def stop(self) -> None:
-        for hook in self._on_stop:  # uvicorn runs with lifespan off: no shutdown event
-            if inspect.isawaitable(done := hook()):
-                await done
-        if self.hub is not None:
-            self.hub.close()  # streams end, so their connections can close
-        if self._server is not None and self._task is not None:
-            self._server.should_exit = True
-            await self._task
-        if self._socket is not None:
-            self._socket.close()
-            self._socket = None  # a restart listens anew
+        await _stop(self._server, self._task, self.hub, self._socket, self._on_stop)
+        self._socket = None  # a restart listens anew
+
+
+def _bound(listen: ListenAddress) -> socket.socket:
+    """A listening socket at ``listen``; raises ``OSError`` when it cannot be bound."""
+    family = socket.AF_INET6 if ":" in listen.host else socket.AF_INET
+    # proto given: asyncio sets TCP_NODELAY only on sockets that say they are TCP,
+    # and without it each keep-alive answer waits 40 ms for a delayed ACK.
+    sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        # Accepted connections inherit this: the kernel's buffer for a client that
+        # stops reading stays small (it may otherwise grow to megabytes), so a
+        # stalled stream client is noticed, and dropped, within seconds.
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
+        sock.bind((listen.host, listen.port))
+        sock.listen(512)
+    except OSError:
+        sock.close()
+        raise
+    sock.setblocking(False)
+    return sock
+
+
+async def _stop(server: _Server | None, task: asyncio.Task[None] | None,
+                hub: StreamHub | None, sock: socket.socket | None, hooks: list[Any]) -> None:
+    for hook in hooks:  # uvicorn runs with lifespan off: no shutdown event
+        if inspect.isawaitable(done := hook()):
+            await done
+    if hub is not None:
+        hub.close()  # streams end, so their connections can close
+    if server is not None and task is not None:
+        server.should_exit = True
+        await task
+    if sock is not None:
+        sock.close()
