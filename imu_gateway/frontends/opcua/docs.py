@@ -20,6 +20,7 @@ from .identity import MANUFACTURER, PRODUCT_NAME, PRODUCT_URI
 from .live import RELOAD_DOC
 from .methods import declared_type
 from .nodes import COMMON_GROUPS
+from .sampling import SAMPLING_STEP_MS
 from .server import CALL_STATUS, MAX_CLIENTS
 from .space import BUS_VARS, IDENTITY_VARS, NEVER_READ, QUALITY, SENSOR_VARS, UNECE, UNITS
 
@@ -235,10 +236,12 @@ def _sampling() -> list[str]:
             "CreateMonitoredItems and ModifyMonitoredItems, and uses:", "",
             "| requested samplingInterval | revised, and what the item gets |", "|---|---|",
             "| 0 | 0: every sample written (the fastest practical rate) |",
-            f"| more than 0 | as requested, at most {MAX_PUBLISHING_INTERVAL_MS / 1000:g} s: "
-            "at most one value an interval, the newest written by then |",
-            "| negative (-1) | the subscription's publishing interval (as revised when "
-            "the item is created or modified) |", "",
+            f"| more than 0 | rounded up to a multiple of {SAMPLING_STEP_MS:g} ms, at most "
+            f"{MAX_PUBLISHING_INTERVAL_MS / 1000:g} s: at most one value an interval, the "
+            "newest written by then |",
+            "| negative (-1) | the subscription's publishing interval, when the item is "
+            f"created or modified (at least {SAMPLING_STEP_MS:g} ms; a publishing interval "
+            "of 0: 0) |", "",
             "- A change between two samples is not seen: only the value at the sampling "
             "time. A value written and then left as it is (a sensor gone offline: its bad "
             "StatusCode) is still sampled, at most one interval after it was written.",

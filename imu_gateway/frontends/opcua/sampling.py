@@ -8,10 +8,12 @@ and encoded at the next publish.  A client told "sampled every 500 ms" got every
 sample of a 100 Hz sensor, and that was most of the OPC UA server's CPU
 (docs/benchmarks.md, "CPU per sample in the front ends").  Here:
 
-* **The interval:** a requested interval ≥ 0 is kept, at most
-  ``MAX_PUBLISHING_INTERVAL_MS``; 0 is every sample (as before); a negative one (or
-  NaN) is the subscription's publishing interval.  The revised interval is answered in
-  Create and Modify, and is the one used.  An item of events keeps asyncua's answer.
+* **The interval:** 0 is every sample (as before); a requested interval > 0 is
+  rounded up to a multiple of ``SAMPLING_STEP_MS``, at most
+  ``MAX_PUBLISHING_INTERVAL_MS``; a negative one (or NaN) is the subscription's
+  publishing interval (at least ``SAMPLING_STEP_MS``).  The revised interval is
+  answered in Create and Modify, and is the one used.  An item of events keeps
+  asyncua's answer.
 * **Sampling:** a write to the node of an item with an interval > 0 is only held, the
   newest replacing the one before (a change between two samples is not seen).  A
   ticker for each interval of the subscription hands each item's held value, if any,
@@ -33,6 +35,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 from typing import Any
 
 from asyncua import ua
@@ -42,11 +45,21 @@ from asyncua.server.subscription_service import SubscriptionService
 log = logging.getLogger("imu_gateway.opcua")
 
 
+#: Sampling intervals other than 0 are whole multiples of this (ms): each distinct
+#: interval of a subscription is a task of its own, which a client asking 0.001 ms, or
+#: a thousand odd intervals, would keep busy; a 100 Hz sensor's sample comes every 10.
+SAMPLING_STEP_MS = 10.0
+
+
 def revised_interval(requested: float, publishing: float, most: float) -> float:
-    """The sampling interval used for a value's item (ms): Part 4 5.12.1.2."""
+    """The sampling interval used for a value's item (ms): Part 4 5.12.1.2, with the
+    server's fastest rate (0 is every sample) and steps (``SAMPLING_STEP_MS``)."""
     if not requested >= 0:  # negative (or NaN): the subscription's publishing interval
-        return publishing
-    return min(float(requested), most)
+        return max(publishing, SAMPLING_STEP_MS) if publishing > 0 else 0.0
+    if requested == 0:
+        return 0.0
+    step = SAMPLING_STEP_MS
+    return min(step * math.ceil(requested / step), most)  # (never sooner than asked)
 
 
 class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is untyped)

@@ -121,7 +121,8 @@ async def test_each_item_is_sampled_at_its_revised_interval(
     """0: every sample (consecutive Sequence numbers); 200 ms: revised 200, values at
     least ~200 ms apart (asyncua answered the publishing interval and sent every
     sample: with a queue of one, one value at each 100 ms publish); -1: the
-    publishing interval.  A Read still gives the newest sample."""
+    publishing interval; a tiny or odd interval: a multiple of 10 ms.  A Read still
+    gives the newest sample."""
     port = free_port()
     async with running(_config(port, tmp_path / "pki", line[0])) as gw, \
             Client(f"opc.tcp://127.0.0.1:{port}/") as client:
@@ -131,8 +132,9 @@ async def test_each_item_is_sampled_at_its_revised_interval(
         told = Told()
         subscription, made = await _subscribe(client, told, [
             _watch(1, sequence, 0.0, queue=100), _watch(2, sequence, 200.0),
-            _watch(3, sequence, -1.0)])
-        assert [m.RevisedSamplingInterval for m in made] == [0.0, 200.0, PUBLISHING_MS]
+            _watch(3, sequence, -1.0), _watch(4, sequence, 0.001), _watch(5, sequence, 15.0)])
+        assert [m.RevisedSamplingInterval for m in made] == \
+            [0.0, 200.0, PUBLISHING_MS, 10.0, 20.0]  # (multiples of 10 ms, rounded up)
         await until(lambda: len(told.of[2]) >= 8, 20)
         every = told.values(1)
         assert all(b == a + 1 for a, b in pairwise(every)), every
