@@ -10,10 +10,13 @@ its own (the same machine) subscribes to what the case turns on:
 * ``mqtt``: the gateway publishes to a real mosquitto (started here), Home Assistant
   discovery on; one paho subscriber to ``imu/bench/+/state``;
 * ``sse``: one client of ``/api/v1/stream`` (every sensor's readings);
-* ``opcua``: one asyncua client, one subscription (50 ms, a queue of 10 for each
-  item, so that every sample is delivered) to every measured value of every sensor
-  (16 a sample: each sample changes 16 monitored values; ``--items N``: the first N
-  values of each sensor);
+* ``opcua``: one asyncua client, one subscription (50 ms, sampling interval 0 and a
+  queue of 10 for each item, so that every sample is delivered) to every measured
+  value of every sensor (16 a sample: each sample changes 16 monitored values;
+  ``--items N``: the first N values of each sensor).  ``--sampling MS`` (> 0): the
+  client is a typical SCADA client's (UaExpert's defaults): a 500 ms publishing
+  interval, each item sampled every MS ms with a queue of one, so that it gets one
+  value an item a ``max(MS, 500)`` ms;
 * ``modbus``: Modbus TCP listening, no client (a PLC polls at its own pace; what a
   sample costs there is the register image);
 * ``all``: all of them at once; ``none``: no front end (the reference);
@@ -22,7 +25,8 @@ its own (the same machine) subscribes to what the case turns on:
   subscribed to as ``mqtt``'s: what paho alone costs per message.
 
 Printed per case: the messages delivered against those expected (each sample is one
-MQTT state message, one SSE event and 16 OPC UA notifications), the gateway's CPU
+MQTT state message, one SSE event and 16 OPC UA notifications; with ``--sampling``,
+OPC UA's are the sampled ones), the gateway's CPU
 (process time ÷ wall time) and per sample, and the front ends' share: the case minus
 ``none`` of the same round.  The target (issue 29): ``all`` − ``none`` ≤ 0.15 ms.
 ``--rounds`` repeats every case, in turn; the range over the rounds is printed last.
@@ -33,7 +37,7 @@ never comes in the loop): ``write_attribute_value`` with asyncua's DataValue, wi
 gateway's ``Sample`` (its own deep copy), and a node's ``write_value``.
 
 Run: ``.venv/bin/python bench/fanout.py [--seconds 5] [--rounds 3] [--cases none,all]
-[--items 16]``.
+[--items 16] [--sampling 250]``.
 """
 
 from __future__ import annotations
@@ -78,12 +82,22 @@ class Ports:
     opcua: int
     modbus: int
     items: int  # OPC UA: monitored values per sensor
+    sampling: float = 0.0  # OPC UA: the items' sampling interval, ms (0: every sample)
 
 
-def per_sample(front_end: str, items: int) -> int:
-    """Messages a subscriber gets per sample: one state, one event, a notification per
-    monitored value."""
-    return {"mqtt": 1, "paho": 1, "sse": 1, "opcua": items}.get(front_end, 0)
+#: ``--sampling``'s client: a SCADA client's publishing interval (ms) and queue size
+SCADA_PUBLISHING_MS, SCADA_QUEUE = 500.0, 1
+
+
+def expected(front_end: str, ports: Ports, rate: float, seconds: float) -> float:
+    """Messages a subscriber gets in ``seconds``: one state and one event a sample; a
+    notification per monitored value and sample, or, sampled, per monitored value and
+    the longer of the sampling and the publishing interval."""
+    if front_end == "opcua" and ports.sampling > 0:
+        every = max(ports.sampling, SCADA_PUBLISHING_MS) / 1000
+        return ports.items * FED_SENSORS * seconds / every
+    return rate * seconds * {"mqtt": 1, "paho": 1, "sse": 1,
+                             "opcua": ports.items}.get(front_end, 0)
 
 
 def front_ends(case: str) -> tuple[str, ...]:
@@ -137,7 +151,8 @@ async def _sse(port: int, counts: dict[str, int]) -> None:
         writer.close()
 
 
-async def _opcua(port: int, items: int, counts: dict[str, int], done: asyncio.Event) -> None:
+async def _opcua(port: int, items: int, sampling: float, counts: dict[str, int],
+                 done: asyncio.Event) -> None:
     class Handler:
         def datachange_notification(self, node: object, val: object, data: object) -> None:
             counts["opcua"] += 1
@@ -146,10 +161,17 @@ async def _opcua(port: int, items: int, counts: dict[str, int], done: asyncio.Ev
         idx = await client.get_namespace_index("urn:imu-gateway")
         nodes = [client.get_node(ua.NodeId(f"bench.Sensors.s{s}.{field}", idx))
                  for s in range(FED_SENSORS) for field in FIELDS[:items]]
-        subscription = await client.create_subscription(50, Handler())
-        # a queue of 10: every sample delivered (the default queue, one value, would
-        # carry only the newest at each 50 ms publish)
-        await subscription.subscribe_data_change(nodes, queuesize=10)
+        if sampling > 0:  # a SCADA client's
+            subscription = await client.create_subscription(SCADA_PUBLISHING_MS, Handler())
+            await subscription.subscribe_data_change(nodes, queuesize=SCADA_QUEUE,
+                                                     sampling_interval=sampling)
+        else:
+            subscription = await client.create_subscription(50, Handler())
+            # sampling 0 and a queue of 10: every sample delivered (asyncua's client
+            # asks 50 ms by default; the default queue, one value, would carry only
+            # the newest at each 50 ms publish)
+            await subscription.subscribe_data_change(nodes, queuesize=10,
+                                                     sampling_interval=0.0)
         await done.wait()
         await subscription.delete()
 
@@ -176,7 +198,8 @@ def _count(case: str, ports: Ports, seconds: float, out: multiprocessing.Queue[i
         done = asyncio.Event()
         tasks = [asyncio.create_task(coro) for coro in (
             _sse(ports.http, counts) if "sse" in on else None,
-            _opcua(ports.opcua, ports.items, counts, done) if "opcua" in on else None)
+            _opcua(ports.opcua, ports.items, ports.sampling, counts, done)
+            if "opcua" in on else None)
             if coro]
         await asyncio.sleep(1.0)
         counts.update(dict.fromkeys(counts, 0))
@@ -220,8 +243,8 @@ async def run_case(case: str, ports: Ports, rate: float, seconds: float,
     finally:
         for client in bare:
             client.close()
-    expected = rate * seconds * sum(per_sample(f, ports.items) for f in front_ends(case))
-    return (delivered / expected if expected else 1.0), 1000 * cores / rate
+    wanted = sum(expected(f, ports, rate, seconds) for f in front_ends(case))
+    return (delivered / wanted if wanted else 1.0), 1000 * cores / rate
 
 
 async def write_paths(pki: str, writes: int = 300) -> None:
@@ -287,6 +310,9 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--items", type=int, default=len(FIELDS),
                         help="OPC UA: monitored values per sensor")
+    parser.add_argument("--sampling", type=float, default=0.0,
+                        help="OPC UA: the items' sampling interval, ms (> 0: a SCADA "
+                        "client's subscription, see above)")
     parser.add_argument("--cases", default=",".join(CASES),
                         help=f"comma-separated, of {', '.join(CASES)}")
     parser.add_argument("--writes", action="store_true",
@@ -298,7 +324,8 @@ def main() -> None:
         return
     cases = args.cases.split(",")
     sys.setswitchinterval(GIL_SWITCH_INTERVAL)  # as `imu-gateway run` does
-    ports = Ports(free_port(), free_port(), free_port(), free_port(), args.items)
+    ports = Ports(free_port(), free_port(), free_port(), free_port(), args.items,
+                  args.sampling)
     shares: dict[str, list[float]] = {case: [] for case in cases}
     with tempfile.TemporaryDirectory() as folder:
         broker = _broker(Path(folder), ports.broker)
@@ -306,7 +333,8 @@ def main() -> None:
             time.sleep(0.5)
             print(f"{FED_SENSORS} AH sensors, {args.rate:g} samples/s in all, "
                   f"{args.seconds:g} s per case, {args.rounds} rounds, {os.cpu_count()} CPUs; "
-                  f"OPC UA: {args.items} monitored values per sensor")
+                  f"OPC UA: {args.items} monitored values per sensor, sampled "
+                  f"{f'every {args.sampling:g} ms' if args.sampling > 0 else 'every sample'}")
             print(f"{'round':>5} {'case':>6} {'delivered':>9} {'gw ms/sample':>12} "
                   f"{'- none':>7}")
             for n in range(args.rounds):

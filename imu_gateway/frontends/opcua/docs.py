@@ -20,6 +20,7 @@ from .identity import MANUFACTURER, PRODUCT_NAME, PRODUCT_URI
 from .live import RELOAD_DOC
 from .methods import declared_type
 from .nodes import COMMON_GROUPS
+from .sampling import SAMPLING_STEP_MS
 from .server import CALL_STATUS, MAX_CLIENTS
 from .space import BUS_VARS, IDENTITY_VARS, NEVER_READ, QUALITY, SENSOR_VARS, UNECE, UNITS
 
@@ -220,10 +221,40 @@ def _quality() -> list[str]:
             "| sensor | StatusCode |", "|---|---|",
             *(f"| {status.value} | `{code}` |" for status, code in QUALITY.items()),
             f"| never read since the start | `{NEVER_READ}` (the value is null or NaN) |", "",
-            "Every new sample is written once; a subscription gets it at the publishing "
-            "interval the client asks for. A value that repeats (a sensor at rest) changes "
-            "only its timestamp: ask for the DataChangeTrigger StatusValueTimestamp to get "
-            "every sample, or watch `Sequence`, which changes with each.", ""]
+            "Every new sample is written once; a Read gets the newest. A monitored item "
+            "gets the samples at its sampling interval (below), at the publishing interval "
+            "of its subscription. A value that repeats (a sensor at rest) changes only its "
+            "timestamp: ask for the DataChangeTrigger StatusValueTimestamp (and sampling "
+            "interval 0) to get every sample, or watch `Sequence`, which changes with "
+            "each.", ""]
+
+
+def _sampling() -> list[str]:
+    return ["### Monitored items' sampling", "",
+            "Each monitored item of a value is sampled at its own sampling interval (OPC UA "
+            "Part 4 5.12.1.2), which the server answers (revisedSamplingInterval) in "
+            "CreateMonitoredItems and ModifyMonitoredItems, and uses:", "",
+            "| requested samplingInterval | revised, and what the item gets |", "|---|---|",
+            "| 0 | 0: every sample written (the fastest practical rate) |",
+            f"| more than 0 | rounded up to a multiple of {SAMPLING_STEP_MS:g} ms, at most "
+            f"{MAX_PUBLISHING_INTERVAL_MS / 1000:g} s: at most one value an interval, the "
+            "newest written by then |",
+            "| negative (-1) | the subscription's publishing interval, when the item is "
+            f"created or modified (at least {SAMPLING_STEP_MS:g} ms; a publishing interval "
+            "of 0: 0) |", "",
+            "- A change between two samples is not seen: only the value at the sampling "
+            "time. A value written and then left as it is (a sensor gone offline: its bad "
+            "StatusCode) is still sampled, at most one interval after it was written.",
+            "- A new item reports its value at once, then at its interval; a Modify takes "
+            "effect from its answer (an item modified to 0 gets the value held for it at "
+            "once).",
+            "- The sampled values then go through the item's filter (trigger, deadband) "
+            "and queue (queueSize: see \"Security\") as every value did.",
+            "- An item of events (alarms) is not sampled: it gets every event.",
+            "- Sampling saves the server's work: a client that asks 250 ms of a 100 Hz "
+            "sensor costs it four values a second an item, not a hundred "
+            "([benchmarks.md](benchmarks.md), \"CPU per sample in the front ends\"). "
+            "Mind that asyncua's client asks 50 ms unless told otherwise.", ""]
 
 
 def _rows(title: str, rows: list[tuple[str, str, str]]) -> list[str]:
@@ -361,7 +392,7 @@ def markdown() -> str:
         clients=MAX_CLIENTS, subs=MAX_SUBSCRIPTIONS_PER_SESSION,
         interval=MAX_PUBLISHING_INTERVAL_MS / 1000, lifetime=MAX_SUBSCRIPTION_LIFETIME_S,
         buffer=TransportLimits().max_recv_buffer, queue=MAX_QUEUE_SIZE)
-    lines = [INTRO.replace("{type_rows}", _type_rows()), *_values(), *_quality(),
+    lines = [INTRO.replace("{type_rows}", _type_rows()), *_values(), *_quality(), *_sampling(),
              *_rows("### A sensor's status and identity", sensor_rows),
              *_rows("### Buses (written every second)", bus_rows), *_methods(),
              *_alarms(), HISTORY_DOC, RELOAD_DOC, *_identity(), security]

@@ -38,6 +38,8 @@ authentication token.  So here:
   that.  asyncua makes 0 its cap of 10 000 for both: a client that asked for the
   default and published slowly had every sample of a 100 Hz sensor queued and sent
   (memory held for it, and the CPU of encoding each).
+* **Monitored items' sampling intervals**: a new subscription's items are sampled at
+  their revised sampling intervals (``sampling.py``).
 * **A message chunk** larger than the receive buffer is refused from its header, before
   its body is read (asyncua buffers a declared 4 GiB chunk as it arrives).
 
@@ -67,6 +69,7 @@ from cryptography import x509
 
 from ...supervise import PeerLog
 from .conditions import CALLER, Caller
+from .sampling import sample_items
 
 log = logging.getLogger("imu_gateway.opcua")
 
@@ -193,6 +196,9 @@ class GuardedProcessor(UaProcessor):
                 CALLER.reset(caller)
         if typeid == _CREATE and self.session is not None:
             self._watch.origins[self.session] = channel.peer_certificate
+        elif typeid == _SUBSCRIBE and self.session is not None:
+            sample_items(self.iserver.subscription_service, self.session.session_id,
+                         MAX_PUBLISHING_INTERVAL_MS)
         return answer
 
     def _of_events(self, subscription: int, item: int) -> bool:

@@ -1,0 +1,172 @@
+"""Each monitored item of a value sampled at its own sampling interval (OPC UA Part 4
+5.12.1.2, docs/opcua.md "Monitored items' sampling").
+
+asyncua 2.1 answers every CreateMonitoredItems with the subscription's publishing
+interval as RevisedSamplingInterval (a Modify: the interval asked), and then ignores
+it: each value written to a node becomes a notification of each of its items, queued
+and encoded at the next publish.  A client told "sampled every 500 ms" got every
+sample of a 100 Hz sensor, and that was most of the OPC UA server's CPU
+(docs/benchmarks.md, "CPU per sample in the front ends").  Here:
+
+* **The interval:** 0 is every sample (as before); a requested interval > 0 is
+  rounded up to a multiple of ``SAMPLING_STEP_MS``, at most
+  ``MAX_PUBLISHING_INTERVAL_MS``; a negative one (or NaN) is the subscription's
+  publishing interval (at least ``SAMPLING_STEP_MS``).  The revised interval is
+  answered in Create and Modify, and is the one used.  An item of events keeps
+  asyncua's answer.
+* **Sampling:** a write to the node of an item with an interval > 0 is only held, the
+  newest replacing the one before (a change between two samples is not seen).  A
+  ticker for each interval of the subscription hands each item's held value, if any,
+  to asyncua's data-change path once per interval: the item's trigger and deadband,
+  and its queue (queueSize, ``guard.py``), are asyncua's, as before.  A value written
+  and then left (a sensor gone offline: its bad status) is sampled at the next tick.
+  The initial value of a new item is reported at once (asyncua reads it then).
+* Reads are not concerned: every sample is still written to the node.
+
+The hook is asyncua's own class, one method each: :func:`sample_items` gives a new
+subscription a :class:`SampledItems` (a ``MonitoredItemService``) before it has any
+item, and that class overrides the public methods that create, modify and delete
+items and the data-change callback that each write calls.  The alternative, a
+service of asyncua's ``SubscriptionService``, would mean replacing the server's own
+``subscription_service``, which asyncua's session and server objects hold.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from typing import Any
+
+from asyncua import ua
+from asyncua.server.monitored_item_service import MonitoredItemService
+from asyncua.server.subscription_service import SubscriptionService
+
+log = logging.getLogger("imu_gateway.opcua")
+
+
+#: Sampling intervals other than 0 are whole multiples of this (ms): each distinct
+#: interval of a subscription is a task of its own, which a client asking 0.001 ms, or
+#: a thousand odd intervals, would keep busy; a 100 Hz sensor's sample comes every 10.
+SAMPLING_STEP_MS = 10.0
+
+
+def revised_interval(requested: float, publishing: float, most: float) -> float:
+    """The sampling interval used for a value's item (ms): Part 4 5.12.1.2, with the
+    server's fastest rate (0 is every sample) and steps (``SAMPLING_STEP_MS``)."""
+    if not requested >= 0:  # negative (or NaN): the subscription's publishing interval
+        return max(publishing, SAMPLING_STEP_MS) if publishing > 0 else 0.0
+    if requested == 0:
+        return 0.0
+    step = SAMPLING_STEP_MS
+    return min(step * math.ceil(requested / step), most)  # (never sooner than asked)
+
+
+class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is untyped)
+    """asyncua's monitored items of one subscription, each value's sampled at its
+    revised sampling interval."""
+
+    def __init__(self, isub: Any, aspace: Any, most: float) -> None:
+        super().__init__(isub, aspace)
+        self.most = most  # ms: the longest interval given
+        self._interval: dict[int, float] = {}  # callback handle -> ms, of items sampled
+        self._held: dict[int, ua.DataValue] = {}  # handle -> newest value not sampled
+        self._tickers: dict[float, tuple[set[int], asyncio.Task[None]]] = {}
+        self._handing: set[asyncio.Task[None]] = set()  # values handed on by a Modify
+
+    async def create_monitored_items(self, params: Any) -> list[Any]:
+        results: list[Any] = await super().create_monitored_items(params)
+        for item, result in zip(params.ItemsToCreate or (), results, strict=True):
+            mdata = self._monitored_items.get(result.MonitoredItemId)
+            if result.StatusCode.is_good() and mdata is not None and \
+                    mdata.callback_handle is not None:  # (None: an item of events)
+                result.RevisedSamplingInterval = self._revise(
+                    mdata.callback_handle, item.RequestedParameters.SamplingInterval)
+        return results
+
+    def modify_monitored_items(self, params: Any) -> list[Any]:
+        results = []
+        for item in params.ItemsToModify or ():
+            mdata = self._monitored_items.get(item.MonitoredItemId)
+            if mdata is None:  # (asyncua's own answer to it raises a TypeError)
+                results.append(ua.MonitoredItemModifyResult(StatusCode=ua.StatusCode(
+                    ua.StatusCodes.BadMonitoredItemIdInvalid)))
+                continue
+            result = self._modify_monitored_item(item)  # the queue and the filter
+            if mdata.callback_handle is not None:
+                result.RevisedSamplingInterval = self._revise(
+                    mdata.callback_handle, item.RequestedParameters.SamplingInterval)
+            results.append(result)
+        return results
+
+    def delete_monitored_items(self, ids: list[int]) -> list[ua.StatusCode]:
+        for mid in ids:
+            mdata = self._monitored_items.get(mid)
+            if mdata is not None and mdata.callback_handle is not None:
+                self._held.pop(mdata.callback_handle, None)
+                self._sample(mdata.callback_handle, 0.0)
+        return list(super().delete_monitored_items(ids))
+
+    async def datachange_callback(self, handle: int, value: Any, error: Any = None) -> None:
+        # the one path of every write to a monitored node: kept short
+        if error is None and handle in self._interval:
+            self._held[handle] = value  # sampled at the item's next tick
+            return
+        await super().datachange_callback(handle, value, error)
+
+    def _revise(self, handle: int, requested: float) -> float:
+        interval = revised_interval(requested, self.isub.data.RevisedPublishingInterval,
+                                    self.most)
+        self._sample(handle, interval)
+        return interval
+
+    def _sample(self, handle: int, interval: float) -> None:
+        """Sample the item of ``handle`` every ``interval`` ms (0: every value)."""
+        before = self._interval.pop(handle, None)
+        if before is not None:
+            handles, task = self._tickers[before]
+            handles.discard(handle)
+            if not handles:
+                task.cancel()
+                del self._tickers[before]
+        if interval > 0:
+            self._interval[handle] = interval
+            if interval not in self._tickers:
+                handles = set()
+                self._tickers[interval] = (handles, asyncio.create_task(
+                    self._tick(interval, handles), name=f"opcua sampling {interval:g} ms"))
+            self._tickers[interval][0].add(handle)
+        elif (held := self._held.pop(handle, None)) is not None:
+            # now every value: the one held is not lost (a Modify cannot wait for it)
+            task = asyncio.create_task(self._hand_on(handle, held))
+            self._handing.add(task)
+            task.add_done_callback(self._handing.discard)
+
+    async def _tick(self, interval: float, handles: set[int]) -> None:
+        """Hand each item's held value on, once per ``interval`` ms: never sooner
+        (a late tick does not bring the next one forward)."""
+        loop = asyncio.get_running_loop()
+        woke = loop.time()
+        while True:
+            await asyncio.sleep(max(0.0, woke + interval / 1000 - loop.time()))
+            woke = loop.time()
+            for handle in list(handles):
+                held = self._held.pop(handle, None)
+                if held is not None:
+                    await self._hand_on(handle, held)
+
+    async def _hand_on(self, handle: int, value: Any) -> None:
+        """asyncua's data-change path (trigger, deadband, queue) for a sampled value."""
+        try:
+            await super().datachange_callback(handle, value)
+        except Exception:  # (asyncua's own writes log theirs too, and go on)
+            log.exception("opcua: sampling monitored item %s", handle)
+
+
+def sample_items(service: SubscriptionService, session_id: ua.NodeId, most: float) -> None:
+    """Give the session's subscriptions that have asyncua's service a
+    :class:`SampledItems` (called when one is made: it has no item yet); ``most``: the
+    longest sampling interval, ms."""
+    for sub in service.subscriptions.values():
+        if sub.session_id == session_id and not isinstance(sub.monitored_item_srv, SampledItems):
+            sub.monitored_item_srv = SampledItems(sub, service.aspace, most)

@@ -1,0 +1,215 @@
+"""Monitored items' sampling intervals (docs/opcua.md, "Monitored items' sampling";
+OPC UA Part 4 5.12.1.2), from a client's side: a 50 Hz sensor (the simulator), items
+of one subscription (publishing interval 100 ms) at sampling 0 (every sample), 200 ms
+and -1 (the publishing interval); a Modify; a stalled sensor's bad status under a
+1000 ms item.  The server's answers are read as sent (asyncua's client keeps the
+revised intervals of a Create to itself, so its call is wrapped to see them)."""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Iterator
+from datetime import UTC, datetime, timedelta
+from itertools import pairwise
+from pathlib import Path
+from typing import Any
+
+import pytest
+from asyncua import Client, ua
+from support.harness import free_port, running, until
+
+from imu_gateway.model import Series, WireProtocol
+from imu_gateway.simulator import Faults, hold, make_sensor, simulated
+from imu_gateway.simulator.motion import Motion
+
+GID = "ua-sampling"
+NS = "urn:imu-gateway"
+PUBLISHING_MS = 100.0
+SAMPLE_S = 1 / 50  # the sensor's period
+#: what a sampled value's SourceTimestamp may come short of the interval by: one sample
+#: period, and the wobble of the poll's and the write's times on a busy machine
+SLACK_S = 0.05
+
+
+@pytest.fixture
+def line() -> Iterator[tuple[str, Faults]]:
+    faults = Faults()
+    ah = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200,
+                     source=hold(Motion.from_seed(3).sample(1.0)), faults=faults)
+    with simulated([ah]) as sim:
+        yield sim.path, faults
+
+
+def _config(port: int, pki: Path, path: str) -> dict[str, Any]:
+    return {"gateway_id": GID,
+            "buses": [{"name": "a", "port": path, "baudrate": 115200, "protocol": "native",
+                       "timeout_ms": 300,
+                       "sensors": [{"name": "boom", "series": "AH", "poll_hz": 50,
+                                    "stale_after_ms": 400}]}],
+            "opcua": {"listen": f"127.0.0.1:{port}", "pki_dir": str(pki),
+                      "allow_none": True}}
+
+
+class Told:
+    """What each monitored item (by client handle) was told, and when it came."""
+
+    def __init__(self) -> None:
+        self.of: dict[int, list[tuple[datetime, ua.DataValue]]] = defaultdict(list)
+
+    def datachange_notification(self, node: Any, val: Any, data: Any) -> None:
+        item = data.monitored_item
+        self.of[item.ClientHandle].append((datetime.now(UTC), item.Value))
+
+    def values(self, handle: int) -> list[Any]:
+        return [dv.Value.Value for _, dv in self.of[handle]]
+
+    def gaps(self, handle: int) -> list[float]:
+        """Seconds between the SourceTimestamps of the item's values after its first
+        (the initial value, reported at once)."""
+        stamps = [dv.SourceTimestamp for _, dv in self.of[handle]][1:]
+        return [(b - a).total_seconds() for a, b in pairwise(stamps)]
+
+
+def _watch(handle: int, node: ua.NodeId, sampling: float,
+           queue: int = 1) -> ua.MonitoredItemCreateRequest:
+    return ua.MonitoredItemCreateRequest(
+        ItemToMonitor=ua.ReadValueId(NodeId=node, AttributeId=ua.AttributeIds.Value),
+        MonitoringMode=ua.MonitoringMode.Reporting,
+        RequestedParameters=ua.MonitoringParameters(
+            ClientHandle=handle, SamplingInterval=sampling, QueueSize=queue,
+            DiscardOldest=True))
+
+
+async def _subscribe(client: Client, told: Told,
+                     items: list[ua.MonitoredItemCreateRequest]) -> tuple[Any, list[Any]]:
+    """A subscription of ``PUBLISHING_MS`` with ``items``; the server's results."""
+    subscription = await client.create_subscription(PUBLISHING_MS, told)
+    made: list[Any] = []
+    session = subscription.server  # (the session's calls, which the subscription makes)
+    create = session.create_monitored_items
+
+    async def seen(params: ua.CreateMonitoredItemsParameters) -> list[Any]:
+        results: list[Any] = await create(params)
+        made.extend(results)
+        return results
+
+    session.create_monitored_items = seen
+    try:
+        await subscription.create_monitored_items(items)
+    finally:
+        del session.create_monitored_items  # (the class's again)
+    assert all(m.StatusCode.is_good() for m in made), made
+    return subscription, made
+
+
+def _modify(subscription: Any, item: int, sampling: float,
+            queue: int = 1) -> ua.ModifyMonitoredItemsParameters:
+    return ua.ModifyMonitoredItemsParameters(
+        SubscriptionId=subscription.subscription_id, ItemsToModify=[
+            ua.MonitoredItemModifyRequest(MonitoredItemId=item, RequestedParameters=(
+                ua.MonitoringParameters(ClientHandle=9, SamplingInterval=sampling,
+                                        QueueSize=queue)))])
+
+
+def _nodes(idx: int, *paths: str) -> list[ua.NodeId]:
+    return [ua.NodeId(f"{GID}.Sensors.boom.{p}", idx) for p in paths]
+
+
+@pytest.mark.anyio
+async def test_each_item_is_sampled_at_its_revised_interval(
+        tmp_path: Path, line: tuple[str, Faults]) -> None:
+    """0: every sample (consecutive Sequence numbers); 200 ms: revised 200, values at
+    least ~200 ms apart (asyncua answered the publishing interval and sent every
+    sample: with a queue of one, one value at each 100 ms publish); -1: the
+    publishing interval; a tiny or odd interval: a multiple of 10 ms.  A Read still
+    gives the newest sample."""
+    port = free_port()
+    async with running(_config(port, tmp_path / "pki", line[0])) as gw, \
+            Client(f"opc.tcp://127.0.0.1:{port}/") as client:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 2)
+        idx = await client.get_namespace_index(NS)
+        (sequence,) = _nodes(idx, "Sequence")
+        told = Told()
+        subscription, made = await _subscribe(client, told, [
+            _watch(1, sequence, 0.0, queue=100), _watch(2, sequence, 200.0),
+            _watch(3, sequence, -1.0), _watch(4, sequence, 0.001), _watch(5, sequence, 15.0)])
+        assert [m.RevisedSamplingInterval for m in made] == \
+            [0.0, 200.0, PUBLISHING_MS, 10.0, 20.0]  # (multiples of 10 ms, rounded up)
+        await until(lambda: len(told.of[2]) >= 8, 20)
+        every = told.values(1)
+        assert all(b == a + 1 for a, b in pairwise(every)), every
+        sampled = told.values(2)
+        assert sampled == sorted(set(sampled)) and set(sampled) <= set(every) | {every[-1] + 1}
+        gaps = told.gaps(2)
+        assert min(gaps) >= 0.2 - SLACK_S, gaps
+        assert len(told.of[3]) >= 2  # (the publishing interval's: within 100 ms)
+        newest = gw.cache.snapshot("boom").seq
+        assert await client.get_node(sequence).read_value() >= newest  # a fresh Read
+        await subscription.delete()
+
+
+@pytest.mark.anyio
+async def test_a_modify_changes_the_interval(tmp_path: Path, line: tuple[str, Faults]) -> None:
+    """An item at 200 ms modified to 500 ms is answered 500 and sampled so; then to 0,
+    every sample; an item that is not there is BadMonitoredItemIdInvalid (asyncua's
+    own answer to it was a TypeError, the whole request's fault)."""
+    port = free_port()
+    async with running(_config(port, tmp_path / "pki", line[0])) as gw, \
+            Client(f"opc.tcp://127.0.0.1:{port}/") as client:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 2)
+        idx = await client.get_namespace_index(NS)
+        (sequence,) = _nodes(idx, "Sequence")
+        told = Told()
+        subscription, made = await _subscribe(client, told, [_watch(1, sequence, 200.0)])
+        item = made[0].MonitoredItemId
+        changed = await subscription.server.modify_monitored_items(
+            _modify(subscription, item, 500))
+        assert [c.RevisedSamplingInterval for c in changed] == [500.0]
+        told.of[1].clear()
+        await until(lambda: len(told.of[1]) >= 5, 20)
+        gaps = told.gaps(1)
+        assert min(gaps) >= 0.5 - SLACK_S, gaps
+        changed = await subscription.server.modify_monitored_items(
+            _modify(subscription, item, 0.0, queue=100))
+        assert [c.RevisedSamplingInterval for c in changed] == [0.0]
+        seen = len(told.of[1])
+        await until(lambda: len(told.of[1]) >= seen + 20, 20)
+        every = told.values(1)[seen + 1:]  # (the first may be the one held at the Modify)
+        assert all(b == a + 1 for a, b in pairwise(every)), every
+        wrong = await subscription.server.modify_monitored_items(
+            _modify(subscription, 4242, 50))
+        assert [w.StatusCode.value for w in wrong] == [ua.StatusCodes.BadMonitoredItemIdInvalid]
+        await subscription.delete()
+
+
+@pytest.mark.anyio
+async def test_a_stalled_sensors_bad_status_reaches_a_slow_item_within_its_interval(
+        tmp_path: Path, line: tuple[str, Faults]) -> None:
+    """A sensor that stops answering is written once as stale, once as offline, then
+    never again: an item sampled every 1000 ms still gets the bad status, at most about
+    one interval (and a publish) after it was written, though nothing is written after
+    it."""
+    path, faults = line
+    port = free_port()
+    async with running(_config(port, tmp_path / "pki", path)) as gw, \
+            Client(f"opc.tcp://127.0.0.1:{port}/") as client:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 2)
+        idx = await client.get_namespace_index(NS)
+        (pitch,) = _nodes(idx, "Angles.pitch")
+        told = Told()
+        subscription, made = await _subscribe(client, told, [_watch(1, pitch, 1000.0)])
+        assert [m.RevisedSamplingInterval for m in made] == [1000.0]
+        await until(lambda: len(told.of[1]) >= 1, 10)  # the initial value (a held reading)
+        faults.stalled = True
+
+        def bad() -> tuple[datetime, ua.DataValue] | None:
+            return next(((came, dv) for came, dv in told.of[1]
+                         if dv.StatusCode.value == ua.StatusCodes.BadCommunicationError), None)
+
+        await until(lambda: bad() is not None, 30)
+        found = bad()
+        assert found is not None
+        came, value = found
+        late = came - value.ServerTimestamp  # written (the server's clock is this one's)
+        assert late <= timedelta(seconds=1.0 + PUBLISHING_MS / 1000 + 1.0), late
+        await subscription.delete()
