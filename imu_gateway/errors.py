@@ -92,6 +92,7 @@ class ErrorKind(enum.Enum):
     UNKNOWN_ALARM = "unknown_alarm"
     NOTHING_TO_ACKNOWLEDGE = "nothing_to_acknowledge"
     TOO_MANY_ATTEMPTS = "too_many_attempts"
+    TOO_MANY_WATCHERS = "too_many_watchers"
 
 
 
@@ -138,6 +139,8 @@ KINDS: Mapping[ErrorKind, KindRow] = MappingProxyType({
         "acknowledge"),
     ErrorKind.TOO_MANY_ATTEMPTS: KindRow(429, None, "too many logins from this address: "
                                          "wait Retry-After seconds"),
+    ErrorKind.TOO_MANY_WATCHERS: KindRow(429, None, "too many traffic monitors open from "
+                                         "this address: close one"),
 })
 
 

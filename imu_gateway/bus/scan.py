@@ -14,6 +14,17 @@ rate, most likely first:
   0x04 (its product address); a sensor that answers is read once more (the float
   block) to guess its series from which values are zero.
 
+A streaming sensor (auto-output, which a paused bus's sensor keeps up) sends frames
+nobody asked for.  They are not answers: a request waits for the frame it asked for
+(its command, from its address) and listens through the others.  Nor are they a
+collision: the address query's answers are judged garbled by the bytes that are not
+a complete frame, so a stream's frames do not send the scan asking every address one
+by one.  A stream frame cut short by the request (its first bytes dropped with the
+input buffer) looks garbled: the query is then asked again right after one of the
+stream's frames, in the pause before the next (``Prober.after_a_frame``); so is every
+request after that at that rate, which keeps the answers from meeting the stream's
+frames on the wire (at the cost of up to one stream period per request).
+
 Nothing is written to a sensor: only reads and the address query are sent.  Each
 request waits its wire time plus ``margin`` for an answer: by default the gateway's own
 first timeout (``bus.timing.RTO_INITIAL``), generous enough for a sensor that answers
@@ -24,6 +35,7 @@ progress reports' estimate of the time left is made of (``time_left``).
 from __future__ import annotations
 
 import errno
+import functools
 import math
 import os
 import time
@@ -57,6 +69,14 @@ _QUERY_ANSWER_BYTES = 6
 _ZERO_TYPE_REQUEST_BYTES = len(native.encode_request("read_zero_type", 0))
 _UNIT_REQUEST_BYTES = len(rtu.read_request(1, 0x04, 1))  # FC03 of register 0x04
 _UNIT_ANSWER_BYTES = 7  # unit, function, byte count, one register, CRC
+
+#: The address query, garbled beside a stream, is asked this many times in all.
+QUERY_TRIES = 5
+#: A request beside a stream whose answer came garbled is sent this many times in all.
+STREAM_TRIES = 5
+#: Waiting for a stream's frame to go right after it: no longer than this (a stream
+#: slower than once a second is asked past, as a quiet line is).
+STREAM_WAIT = 1.0
 
 #: What opening a port someone else holds fails with: EAGAIN (EWOULDBLOCK) from the
 #: flock pyserial's ``exclusive=True`` takes, as the gateway's does; EBUSY when the
@@ -200,65 +220,151 @@ def _no_tick(address: int, asked: int) -> None:
     pass
 
 
+def _anything(frame: Any) -> bool:
+    return True
+
+
+def _wire_size(frame: Any) -> int:
+    if isinstance(frame, native.NativeFrame):
+        return len(frame.data) + 5  # 77, LEN, address, command, data, checksum
+    return len(rtu.encode(frame))
+
+
+@dataclass(frozen=True, slots=True)
+class Heard:
+    """What came back to a request: the frames it asked for; how many complete frames
+    came that it did not ask for (a stream's); and ``noise``, the bytes that were not
+    one of those (the answers' own, garbage, a frame cut short)."""
+
+    answers: list[Any]
+    unasked: int
+    noise: int
+
+
 class Prober:
     """Requests and the frames that come back, with a per-request time budget."""
 
     def __init__(self, port: serial.Serial, margin: float) -> None:
         self.port = port
         self.margin = margin
+        #: Frames nobody asked for were heard at this rate (a stream): each request
+        #: goes right after one of them, not into the next (``after_a_frame``).
+        self.stream = False
 
-    def ask(self, request: bytes, answer_bytes: int, framer: Any, gap: float = 0.0,
-            all_answers: bool = False) -> tuple[list[Any], int]:
-        """Send ``request``; return the frames heard and how many bytes arrived.  With
-        ``all_answers`` it listens for the whole time allowed, not just the first."""
+    def ask(self, request: bytes, answer_bytes: int, framer: Callable[[], Any],
+            gap: float = 0.0, all_answers: bool = False,
+            wanted: Callable[[Any], bool] = _anything) -> Heard:
+        """Send ``request``; return what came back (``framer`` makes the framer of the
+        answers).  It waits for the first frame that is ``wanted`` (the others, a
+        stream's, are heard through); with ``all_answers`` it listens for the whole
+        time allowed.  Beside a stream, a request whose answer came garbled (met a
+        stream frame: on a busy machine the request may go late) is sent again."""
+        for _ in range(STREAM_TRIES if self.stream and not all_answers else 1):
+            heard = self._ask(request, answer_bytes, framer(), gap, all_answers, wanted)
+            if heard.answers or not heard.noise:
+                break
+        return heard
+
+    def _ask(self, request: bytes, answer_bytes: int, framer: Any, gap: float,
+             all_answers: bool, wanted: Callable[[Any], bool]) -> Heard:
+        if self.stream:
+            self.after_a_frame()
         time.sleep(gap)
         self.port.reset_input_buffer()
         self.port.write(request)
         deadline = time.monotonic() + listen_time(self.port.baudrate, len(request),
                                                   answer_bytes, self.margin, gap)
-        frames: list[Any] = []
+        # A frame coming in as the time runs out (a stream's, most likely) is waited
+        # for, once: cut off, its bytes would look like a collision.
+        grace = native.MAX_FRAME * char_time(self.port.baudrate)
+        answers: list[Any] = []
+        unasked: list[Any] = []
         heard = 0
-        while time.monotonic() < deadline and (all_answers or not frames):
-            self.port.timeout = max(0.0, deadline - time.monotonic())
+        while all_answers or not answers:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                if not getattr(framer, "pending", 0) or not grace:
+                    break
+                deadline, grace = deadline + grace, 0.0
+                continue
+            self.port.timeout = left
             data = self.port.read(max(1, self.port.in_waiting))
             heard += len(data)
-            frames += framer.feed(data)
-        return frames, heard
+            for frame in framer.feed(data):
+                (answers if wanted(frame) else unasked).append(frame)
+        self.stream = self.stream or (bool(unasked) and isinstance(framer, native.NativeFramer))
+        return Heard(answers, len(unasked), heard - sum(map(_wire_size, unasked)))
+
+    def after_a_frame(self) -> None:
+        """Wait for a native frame to end (at most ``STREAM_WAIT``): a stream's, whose
+        next frame is then a period away, the line quiet for a request meanwhile."""
+        framer = native.NativeFramer(native.ANSWER_SHAPES)
+        self.port.reset_input_buffer()
+        end = time.monotonic() + STREAM_WAIT
+        while (left := end - time.monotonic()) > 0:
+            self.port.timeout = left
+            if framer.feed(self.port.read(max(1, self.port.in_waiting))):
+                return
+
+
+_READ_ALL_SHAPES = {
+    shape.key: label for series, label in ((Series.IMU, "IMU"), (Series.VG, "VG or MINS"),
+                                           (Series.AH, "AH"))
+    if (shape := native.COMMANDS_BY_NAME["read_all"].answer_for(series)) is not None}
+_ZERO_TYPE_ANSWERS = frozenset(
+    shape.key[0] for series in Series
+    if (shape := native.COMMANDS_BY_NAME["read_zero_type"].answer_for(series)) is not None)
+
+
+def _answer_framer() -> native.NativeFramer:
+    return native.NativeFramer(native.ANSWER_SHAPES)
 
 
 def _native_series(prober: Prober, address: int) -> str:
     exchange = NativeAdapter().poll(Series.VG, address)  # the request is the same for all
-    frames, _ = prober.ask(exchange.request, native.MAX_FRAME,
-                           native.NativeFramer(native.ANSWER_SHAPES))
-    for frame in frames:
-        if frame.address != address:
-            continue
-        key = (frame.command, len(frame.data) + 4)
-        for series, label in ((Series.IMU, "IMU"), (Series.VG, "VG or MINS"), (Series.AH, "AH")):
-            shape = native.COMMANDS_BY_NAME["read_all"].answer_for(series)
-            if shape is not None and shape.key == key:
-                return label
-    return "unknown"
+    heard = prober.ask(exchange.request, native.MAX_FRAME,
+                       _answer_framer,
+                       wanted=lambda f: f.address == address and _shape_key(f) in _READ_ALL_SHAPES)
+    return _READ_ALL_SHAPES[_shape_key(heard.answers[0])] if heard.answers else "unknown"
+
+
+def _shape_key(frame: native.NativeFrame) -> tuple[int, int]:
+    return frame.command, len(frame.data) + 4
+
+
+def _zero_type_from(address: int) -> Callable[[native.NativeFrame], bool]:
+    return lambda f: f.address == address and f.command in _ZERO_TYPE_ANSWERS
+
+
+def _address_query(prober: Prober) -> tuple[list[int], bool, bool]:
+    """The addresses that answered the 2.6 query; whether something garbled it (several
+    sensors answering at once); whether frames nobody asked for came (a stream).  Beside
+    a stream, a garbled query is asked again right after one of its frames."""
+    for _ in range(QUERY_TRIES):
+        heard = prober.ask(_QUERY, _QUERY_ANSWER_BYTES, _answer_framer, all_answers=True,
+                           wanted=lambda f: f.command == 0x1F)
+        garbled = heard.noise != _QUERY_ANSWER_BYTES * len(heard.answers)
+        if not (garbled and heard.unasked):
+            break
+    answers = sorted({native.interpret(f).values["address"] for f in heard.answers})
+    return answers, garbled, heard.unasked > 0
 
 
 def scan_native(prober: Prober, addresses: Iterable[int],
                 tick: Tick = _no_tick) -> Iterator[tuple[int, str]]:
     # Every sensor answers the address query: listen for all of them (they may answer
     # one after another without colliding).
-    frames, heard = prober.ask(_QUERY, _QUERY_ANSWER_BYTES,
-                               native.NativeFramer(native.ANSWER_SHAPES), all_answers=True)
-    answers = sorted({native.interpret(f).values["address"] for f in frames
-                      if f.command == 0x1F})
-    if answers and heard == _QUERY_ANSWER_BYTES * len(answers):
+    answers, garbled, streaming = _address_query(prober)
+    if answers and not garbled:
         found = answers
-    elif heard:  # something answered, garbled: several sensors at once
+    elif garbled or streaming:  # several sensors at once; or a stream, not answering
         found = []
         for asked, address in enumerate(addresses):
             tick(address, asked)
             request = native.encode_request("read_zero_type", address)
-            frames, _ = prober.ask(request, _zero_type_answer_bytes(),
-                                   native.NativeFramer(native.ANSWER_SHAPES))
-            if any(f.address == address for f in frames):
+            heard = prober.ask(request, _zero_type_answer_bytes(), _answer_framer,
+                               wanted=_zero_type_from(address))
+            if heard.answers:
                 found.append(address)
     else:
         return
@@ -300,10 +406,10 @@ def _answers_from(unit: int) -> Any:
 def _modbus_series(prober: Prober, unit: int) -> str:
     start, count = poll_span(Series.AH)
     gap = rtu_silence(prober.port.baudrate)
-    frames, _ = prober.ask(rtu.read_request(unit, start, count), 5 + 2 * count,
-                           _answers_from(unit), gap)
-    for frame in frames:
-        if isinstance(frame, rtu.ReadResponse) and frame.unit == unit:
+    heard = prober.ask(rtu.read_request(unit, start, count), 5 + 2 * count,
+                       functools.partial(_answers_from, unit), gap, wanted=_unit_is(unit))
+    for frame in heard.answers:
+        if isinstance(frame, rtu.ReadResponse):
             values = rtu.read_values(start, frame.registers)
             measured = {g for g, spec in VALUE_GROUPS.items()
                         if any(values.get(n) for n in spec.fields)}
@@ -316,14 +422,19 @@ def _modbus_series(prober: Prober, unit: int) -> str:
     return "unknown"
 
 
+def _unit_is(unit: int) -> Callable[[Any], bool]:
+    return lambda frame: bool(getattr(frame, "unit", None) == unit)
+
+
 def scan_modbus(prober: Prober, units: Iterable[int],
                 tick: Tick = _no_tick) -> Iterator[tuple[int, str]]:
     gap = rtu_silence(prober.port.baudrate)
     for asked, unit in enumerate(units):
         tick(unit, asked)
-        frames, _ = prober.ask(rtu.read_request(unit, 0x04, 1), _UNIT_ANSWER_BYTES,
-                               _answers_from(unit), gap)
-        if any(getattr(f, "unit", None) == unit for f in frames):
+        heard = prober.ask(rtu.read_request(unit, 0x04, 1), _UNIT_ANSWER_BYTES,
+                           functools.partial(_answers_from, unit), gap,
+                           wanted=_unit_is(unit))
+        if heard.answers:
             yield unit, _modbus_series(prober, unit)
 
 
@@ -358,6 +469,7 @@ def scan(port: str, protocols: Iterable[WireProtocol], bauds: Iterable[int],
         prober = Prober(ser, margin)
         for index, step in enumerate(steps):
             ser.baudrate = step.baudrate
+            prober.stream = False  # (a stream at another rate is noise at this one)
             tick: Tick = _no_tick
             if progress:
                 progress(Progress(step, None, 0, time_left(steps, index, None, margin)))

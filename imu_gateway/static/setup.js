@@ -8,12 +8,22 @@
  * (buses[0].sensors[1].series: …) and is shown beside that field.  The YAML tab sends
  * its text the same way.  No framework, no build step, nothing from a CDN.
  *
+ * The two drafts: the form's (page.config) and the YAML tab's text.  Going to the
+ * YAML tab carries the form's changes into the text (the config as YAML, which is
+ * what GET ?format=yaml gives too); going back with the text changed cannot carry
+ * them (no YAML parser here), so a prompt asks: keep editing the YAML, or discard its
+ * changes.  Nothing is lost silently.
+ *
+ * The scan (static/scan.js): each sensor found has an Add button that puts it into
+ * the form's draft, in the bus on that port or in a new bus.
+ *
  * The credential: the dashboard's login (static/auth.js, "Authorization: Bearer").
  *
  * Test hooks: <body data-state> (loading, editing, previewed, invalid, applied,
  * refused, failed); every field and list has data-path, its YAML path; a list's add
  * button data-add (its path); an item's remove button .remove; a field's problem
- * .error.
+ * .error; the tab prompt #switch-prompt (#keep-yaml, #drop-yaml); a found sensor's
+ * Add button .scan-add.
  */
 "use strict";
 
@@ -21,7 +31,8 @@
   const API = "api/v1";
   const auth = window.imuAuth;
   const $ = (id) => document.getElementById(id);
-  const page = { schema: null, config: null, tab: "form", previewed: null };
+  const page = { schema: null, config: null, tab: "form", previewed: null,
+                 changed: { form: false, yaml: false }, yamlBase: "", scan: false };
 
   // ------------------------------------------------------------------ the gateway
 
@@ -58,9 +69,15 @@
     }
     page.schema = schema.data;
     page.config = config.data.config;
-    $("yaml").value = yaml.text;
+    $("yaml").value = page.yamlBase = yaml.text;
+    page.changed = { form: false, yaml: false };
+    $("switch-prompt").hidden = true;
     render();
     edited();
+    if (!page.scan) {
+      page.scan = true;
+      window.imuScan.mount($("scan"), addFound, (page.config.buses || []).map((b) => b.port));
+    }
   }
 
   function banner(text) {
@@ -168,7 +185,7 @@
       const next = parsed(how, control.value);
       if (next === undefined) delete data[key];
       else data[key] = next;
-      edited();
+      edited("form");
     });
     return element("label", { class: "field", "data-path": path },
       element("span", { class: "key" }, key + (required ? " *" : "")), control,
@@ -183,7 +200,7 @@
       element("legend", {}, key), help(field.description), element("span", { class: "error" }));
     rows.forEach((row, i) => {
       const remove = element("button", { type: "button", class: "remove" }, `Remove this ${one}`);
-      remove.addEventListener("click", () => { rows.splice(i, 1); render(); edited(); });
+      remove.addEventListener("click", () => { rows.splice(i, 1); render(); edited("form"); });
       out.append(element("fieldset", { class: "item", "data-path": `${path}[${i}]` },
         element("legend", {}, `${one} ${row.name || "(new)"}`), remove,
         element("span", { class: "error" }), object(items, row, `${path}[${i}]`)));
@@ -194,12 +211,95 @@
     add.addEventListener("click", () => {
       data[key] = [...rows, {}];
       render();
-      edited();
+      edited("form");
       const added = CSS.escape(`${path}[${rows.length}]`);
       const first = document.querySelector(`[data-path="${added}"] input`);
       if (first) first.focus();
     });
     out.append(add);
+    return out;
+  }
+
+  // ------------------------------------------------------------------ the YAML tab
+
+  /** A plain scalar where YAML reads it back as the same string, else JSON's quoted
+   *  form (which YAML reads too): "***", "${VAR}", "9600" stay strings. */
+  function scalar(value) {
+    if (value === null || value === undefined) return "null";
+    if (typeof value !== "string") return String(value);
+    const plain = /^[A-Za-z_/][\w./:-]*$/.test(value) &&
+      !/^(true|false|null|yes|no|on|off|y|n)$/i.test(value);
+    return plain ? value : JSON.stringify(value);
+  }
+
+  /** ``value`` as the text after "key:" (the key at ``indent``), in block style as the
+   *  gateway writes it: a mapping's keys 2 further in, a list's items at the key's. */
+  function block(value, indent) {
+    if (Array.isArray(value) && value.length) {
+      return "\n" + value.map((item) => `${indent}-${listItem(item, `${indent}  `)}`).join("");
+    }
+    if (value && typeof value === "object" && Object.keys(value).length) {
+      return "\n" + Object.entries(value)
+        .map(([k, v]) => `${indent}  ${scalar(k)}:${block(v, `${indent}  `)}`).join("");
+    }
+    if (Array.isArray(value)) return " []\n";
+    return value && typeof value === "object" ? " {}\n" : ` ${scalar(value)}\n`;
+  }
+
+  function listItem(item, indent) {
+    if (Array.isArray(item)) return ` ${JSON.stringify(item)}\n`;  // (JSON is YAML)
+    if (!item || typeof item !== "object" || !Object.keys(item).length) return block(item, indent);
+    return Object.entries(item).map(([k, v], i) =>
+      `${i ? indent : " "}${scalar(k)}:${block(v, indent)}`).join("");
+  }
+
+  /** The config as YAML text, as GET /api/v1/config?format=yaml writes it. */
+  function toYaml(config) {
+    return Object.entries(config).map(([k, v]) => `${scalar(k)}:${block(v, "")}`).join("");
+  }
+
+  // ------------------------------------------------------------------ the scan
+
+  /** A sensor the scan found, into the form's draft: the bus on its port, or a new bus
+   *  at the rate and protocol it answered at. */
+  function addFound(found, port, button) {
+    const made = window.imuScan.sensor_config(found, port);
+    const buses = page.config.buses = page.config.buses || [];
+    const names = new Set(buses.flatMap((b) => (b.sensors || []).map((s) => s.name)));
+    let bus = buses.find((b) => b.port === port);
+    const here = bus ? (bus.sensors || []).find((s) => addressOf(s, bus) === found.address) : null;
+    if (here) {
+      say(`address ${found.address} on ${port} is in the config already: ${here.name}`, true);
+      return;
+    }
+    const sensor = { ...made.sensor, name: unique(made.sensor.name, names) };
+    let note = "";
+    if (!bus) {
+      const taken = new Set(buses.map((b) => b.name));
+      bus = { name: unique(`line-${sensor.name}`, taken), ...made.bus, sensors: [] };
+      buses.push(bus);
+      note = ` (a new bus, ${bus.name}, on ${port})`;
+    } else if ((bus.baudrate || 9600) !== found.baudrate || bus.protocol !== found.protocol) {
+      note = `; bus ${bus.name} runs ${bus.protocol} at ${bus.baudrate || 9600} baud, the ` +
+        `sensor answered ${found.protocol} at ${found.baudrate}: change one of them`;
+    }
+    bus.sensors = [...(bus.sensors || []), sensor];
+    render();
+    edited("form");
+    button.disabled = true;
+    button.textContent = `added as ${sensor.name}`;
+    say(`${sensor.name} added to bus ${bus.name}${note}: Preview the change, then Apply`, !note.startsWith(";"));
+  }
+
+  /** A sensor's address on its bus, its default where the config has none. */
+  function addressOf(sensor, bus) {
+    if (sensor.address !== undefined) return sensor.address;
+    return bus.protocol === "modbus" ? 1 : 0;
+  }
+
+  function unique(name, taken) {
+    let out = name;
+    for (let n = 2; taken.has(out); n += 1) out = `${name}-${n}`;
     return out;
   }
 
@@ -212,8 +312,10 @@
       : [$("yaml").value, "application/yaml"];
   }
 
-  /** Any edit: the preview shown is of something else now. */
-  function edited() {
+  /** Any edit (of the form's or the YAML's draft, ``which``): the preview shown is of
+   *  something else now. */
+  function edited(which) {
+    if (which) page.changed[which] = true;
     page.previewed = null;
     $("apply").disabled = true;
     $("diff").hidden = true;
@@ -331,6 +433,16 @@
   }
 
   function showTab(tab) {
+    if (tab === page.tab) return;
+    if (tab === "form" && page.changed.yaml) {
+      $("switch-prompt").hidden = false;  // (the YAML tab stays shown until answered)
+      $("keep-yaml").focus();
+      return;
+    }
+    if (tab === "yaml" && page.changed.form) {
+      // The form's draft, carried over: the text is the config the form holds.
+      $("yaml").value = page.yamlBase = toYaml(page.config);
+    }
     page.tab = tab;
     $("tab-form").setAttribute("aria-selected", String(tab === "form"));
     $("tab-yaml").setAttribute("aria-selected", String(tab === "yaml"));
@@ -343,7 +455,17 @@
 
   $("tab-form").addEventListener("click", () => showTab("form"));
   $("tab-yaml").addEventListener("click", () => showTab("yaml"));
-  $("yaml").addEventListener("input", edited);
+  $("yaml").addEventListener("input", () => edited("yaml"));
+  $("keep-yaml").addEventListener("click", () => {
+    $("switch-prompt").hidden = true;
+    $("yaml").focus();
+  });
+  $("drop-yaml").addEventListener("click", () => {
+    $("switch-prompt").hidden = true;
+    $("yaml").value = page.yamlBase;  // the form's draft as it was when last shown here
+    page.changed.yaml = false;
+    showTab("form");
+  });
   $("preview").addEventListener("click", () => preview().catch((e) => say(e.message, false)));
   $("apply").addEventListener("click", () => apply().catch((e) => say(e.message, false)));
   $("reload").addEventListener("click", () => { clearProblems(); say("", true); load(); });

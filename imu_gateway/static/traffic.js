@@ -3,10 +3,8 @@
  * Traffic: GET /api/v1/buses/{bus}/traffic as Server-Sent Events, filtered by the
  * gateway (?sensor=, ?errors=true) so its 50 frames a second go to what is asked.
  * Pause keeps the stream and counts what it did not show.
- * Scan: POST /api/v1/scan, an admin's (the dashboard's login: static/auth.js sends
- * it as a header, never in a URL); a port one of the gateway's buses uses is refused first, with the
- * reason, and a button confirms.  Each sensor found gets an "Add" button that fills a
- * YAML snippet (sensor_config).
+ * Scan: static/scan.js's form; each sensor found gets an "Add" button that fills a
+ * YAML snippet (imuScan.sensor_config).
  */
 "use strict";
 
@@ -114,94 +112,10 @@
     .catch((status) => { $("traffic-state").textContent = `cannot list the buses (${status})`; });
 
   // ---------------------------------------------------------------- scan
-  let scan = null;  // {id, events: EventSource}
-
-  /** What the config needs for a sensor found: its bus and the sensor itself, and the
-   *  YAML to paste (the Setup form takes the same object). */
-  function sensor_config(found, port) {
-    const series = found.series.split(" ")[0];  // "VG or MINS": VG, the closer reading
-    const name = `${series.toLowerCase()}${found.address}`;
-    const bus = { port: port, baudrate: found.baudrate, protocol: found.protocol };
-    const sensor = { name: name, series: series, address: found.address };
-    const yaml = ["buses:", `  - name: line-${name}`, `    port: ${port}`,
-                  `    baudrate: ${found.baudrate}`, `    protocol: ${found.protocol}`,
-                  "    sensors:", `      - name: ${name}`, `        series: ${series}`,
-                  `        address: ${found.address}`].join("\n") + "\n";
-    return { bus: bus, sensor: sensor, yaml: yaml };
-  }
-  window.imuScan = { sensor_config: sensor_config };
-
-  function scanBody(confirm) {
-    const protocols = [];
-    if ($("scan-native").checked) protocols.push("native");
-    if ($("scan-modbus").checked) protocols.push("modbus");
-    return { port: $("scan-port").value.trim(), protocols: protocols,
-             bauds: $("scan-bauds").value.trim().split(/[\s,]+/).map(Number),
-             first_address: Number($("scan-first").value),
-             last_address: Number($("scan-last").value), confirm: confirm };
-  }
-
-  function said(text) { $("scan-state").textContent = text; }
-
-  function showFound(found, port) {
-    const li = document.createElement("li");
-    li.textContent = `${found.protocol} ${found.baudrate} baud, address ${found.address}, ` +
-                     `series ${found.series} `;
-    const add = document.createElement("button");
-    add.type = "button";
-    add.textContent = "Add";
-    add.addEventListener("click", () => {
-      $("scan-snippet").value = sensor_config(found, port).yaml;
-      $("scan-snippet-label").hidden = false;
-    });
-    li.appendChild(add);
-    $("scan-found").appendChild(li);
-  }
-
-  async function startScan(confirm) {
-    $("scan-confirm").hidden = true;
-    const body = scanBody(confirm);
-    let r;
-    try {
-      r = await fetch("api/v1/scan", { method: "POST", body: JSON.stringify(body),
-        headers: { ...headers, "Content-Type": "application/json" } });
-    } catch (e) { said("the gateway cannot be reached"); return; }
-    const answer = await r.json();
-    if (r.status === 409 && answer.error.includes("\"confirm\": true")) {
-      said(answer.error);
-      $("scan-confirm").hidden = false;
-      return;
-    }
-    if (r.status === 401 || r.status === 403) {
-      said(`refused: ${answer.error}: scanning is an admin's (log in on the dashboard)`);
-      return;
-    }
-    if (!r.ok) { said(answer.error || `refused (${r.status})`); return; }
-    $("scan-found").textContent = "";
-    said(`scanning: about ${Math.ceil(answer.estimate_s)} s if nothing answers` +
-         (answer.paused_bus ? `; bus ${answer.paused_bus} is paused` : ""));
-    const events = auth.eventSource(answer.events);
-    scan = { id: answer.id, events: events };
-    $("scan-cancel").hidden = false;
-    $("scan-start").disabled = true;
-    const end = (text) => {
-      events.close();
-      scan = null;
-      $("scan-cancel").hidden = true;
-      $("scan-start").disabled = false;
-      said(text);
-    };
-    events.addEventListener("progress", (e) => said(JSON.parse(e.data).text));
-    events.addEventListener("found", (e) => showFound(JSON.parse(e.data), body.port));
-    events.addEventListener("done", () => end(`done: ${$("scan-found").children.length} found` +
-      (answer.paused_bus ? `; bus ${answer.paused_bus} resumed` : "")));
-    events.addEventListener("failed", (e) => end("failed: " + JSON.parse(e.data).error));
-    events.addEventListener("cancelled", () => end("cancelled"));
-  }
-
-  $("scan-form").addEventListener("submit", (e) => { e.preventDefault(); startScan(false); });
-  $("scan-confirm").addEventListener("click", () => startScan(true));
-  $("scan-cancel").addEventListener("click", () => {
-    if (scan) fetch(`api/v1/scan/${scan.id}/cancel`, { method: "POST", headers });
+  // (static/scan.js) Add fills a YAML snippet to paste into the config; the Setup
+  // page's Add puts the sensor into its form instead.
+  window.imuScan.mount($("scan"), (found, port) => {
+    $("scan-snippet").value = window.imuScan.sensor_config(found, port).yaml;
+    $("scan-snippet-label").hidden = false;
   });
 })();

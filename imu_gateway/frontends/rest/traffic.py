@@ -10,24 +10,28 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
+import weakref
 from collections import deque
 from collections.abc import AsyncGenerator
 from datetime import UTC, datetime
 from importlib import resources
 from typing import Annotated, Any
 
-from fastapi import FastAPI, Query
+from fastapi import FastAPI, Query, Request
 from fastapi.responses import HTMLResponse, StreamingResponse
 
 from ...errors import ErrorKind, RequestFailed
 from ...stats import Trace
 from ..common import GatewayLike, json_bytes
-from .access import Roles
+from .access import Roles, peer_of
 from .limits import API, KEEPALIVE_S
 from .models import ErrorOut
 
 TRAFFIC_PER_S = 50  # frames sent per client a second; the rest are counted and said
-TRAFFIC_CLIENTS = 16  # traffic monitors open at once, for the whole gateway
+#: Traffic monitors open at once from one client address: one browser tab is one, so
+#: a 17th is a leak or an attack, and it must not take the places of others.
+TRAFFIC_PER_ADDRESS = 16
+TRAFFIC_CLIENTS = 64  # traffic monitors open at once, for the whole gateway
 QUEUE = 2 * TRAFFIC_PER_S  # frames waiting per client; past it, the oldest are skipped
 
 
@@ -79,20 +83,39 @@ class _Watch:
         self.second, self.shown, self.held = now, 0, 0
 
 
+class _Seat:
+    """One open monitor counted against its client's address, given back once."""
+
+    def __init__(self, open_now: dict[str, int], peer: str) -> None:
+        self.open_now, self.peer = open_now, peer
+        open_now[peer] = open_now.get(peer, 0) + 1
+        self.taken = True
+
+    def leave(self) -> None:
+        if self.taken:
+            self.taken = False
+            self.open_now[self.peer] -= 1
+            if not self.open_now[self.peer]:
+                del self.open_now[self.peer]
+
+
 def traffic_routes(app: FastAPI, gateway: GatewayLike, roles: Roles) -> None:
     """``GET /api/v1/buses/{bus}/traffic``, and its page ``GET /traffic`` (with the scan)."""
-    open_now = [0]
+    open_now: dict[str, int] = {}  # monitors open, by client address
     page = resources.files("imu_gateway") / "static" / "traffic.html"
 
     @app.get("/traffic", response_class=HTMLResponse, include_in_schema=False)
     async def traffic_page() -> HTMLResponse:
         return HTMLResponse(page.read_text(encoding="utf-8"))
 
-    async def follow(bus: str, watch: _Watch) -> AsyncGenerator[bytes, None]:
+    async def follow(bus: str, watch: _Watch, seat: _Seat) -> AsyncGenerator[bytes, None]:
         # Watching starts here, not in the route: a response never sent (its client
         # gone at once) never runs this, and must leave no watcher behind.
-        stop = await gateway.watch_traffic(bus, watch.on_trace)
-        open_now[0] += 1
+        try:
+            stop = await gateway.watch_traffic(bus, watch.on_trace)
+        except BaseException:
+            seat.leave()
+            raise
         try:
             yield b": watching\n\n"  # (the headers and a first line go at once)
             said = time.monotonic()
@@ -112,7 +135,7 @@ def traffic_routes(app: FastAPI, gateway: GatewayLike, roles: Roles) -> None:
                 yield watch.events.popleft()
         finally:
             stop()
-            open_now[0] -= 1
+            seat.leave()
 
     sse = {"content": {"text/event-stream": {}},
            "description": "`event: frame`, `data:` one exchange (time, sensor, tx, rx, "
@@ -122,9 +145,9 @@ def traffic_routes(app: FastAPI, gateway: GatewayLike, roles: Roles) -> None:
 
     @app.get(f"{API}/buses/{{bus}}/traffic", dependencies=[roles.viewer],
              response_class=StreamingResponse,
-             responses={200: sse, **{c: {"model": ErrorOut} for c in (401, 404, 503)}},
+             responses={200: sse, **{c: {"model": ErrorOut} for c in (401, 404, 429, 503)}},
              summary="Server-Sent Events: the bus's frames as they go (a traffic monitor)")
-    async def traffic(bus: str, sensor: Annotated[str | None, Query(
+    async def traffic(request: Request, bus: str, sensor: Annotated[str | None, Query(
             description="only this sensor's exchanges")] = None,
                       errors: Annotated[bool, Query(
                           description="only the exchanges that failed")] = False,
@@ -135,9 +158,19 @@ def traffic_routes(app: FastAPI, gateway: GatewayLike, roles: Roles) -> None:
                                 f"{', '.join(buses) or 'none'})")
         if sensor is not None:
             gateway.cache.snapshot(sensor)  # (unknown_sensor, 404)
-        if open_now[0] >= TRAFFIC_CLIENTS:
+        peer = peer_of(request)
+        if open_now.get(peer, 0) >= TRAFFIC_PER_ADDRESS:
+            raise RequestFailed(ErrorKind.TOO_MANY_WATCHERS, (
+                f"{TRAFFIC_PER_ADDRESS} traffic monitors are open from {peer} already: "
+                "close one (a page or tab showing the traffic) and try again"))
+        if sum(open_now.values()) >= TRAFFIC_CLIENTS:
             raise RequestFailed(ErrorKind.TOO_MANY_STREAMS,
                                 f"{TRAFFIC_CLIENTS} traffic monitors are open")
-        return StreamingResponse(follow(bus, _Watch(sensor, errors)),
-                                 media_type="text/event-stream",
+        seat = _Seat(open_now, peer)
+        stream = follow(bus, _Watch(sensor, errors), seat)
+        # The seat is taken here, where the check is (no await between them: 17
+        # requests at once cannot all pass it); it is left when the stream ends, or
+        # when a stream never started is dropped (a client gone before its answer).
+        weakref.finalize(stream, seat.leave)
+        return StreamingResponse(stream, media_type="text/event-stream",
                                  headers={"X-Accel-Buffering": "no"})

@@ -168,3 +168,61 @@ def test_a_scan_under_way_does_not_hold_the_gateways_stop(tmp_path: Path) -> Non
             code = interrupt(process, timeout=15)
     assert code == 0, (tmp_path / "gateway.log").read_text()[-2000:]
     assert "Traceback" not in (tmp_path / "gateway.log").read_text()
+
+
+def streaming_config(port: str) -> dict[str, Any]:
+    """Bus a with one sensor, boom at address 2, streaming 50 frames a second."""
+    cfg = config(port)
+    cfg["buses"][0]["sensors"] = [{"name": "boom", "series": "AH", "address": 2,
+                                   "stream_hz": 50}]
+    return cfg
+
+
+async def scan_paused_line(http: httpx.AsyncClient, port: str,
+                           last: int) -> list[tuple[str, dict[str, Any]]]:
+    body = {"port": port, "protocols": ["native"], "bauds": [FAST], "first_address": 0,
+            "last_address": last, "confirm": True}
+    started = await http.post(f"{API}/scan", json=body, headers=AUTH)
+    assert started.status_code == 202, started.text
+    assert started.json()["paused_bus"] == "a"
+    return await events(http, started.json()["events"])
+
+
+@pytest.mark.anyio
+async def test_a_streaming_sensor_alone_is_found_by_the_address_query() -> None:
+    """Its stream frames are neither answers nor a collision: the one answer to the
+    address query finds it, with no address asked one by one."""
+    streamer = make_sensor(WireProtocol.NATIVE, Series.AH, 2, baud=FAST)
+    with simulated([streamer]) as sim:
+        async with running(streaming_config(sim.path)) as gateway, client(gateway) as http:
+            await until(lambda: gateway.cache.snapshot("boom").seq >= 20)  # streaming
+            got = await scan_paused_line(http, sim.path, 255)
+            streamed = streamer.stream_interval  # (the gateway's stop ends it)
+            seq = gateway.cache.snapshot("boom").seq
+            await until(lambda: gateway.cache.snapshot("boom").seq >= seq + 5)
+    assert streamed == 1 / 50  # it streamed all along
+    found = [data for name, data in got if name == "found"]
+    assert found == [{"protocol": "native", "baudrate": FAST, "address": 2, "series": "AH"}]
+    one_by_one = [data["text"] for name, data in got
+                  if name == "progress" and data["address"] is not None]
+    assert one_by_one == []
+    assert got[-1][0] == "done"
+
+
+@pytest.mark.anyio
+async def test_a_scan_beside_a_streaming_sensor_finds_every_sensor() -> None:
+    """A quiet sensor on the line of a streaming one: the stream's frames do not end
+    the wait for the quiet one's answer, and the requests go between them."""
+    streamer = make_sensor(WireProtocol.NATIVE, Series.AH, 2, baud=FAST)
+    quiet = [make_sensor(WireProtocol.NATIVE, series, address, baud=FAST)
+             for series, address in ((Series.VG, 5), (Series.IMU, 9), (Series.AH, 12),
+                                     (Series.VG, 14))]
+    with simulated([streamer, *quiet]) as sim:
+        async with running(streaming_config(sim.path)) as gateway, client(gateway) as http:
+            await until(lambda: gateway.cache.snapshot("boom").seq >= 20)
+            got = await scan_paused_line(http, sim.path, 15)
+            streamed = streamer.stream_interval
+    assert streamed == 1 / 50
+    found = [(data["address"], data["series"]) for name, data in got if name == "found"]
+    assert found == [(2, "AH"), (5, "VG or MINS"), (9, "IMU"), (12, "AH"), (14, "VG or MINS")]
+    assert got[-1][0] == "done"

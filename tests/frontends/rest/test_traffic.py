@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import AsyncIterator
+from contextlib import AsyncExitStack
 from datetime import datetime
 from typing import Any
 
@@ -137,3 +138,53 @@ async def test_traffic_filters_by_sensor_and_errors() -> None:
     assert all(f["sensor"] == "s1" and f["error"] and "timeout" in f["outcome"] for f in got)
     assert all(f["rx"] == "" for f in got)
     assert all(f["sensor"] == "s0" for f in ok)
+
+
+async def _open_monitor(stack: AsyncExitStack, http: httpx.AsyncClient) -> httpx.Response:
+    """A traffic monitor held open (its headers in) until ``stack`` closes."""
+    return await stack.enter_async_context(http.stream("GET", f"{API}/buses/a/traffic"))
+
+
+@pytest.mark.anyio
+async def test_at_most_16_traffic_monitors_from_one_address_and_others_still_get_in() -> None:
+    with simulated([make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST)]) as sim:
+        async with running(config(sim.path, 20)) as gateway, AsyncExitStack() as stack:
+            assert gateway.http is not None
+            base = f"http://127.0.0.1:{gateway.http.port}"
+            # The one trying to take every place: 17 monitors from one address, each
+            # on its own connection, all held open.
+            attacker = await stack.enter_async_context(httpx.AsyncClient(
+                base_url=base, timeout=10, limits=httpx.Limits(max_connections=40)))
+            held = [await _open_monitor(stack, attacker) for _ in range(16)]
+            assert [r.status_code for r in held] == [200] * 16
+            refused = await attacker.get(f"{API}/buses/a/traffic")
+            # Another address (the loopback's 127.0.0.2) still gets in.
+            other = await stack.enter_async_context(httpx.AsyncClient(
+                base_url=base, timeout=10,
+                transport=httpx.AsyncHTTPTransport(local_address="127.0.0.2")))
+            async with other.stream("GET", f"{API}/buses/a/traffic") as response:
+                assert response.status_code == 200
+                async for name, _ in sse(response):
+                    if name == "frame":
+                        break
+            # One of the 16 closed, its place is the attacker's again.
+            await held[0].aclose()
+            again = None
+
+            async def one_more() -> bool:
+                nonlocal again
+                response = await attacker.send(attacker.build_request(
+                    "GET", f"{API}/buses/a/traffic"), stream=True)
+                if response.status_code == 429:
+                    await response.aclose()
+                    return False
+                again = response
+                return True
+            await until(one_more)
+            assert again is not None and again.status_code == 200
+            await again.aclose()
+    assert refused.status_code == 429
+    assert refused.json()["kind"] == "too_many_watchers"
+    assert refused.json()["error"] == ("16 traffic monitors are open from 127.0.0.1 "
+                                       "already: close one (a page or tab showing the "
+                                       "traffic) and try again")

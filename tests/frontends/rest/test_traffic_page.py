@@ -18,6 +18,7 @@ from test_dashboard import (
     screenshot,
     wait,
 )
+from test_setup_scan import scan_end
 
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import make_sensor, simulated
@@ -63,8 +64,8 @@ def test_the_traffic_page_shows_frames_pauses_and_the_scan_finds_a_sensor(
             bauds.clear()
             bauds.send_keys(str(FAST))
             driver.find_element("id", "scan-start").click()
-            wait(lambda: "done" in driver.find_element("id", "scan-state").text,
-                 "the scan ends", timeout=30)
+            ended = wait(lambda: scan_end(driver), "the scan ends", timeout=60)
+            assert ended.startswith("done"), ended
             found = driver.find_element("id", "scan-found").text
             assert "native 115200 baud, address 9, series VG or MINS" in found
             driver.find_element("css selector", "#scan-found button").click()
