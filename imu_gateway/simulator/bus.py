@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
+import dataclasses
 import functools
 import math
 import os
@@ -71,6 +72,16 @@ HELD, WATCH_TICK = 0.008, 0.01
 #: is over within a sensor's longest answer timeout (0.4 s).
 SHADOW = 0.5
 
+#: The pseudo-terminal hands the master's bytes to this side later, in a kernel
+#: worker of normal priority, not in the master's ``write()`` as a UART's driver puts
+#: them out.  Beside CPU burners that worker waits its turn: in the soak, requests a
+#: master wrote in their place next to a 20 Hz stream were heard 23 and 47 ms later,
+#: on the stream's next frame, while the simulator itself ran on time.  A request
+#: heard ``LAGGED`` late may have used up the room a master keeps before a stream's
+#: frame (at 20 Hz: 6 ms, 1 ms of quiet and a tenth of the period), so what a request
+#: heard while the hand-over is this late meets (``WireWatch``) is the rig's doing.
+LAGGED = 0.005
+
 T = TypeVar("T")
 
 _SPEEDS = {
@@ -94,9 +105,14 @@ class BusStats:
     incidents: list[list[str]] = field(default_factory=list)
     #: times this simulator was held off its CPU (by the machine: it plays hardware,
     #: which never stops), for how long in all, and the overlaps and collisions that
-    #: followed one within ``SHADOW`` (counted in the totals above too)
+    #: followed one within ``SHADOW``, or were of a request the pty handed over late
+    #: (counted in the totals above too)
     holds: int = 0
     held_s: float = 0.0
+    #: times the pty handed the canary over ``LAGGED`` late or more, and for how
+    #: long in all (``WireWatch``)
+    lags: int = 0
+    lagged_s: float = 0.0
     overlaps_after_hold: int = 0
     collisions_after_hold: int = 0
     #: (``watch_port``) times a client opened the line's port, and closed it (the last
@@ -156,6 +172,76 @@ class HoldWatch:
                 self.on_tick()
 
 
+class WireWatch:
+    """Notices when the pseudo-terminal hands bytes over ``LAGGED`` late or more.
+
+    The simulator cannot see when the master wrote what it reads.  So it keeps a
+    canary: a pseudo-terminal of its own, whose bytes go through the same kernel
+    worker as the line's.  Each ``WATCH_TICK`` it writes a byte there (unless one is
+    still under way) and times its arrival.  While a canary byte is held that long,
+    and right after one came through that late, the worker has been held, and a
+    request read then may have been written up to that much earlier (``late``).
+    Beside CPU burners the worker is late most of the time (about 1000 times in a
+    two-minute soak, 15 ms on average), so it is no blanket excuse: only what a
+    request read then meets is.  Sans-IO apart from ``open``, ``close`` and the
+    writes: times are arguments."""
+
+    def __init__(self, stats: BusStats, note: Callable[[str], None]) -> None:
+        self.stats = stats
+        self.note = note
+        self.sent_at: float | None = None  # the canary byte under way (None: none)
+        self.released_at = -math.inf  # when a canary held ``LAGGED`` or more came through
+        self._ends = (-1, -1)  # the canary pty's (master, slave)
+
+    def open(self, loop: asyncio.AbstractEventLoop) -> None:
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        os.set_blocking(master, False)
+        os.set_blocking(slave, False)
+        self._ends = (master, slave)
+        loop.add_reader(master, self._readable)
+
+    def close(self, loop: asyncio.AbstractEventLoop) -> None:
+        master, slave = self._ends
+        if master >= 0:
+            loop.remove_reader(master)
+            os.close(master)
+            os.close(slave)
+        self._ends = (-1, -1)
+        self.sent_at = None
+
+    def tick(self, now: float) -> None:
+        """Send the next canary byte, unless one is under way."""
+        if self.sent_at is not None or self._ends[1] < 0:
+            return
+        with contextlib.suppress(BlockingIOError):
+            os.write(self._ends[1], b"\0")
+            self.sent_at = now
+
+    def _readable(self) -> None:
+        with contextlib.suppress(BlockingIOError):
+            os.read(self._ends[0], 64)
+        self.arrived(time.monotonic())
+
+    def arrived(self, now: float) -> None:
+        """The canary byte came through at ``now``."""
+        if self.sent_at is None:
+            return
+        lag, self.sent_at = now - self.sent_at, None
+        if lag >= LAGGED:
+            self.stats.lags += 1
+            self.stats.lagged_s += lag
+            self.released_at = now
+            self.note(f"LAGGED: the pty handed bytes over {lag * 1000:.0f} ms late")
+
+    def late(self, now: float) -> bool:
+        """Whether bytes read at ``now`` may have been held by the kernel's worker: a
+        canary byte is held ``LAGGED`` or more now, or one so held came through less
+        than ``LAGGED`` ago (the worker released both; the line's was read second)."""
+        return now - self.released_at < LAGGED or \
+            (self.sent_at is not None and now - self.sent_at >= LAGGED)
+
+
 class PtyBus:
     """Several simulated sensors on one pseudo-terminal."""
 
@@ -194,8 +280,8 @@ class PtyBus:
         self._wakeup: asyncio.Event | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._holds = HoldWatch(self.stats, self._timeline)
-        if watch_port:
-            self._holds.on_tick = self._port_watch
+        self._wire = WireWatch(self.stats, self._timeline)
+        self._holds.on_tick = self._tick
 
     # ------------------------------------------------------------ the pty
 
@@ -254,6 +340,13 @@ class PtyBus:
         return _SPEEDS.get(termios.tcgetattr(self._slave if self._slave >= 0
                                              else self._master)[5], 0)
 
+    def _tick(self) -> None:
+        """Each ``WATCH_TICK``: the canary goes on, and (``watch_port``) the port is
+        looked at."""
+        self._wire.tick(time.monotonic())
+        if self.watch_port:
+            self._port_watch()
+
     def _port_watch(self) -> None:
         """(``watch_port``, each ``WATCH_TICK``) A client opened the port: the master's
         hangup is gone.  Its bytes are listened to from now on."""
@@ -279,14 +372,18 @@ class PtyBus:
 
     # ------------------------------------------------------------ the wire
 
-    def _note(self, text: str) -> None:
+    def _note(self, text: str, heard_late: bool = False) -> None:
+        """``heard_late``: an incident of a request the pty may have handed over late
+        (``WireWatch``), or of its answer."""
         incident = text.startswith(("OVERLAP", "COLLISION"))
-        if incident and self._holds.in_shadow():
+        held = self._holds.in_shadow()
+        if incident and (held or heard_late):
             if text.startswith("OVERLAP"):
                 self.stats.overlaps_after_hold += 1
             else:
                 self.stats.collisions_after_hold += 1
-            text += " (right after the simulator was held)"
+            text += " (right after the simulator was held)" if held else \
+                " (of a request the pty handed over late)"
         self._timeline(text)
         if incident and len(self.stats.incidents) < 10:
             self.stats.incidents.append(list(self._recent))
@@ -317,18 +414,24 @@ class PtyBus:
         now = self._loop.time()
         baud = self.line_baud()
         pending_answer = any(o.solicited for o in self._queue)
+        late = self._wire.late(time.monotonic())
         if now < self._tx_end or pending_answer:
             self.stats.overlaps += 1
-            self._note(f"OVERLAP: master sent {data.hex(' ')} while a sensor was answering")
+            self._note(f"OVERLAP: master sent {data.hex(' ')} while a sensor was answering",
+                       heard_late=late)
         self.stats.requests_bytes += len(data)
         self._timeline(f"master -> {data.hex(' ')}")
         # A gap of more than 3.5 characters ends any frame in progress (RTU's rule; the
         # native sensors' own inter-character timeout is modelled the same way).
         after_silence = now - self._rx_wire_end > 3.5 * char_time(baud or 9600)
         self._rx_wire_end = max(now, self._rx_wire_end) + len(data) * char_time(baud or 9600)
+        queued = len(self._queue)
         for sensor in self.sensors:
             heard = data if sensor.baud == baud else self._noise(len(data))
             self._hear(sensor, heard, self._rx_wire_end, after_silence)
+        if late:  # its answers carry the excuse to whatever they meet
+            self._queue[queued:] = [dataclasses.replace(o, heard_late=True)
+                                    for o in self._queue[queued:]]
         if self._wakeup is not None:
             self._wakeup.set()
 
@@ -346,7 +449,8 @@ class PtyBus:
             if other.sender != out.sender:
                 self._queue.remove(other)
                 self.stats.collisions += 1
-                self._note(f"COLLISION: {out.sender} and {other.sender}")
+                self._note(f"COLLISION: {out.sender} and {other.sender}",
+                           heard_late=out.heard_late or other.heard_late)
                 frame = bytes(a ^ b for a, b in zip(frame.ljust(len(other.frame), b"\0"),
                                                     other.frame.ljust(len(frame), b"\0"),
                                                     strict=True))
@@ -418,6 +522,7 @@ class PtyBus:
             on_ready()
         stop = stop or asyncio.Event()
         next_noise = self._loop.time() + self._noise_gap()
+        self._wire.open(self._loop)
         watch = asyncio.ensure_future(self._holds.run())
         try:
             while not stop.is_set():
@@ -444,6 +549,7 @@ class PtyBus:
                 await self._sleep(stop, min(wakeups) - now if wakeups else None)
         finally:
             watch.cancel()
+            self._wire.close(self._loop)
             self.close()
 
     def _noise_gap(self) -> float:
