@@ -382,8 +382,8 @@ class PtyBus:
                 self.stats.overlaps_after_hold += 1
             else:
                 self.stats.collisions_after_hold += 1
-            text += " (right after the simulator was held)" if held else \
-                " (of a request the pty handed over late)"
+            text += " (of a request the pty handed over late)" if heard_late else \
+                " (right after the simulator was held)"
         self._timeline(text)
         if incident and len(self.stats.incidents) < 10:
             self.stats.incidents.append(list(self._recent))
