@@ -202,10 +202,12 @@ async def _serve(bus: SoakBus, names: list[str], pipe: Connection) -> None:
 
 def _line_stats(bus: PtyBus, names: list[str]) -> dict[str, Any]:
     stats = bus.stats
-    # A simulator held off its CPU by the machine stops playing hardware: what follows
-    # such a hold is counted apart (PtyBus's SHADOW), and not held against the gateway.
+    # A simulator held off its CPU by the machine, or whose pty handed the gateway's
+    # bytes over late, stops playing hardware: what follows such a hold or lag is
+    # counted apart (simulator/bus.py: HoldWatch, WireWatch), not against the gateway.
     return {"overlaps": stats.masters_overlaps, "collisions": stats.masters_collisions,
             "holds": stats.holds, "held_s": round(stats.held_s, 3),
+            "lags": stats.lags, "lagged_s": round(stats.lagged_s, 3),
             "after_holds": stats.overlaps_after_hold + stats.collisions_after_hold,
             "noise_bytes": stats.noise_bytes, "answer_frames": stats.answer_frames,
             "incidents": stats.incidents[:3],
@@ -1155,6 +1157,7 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
         out.append(f"simulator {name}: overlaps {stats.get('overlaps')}, collisions "
                    f"{stats.get('collisions')}, noise bytes {stats.get('noise_bytes')}; "
                    f"held by the machine {stats.get('holds')} times ({stats.get('held_s')} s), "
+                   f"its pty late {stats.get('lags')} times ({stats.get('lagged_s')} s), "
                    f"{stats.get('after_holds')} overlaps and collisions right after "
                    "(not counted)")
         for incident in stats.get("incidents", [])[:1]:  # what led to the first one

@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
+import dataclasses
 import functools
 import math
 import os
@@ -71,6 +72,16 @@ HELD, WATCH_TICK = 0.008, 0.01
 #: is over within a sensor's longest answer timeout (0.4 s).
 SHADOW = 0.5
 
+#: The pseudo-terminal hands the master's bytes to this side later, in a kernel
+#: worker of normal priority, not in the master's ``write()`` as a UART's driver puts
+#: them out.  Beside CPU burners that worker waits its turn: in the soak, requests a
+#: master wrote in their place next to a 20 Hz stream were heard 23 and 47 ms later,
+#: on the stream's next frame, while the simulator itself ran on time.  A request
+#: heard ``LAGGED`` late may have used up the room a master keeps before a stream's
+#: frame (at 20 Hz: 6 ms, 1 ms of quiet and a tenth of the period), so what a request
+#: heard while the hand-over is this late meets (``WireWatch``) is the rig's doing.
+LAGGED = 0.005
+
 T = TypeVar("T")
 
 _SPEEDS = {
@@ -94,9 +105,14 @@ class BusStats:
     incidents: list[list[str]] = field(default_factory=list)
     #: times this simulator was held off its CPU (by the machine: it plays hardware,
     #: which never stops), for how long in all, and the overlaps and collisions that
-    #: followed one within ``SHADOW`` (counted in the totals above too)
+    #: followed one within ``SHADOW``, or were of a request the pty handed over late
+    #: (counted in the totals above too)
     holds: int = 0
     held_s: float = 0.0
+    #: times the pty handed the canary over ``LAGGED`` late or more, and for how
+    #: long in all (``WireWatch``)
+    lags: int = 0
+    lagged_s: float = 0.0
     overlaps_after_hold: int = 0
     collisions_after_hold: int = 0
     #: (``watch_port``) times a client opened the line's port, and closed it (the last
@@ -166,14 +182,18 @@ class LineLog:
         self.holds: HoldWatch | None = None
         self._recent: deque[str] = deque(maxlen=8)
 
-    def note(self, text: str) -> None:
+    def note(self, text: str, heard_late: bool = False) -> None:
+        """``heard_late``: an incident of a request the pty may have handed over late
+        (``WireWatch``), or of its answer."""
         incident = text.startswith(("OVERLAP", "COLLISION"))
-        if incident and self.holds is not None and self.holds.in_shadow():
+        held = self.holds is not None and self.holds.in_shadow()
+        if incident and (held or heard_late):
             if text.startswith("OVERLAP"):
                 self.stats.overlaps_after_hold += 1
             else:
                 self.stats.collisions_after_hold += 1
-            text += " (right after the simulator was held)"
+            text += " (of a request the pty handed over late)" if heard_late else \
+                " (right after the simulator was held)"
         self.timeline(text)
         if incident and len(self.stats.incidents) < 10:
             self.stats.incidents.append(list(self._recent))
@@ -221,6 +241,76 @@ class PortWatch:
         return True
 
 
+class WireWatch:
+    """Notices when the pseudo-terminal hands bytes over ``LAGGED`` late or more.
+
+    The simulator cannot see when the master wrote what it reads.  So it keeps a
+    canary: a pseudo-terminal of its own, whose bytes go through the same kernel
+    worker as the line's.  Each ``WATCH_TICK`` it writes a byte there (unless one is
+    still under way) and times its arrival.  While a canary byte is held that long,
+    and right after one came through that late, the worker has been held, and a
+    request read then may have been written up to that much earlier (``late``).
+    Beside CPU burners the worker is late most of the time (about 1000 times in a
+    two-minute soak, 15 ms on average), so it is no blanket excuse: only what a
+    request read then meets is.  Sans-IO apart from ``open``, ``close`` and the
+    writes: times are arguments."""
+
+    def __init__(self, stats: BusStats, note: Callable[[str], None]) -> None:
+        self.stats = stats
+        self.note = note
+        self.sent_at: float | None = None  # the canary byte under way (None: none)
+        self.released_at = -math.inf  # when a canary held ``LAGGED`` or more came through
+        self._ends = (-1, -1)  # the canary pty's (master, slave)
+
+    def open(self, loop: asyncio.AbstractEventLoop) -> None:
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        os.set_blocking(master, False)
+        os.set_blocking(slave, False)
+        self._ends = (master, slave)
+        loop.add_reader(master, self._readable)
+
+    def close(self, loop: asyncio.AbstractEventLoop) -> None:
+        master, slave = self._ends
+        if master >= 0:
+            loop.remove_reader(master)
+            os.close(master)
+            os.close(slave)
+        self._ends = (-1, -1)
+        self.sent_at = None
+
+    def tick(self, now: float) -> None:
+        """Send the next canary byte, unless one is under way."""
+        if self.sent_at is not None or self._ends[1] < 0:
+            return
+        with contextlib.suppress(BlockingIOError):
+            os.write(self._ends[1], b"\0")
+            self.sent_at = now
+
+    def _readable(self) -> None:
+        with contextlib.suppress(BlockingIOError):
+            os.read(self._ends[0], 64)
+        self.arrived(time.monotonic())
+
+    def arrived(self, now: float) -> None:
+        """The canary byte came through at ``now``."""
+        if self.sent_at is None:
+            return
+        lag, self.sent_at = now - self.sent_at, None
+        if lag >= LAGGED:
+            self.stats.lags += 1
+            self.stats.lagged_s += lag
+            self.released_at = now
+            self.note(f"LAGGED: the pty handed bytes over {lag * 1000:.0f} ms late")
+
+    def late(self, now: float) -> bool:
+        """Whether bytes read at ``now`` may have been held by the kernel's worker: a
+        canary byte is held ``LAGGED`` or more now, or one so held came through less
+        than ``LAGGED`` ago (the worker released both; the line's was read second)."""
+        return now - self.released_at < LAGGED or \
+            (self.sent_at is not None and now - self.sent_at >= LAGGED)
+
+
 class PtyBus:
     """Several simulated sensors on one pseudo-terminal."""
 
@@ -237,9 +327,7 @@ class PtyBus:
     ) -> None:
         """``on_sent(t, frame, solicited)`` is told of every frame a sensor sent, at the
         monotonic time its last byte was written (benchmarks time the path from there).
-        ``watch_port``: the simulator keeps no descriptor of the pty's slave side
-        open itself, so it sees each time a client opens the port and closes it (the
-        master's hangup), counted and logged (``port_opens``, ``port_closes``)."""
+        ``watch_port``: each open and close of the port is seen (``PortWatch``)."""
         self.watch_port = watch_port
         self.sensors = list(sensors)
         self.on_sent = on_sent
@@ -259,8 +347,8 @@ class PtyBus:
         self.log = LineLog(self.stats, verbose)
         self._holds = self.log.holds = HoldWatch(self.stats, self.log.timeline)
         self.port_watch = PortWatch(self.stats, self.log.note) if watch_port else None
-        if watch_port:
-            self._holds.on_tick = self._port_tick
+        self._wire = WireWatch(self.stats, self.log.timeline)
+        self._holds.on_tick = self._tick
 
     # ------------------------------------------------------------ the pty
 
@@ -320,16 +408,14 @@ class PtyBus:
         return _SPEEDS.get(termios.tcgetattr(self._slave if self._slave >= 0
                                              else self._master)[5], 0)
 
-    def _port_tick(self) -> None:
-        """(``watch_port``, each ``WATCH_TICK``) A client's bytes are listened to once
-        it has opened the port."""
+    def _tick(self) -> None:
+        """Each ``WATCH_TICK``: the canary goes on, and (``watch_port``) a client's
+        bytes are listened to once it has opened the port."""
+        self._wire.tick(time.monotonic())
         if self._loop is not None and self.port_watch and self.port_watch.opened(self._master):
             self._loop.add_reader(self._master, self._on_readable)
 
     # ------------------------------------------------------------ the wire
-
-    def _noise(self, count: int) -> bytes:
-        return bytes(self.rng.randrange(256) for _ in range(count))
 
     def _on_readable(self) -> None:
         self._holds.beat()  # a hold that ends here is noted before what it did to the line
@@ -347,18 +433,25 @@ class PtyBus:
         now = self._loop.time()
         baud = self.line_baud()
         pending_answer = any(o.solicited for o in self._queue)
+        late = self._wire.late(time.monotonic())
         if now < self._tx_end or pending_answer:
             self.stats.overlaps += 1
-            self.log.note(f"OVERLAP: master sent {data.hex(' ')} while a sensor was answering")
+            self.log.note(f"OVERLAP: master sent {data.hex(' ')} while a sensor was answering",
+                          heard_late=late)
         self.stats.requests_bytes += len(data)
         self.log.timeline(f"master -> {data.hex(' ')}")
         # A gap of more than 3.5 characters ends any frame in progress (RTU's rule; the
         # native sensors' own inter-character timeout is modelled the same way).
         after_silence = now - self._rx_wire_end > 3.5 * char_time(baud or 9600)
         self._rx_wire_end = max(now, self._rx_wire_end) + len(data) * char_time(baud or 9600)
+        queued = len(self._queue)
         for sensor in self.sensors:
-            heard = data if sensor.baud == baud else self._noise(len(data))
-            self._hear(sensor, heard, self._rx_wire_end, after_silence)
+            heard = data if sensor.baud == baud else _noise(self.rng, len(data))
+            self._guarded(sensor, functools.partial(sensor.hear, heard, self._rx_wire_end,
+                                                    after_silence=after_silence))
+        if late:  # its answers carry the excuse to whatever they meet
+            self._queue[queued:] = [dataclasses.replace(o, heard_late=True)
+                                    for o in self._queue[queued:]]
         if self._wakeup is not None:
             self._wakeup.set()
 
@@ -376,12 +469,13 @@ class PtyBus:
             if other.sender != out.sender:
                 self._queue.remove(other)
                 self.stats.collisions += 1
-                self.log.note(f"COLLISION: {out.sender} and {other.sender}")
+                self.log.note(f"COLLISION: {out.sender} and {other.sender}",
+                              heard_late=out.heard_late or other.heard_late)
                 frame = bytes(a ^ b for a, b in zip(frame.ljust(len(other.frame), b"\0"),
                                                     other.frame.ljust(len(frame), b"\0"),
                                                     strict=True))
         if out.baud != self.line_baud():
-            frame = self._noise(len(frame))  # heard at the wrong rate: garbage
+            frame = _noise(self.rng, len(frame))  # heard at the wrong rate: garbage
         c = char_time(out.baud)
         self._tx_end = start + len(frame) * c
         written = 0
@@ -408,16 +502,13 @@ class PtyBus:
         self.log.note(f"{out.sender} -> {out.frame.hex(' ')}")
 
     def _inject_noise(self) -> None:
-        burst = self._noise(self.rng.randint(1, 8))
+        burst = _noise(self.rng, self.rng.randint(1, 8))
         self.stats.noise_bytes += len(burst)
         with contextlib.suppress(BlockingIOError):
             os.write(self._master, burst)
         for sensor in self.sensors:
-            self._hear(sensor, burst, self._loop.time() if self._loop else 0.0)
-
-    def _hear(self, sensor: SimSensor, data: bytes, now: float,
-              after_silence: bool = False) -> None:
-        self._guarded(sensor, lambda: sensor.hear(data, now, after_silence=after_silence))
+            self._guarded(sensor, functools.partial(
+                sensor.hear, burst, self._loop.time() if self._loop else 0.0))
 
     def _guarded(self, sensor: SimSensor, act: Callable[[], list[Outgoing]]) -> None:
         """Queue what a sensor sends; a bug in it is reported, and the line lives on."""
@@ -447,7 +538,8 @@ class PtyBus:
         if on_ready is not None:
             on_ready()
         stop = stop or asyncio.Event()
-        next_noise = self._loop.time() + self._noise_gap()
+        next_noise = self._loop.time() + _noise_gap(self.rng, self.noise_rate)
+        self._wire.open(self._loop)
         watch = asyncio.ensure_future(self._holds.run())
         try:
             while not stop.is_set():
@@ -466,7 +558,7 @@ class PtyBus:
                 if self.noise_rate and now >= next_noise:
                     if now >= self._tx_end and not self._queue:
                         self._inject_noise()
-                    next_noise = now + self._noise_gap()
+                    next_noise = now + _noise_gap(self.rng, self.noise_rate)
                 wakeups = [o.not_before for o in self._queue]
                 wakeups += [t for s in self.sensors if (t := s.next_wakeup()) is not None]
                 if self.noise_rate:
@@ -474,10 +566,8 @@ class PtyBus:
                 await self._sleep(stop, min(wakeups) - now if wakeups else None)
         finally:
             watch.cancel()
+            self._wire.close(self._loop)
             self.close()
-
-    def _noise_gap(self) -> float:
-        return self.rng.expovariate(self.noise_rate) if self.noise_rate else float("inf")
 
     async def _pause(self, seconds: float, *, exact: bool = False) -> None:
         if seconds > PRECISE:
@@ -517,6 +607,15 @@ class PtyBus:
         finally:
             for waiter in waiters:
                 waiter.cancel()
+
+
+def _noise(rng: random.Random, count: int) -> bytes:
+    return bytes(rng.randrange(256) for _ in range(count))
+
+
+def _noise_gap(rng: random.Random, rate: float) -> float:
+    """Seconds to the next burst of line noise (``rate`` bursts a second)."""
+    return rng.expovariate(rate) if rate else float("inf")
 
 
 class SimulatorThread:

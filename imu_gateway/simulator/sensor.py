@@ -45,6 +45,9 @@ class Outgoing:
     baud: int  # the rate it is sent at (a native baud change answers at the old rate)
     solicited: bool  # an answer to a request (vs. auto-output)
     sender: str
+    #: the answer to a request the pty may have handed over late (``bus.WireWatch``):
+    #: what it meets is the rig's doing
+    heard_late: bool = False
 
 
 @dataclass(slots=True)
