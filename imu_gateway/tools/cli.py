@@ -573,6 +573,7 @@ def cmd_simulate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
         summary = {"requests_bytes": stats.requests_bytes, "answer_frames": stats.answer_frames,
                    "overlaps": stats.overlaps, "collisions": stats.collisions,
                    "holds": stats.holds, "held_s": round(stats.held_s, 3),
+                   "lags": stats.lags, "lagged_s": round(stats.lagged_s, 3),
                    "overlaps_after_hold": stats.overlaps_after_hold,
                    "collisions_after_hold": stats.collisions_after_hold,
                    "writes_heard": {s.name: dict(s.writes_heard) for s in sensors},
