@@ -5,22 +5,17 @@ file; the effect seen from the side of a client."""
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import json
 import logging
 import socket
-from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
-from support.harness import free_port, until
+from support.harness import free_port, running, until
 
 from imu_gateway.app import Gateway
-from imu_gateway.config import load_config
-from imu_gateway.config.loading import ConfigSource
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.passwords import hash_password
 from imu_gateway.simulator import hold, make_sensor, simulated
@@ -69,19 +64,6 @@ def setup(tmp_path: Path) -> Any:
                                     captures=tmp_path / "c1",
                                     hash=hash_password(PASSWORD)))
         yield path
-
-
-@contextlib.asynccontextmanager
-async def running(path: Path) -> AsyncIterator[Gateway]:
-    gateway = Gateway(load_config(path), ConfigSource.read(path))
-    stop = asyncio.Event()
-    task = asyncio.create_task(gateway.run(stop))
-    try:
-        await until(lambda: gateway.http is not None and gateway.http.listening)
-        yield gateway
-    finally:
-        stop.set()
-        await asyncio.wait_for(task, 15)
 
 
 def at(port: int, **headers: str) -> httpx.AsyncClient:

@@ -9,10 +9,12 @@ import signal
 import socket
 import subprocess
 from collections.abc import AsyncIterator, Awaitable, Callable
+from pathlib import Path
 from typing import Any
 
 from imu_gateway.app import Gateway
-from imu_gateway.config import config_from_dict
+from imu_gateway.config import config_from_dict, load_config
+from imu_gateway.config.loading import ConfigSource
 from imu_gateway.model import WireProtocol
 from imu_gateway.normalise import field_values
 from imu_gateway.simulator import SimSensor
@@ -59,12 +61,15 @@ def tolerance(protocol: WireProtocol, name: str, value: float) -> float:
 
 
 @contextlib.asynccontextmanager
-async def running(config: dict[str, Any],
+async def running(config: dict[str, Any] | Path,
                   env: dict[str, str] | None = None) -> AsyncIterator[Gateway]:
     """A gateway on ``config`` (a dict as the YAML would give, ``${VAR}`` taken from
-    ``env``), running until the block ends; its front ends are listening when the block
-    starts."""
-    gateway = Gateway(config_from_dict(config, env=env or {}))
+    ``env``; or a config file, which a reload then saves to), running until the block
+    ends; its front ends are listening when the block starts."""
+    if isinstance(config, Path):
+        gateway = Gateway(load_config(config), ConfigSource.read(config))
+    else:
+        gateway = Gateway(config_from_dict(config, env=env or {}))
     stop = asyncio.Event()
     task = asyncio.create_task(gateway.run(stop))
     try:

@@ -9,12 +9,10 @@ from typing import Any
 
 import httpx
 import pytest
-from support.harness import until
+from support.harness import running, until
 from support.readonly import read_only
 
 from imu_gateway.app import Gateway
-from imu_gateway.config import load_config
-from imu_gateway.config.loading import ConfigSource
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.passwords import hash_password
 from imu_gateway.simulator import hold, make_sensor, simulated
@@ -46,22 +44,6 @@ http:
 """
 
 
-async def _running(path: Path) -> Any:
-    import asyncio
-    import contextlib
-
-    @contextlib.asynccontextmanager
-    async def block() -> Any:
-        gateway = Gateway(load_config(path), ConfigSource.read(path))
-        stop = asyncio.Event()
-        task = asyncio.create_task(gateway.run(stop))
-        try:
-            await until(lambda: gateway.http is not None and gateway.http.listening)
-            yield gateway
-        finally:
-            stop.set()
-            await asyncio.wait_for(task, 15)
-    return block()
 
 
 @pytest.fixture
@@ -89,7 +71,7 @@ def added(config: dict[str, Any]) -> dict[str, Any]:
 
 @pytest.mark.anyio
 async def test_get_shows_references_and_hides_literal_secrets(setup: Path) -> None:
-    async with await _running(setup) as gw, client(gw) as http:
+    async with running(setup) as gw, client(gw) as http:
         got = (await http.get("/api/v1/config")).json()["config"]
         assert got["mqtt"]["password"] == "${MQTT_PASSWORD}"
         assert got["http"]["token"] == "***"
@@ -104,7 +86,7 @@ async def test_put_adds_a_sensor_live_and_saves_comments_and_references(setup: P
     """The config sent back as GET gave it (secrets hidden), with a sensor more: it is
     served at once, the file keeps its comments and ${VAR}, the old one is .bak."""
     before = setup.read_text()
-    async with await _running(setup) as gw, client(gw) as http:
+    async with running(setup) as gw, client(gw) as http:
         config = added((await http.get("/api/v1/config")).json()["config"])
         dry = await http.put("/api/v1/config?dry_run=1", json=config)
         assert dry.status_code == 200 and dry.json()["applied"] is False
@@ -128,7 +110,7 @@ async def test_put_adds_a_sensor_live_and_saves_comments_and_references(setup: P
 @pytest.mark.anyio
 async def test_a_broken_config_changes_nothing(setup: Path) -> None:
     before = setup.read_text()
-    async with await _running(setup) as gw, client(gw) as http:
+    async with running(setup) as gw, client(gw) as http:
         config = (await http.get("/api/v1/config")).json()["config"]
         config["buses"][0]["baudrate"] = 12345
         config["buses"][0]["sensors"].append({"name": "boom", "series": "XY"})
@@ -152,7 +134,7 @@ async def test_a_read_only_file_is_applied_live_and_not_saved(setup: Path) -> No
 
 async def _applied_not_saved(setup: Path) -> None:
     before = setup.read_text()
-    async with await _running(setup) as gw, client(gw) as http:
+    async with running(setup) as gw, client(gw) as http:
         config = added((await http.get("/api/v1/config")).json()["config"])
         body = (await http.put("/api/v1/config", json=config)).json()
         assert body["applied"] and not body["saved"] and "not saved" in body["note"]
@@ -182,7 +164,7 @@ async def test_tokens_and_users_are_hidden_and_cannot_change_role_through_a_put(
     operator, viewer = "op-t0ken-secret-1", "viewer-t0ken-secret-2"
     setup.write_text(setup.read_text() + ROLES_TAIL.format(
         operator=operator, viewer=viewer, hash=hash_password("anna's password")))
-    async with await _running(setup) as gw, client(gw) as http:
+    async with running(setup) as gw, client(gw) as http:
         shown = (await http.get("/api/v1/config", headers=AUTH)).json()["config"]
         text = json.dumps(shown)
         assert operator not in text and viewer not in text and "scrypt$" not in text
