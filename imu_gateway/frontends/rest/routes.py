@@ -69,7 +69,7 @@ from .models import (
 )
 from .procedures import procedure_routes
 from .scan_routes import scan_routes
-from .streams import StreamHub, stream_peer
+from .streams import EventStream, StreamHub, stream_peer
 from .traffic import traffic_routes
 
 #: Each error status's body, for the OpenAPI document.
@@ -316,12 +316,11 @@ def _sensor_routes(app: FastAPI, routes: _Routes) -> None:
 def _stream_routes(app: FastAPI, routes: _Routes, hub: StreamHub) -> None:
     """Server-Sent Events, of one sensor or of all."""
 
-    def stream_response(sensor: str | None, request: Request) -> StreamingResponse:
+    def stream_response(sensor: str | None, request: Request) -> EventStream:
         if hub.open >= MAX_STREAMS:
             raise RequestFailed(ErrorKind.TOO_MANY_STREAMS, f"{MAX_STREAMS} streams are open")
-        return StreamingResponse(hub.stream(sensor, stream_peer(request)),
-                                 media_type="text/event-stream",
-                                 headers={"X-Accel-Buffering": "no"})  # (no-store: SecurityHeaders)
+        return EventStream(hub, sensor, stream_peer(request),
+                           headers={"X-Accel-Buffering": "no"})  # (no-store: SecurityHeaders)
 
     sse = {"content": {"text/event-stream": {}},
            "description": "`event: reading` (or `status`) and `data:` the reading JSON; "
@@ -332,7 +331,7 @@ def _stream_routes(app: FastAPI, routes: _Routes, hub: StreamHub) -> None:
     @app.get(f"{API}/sensors/{{name}}/stream", dependencies=[routes.roles.viewer],
              response_class=StreamingResponse, responses={200: sse, **_errors(401, 404, 503)},
              summary="Server-Sent Events: one reading per event")
-    async def stream(name: str, request: Request) -> StreamingResponse:
+    async def stream(name: str, request: Request) -> EventStream:
         routes.sensor_or_404(name)
         return stream_response(name, request)
 
@@ -348,7 +347,7 @@ def _stream_routes(app: FastAPI, routes: _Routes, hub: StreamHub) -> None:
     @app.get(f"{API}/stream", dependencies=[routes.roles.viewer], response_class=StreamingResponse,
              responses={200: sse, **_errors(401, 503)},
              summary="Server-Sent Events of every sensor")
-    async def stream_all(request: Request) -> StreamingResponse:
+    async def stream_all(request: Request) -> EventStream:
         return stream_response(None, request)
 
 

@@ -4,13 +4,14 @@ stream is judged by (its own socket, never the gateway's loop)."""
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import typing
 from collections import deque
-from collections.abc import AsyncGenerator, Callable
+from collections.abc import AsyncGenerator, Callable, Mapping
+from typing import Any
 
 from fastapi import Request
+from fastapi.responses import Response
 
 from ...cache import ALL_EVENTS, EventKind, Snapshot
 from ...derived import json_bytes, reading_json
@@ -18,6 +19,8 @@ from ..common import GatewayLike
 from .limits import KEEPALIVE_S, STALL_S, STREAM_QUEUE
 
 log = logging.getLogger("imu_gateway.http")
+
+KEEP_ALIVE = b": keep-alive\n\n"  # a comment line: what an idle stream sends
 
 
 # ------------------------------------------------------------------ the live stream
@@ -34,13 +37,60 @@ class StreamPeer(typing.Protocol):
     def abort(self) -> None: ...
 
 
-class _Subscriber:
+class Subscription:
+    """One stream client's events, queued by the hub until the stream takes them.
+
+    Its cost per event is kept to what an event needs (issue 29, a small box): the
+    stream waits on one future, set by the first event that comes; the keep-alive
+    is one timer per ``KEEPALIVE_S`` (not one per event, armed and cancelled), that
+    wakes the stream only when it has sent nothing for that long."""
+
     def __init__(self, sensor: str | None, peer: StreamPeer | None) -> None:
         self.sensor = sensor
         self.peer = peer  # None: no socket to judge by (the hub used on its own)
         self.events: deque[bytes] = deque()
-        self.wake = asyncio.Event()
         self.dropped = False
+        self.ended = False  # the client went away, or the hub closed: no more events
+        self._loop = asyncio.get_running_loop()
+        self._waiter: asyncio.Future[None] | None = None
+        self._sent_at = self._loop.time()
+        self._keepalive = self._loop.call_at(self._sent_at + KEEPALIVE_S, self._idle)
+
+    def wake(self) -> None:
+        waiter = self._waiter
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
+
+    def end(self) -> None:
+        self.ended = True
+        self._keepalive.cancel()
+        self.wake()
+
+    def _idle(self) -> None:
+        due = self._sent_at + KEEPALIVE_S
+        if self._loop.time() >= due - 0.001:  # (a timer may run a hair early)
+            self.wake()  # nothing queued: the stream sends a keep-alive
+            due = self._loop.time() + KEEPALIVE_S
+        self._keepalive = self._loop.call_at(due, self._idle)
+
+    async def next(self) -> bytes | None:
+        """What to send next, once there is something: every event queued, joined
+        (they are all due, so joining delays none), or a keep-alive after
+        ``KEEPALIVE_S`` without; ``None``: the stream ends."""
+        if not self.events and not self.ended:
+            self._waiter = self._loop.create_future()
+            try:
+                await self._waiter
+            finally:
+                self._waiter = None
+        if self.ended or self.dropped:
+            return None
+        self._sent_at = self._loop.time()
+        if not self.events:
+            return KEEP_ALIVE
+        chunk = self.events[0] if len(self.events) == 1 else b"".join(self.events)
+        self.events.clear()
+        return chunk
 
 
 class StreamHub:
@@ -59,13 +109,13 @@ class StreamHub:
     def __init__(self, gateway: GatewayLike,
                  on_error: Callable[[BaseException], None] | None = None) -> None:
         self.gateway = gateway
-        self.subscribers: set[_Subscriber] = set()  # those events go to
+        self.subscribers: set[Subscription] = set()  # those events go to
         # Streams not yet ended, dropped ones included (until their connection has
         # closed): they count against MAX_STREAMS.
         self.open = 0
         self.dropped = 0  # subscribers dropped as stalled
         self.skipped = 0  # events skipped for subscribers whose queue was full
-        self.closing = asyncio.Event()
+        self.closed = False
         self.history = gateway.history  # the gateway's, shared with the other front ends
         self._unsubscribe = gateway.cache.subscribe(self._on_cache_event, on_error,
                                                     ALL_EVENTS)
@@ -87,9 +137,9 @@ class StreamHub:
                 sub.events.popleft()
                 self.skipped += 1
             sub.events.append(event)
-            sub.wake.set()
+            sub.wake()
 
-    def _drop(self, sub: _Subscriber) -> None:
+    def _drop(self, sub: Subscription) -> None:
         sub.dropped = True
         sub.events.clear()
         self.subscribers.discard(sub)
@@ -99,38 +149,45 @@ class StreamHub:
         # read again (a zero window is kept open for ever): the connection goes now.
         assert sub.peer is not None
         sub.peer.abort()
-        sub.wake.set()
+        sub.end()
+
+    def subscribe(self, sensor: str | None, peer: StreamPeer | None = None) -> Subscription:
+        """A new stream's subscription (``unsubscribe`` it when the stream ends)."""
+        sub = Subscription(sensor, peer)
+        self.open += 1
+        if self.closed:
+            sub.end()
+        else:
+            self.subscribers.add(sub)
+        return sub
+
+    def unsubscribe(self, sub: Subscription) -> None:
+        sub.end()
+        self.subscribers.discard(sub)
+        self.open -= 1
+
+    def current(self, sensor: str | None) -> bytes:
+        """Where each sensor (or ``sensor``) stands now: a stream's first events."""
+        names = [sensor] if sensor is not None else self.gateway.cache.names
+        snaps = [self.gateway.cache.snapshot(name) for name in names]
+        return b"".join(_event("reading" if snap.has_reading else "status", snap)
+                        for snap in snaps)
 
     async def stream(self, sensor: str | None,
                      peer: StreamPeer | None = None) -> AsyncGenerator[bytes, None]:
-        sub = _Subscriber(sensor, peer)
-        self.subscribers.add(sub)
-        self.open += 1
+        """The stream as an iterator of chunks (``EventStream`` is the server's)."""
+        sub = self.subscribe(sensor, peer)
         try:
-            names = [sensor] if sensor is not None else self.gateway.cache.names
-            for name in names:  # where each sensor stands now, first
-                snap = self.gateway.cache.snapshot(name)
-                yield _event("reading" if snap.has_reading else "status", snap)
-            while not self.closing.is_set() and not sub.dropped:
-                if not sub.events:
-                    sub.wake.clear()
-                    # (asyncio.timeout, not wait_for: wait_for wraps the wait in a task
-                    # of its own, for every event)
-                    with contextlib.suppress(TimeoutError):
-                        async with asyncio.timeout(KEEPALIVE_S):
-                            await sub.wake.wait()
-                    if not sub.events:
-                        yield b": keep-alive\n\n"
-                        continue
-                yield sub.events.popleft()
+            yield self.current(sensor)
+            while (chunk := await sub.next()) is not None:
+                yield chunk
         finally:
-            self.subscribers.discard(sub)
-            self.open -= 1
+            self.unsubscribe(sub)
 
     def close(self) -> None:
-        self.closing.set()
-        for sub in self.subscribers:
-            sub.wake.set()
+        self.closed = True
+        for sub in list(self.subscribers):
+            sub.end()
         self._unsubscribe()
 
 
@@ -140,6 +197,46 @@ def _event(name: str, snap: Snapshot) -> bytes:
     combined stream's readings have no common order an id could name; the reading's
     own ``seq`` is in its data."""
     return b"event: %s\ndata: %s\n\n" % (name.encode(), reading_json(snap))
+
+
+class EventStream(Response):
+    """The stream's answer: an ASGI response that sends each chunk of its subscription
+    in the loop turn it comes.  Starlette's ``StreamingResponse`` runs the stream in
+    a task group beside a task that waits for the client to go; here that wait is a
+    plain task that ends the subscription, and the stream is the request's own
+    task, with nothing between the hub and ``send`` (measured: docs/benchmarks.md,
+    "CPU per sample in the front ends")."""
+
+    media_type = "text/event-stream"
+
+    def __init__(self, hub: StreamHub, sensor: str | None, peer: StreamPeer | None,
+                 headers: Mapping[str, str] | None = None) -> None:
+        self.hub, self.sensor, self.peer = hub, sensor, peer
+        self.status_code = 200
+        self.background = None
+        self.init_headers(headers)
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        sub = self.hub.subscribe(self.sensor, self.peer)
+        gone = asyncio.ensure_future(_until_disconnect(receive, sub))
+        try:
+            await send({"type": "http.response.start", "status": self.status_code,
+                        "headers": self.raw_headers})
+            chunk: bytes | None = self.hub.current(self.sensor)
+            while chunk is not None:
+                await send({"type": "http.response.body", "body": chunk, "more_body": True})
+                chunk = await sub.next()
+            await send({"type": "http.response.body", "body": b"", "more_body": False})
+        finally:
+            gone.cancel()
+            self.hub.unsubscribe(sub)
+
+
+async def _until_disconnect(receive: Any, sub: Subscription) -> None:
+    """End ``sub`` when its client goes away (ASGI's ``http.disconnect``)."""
+    while (await receive())["type"] != "http.disconnect":
+        pass
+    sub.end()
 
 
 PEER = "imu_gateway.peer"  # the ASGI scope extension that carries a request's connection

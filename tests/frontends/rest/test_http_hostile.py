@@ -541,8 +541,12 @@ async def test_the_hub_skips_the_oldest_for_a_client_behind_and_drops_only_a_sta
     assert [event async for event in stuck] == []
     assert hub.skipped == 2 * (len(events) - STREAM_QUEUE)
     assert all(len(sub.events) == STREAM_QUEUE for sub in hub.subscribers)
-    kept = [await anext(behind) for _ in range(STREAM_QUEUE)]
+    # What was queued comes in one chunk, each event whole, the oldest first.
+    kept = [event + b"\n\n" for event in (await anext(behind)).split(b"\n\n")[:-1]]
+    assert len(kept) == STREAM_QUEUE
     last = gateway.cache.snapshot("s").seq
+    assert [json.loads(event.split(b"data: ", 1)[1])["seq"] for event in kept] == \
+        list(range(last - STREAM_QUEUE + 1, last + 1))
     assert kept[-1].startswith(b"event: reading\ndata: ")  # the newest
     assert json.loads(kept[-1].split(b"data: ", 1)[1])["seq"] == last
     hub.close()
