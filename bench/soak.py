@@ -70,6 +70,7 @@ CORRUPT = 0.05  # share of frames with a flipped bit during the noise phase
 STREAM_WRITES = {"set_output_type", "set_output_rate", "register 0x1B", "register 0x1C"}
 STOP_WRITES = {"set_output_rate", "register 0x1B"}  # what stopping a stream writes
 RECOVERY_TIMEOUT = 60.0  # a fault not healed this long after it ended is a failure
+PHASE_GRACE = 60.0  # a phase's clients not ended this long after its hold: the rig's fault
 SETTLE = 1.5  # seconds after a recovery before the resources are sampled
 STALL_MAX = 20.0  # how long a stalled sensor may take to be reported offline
 
@@ -437,9 +438,7 @@ class Soak:
             await asyncio.sleep(1.0)
 
     async def stop_clients(self) -> None:
-        for task in self._tasks:
-            task.cancel()
-        await asyncio.gather(*self._tasks, return_exceptions=True)
+        await h.ended(self._tasks)
         self._tasks.clear()
 
     def stop_processes(self) -> None:
@@ -895,13 +894,27 @@ async def gateway_counters(soak: Soak) -> dict[str, float]:
             and key not in NOT_NEWS}
 
 
+async def _fault(soak: Soak, phase: Phase, hold: float) -> Outcome:
+    """The phase's fault, or, when its own clients do not end within ``PHASE_GRACE``
+    of its hold, a problem that names it (the rig's, not the gateway's) rather than a
+    soak that hangs until whoever runs it gives up."""
+    fault: asyncio.Future[Outcome] = asyncio.ensure_future(phase.fault(soak, hold))
+    done, _ = await asyncio.wait({fault}, timeout=hold + PHASE_GRACE)
+    if done:
+        return fault.result()
+    fault.cancel()
+    return Outcome(f"{phase.name}: did not end", [
+        f"the phase's own clients did not end within {hold + PHASE_GRACE:.0f} s "
+        "(the soak's, not the gateway's: its steady clients go on)"])
+
+
 async def run_phase(soak: Soak, phase: Phase, hold: float, cycle: int) -> PhaseResult:
     counts0 = await soak.line_counts()
     counters0 = await gateway_counters(soak)
     rss0 = soak.samples[-1].rss_mb
     log0 = soak.gw.log_size()
     start = time.monotonic()
-    outcome = await phase.fault(soak, hold)
+    outcome = await _fault(soak, phase, hold)
     ended = time.monotonic()
     recovery = await soak.until(lambda: phase.healthy(soak, ended), RECOVERY_TIMEOUT)
     end = time.monotonic()

@@ -33,3 +33,33 @@ def test_a_short_soak_passes_every_check(tmp_path: Path) -> None:
     assert summary["final"]["alive"], report
     # The failures, one per line, are the message: which check and in which phase.
     assert done.returncode == 0 and not summary["failures"], report
+
+
+def test_the_soak_ends_a_client_that_lost_its_cancel() -> None:
+    """A client whose cancel is lost (Python 3.11's ``wait_for`` can lose one that
+    races its own timeout) is cancelled again until it ends: once, such a client held
+    the soak until the test's timeout."""
+    import asyncio
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("hostile", ROOT / "bench" / "hostile.py")
+    assert spec is not None and spec.loader is not None
+    hostile = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("hostile", hostile)  # (its dataclasses look themselves up)
+    spec.loader.exec_module(hostile)
+    cancels = []
+
+    async def stubborn() -> None:
+        try:
+            await asyncio.sleep(60)
+        except asyncio.CancelledError:
+            cancels.append("lost")  # as a lost cancel would be: it carries on
+        await asyncio.sleep(60)
+
+    async def main() -> None:
+        task = asyncio.create_task(stubborn())
+        await asyncio.sleep(0)
+        await asyncio.wait_for(hostile.ended([task]), 10)
+        assert task.cancelled() and cancels == ["lost"]
+
+    asyncio.run(main())
