@@ -11,7 +11,6 @@ from ...model import CAPABILITIES, VALUE_GROUPS, Series, WireProtocol
 from .conditions import EVENT_IDS_KEPT, SEVERITY
 from .guard import (
     MAX_PUBLISHING_INTERVAL_MS,
-    MAX_QUEUE_SIZE,
     MAX_SUBSCRIPTION_LIFETIME_S,
     MAX_SUBSCRIPTIONS_PER_SESSION,
 )
@@ -20,7 +19,7 @@ from .identity import MANUFACTURER, PRODUCT_NAME, PRODUCT_URI
 from .live import RELOAD_DOC
 from .methods import declared_type
 from .nodes import COMMON_GROUPS
-from .sampling import SAMPLING_STEP_MS
+from .sampling import MAX_QUEUE_SIZE, SAMPLING_STEP_MS
 from .server import CALL_STATUS, MAX_CLIENTS
 from .space import BUS_VARS, IDENTITY_VARS, NEVER_READ, QUALITY, SENSOR_VARS, UNECE, UNITS
 

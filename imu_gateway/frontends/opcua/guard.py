@@ -32,14 +32,8 @@ authentication token.  So here:
   publishing interval of at most ``MAX_PUBLISHING_INTERVAL_MS`` and a lifetime of at
   most ``MAX_SUBSCRIPTION_LIFETIME_S``; a closed session's subscriptions go with it
   (a client cannot leave them behind to hold the server's).
-* **Monitored items' queues** (Part 4 7.21, MonitoringParameters): for a value, a
-  requested queueSize of 0 or 1 is a queue of 1, which keeps only the newest value;
-  for events (alarms), 0 is the server's default, ``MAX_QUEUE_SIZE``; never more than
-  that.  asyncua makes 0 its cap of 10 000 for both: a client that asked for the
-  default and published slowly had every sample of a 100 Hz sensor queued and sent
-  (memory held for it, and the CPU of encoding each).
-* **Monitored items' sampling intervals**: a new subscription's items are sampled at
-  their revised sampling intervals (``sampling.py``).
+* **Monitored items**: a new subscription's items get their queues as Part 4 has
+  them and are sampled at their revised sampling intervals (``sampling.py``).
 * **A message chunk** larger than the receive buffer is refused from its header, before
   its body is read (asyncua buffers a declared 4 GiB chunk as it arrives).
 
@@ -52,7 +46,6 @@ from __future__ import annotations
 import logging
 import socket
 import weakref
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -84,10 +77,6 @@ _REGISTER = frozenset({ua.ObjectIds.RegisterServerRequest_Encoding_DefaultBinary
 _CLOSE = ua.NodeId(ua.ObjectIds.CloseSessionRequest_Encoding_DefaultBinary)
 _SUBSCRIBE = ua.NodeId(ua.ObjectIds.CreateSubscriptionRequest_Encoding_DefaultBinary)
 _CALL = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
-_MONITOR = ua.NodeId(ua.ObjectIds.CreateMonitoredItemsRequest_Encoding_DefaultBinary)
-_REMONITOR = ua.NodeId(ua.ObjectIds.ModifyMonitoredItemsRequest_Encoding_DefaultBinary)
-#: A monitored item's queue holds at most this many values: 10 s of a 100 Hz sensor.
-MAX_QUEUE_SIZE = 1000
 MAX_SUBSCRIPTIONS_PER_SESSION = 10
 MAX_PUBLISHING_INTERVAL_MS = 60_000.0
 MAX_SUBSCRIPTION_LIFETIME_S = 3600.0
@@ -179,8 +168,6 @@ class GuardedProcessor(UaProcessor):
             self._check_activation(requesthdr, body.copy(), channel)
         elif typeid == _SUBSCRIBE:
             body = self._revise_subscription(body)
-        elif typeid in (_MONITOR, _REMONITOR):
-            body = revise_queues(body, typeid == _MONITOR, self._of_events)
         elif typeid == _CLOSE:
             body = Buffer(ua.ua_binary.Primitives.Boolean.pack(True))  # deleteSubscriptions
         # a method learns who calls it from here (asyncua passes it only the object)
@@ -200,14 +187,6 @@ class GuardedProcessor(UaProcessor):
             sample_items(self.iserver.subscription_service, self.session.session_id,
                          MAX_PUBLISHING_INTERVAL_MS)
         return answer
-
-    def _of_events(self, subscription: int, item: int) -> bool:
-        """Whether a monitored item (of this server's subscription) is of events."""
-        found = self.iserver.subscription_service.subscriptions.get(subscription)
-        items = found.monitored_item_srv._monitored_items if found is not None else {}
-        data = items.get(item)
-        return data is not None and \
-            data.read_value_id.AttributeId == ua.AttributeIds.EventNotifier
 
     def _caller(self) -> Caller | None:
         """The activated session's user name (None: anonymous), the peer's host and the
@@ -311,28 +290,6 @@ class GuardedProcessor(UaProcessor):
         params.RequestedMaxKeepAliveCount = max(1, min(
             params.RequestedMaxKeepAliveCount or 1, params.RequestedLifetimeCount // 3))
         return Buffer(struct_to_binary(params))
-
-
-def revise_queues(body: Buffer, create: bool,
-                  of_events: Callable[[int, int], bool]) -> Buffer:
-    """A Create- or ModifyMonitoredItems request with each queueSize as Part 4 has it,
-    re-encoded for asyncua (which answers the revised size it is given): a value's 0
-    and 1 are one value, the newest; an event item's 0 is ``MAX_QUEUE_SIZE``; none more
-    than that.  ``of_events(subscription, item)``: whether a kept item is of events (a
-    Modify does not say)."""
-    if create:
-        params = struct_from_binary(ua.CreateMonitoredItemsParameters, body)
-        items = [(i.RequestedParameters,
-                  i.ItemToMonitor.AttributeId == ua.AttributeIds.EventNotifier)
-                 for i in params.ItemsToCreate or ()]
-    else:
-        params = struct_from_binary(ua.ModifyMonitoredItemsParameters, body)
-        items = [(i.RequestedParameters, of_events(params.SubscriptionId, i.MonitoredItemId))
-                 for i in params.ItemsToModify or ()]
-    for wanted, events in items:
-        size = int(wanted.QueueSize) or (MAX_QUEUE_SIZE if events else 1)
-        wanted.QueueSize = min(size, MAX_QUEUE_SIZE)
-    return Buffer(struct_to_binary(params))
 
 
 def password_secret(private_key: Any, token: ua.UserNameIdentityToken) -> bytes | None:

@@ -18,15 +18,22 @@ sample of a 100 Hz sensor, and that was most of the OPC UA server's CPU
   newest replacing the one before (a change between two samples is not seen).  A
   ticker for each interval of the subscription hands each item's held value, if any,
   to asyncua's data-change path once per interval: the item's trigger and deadband,
-  and its queue (queueSize, ``guard.py``), are asyncua's, as before.  A value written
+  and its queue (queueSize, below), are asyncua's, as before.  A value written
   and then left (a sensor gone offline: its bad status) is sampled at the next tick.
   The initial value of a new item is reported at once (asyncua reads it then).
 * Reads are not concerned: every sample is still written to the node.
+* **Queues** (Part 4 7.21, MonitoringParameters): for a value, a requested queueSize
+  of 0 or 1 is a queue of 1, which keeps only the newest value; for events (alarms), 0
+  is the server's default, ``MAX_QUEUE_SIZE``; never more than that.  asyncua makes 0
+  its cap of 10 000 for both: a client that asked for the default and published
+  slowly had every sample of a 100 Hz sensor queued and sent (memory held for it, and
+  the CPU of encoding each).
 
 The hook is asyncua's own class, one method each: :func:`sample_items` gives a new
 subscription a :class:`SampledItems` (a ``MonitoredItemService``) before it has any
 item, and that class overrides the public methods that create, modify and delete
-items and the data-change callback that each write calls.  The alternative, a
+items, the one that makes an item's common part (its queue), and the data-change
+callback that each write calls.  The alternative, a
 service of asyncua's ``SubscriptionService``, would mean replacing the server's own
 ``subscription_service``, which asyncua's session and server objects hold.
 """
@@ -49,6 +56,14 @@ log = logging.getLogger("imu_gateway.opcua")
 #: interval of a subscription is a task of its own, which a client asking 0.001 ms, or
 #: a thousand odd intervals, would keep busy; a 100 Hz sensor's sample comes every 10.
 SAMPLING_STEP_MS = 10.0
+#: A monitored item's queue holds at most this many values: 10 s of a 100 Hz sensor.
+MAX_QUEUE_SIZE = 1000
+
+
+def revised_queue(requested: int, events: bool) -> int:
+    """An item's queue size (Part 4 7.21): a value's 0 and 1 are one value, the newest;
+    an event item's 0 is ``MAX_QUEUE_SIZE``; none more than that."""
+    return min(int(requested) or (MAX_QUEUE_SIZE if events else 1), MAX_QUEUE_SIZE)
 
 
 def revised_interval(requested: float, publishing: float, most: float) -> float:
@@ -84,6 +99,13 @@ class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is u
                     mdata.callback_handle, item.RequestedParameters.SamplingInterval)
         return results
 
+    def _make_monitored_item_common(self, params: Any) -> tuple[Any, Any]:
+        result, mdata = super()._make_monitored_item_common(params)
+        mdata.queue_size = result.RevisedQueueSize = revised_queue(
+            params.RequestedParameters.QueueSize,
+            params.ItemToMonitor.AttributeId == ua.AttributeIds.EventNotifier)
+        return result, mdata
+
     def modify_monitored_items(self, params: Any) -> list[Any]:
         results = []
         for item in params.ItemsToModify or ():
@@ -92,7 +114,10 @@ class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is u
                 results.append(ua.MonitoredItemModifyResult(StatusCode=ua.StatusCode(
                     ua.StatusCodes.BadMonitoredItemIdInvalid)))
                 continue
-            result = self._modify_monitored_item(item)  # the queue and the filter
+            result = self._modify_monitored_item(item)  # the filter (and the queue, as asked)
+            mdata.queue_size = result.RevisedQueueSize = revised_queue(
+                item.RequestedParameters.QueueSize,
+                mdata.read_value_id.AttributeId == ua.AttributeIds.EventNotifier)
             if mdata.callback_handle is not None:
                 result.RevisedSamplingInterval = self._revise(
                     mdata.callback_handle, item.RequestedParameters.SamplingInterval)
