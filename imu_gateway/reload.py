@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from pydantic import BaseModel
 
-from .config import BusConfig, GatewayConfig, config_from_dict, load_config
+from .config import BusConfig, GatewayConfig, config_from_dict, fields, load_config
 from .config.loading import ConfigSource, save_atomically, shown, with_secrets_kept
 from .errors import ConfigError
 from .sections import LiveSections
@@ -85,8 +85,9 @@ ON_OFF_RESTART = ("http", "capture")
 #: Sections that only a restart applies: the gateway id names every front end's topics
 #: and nodes (docs/configuration.md).
 RESTART_ONLY = ("gateway_id",)
-#: Keys whose values are never shown in a diff (they may be secrets).
-SECRET_KEYS = frozenset({"password", "token", "users", "tokens"})
+#: Keys whose values are never shown in a diff: the secrets a message never echoes, and
+#: ``http``'s lists of users and tokens, whose entries hold them.
+SECRET_KEYS = fields.SECRET_KEYS | {"users", "tokens"}
 
 
 @dataclass(frozen=True)
