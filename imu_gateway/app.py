@@ -82,11 +82,13 @@ class _GatewayAlarms:
         self.alarms = Alarms([a.row(s.name) for _, s in config.iter_sensors() for a in s.alarms],
                              self.sensors, self.journal_file.read() if self.journal_file else ())
         self._evaluating = True  # off once stopping: a sensor going then is no alarm
-        self.cache.subscribe(self._on_sample)
+        self.cache.subscribe(self._on_sample, prompt=False)  # (each sample's own time)
 
     def _on_sample(self, kind: EventKind, snap: Snapshot) -> None:
         if kind is EventKind.READING and self._evaluating and snap.timestamp is not None:
-            for change in self.alarms.sample(snap.name, values_of(snap), time.monotonic(),
+            # when it was received: samples may come in a burst (``Cache.subscribe``)
+            at = time.monotonic() - (snap.age_ms or 0.0) / 1000
+            for change in self.alarms.sample(snap.name, values_of(snap), at,
                                              snap.timestamp.timestamp()):
                 self._publish(change)
 
@@ -143,7 +145,7 @@ class Gateway(_GatewayAlarms):
         # memory is fixed per sensor.  Subscribed first, so it has a reading before any
         # front end shows it.
         self.history = History(self)
-        self.cache.subscribe(self.history.on_cache_event)
+        self.cache.subscribe(self.history.on_cache_event, prompt=False)
         self._alarms_setup(config)
         # Event capture: every sample into its ring, every frame into its line's ring
         self.captures = _captures(self) if config.capture else None
@@ -400,7 +402,7 @@ def _captures(gateway: Gateway) -> Captures:
         gateway.runners[bus.name].record_frames(
             ring_size(config.pre_s + config.post_s, bus.baudrate))
     captures = Captures(config, gateway.config, gateway.bus_frames)
-    gateway.cache.subscribe(captures.on_cache_event)
+    gateway.cache.subscribe(captures.on_cache_event, prompt=False)
     return captures
 
 

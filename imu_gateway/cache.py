@@ -118,6 +118,10 @@ def _status(e: _Entry, now: float) -> Status:
     return Status.OK
 
 
+class _Claim:
+    """(``Cache.claim_prompt``) One claim, told apart from the others by identity."""
+
+
 class Cache:
     def __init__(
         self,
@@ -129,6 +133,15 @@ class Cache:
         self._entries = {name: _Entry(stale_ms / 1000) for name, stale_ms in sensors}
         self._clock = clock
         self._listeners: list[tuple[Listener, ErrorHook | None, Collection[EventKind]]] = []
+        # the listeners that need each event at once, and claims (``claim_prompt``)
+        self._prompt: list[Listener | _Claim] = []
+        #: Whether a listener needs each event at once (its bus writes are handed over
+        #: per turn, ``bus.runner``); read from the bus thread.
+        self.prompt = False
+        # Writes made elsewhere and not applied yet (a bus thread's turns): each source
+        # applies its own, in order, when anything reads the cache (``catch_up``).
+        self._sources: list[Callable[[], None]] = []
+        self._catching_up = False
         # Events made while listeners hear another (an alarm a reading raised) wait for
         # it to reach them all: every listener hears every event in the same order.
         self._waiting: deque[tuple[EventKind, Snapshot]] = deque()
@@ -159,7 +172,26 @@ class Cache:
 
     # ------------------------------------------------------------ reading
 
+    def add_source(self, drain: Callable[[], None]) -> None:
+        """``drain()`` applies writes made elsewhere and not applied yet; every read
+        runs it first, so a reader never sees older than what was handed over."""
+        self._sources.append(drain)
+
+    def catch_up(self) -> None:
+        """Apply the writes handed over and not applied yet (``add_source``): on every
+        read, and by whoever answers from state kept outside the cache (the Modbus
+        TCP register images)."""
+        if self._catching_up:  # (a write's listener reading: the rest come next)
+            return
+        self._catching_up = True
+        try:
+            for drain in self._sources:
+                drain()
+        finally:
+            self._catching_up = False
+
     def snapshot(self, name: str) -> Snapshot:
+        self.catch_up()
         e = self._entry(name)
         now = self._clock()
         age = (now - e.received) * 1000 if e.reading is not None else None
@@ -170,21 +202,56 @@ class Cache:
         return [self.snapshot(name) for name in self._entries]
 
     def subscribe(self, listener: Listener, on_error: ErrorHook | None = None,
-                  kinds: Collection[EventKind] = SENSOR_EVENTS) -> Callable[[], None]:
+                  kinds: Collection[EventKind] = SENSOR_EVENTS,
+                  prompt: bool = True) -> Callable[[], None]:
         """Call ``listener(kind, snapshot)`` on every change of ``kinds``; returns the
         unsubscriber.  ``ALARM`` events come only to a listener that asks for them
         (``kinds=ALL_EVENTS``).  Listeners run in the event loop and must not block.  An
         exception in one goes to its ``on_error`` (its front end's supervisor), or is
-        logged: it never reaches the bus that published, nor the other listeners."""
+        logged: it never reaches the bus that published, nor the other listeners.
+
+        ``prompt``: the listener pushes what it hears to the outside, so each event
+        must reach it at once.  Without one, events come in bursts, up to
+        ``bus.runner.LAZY_HAND_OVER`` late (or when something reads the cache), each
+        with its own times."""
         entry = (listener, on_error, frozenset(kinds))
         self._listeners.append(entry)
-        return lambda: self._listeners.remove(entry) if entry in self._listeners else None
+        if prompt:
+            self._prompt.append(listener)
+            self.prompt = True
+
+        def unsubscribe() -> None:
+            if entry in self._listeners:
+                self._listeners.remove(entry)
+                if prompt:
+                    self._prompt.remove(listener)
+                    self.prompt = bool(self._prompt)
+
+        return unsubscribe
+
+    def claim_prompt(self) -> Callable[[], None]:
+        """Each event at once (as a prompt listener's) until the returned release is
+        called: for a listener that pushes only while it has clients."""
+        claim = _Claim()
+        self._prompt.append(claim)
+        self.prompt = True
+
+        def release() -> None:
+            if claim in self._prompt:
+                self._prompt.remove(claim)
+                self.prompt = bool(self._prompt)
+
+        return release
 
     def forget(self, owner: object) -> None:
         """Unsubscribe every listener that is a method of ``owner`` (a front end a
         reload replaced)."""
-        self._listeners = [e for e in self._listeners
-                           if getattr(e[0], "__self__", None) is not owner]
+        def kept(listener: Listener | _Claim) -> bool:
+            return getattr(listener, "__self__", None) is not owner
+
+        self._listeners = [e for e in self._listeners if kept(e[0])]
+        self._prompt = [listener for listener in self._prompt if kept(listener)]
+        self.prompt = bool(self._prompt)
 
     # ------------------------------------------------------------ writing (bus masters)
 
@@ -194,9 +261,12 @@ class Cache:
         listener, on the main loop rather than the bus thread."""
         e = self._entry(name)
         e.seq += 1
-        e.received = self._clock() if at is None else at
+        now = self._clock()
+        e.received = now if at is None else at
         e.reading = e.derivation.complete(reading, e.received)
-        e.timestamp = datetime.now(UTC)
+        # the wall time it was received, not now: a burst of turns handed over late
+        # (``subscribe``'s prompt) keeps each sample's own time
+        e.timestamp = datetime.fromtimestamp(time.time() - max(0.0, now - e.received), UTC)
         e.online = e.reached = True
         snap = self.snapshot(name)
         self._notify(EventKind.READING, snap)
@@ -230,11 +300,13 @@ class Cache:
 
     def bus_stats(self) -> list[BusStats]:
         """Every bus's latest published counters, in the order they first came."""
+        self.catch_up()
         return list(self._buses.values())
 
     def sensor_stats(self, name: str) -> SensorStats:
         """The sensor's latest published counters (its bus publishes before it runs)."""
         self._entry(name)  # an unknown sensor is refused as one
+        self.catch_up()
         return self._sensor_stats[name]
 
     def learn(self, name: str, shown: KnownSettings) -> None:
@@ -261,11 +333,13 @@ class Cache:
 
     def settings(self, name: str) -> KnownSettings:
         """The sensor's settings as far as the gateway knows them."""
+        self.catch_up()
         return self._entry(name).settings
 
     def reached(self, name: str) -> bool:
         """Whether the bus has said what the sensor is (online, offline, or a sample):
         until then its "offline" only means "not tried yet"."""
+        self.catch_up()
         return self._entry(name).reached
 
     def publish_alarm(self, event: AlarmEvent) -> None:
@@ -275,6 +349,7 @@ class Cache:
         self._notify(EventKind.ALARM, snap)
 
     def check_staleness(self) -> None:
+        self.catch_up()
         for name in self._entries:
             self._check(name)
 

@@ -57,7 +57,12 @@ class Second:
 
 class _Ring:
     """One sensor's seconds, preallocated: slot = second mod ``KEEP_S``; a slot holds
-    the second ``starts[slot]`` (-1: never used)."""
+    the second ``starts[slot]`` (-1: never used).
+
+    The second being filled keeps its samples as they came, and is folded into its
+    slot when the next second starts or something reads the ring: a sample costs an
+    append, not a dozen array updates per field (measured: 16 of the 18 µs a reading
+    cost the cache, warm; more on a busy loop)."""
 
     def __init__(self, n: int) -> None:
         self.n = n
@@ -70,6 +75,8 @@ class _Ring:
         self.stamps = array("d", [math.nan]) * KEEP_S
         self.stats = array("d", [math.nan]) * (KEEP_S * _STATS * n)
         self.counts = array("H", [0]) * (KEEP_S * n)
+        self._rows: list[Sequence[float]] = []  # the newest second's samples
+        self._folded = 0  # how many of them its slot holds
 
     @property
     def nbytes(self) -> int:
@@ -78,34 +85,47 @@ class _Ring:
 
     def add(self, at: float, values: Sequence[float]) -> None:
         second = math.floor(at)
+        if second == self.newest:
+            self._rows.append(values)
+            self.stamps[second % KEEP_S] = at
+            return
+        self.fold()
         if second < self.newest - KEEP_S:
             self._clear()  # the clock went far back: start again
         elif second < self.newest:
             return  # a small step back of the clock: the next new second takes it up
         slot = second % KEEP_S
-        n, base = self.n, slot * _STATS * self.n
-        stats, counts = self.stats, self.counts
-        if self.starts[slot] != second:  # a new second: the slot's old one goes
-            self.starts[slot] = second
-            self.newest = second
-            for i in range(n):
-                stats[base + i] = stats[base + n + i] = stats[base + 2 * n + i] = math.nan
-                stats[base + 3 * n + i] = 0.0
-                counts[slot * n + i] = 0
+        self.starts[slot] = second  # (the slot's old second goes)
+        self.newest = second
         self.stamps[slot] = at
-        for i, v in enumerate(values):
-            if not math.isfinite(v):  # NaN (a Modbus float register) is no value
-                continue
-            low, high = base + i, base + n + i
-            stats[low] = v if math.isnan(stats[low]) else min(stats[low], v)
-            stats[high] = v if math.isnan(stats[high]) else max(stats[high], v)
-            stats[base + 2 * n + i] = v
-            if counts[slot * n + i] < _COUNT_MAX:
-                stats[base + 3 * n + i] += v
-                counts[slot * n + i] += 1
+        self._rows, self._folded = [values], 0
+
+    def fold(self) -> None:
+        """The newest second's samples into its slot: per field, the lowest, highest
+        and last finite value, their sum and count (a value that is not finite, NaN
+        from a Modbus float register, is no value)."""
+        rows = self._rows
+        if self._folded == len(rows):
+            return
+        n, slot = self.n, self.newest % KEEP_S
+        base, stats, counts = slot * _STATS * n, self.stats, self.counts
+        isfinite = math.isfinite
+        for i, column in enumerate(zip(*rows, strict=True)):
+            good = [v for v in column if isfinite(v)]
+            kept = good[:_COUNT_MAX]
+            stats[base + i] = min(good) if good else math.nan
+            stats[base + n + i] = max(good) if good else math.nan
+            stats[base + 2 * n + i] = good[-1] if good else math.nan
+            stats[base + 3 * n + i] = sum(kept, 0.0)
+            counts[slot * n + i] = len(kept)
+        self._folded = len(rows)
 
     def slots(self) -> Iterator[tuple[int, int]]:
         """(second, slot) of every kept second, oldest first."""
+        self.fold()
+        return self._slots()
+
+    def _slots(self) -> Iterator[tuple[int, int]]:
         for second in range(self.newest - KEEP_S + 1, self.newest + 1):
             slot = second % KEEP_S
             if second >= 0 and self.starts[slot] == second:

@@ -10,13 +10,22 @@ measured in ``bench/lines.py``).
 
 The masters write to the cache through one ``CacheWriter``, which gathers what one
 turn of the bus loop wrote (every line's) and hands it to the loop that owns the cache
-in one piece, in order, so cache listeners (the front ends) always run there.  The
-main loop is woken at most once per turn, and not again while a hand-over it has not
-run yet is waiting: later turns join that one (a wake-up of the main loop costs more
-CPU than the work it brings, ``docs/benchmarks.md``).  Counters travel the same way, as frozen
-snapshots made on the bus thread (``BusMaster.stats_snapshot``), and so do the answers
-of whoever asked (after the counters they may read).  The front ends never touch a
-master's state.
+in one piece, in order, so cache listeners (the front ends) always run there.  How soon
+depends on who listens (``Cache.prompt``):
+
+* a listener that pushes to the outside (MQTT, Sparkplug, OPC UA, an SSE stream), or a
+  turn that answers someone waiting (a command, a fresh read, the traffic monitor):
+  the main loop is woken at most once per turn, and not again while a hand-over it has
+  not run yet is waiting: later turns join that one;
+* otherwise (only Modbus TCP and REST, which read on demand): the turns wait, and the
+  main loop takes them when something reads the cache (``Cache.catch_up``), or after
+  ``LAZY_HAND_OVER`` at the latest (history, alarms, captures).  A wake-up of the main
+  loop costs more CPU than the work it brings: on one line this took the gateway's CPU
+  per exchange from 0.29-0.42 ms to ... (``docs/benchmarks.md``).
+
+Counters travel the same way, as frozen snapshots made on the bus thread
+(``BusMaster.stats_snapshot``), and so do the answers of whoever asked (after the
+counters they may read).  The front ends never touch a master's state.
 """
 
 from __future__ import annotations
@@ -45,23 +54,38 @@ log = logging.getLogger("imu_gateway.bus")
 T = TypeVar("T")
 
 
+#: The longest a turn's writes wait for the main loop when nobody needs them at once
+#: (``CacheWriter``): history, alarms and captures lag by this much at most; readers
+#: catch up at once.
+LAZY_HAND_OVER = 0.05
+
+
 class CacheWriter:
     """The cache's write side, used from the bus thread: the writes of one turn of the
-    bus loop go to the cache's loop together, in order (``flush``)."""
+    bus loop go to the cache's loop together, in order (``flush``), at once or lazily
+    (the module's docstring)."""
 
     def __init__(self, cache: Cache) -> None:
         self.cache = cache
         self.loop: asyncio.AbstractEventLoop | None = None  # the cache's loop, set at start
         self._batch: list[Callable[[], None]] = []
-        # turns' writes handed over and not run yet, and whether the cache's loop has
-        # been asked to run them (both shared with that loop: deque and bool are safe
-        # to use from two threads under the GIL)
+        self._urgent = False  # the turn answers someone waiting: handed over at once
+        # turns' writes handed over and not run yet, whether the cache's loop has been
+        # asked to run them, and whether it has a timer to (all shared with that loop:
+        # deque and bool are safe to use from two threads under the GIL)
         self._out: deque[list[Callable[[], None]]] = deque()
         self._asked = False
+        self._armed = False
+        cache.add_source(self._drain)
 
     def hand(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
         """Run ``fn`` on the cache's loop, after everything handed before it."""
         self._batch.append(functools.partial(fn, *args, **kwargs))
+
+    def hand_urgent(self, fn: Callable[..., Any], *args: Any) -> None:
+        """``hand``, for someone waiting: the turn is handed over at once."""
+        self._urgent = True
+        self._batch.append(functools.partial(fn, *args))
 
     def flush(self) -> None:
         """Hand the turn's writes over (the bus loop calls this after each turn)."""
@@ -69,17 +93,35 @@ class CacheWriter:
             return
         self._out.append(self._batch)
         self._batch = []
-        if not self._asked:
-            self._asked = True
-            with contextlib.suppress(RuntimeError):  # the main loop closed: the process ends
+        urgent, self._urgent = self._urgent, False
+        if self._asked:
+            return
+        with contextlib.suppress(RuntimeError):  # the main loop closed: the process ends
+            if urgent or self.cache.prompt:
+                self._asked = True
                 self.loop.call_soon_threadsafe(self._run)
+            elif not self._armed:
+                self._armed = True
+                self.loop.call_soon_threadsafe(self._arm)
+
+    def _arm(self) -> None:
+        assert self.loop is not None  # (set before the bus thread starts)
+        self.loop.call_later(LAZY_HAND_OVER, self._run_late)
+
+    def _run_late(self) -> None:
+        self._armed = False  # (first: a turn handed over from now on arms again)
+        self.cache.catch_up()
 
     def _run(self) -> None:
         """On the cache's loop: the turns handed over by now, in order.  (The flag is
         cleared first: a turn handed over from now on asks again, so none waits.)"""
         self._asked = False
-        # Only the turns here now: those handed over meanwhile have asked again, and the
-        # loop's other work (sockets, timers) goes first, however busy the lines.
+        self.cache.catch_up()
+
+    def _drain(self) -> None:
+        """(``Cache.catch_up``'s source) Only the turns here now: those handed over
+        meanwhile have asked again, and the loop's other work (sockets, timers) goes
+        first, however busy the lines."""
         for _ in range(len(self._out)):
             _run_all(self._out.popleft())
 
@@ -151,7 +193,7 @@ class BusRunner:
         future: asyncio.Future[Outcome] = asyncio.get_running_loop().create_future()
 
         def done(outcome: Outcome, error: RequestFailed | None) -> None:
-            self.writer.hand(_settle, future, outcome, error)
+            self.writer.hand_urgent(_settle, future, outcome, error)
 
         def begin() -> None:
             try:
@@ -198,7 +240,7 @@ class BusRunner:
         from now on; returns what stops it.  The bus makes Trace events only while
         someone watches (or its log traces)."""
         def on_bus_thread(event: Trace) -> None:
-            self.writer.hand(watcher, event)
+            self.writer.hand_urgent(watcher, event)
 
         await self.call(functools.partial(self.master.watch, on_bus_thread))
 
@@ -224,7 +266,7 @@ class BusRunner:
         future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
 
         def done() -> None:  # (on the bus thread: after the writes before it)
-            self.writer.hand(_settle_none, future)
+            self.writer.hand_urgent(_settle_none, future)
 
         await self.call(functools.partial(self.master.change_sensors, config, done))
         try:
@@ -298,7 +340,7 @@ class BusThread:
         stopped master's last counters must not arrive after its bus is gone)."""
         future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         marker = functools.partial(_settle_none, future)
-        if self.reactor.post(functools.partial(self.writer.hand, marker)):
+        if self.reactor.post(functools.partial(self.writer.hand_urgent, marker)):
             await future
 
     def start_one(self, config: BusConfig, frames: int | None = None) -> BusRunner:

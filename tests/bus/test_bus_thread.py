@@ -58,11 +58,14 @@ def test_a_post_while_the_wakeup_pipe_is_read_still_wakes_the_next_time(
 
 @pytest.mark.anyio
 async def test_cache_writes_reach_the_main_loop_in_order_and_it_is_not_held() -> None:
-    """Turns handed over while the main loop has not run the last hand-over join it
-    (one wake-up); a hand-over runs only the turns there when it started, so a bus
-    that keeps handing over cannot keep the main loop from its other work."""
+    """With a prompt listener: turns handed over while the main loop has not run the
+    last hand-over join it (one wake-up); a hand-over runs only the turns there when it
+    started, so a bus that keeps handing over cannot keep the main loop from its other
+    work."""
     loop = asyncio.get_running_loop()
-    writer = CacheWriter(Cache([]))
+    cache = Cache([])
+    cache.subscribe(lambda kind, snap: None)  # (prompt: every turn at once)
+    writer = CacheWriter(cache)
     writer.loop = loop
     seen: list[int] = []
     woken = 0

@@ -138,8 +138,10 @@ class ModbusTcpServer(Frontend):
         self.tls_context: ssl.SSLContext | None = None  # the TLS port's, once it listens
         self.peers = PeerLog(log)
         self._housekeeping: asyncio.TimerHandle | None = None
-        # ALARM events too: the alarms' bits change only at a transition.
-        gateway.cache.subscribe(self._on_cache_event, self.fail, kinds=ALL_EVENTS)
+        # ALARM events too: the alarms' bits change only at a transition.  Not prompt:
+        # each request brings the images up to date first (``handle``).
+        gateway.cache.subscribe(self._on_cache_event, self.fail, kinds=ALL_EVENTS,
+                                prompt=False)
 
     def sensors_changed(self) -> None:
         """The unit map made from the gateway's sensors (at start, and at once after a
@@ -274,6 +276,7 @@ class ModbusTcpServer(Frontend):
         acknowledgement's journal line names it."""
         function = pdu[0]
         self.counts["requests"] += 1
+        self.gateway.cache.catch_up()  # (the images are the cache's, however lazy)
         if function == ident.FUNCTION:  # answered here, raw units too: no bus traffic
             return self._identify(unit_id, pdu)
         if unit_id in self.raw_units:

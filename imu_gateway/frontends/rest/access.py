@@ -302,14 +302,18 @@ class SecurityHeaders:
 
 class CountRequests:
     """ASGI middleware counting HTTP requests (a plain one: Starlette's
-    ``BaseHTTPMiddleware`` costs a task and a stream per request)."""
+    ``BaseHTTPMiddleware`` costs a task and a stream per request), and calling
+    ``before()`` before each: the cache's ``catch_up``, so history, alarms and captures
+    answer with every sample the buses have handed over."""
 
-    def __init__(self, app: Any, counts: dict[str, int]) -> None:
-        self.app, self.counts = app, counts
+    def __init__(self, app: Any, counts: dict[str, int],
+                 before: Callable[[], None] = lambda: None) -> None:
+        self.app, self.counts, self.before = app, counts, before
 
     async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
         if scope["type"] == "http":
             self.counts["requests"] += 1
+            self.before()
         await self.app(scope, receive, send)
 
 

@@ -138,7 +138,8 @@ def create_app(gateway: GatewayLike, config: HttpConfig, hub: StreamHub | None =
                                                "/wizards": PAGE_POLICY, "/setup": PAGE_POLICY,
                                                "/traffic": PAGE_POLICY})
     counts = counters if counters is not None else {"requests": 0}
-    app.add_middleware(CountRequests, counts=counts)  # outermost: counts every request
+    # outermost: counts every request, and brings the cache up to date before it
+    app.add_middleware(CountRequests, counts=counts, before=gateway.cache.catch_up)
     return app
 
 

@@ -117,8 +117,18 @@ class StreamHub:
         self.skipped = 0  # events skipped for subscribers whose queue was full
         self.closed = False
         self.history = gateway.history  # the gateway's, shared with the other front ends
+        # Prompt only while a stream is open (``_prompt_while_open``): a REST server
+        # nobody streams from lets the buses hand their turns over lazily.
         self._unsubscribe = gateway.cache.subscribe(self._on_cache_event, on_error,
-                                                    ALL_EVENTS)
+                                                    ALL_EVENTS, prompt=False)
+        self._release: Callable[[], None] | None = None
+
+    def _prompt_while_open(self) -> None:
+        if self.subscribers and not self.closed and self._release is None:
+            self._release = self.gateway.cache.claim_prompt()
+        elif (self.closed or not self.subscribers) and self._release is not None:
+            self._release()
+            self._release = None
 
     def _on_cache_event(self, kind: EventKind, snap: Snapshot) -> None:
         if not self.subscribers or kind is EventKind.SETTINGS:  # (not in the stream)
@@ -143,6 +153,7 @@ class StreamHub:
         sub.dropped = True
         sub.events.clear()
         self.subscribers.discard(sub)
+        self._prompt_while_open()
         self.dropped += 1
         log.info("http: dropped a stream client that took nothing for %g s", STALL_S)
         # Its send waits on a full socket, so the stream could only end once the client
@@ -159,11 +170,13 @@ class StreamHub:
             sub.end()
         else:
             self.subscribers.add(sub)
+            self._prompt_while_open()
         return sub
 
     def unsubscribe(self, sub: Subscription) -> None:
         sub.end()
         self.subscribers.discard(sub)
+        self._prompt_while_open()
         self.open -= 1
 
     def current(self, sensor: str | None) -> bytes:
@@ -189,6 +202,7 @@ class StreamHub:
         for sub in list(self.subscribers):
             sub.end()
         self._unsubscribe()
+        self._prompt_while_open()
 
 
 def _event(name: str, snap: Snapshot) -> bytes:

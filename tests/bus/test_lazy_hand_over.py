@@ -1,0 +1,240 @@
+"""The bus thread's turns reach the main loop lazily when nobody pushes (issue 29).
+
+With only Modbus TCP and REST on, which read on demand, the main loop is not woken for
+every exchange: the turns wait until something reads the cache (``Cache.catch_up``), or
+``LAZY_HAND_OVER`` at the latest.  A listener that pushes to the outside, an open SSE
+stream, or a turn that answers someone waiting makes the hand-over immediate again.
+Each sample keeps its own times however late it is applied.
+
+The writer's side is played in one thread, as in ``test_bus_thread``; the readers are
+the gateway's own Modbus TCP server and REST app, as a client calls them."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from datetime import UTC, datetime
+from typing import Any
+
+import httpx
+import pytest
+
+from imu_gateway.app import Gateway
+from imu_gateway.bus import runner
+from imu_gateway.bus.runner import CacheWriter
+from imu_gateway.cache import Cache, EventKind, Snapshot
+from imu_gateway.config import config_from_dict
+from imu_gateway.frontends.rest.routes import create_app
+from imu_gateway.frontends.rest.streams import StreamHub
+from imu_gateway.model import Angles, Reading
+
+READ_FLOATS = bytes((0x03, 0, 100, 0, 6))  # FC03, registers 100-105: pitch, roll, yaw
+TARGET_FAILED = 0x0B
+
+
+def reading(pitch: float) -> Reading:
+    return Reading(angles=Angles(pitch, 0.0, 0.0))
+
+
+@contextmanager
+def wake_ups(loop: asyncio.AbstractEventLoop) -> Iterator[list[str]]:
+    """The callbacks other threads asked the loop to run (each one a wake-up)."""
+    asked: list[str] = []
+    real = loop.call_soon_threadsafe
+
+    def counted(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> asyncio.Handle:
+        asked.append(fn.__name__)
+        return real(fn, *args, **kwargs)
+
+    loop.call_soon_threadsafe = counted  # type: ignore[method-assign,assignment]
+    try:
+        yield asked
+    finally:
+        loop.call_soon_threadsafe = real  # type: ignore[method-assign]
+
+
+def writer_for(cache: Cache) -> CacheWriter:
+    writer = CacheWriter(cache)
+    writer.loop = asyncio.get_running_loop()
+    return writer
+
+
+def turn(writer: CacheWriter, name: str, pitch: float, at: float | None = None) -> None:
+    """One turn of the bus loop that read ``name`` (``at``: when it was received)."""
+    writer.publish(name, reading(pitch), time.monotonic() if at is None else at)
+    writer.flush()
+
+
+@pytest.mark.anyio
+async def test_without_a_prompt_listener_turns_wait_for_a_reader() -> None:
+    """Ten turns, one wake-up (to arm the late hand-over), nothing heard yet; the first
+    read applies all ten, in order, before it answers."""
+    cache = Cache([("s", 1000)])
+    heard: list[float] = []
+    cache.subscribe(lambda kind, snap: heard.append(snap.reading.angles.pitch)  # type: ignore[union-attr]
+                    if kind is EventKind.READING else None, prompt=False)
+    writer = writer_for(cache)
+    with wake_ups(asyncio.get_running_loop()) as asked:
+        for i in range(10):
+            turn(writer, "s", float(i))
+        assert asked == ["_arm"]
+        assert heard == []
+        assert cache.snapshot("s").seq == 10
+        assert heard == [float(i) for i in range(10)]
+
+
+@pytest.mark.anyio
+async def test_without_a_reader_the_turns_come_after_the_lazy_period(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(runner, "LAZY_HAND_OVER", 0.01)
+    cache = Cache([("s", 1000)])
+    came = asyncio.Event()
+    cache.subscribe(lambda kind, snap: came.set(), prompt=False)
+    writer = writer_for(cache)
+    turn(writer, "s", 1.0)
+    await asyncio.wait_for(came.wait(), 10)
+    came.clear()
+    turn(writer, "s", 2.0)  # (the timer is armed again for the next turn)
+    await asyncio.wait_for(came.wait(), 10)
+
+
+@pytest.mark.anyio
+async def test_a_prompt_listener_a_claim_or_a_waiter_is_handed_each_turn_at_once() -> None:
+    cache = Cache([("s", 1000)])
+    writer = writer_for(cache)
+    loop = asyncio.get_running_loop()
+    with wake_ups(loop) as asked:
+        unsubscribe = cache.subscribe(lambda kind, snap: None)  # prompt by default
+        assert cache.prompt
+        turn(writer, "s", 1.0)
+        assert asked == ["_run"]
+        unsubscribe()
+        assert not cache.prompt
+        await asyncio.sleep(0)  # (the hand-over ran)
+        release = cache.claim_prompt()  # an SSE stream opened
+        turn(writer, "s", 2.0)
+        assert asked == ["_run", "_run"]
+        release()
+        release()  # (twice is harmless)
+        assert not cache.prompt
+        await asyncio.sleep(0)
+        settled: asyncio.Future[None] = loop.create_future()
+        writer.hand_urgent(settled.set_result, None)  # a command's answer
+        writer.flush()
+        assert asked == ["_run", "_run", "_run"]
+        await asyncio.wait_for(settled, 10)
+
+
+def test_a_front_end_forgotten_by_a_reload_leaves_no_claim() -> None:
+    class FrontEnd:
+        def on_event(self, kind: EventKind, snap: Snapshot) -> None:
+            pass
+
+    cache, old = Cache([]), FrontEnd()
+    cache.subscribe(old.on_event)
+    release = cache.claim_prompt()
+    cache.forget(old)
+    assert cache.prompt  # the claim stays
+    release()
+    assert not cache.prompt
+
+
+@pytest.mark.anyio
+async def test_a_late_turn_keeps_each_samples_own_time() -> None:
+    """Samples received 0.9, 0.6 and 0.3 s ago, applied together now: each timestamp
+    and age is its own, not the moment they were applied."""
+    cache = Cache([("s", 10_000)])
+    times: list[datetime] = []
+    cache.subscribe(lambda kind, snap: times.append(snap.timestamp)  # type: ignore[arg-type]
+                    if kind is EventKind.READING else None, prompt=False)
+    writer = writer_for(cache)
+    now = time.monotonic()
+    for ago in (0.9, 0.6, 0.3):
+        turn(writer, "s", ago, now - ago)
+    snap = cache.snapshot("s")
+    wall = datetime.now(UTC)
+    ages = [(wall - t).total_seconds() for t in times]
+    assert [round(a, 1) for a in ages] == [0.9, 0.6, 0.3]
+    assert snap.age_ms is not None and 300 <= snap.age_ms < 400
+
+
+def gateway(**extra: Any) -> Gateway:
+    return Gateway(config_from_dict({"buses": [{
+        "name": "line", "port": "/dev/null", "protocol": "native",
+        "sensors": [{"name": "boom", "series": "AH", "address": 0, "alarms": [
+            {"name": "lean", "field": "pitch", "above": 5.0, "on_delay_s": 0.2}]}]}],
+        **extra}, env={}))
+
+
+def pending(gw: Gateway, *samples: tuple[float, float]) -> None:
+    """Samples (pitch, received at) a bus handed over and the main loop has not
+    applied yet."""
+    waiting = list(samples)
+
+    def drain() -> None:
+        while waiting:
+            pitch, at = waiting.pop(0)
+            gw.cache.publish("boom", reading(pitch), at)
+
+    gw.cache.add_source(drain)
+
+
+@pytest.mark.anyio
+async def test_alarm_delays_run_on_the_samples_times_not_when_they_are_applied() -> None:
+    """0.25 s of pitch above 5 meets a 0.2 s on-delay, though the three samples are
+    applied at the same moment."""
+    gw = gateway()
+    t0 = time.monotonic() - 1.0
+    pending(gw, (6.0, t0), (6.0, t0 + 0.1), (6.0, t0 + 0.25))
+    gw.cache.catch_up()
+    [lean] = [s for s in gw.alarm_states() if s.name == "lean"]
+    assert lean.state.active
+
+
+@pytest.mark.anyio
+async def test_a_modbus_tcp_read_answers_with_what_was_handed_over() -> None:
+    """The register images are kept by a listener that is not prompt: a read applies
+    the waiting turns first, so it never answers older than the bus handed over."""
+    gw = gateway(modbus={"listen": "127.0.0.1:0"})
+    assert gw.modbus is not None and not gw.cache.prompt
+    pending(gw, (12.5, time.monotonic()))
+    answer = gw.modbus.handle(1, READ_FLOATS, writes=False)
+    assert isinstance(answer, bytes) and answer[:2] == bytes((0x03, 12))
+    assert answer[2:6] == bytes.fromhex("41480000")  # 12.5 as a big-endian f32
+
+
+@pytest.mark.anyio
+async def test_a_rest_request_answers_with_what_was_handed_over() -> None:
+    """The history and the alarms are kept by listeners that are not prompt: a request
+    applies the waiting turns first."""
+    gw = gateway(http={"listen": "127.0.0.1:0"})
+    assert gw.http is not None and not gw.cache.prompt
+    now = time.monotonic()
+    pending(gw, (6.0, now - 0.5), (6.5, now - 0.2))
+    assert gw.config.http is not None
+    transport = httpx.ASGITransport(app=create_app(gw, gw.config.http))
+    async with httpx.AsyncClient(transport=transport, base_url="http://gw") as client:
+        alarms = (await client.get("/api/v1/alarms")).json()
+        history = (await client.get("/api/v1/sensors/boom/history",
+                                    params={"field": "pitch"})).json()
+    assert [(a["alarm"], a["active"]) for a in alarms] == \
+        [("lean", True), ("communication", False)]
+    assert history["fields"]["pitch"]["last"][-1] == 6.5
+
+
+@pytest.mark.anyio
+async def test_an_sse_stream_makes_the_hand_over_prompt_while_it_is_open() -> None:
+    gw = gateway(http={"listen": "127.0.0.1:0"})
+    hub = StreamHub(gw)
+    assert not gw.cache.prompt  # a REST server nobody streams from
+    first, second = hub.subscribe(None), hub.subscribe("boom")
+    assert gw.cache.prompt
+    hub.unsubscribe(first)
+    assert gw.cache.prompt
+    hub.unsubscribe(second)
+    assert not gw.cache.prompt
+    hub.subscribe(None)
+    hub.close()  # (the server stops: its streams end after)
+    assert not gw.cache.prompt
