@@ -8,9 +8,10 @@ measures it (docs/benchmarks.md, "The capture's ring").
 The times of a row (wall-clock seconds since the epoch):
 
 * **wire**: when the sample's last byte came in from the line.  The bus master notes
-  that moment (monotonic) and the cache keeps it as the reading's age: the wire time is
-  the snapshot's time less its age.
-* **receive**: when the main loop put it in the cache (the snapshot's time).
+  that moment, and the cache makes it the snapshot's time (``Snapshot.timestamp``).
+* **receive**: when the main loop put it in the cache (the capture hears it then):
+  the hand-over from the bus thread is in between, up to 50 ms when nobody pushes
+  readings out (``bus.runner``).
 
 A change of status (``stale``, ``offline``) is a row too, with no wire time and no
 values: the capture shows when a sensor stopped answering.
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 import math
 import struct
+import time
 from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -70,11 +72,11 @@ class SensorRing:
         """The snapshot as a row (``None``: an event the capture does not keep)."""
         if snap.timestamp is None:
             return None
-        receive = snap.timestamp.timestamp()
+        receive = time.time()
         status = _STATUSES.index(snap.status)
         if kind is EventKind.READING:
             values = values_of(snap)
-            wire = receive - (snap.age_ms or 0.0) / 1000
+            wire = snap.timestamp.timestamp()
             return self._row.pack(wire, receive, snap.seq, snap.errors, status,
                                   *(values.get(f, math.nan) for f in self.fields))
         if kind is EventKind.STATUS:

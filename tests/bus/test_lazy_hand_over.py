@@ -25,6 +25,7 @@ from imu_gateway.app import Gateway
 from imu_gateway.bus import runner
 from imu_gateway.bus.runner import CacheWriter
 from imu_gateway.cache import Cache, EventKind, Snapshot
+from imu_gateway.capture.ring import SensorRing
 from imu_gateway.config import config_from_dict
 from imu_gateway.frontends.rest.routes import create_app
 from imu_gateway.frontends.rest.streams import StreamHub
@@ -238,3 +239,21 @@ async def test_an_sse_stream_makes_the_hand_over_prompt_while_it_is_open() -> No
     hub.subscribe(None)
     hub.close()  # (the server stops: its streams end after)
     assert not gw.cache.prompt
+
+
+@pytest.mark.anyio
+async def test_a_capture_row_keeps_the_wire_time_and_when_the_cache_had_it() -> None:
+    """A sample received 0.3 s before the main loop applied it: its capture row's wire
+    time is its own, its receive time the moment the cache had it."""
+    cache = Cache([("s", 10_000)])
+    ring = SensorRing(["pitch", "roll", "yaw"], keep=10)
+    cache.subscribe(lambda kind, snap: ring.add(row) if (row := ring.pack(kind, snap))
+                    else None, prompt=False)
+    writer = writer_for(cache)
+    turn(writer, "s", 1.5, time.monotonic() - 0.3)
+    cache.catch_up()
+    applied = time.time()
+    [row] = [r for r in ring.unpack(ring.since(0)) if r.kind == "reading"]
+    assert row.wire is not None and abs(row.wire - (applied - 0.3)) < 0.05
+    assert abs(row.receive - applied) < 0.05
+    assert row.values[0] == 1.5
