@@ -178,9 +178,18 @@ class Cache:
         self._sources.append(drain)
 
     def catch_up(self) -> None:
-        """Apply the writes handed over and not applied yet (``add_source``): on every
-        read, and by whoever answers from state kept outside the cache (the Modbus
-        TCP register images)."""
+        """Apply the writes handed over and waiting for a reader (``add_source``): on
+        every read, and by whoever answers from state kept outside the cache (the
+        Modbus TCP register images).  With a prompt listener there are none to wait
+        for: the hand-over is on its way to the loop (``apply_handed``), and the
+        listeners never run inside a reader's call (a stream's first events would
+        show a reading its queue then gets again)."""
+        if not self.prompt:
+            self.apply_handed()
+
+    def apply_handed(self) -> None:
+        """Apply every write handed over and not applied yet, in order (the hand-over
+        itself, on the loop)."""
         if self._catching_up:  # (a write's listener reading: the rest come next)
             return
         self._catching_up = True

@@ -110,16 +110,16 @@ class CacheWriter:
 
     def _run_late(self) -> None:
         self._armed = False  # (first: a turn handed over from now on arms again)
-        self.cache.catch_up()
+        self.cache.apply_handed()
 
     def _run(self) -> None:
         """On the cache's loop: the turns handed over by now, in order.  (The flag is
         cleared first: a turn handed over from now on asks again, so none waits.)"""
         self._asked = False
-        self.cache.catch_up()
+        self.cache.apply_handed()
 
     def _drain(self) -> None:
-        """(``Cache.catch_up``'s source) Only the turns here now: those handed over
+        """(``Cache.apply_handed``'s source) Only the turns here now: those handed over
         meanwhile have asked again, and the loop's other work (sockets, timers) goes
         first, however busy the lines."""
         for _ in range(len(self._out)):

@@ -257,3 +257,19 @@ async def test_a_capture_row_keeps_the_wire_time_and_when_the_cache_had_it() -> 
     assert row.wire is not None and abs(row.wire - (applied - 0.3)) < 0.05
     assert abs(row.receive - applied) < 0.05
     assert row.values[0] == 1.5
+
+
+@pytest.mark.anyio
+async def test_with_a_prompt_listener_a_read_runs_no_listener() -> None:
+    """The hand-over is on its way to the loop: a reader's call does not run the
+    listeners inside it (a stream's first events, made from snapshots, would show a
+    reading its queue then got again)."""
+    cache = Cache([("s", 1000)])
+    heard: list[int] = []
+    cache.subscribe(lambda kind, snap: heard.append(snap.seq)
+                    if kind is EventKind.READING else None)
+    writer = writer_for(cache)
+    turn(writer, "s", 1.0)
+    assert cache.snapshot("s").seq == 0 and heard == []
+    await asyncio.sleep(0)  # the loop runs the hand-over
+    assert heard == [1] and cache.snapshot("s").seq == 1
