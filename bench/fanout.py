@@ -66,6 +66,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 from imu_gateway.app import GIL_SWITCH_INTERVAL, Gateway
 from imu_gateway.cache import EventKind, Snapshot
 from imu_gateway.frontends.opcua.server import Sample
+from imu_gateway.frontends.opcua.writes import DirectWriter, tell
 from imu_gateway.model import VALUE_GROUPS
 
 FIELDS = [f"{spec.title}.{name}" for spec in VALUE_GROUPS.values() for name in spec.fields]
@@ -259,8 +260,17 @@ async def write_paths(pki: str, writes: int = 300) -> None:
     now = datetime.now(UTC)
 
     def value(v: float, kind: Any = ua.DataValue) -> Any:
-        return kind(ua.Variant(v, ua.VariantType.Float), SourceTimestamp=now,
+        # (Double, the nodes' type: a Float is refused, and a refusal is no write)
+        return kind(ua.Variant(v, ua.VariantType.Double), SourceTimestamp=now,
                     ServerTimestamp=now)
+
+    direct = DirectWriter(server.iserver.aspace)
+
+    async def write_directly(nodeid: ua.NodeId, v: float) -> None:
+        due: list[Any] = []
+        direct.write(nodeid, value(v, Sample), due)
+        if due:
+            await tell(due)
 
     paths: dict[str, Callable[[Any, float], Awaitable[None]]] = {
         "write_attribute_value, DataValue": lambda i, v: server.write_attribute_value(
@@ -268,6 +278,7 @@ async def write_paths(pki: str, writes: int = 300) -> None:
         "write_attribute_value, Sample": lambda i, v: server.write_attribute_value(
             i, value(v, Sample)),
         "node.write_value, DataValue": lambda i, v: server.get_node(i).write_value(value(v)),
+        "the gateway's (writes.DirectWriter)": write_directly,
     }
 
     class Quiet:

@@ -39,6 +39,7 @@ from .methods import Caller, instance_caller, type_caller
 from .nodes import VALUE_TYPE, Callers, Ids, build_sensor, build_type, variant
 from .security import ConfigUsers, secure
 from .space import BUS_VARS, NAMESPACE, quality
+from .writes import Callback, DirectWriter, tell
 
 log = logging.getLogger("imu_gateway.opcua")
 
@@ -130,6 +131,7 @@ class OpcUaServer(Frontend):
         self.conditions = Conditions(gateway, config.allow_commands)
         self.shapes: dict[str, Shape] = {}  # sensor -> what its subtree was built from
         self._history: GatewayHistory | None = None
+        self._writer: DirectWriter  # (with the server, at start)
         self._sensors: Node | None = None  # the Sensors folder
         self._type_id = ua.NodeId()  # ImuSensorType's
         self._changing = asyncio.Lock()  # one reload's changes at a time
@@ -181,8 +183,9 @@ class OpcUaServer(Frontend):
                 await server.stop()
             raise
         self.server = server
+        self._writer = DirectWriter(server.iserver.aspace)
         for snap in self.gateway.cache.snapshots():
-            await self._write_sensor(snap)
+            await tell(self._write_sensor(snap))
         self._unsubscribe = self.gateway.cache.subscribe(self._on_cache_event, self.fail,
                                                          kinds=ALL_EVENTS)
         self._events = asyncio.create_task(self.conditions.run(), name="opcua alarm events")
@@ -304,7 +307,7 @@ class OpcUaServer(Frontend):
                     continue
                 changes.append(ModelChange(await self._add_sensor(server, name), self._type_id,
                                            Verb.NODE_ADDED))
-                await self._write_sensor(self.gateway.cache.snapshot(name))
+                await tell(self._write_sensor(self.gateway.cache.snapshot(name)))
             if changes:
                 verbs = Verb(0)
                 for change in changes:
@@ -346,30 +349,34 @@ class OpcUaServer(Frontend):
             if snap.alarm is not None:
                 self.conditions.on_alarm(snap.alarm)
         elif kind is not EventKind.SETTINGS and self.server is not None:
-            task = asyncio.create_task(self._write_sensor(snap))
-            task.add_done_callback(self._written)
+            due = self._write_sensor(snap)
+            if due:  # (monitored: a task for the sample's callbacks, in order)
+                task = asyncio.create_task(tell(due))
+                task.add_done_callback(self._written)
 
     def _written(self, task: asyncio.Task[None]) -> None:
         if not task.cancelled() and task.exception() is not None:
             self.fail(task.exception())  # type: ignore[arg-type]
 
-    async def _write_sensor(self, snap: Snapshot) -> None:
-        server = self.server
-        if server is None or snap.name not in self.values:
-            return
+    def _write_sensor(self, snap: Snapshot) -> list[tuple[Callback, int, ua.DataValue]]:
+        """The sample into its sensor's nodes, now (``writes``); returns the monitored
+        items' callbacks it is due to."""
+        due: list[tuple[Callback, int, ua.DataValue]] = []
+        if self.server is None or snap.name not in self.values:
+            return due
         now = datetime.now(UTC)
         source = snap.timestamp or now
         code = _status(quality(snap))
         fields = values_of(snap)
+        write = self._writer.write
         for name, nodeid in self.values[snap.name]:
-            await server.write_attribute_value(nodeid, Sample(
-                variant(fields.get(name), VALUE_TYPE), StatusCode=code, SourceTimestamp=source,
-                ServerTimestamp=now))
+            write(nodeid, Sample(variant(fields.get(name), VALUE_TYPE), StatusCode=code,
+                                 SourceTimestamp=source, ServerTimestamp=now), due)
         for row, nodeid in self.status_nodes[snap.name]:
-            await server.write_attribute_value(nodeid, Sample(
-                variant(row.value(snap), row.datatype), SourceTimestamp=source,
-                ServerTimestamp=now))
+            write(nodeid, Sample(variant(row.value(snap), row.datatype),
+                                 SourceTimestamp=source, ServerTimestamp=now), due)
         self.counts["samples"] += 1
+        return due
 
     async def _write_buses(self) -> None:
         while True:

@@ -171,6 +171,29 @@ async def test_values_are_doubles_as_the_sensor_gave_them_with_the_derived(
             assert units.UnitId == int.from_bytes(b"K40", "big")
 
 
+@pytest.mark.anyio
+async def test_every_sample_node_holds_the_variant_type_of_its_data_type(
+        tmp_path: Path, lines: Lines) -> None:
+    """The gateway writes its samples past asyncua's type check (``writes.py``): each
+    value and status node of each sensor, as a client reads it, holds a Variant of
+    the type its DataType says."""
+    port = free_port()
+    cfg = _config(port, tmp_path / "pki", lines.native, lines.modbus, allow_none=True)
+    async with running(cfg) as gw, Client(f"opc.tcp://127.0.0.1:{port}/") as client:
+        await until(lambda: all(gw.cache.snapshot(s).seq >= 2 for s in ("boom", "mast")))
+        assert gw.opcua is not None
+        written = [nodeid for sensor in ("boom", "mast")
+                   for nodeid in [n for _, n in gw.opcua.values[sensor]] +
+                   [n for _, n in gw.opcua.status_nodes[sensor]]]
+        assert len(written) > 30
+        for nodeid in written:
+            ua_node = client.get_node(nodeid)
+            dtype = await ua_node.read_data_type()
+            value = (await ua_node.read_data_value()).Value
+            assert dtype.NamespaceIndex == 0 and isinstance(dtype.Identifier, int)
+            assert value.VariantType == ua.VariantType(dtype.Identifier), nodeid
+
+
 def _reads(item: Any, want: float) -> Any:
     async def check() -> bool:
         return bool(await item.read_value() == want)
