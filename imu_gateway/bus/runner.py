@@ -20,8 +20,9 @@ depends on who listens (``Cache.prompt``):
 * otherwise (only Modbus TCP and REST, which read on demand): the turns wait, and the
   main loop takes them when something reads the cache (``Cache.catch_up``), or after
   ``LAZY_HAND_OVER`` at the latest (history, alarms, captures).  A wake-up of the main
-  loop costs more CPU than the work it brings: on one line this took the gateway's CPU
-  per exchange from 0.29-0.42 ms to ... (``docs/benchmarks.md``).
+  loop costs more CPU than the work it brings: on one native line, the main loop's
+  CPU per exchange went from 0.12-0.13 ms to 0.07-0.08, the process's from 0.35-0.39
+  to 0.26-0.27 (``docs/benchmarks.md``, "The lazy hand-over").
 
 Counters travel the same way, as frozen snapshots made on the bus thread
 (``BusMaster.stats_snapshot``), and so do the answers of whoever asked (after the
