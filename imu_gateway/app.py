@@ -401,7 +401,7 @@ def _captures(gateway: Gateway) -> Captures:
     for bus in gateway.config.buses:
         gateway.runners[bus.name].record_frames(
             ring_size(config.pre_s + config.post_s, bus.baudrate))
-    captures = Captures(config, gateway.config, gateway.bus_frames)
+    captures = Captures(config, gateway.config, gateway.bus_frames, gateway.cache.catch_up)
     gateway.cache.subscribe(captures.on_cache_event, prompt=False)
     return captures
 

@@ -201,6 +201,10 @@ class Cache:
 
     def snapshot(self, name: str) -> Snapshot:
         self.catch_up()
+        return self._snapshot(name)
+
+    def _snapshot(self, name: str) -> Snapshot:
+        """(The writes' own: a write never applies other turns in its middle.)"""
         e = self._entry(name)
         now = self._clock()
         age = (now - e.received) * 1000 if e.reading is not None else None
@@ -223,6 +227,8 @@ class Cache:
         must reach it at once.  Without one, events come in bursts, up to
         ``bus.runner.LAZY_HAND_OVER`` late (or when something reads the cache), each
         with its own times."""
+        if prompt:
+            self.catch_up()  # (nothing left waiting for a lazy timer: ``claim_prompt``)
         entry = (listener, on_error, frozenset(kinds))
         self._listeners.append(entry)
         if prompt:
@@ -240,7 +246,9 @@ class Cache:
 
     def claim_prompt(self) -> Callable[[], None]:
         """Each event at once (as a prompt listener's) until the returned release is
-        called: for a listener that pushes only while it has clients."""
+        called: for a listener that pushes only while it has clients.  What waits for
+        the lazy hand-over's timer is applied first: readers are never behind after."""
+        self.catch_up()
         claim = _Claim()
         self._prompt.append(claim)
         self.prompt = True
@@ -277,7 +285,7 @@ class Cache:
         # (``subscribe``'s prompt) keeps each sample's own time
         e.timestamp = datetime.fromtimestamp(time.time() - max(0.0, now - e.received), UTC)
         e.online = e.reached = True
-        snap = self.snapshot(name)
+        snap = self._snapshot(name)
         self._notify(EventKind.READING, snap)
         self._check(name, snap)
         return e.seq
@@ -354,7 +362,7 @@ class Cache:
     def publish_alarm(self, event: AlarmEvent) -> None:
         """An alarm's transition, to the listeners of ``ALARM`` events, with its
         sensor's snapshot."""
-        snap = replace(self.snapshot(event.state.sensor), alarm=event)
+        snap = replace(self._snapshot(event.state.sensor), alarm=event)
         self._notify(EventKind.ALARM, snap)
 
     def check_staleness(self) -> None:
@@ -374,10 +382,10 @@ class Cache:
             same = made is not None and made.seq == e.seq and \
                 (made.status, made.busy, made.streaming) == state
             self._notify(EventKind.STATUS, made if same and made is not None
-                         else self.snapshot(name))
+                         else self._snapshot(name))
 
     def _emit(self, kind: EventKind, name: str) -> None:
-        self._notify(kind, self.snapshot(name))
+        self._notify(kind, self._snapshot(name))
 
     def _notify(self, kind: EventKind, snap: Snapshot) -> None:
         if self._delivering:  # (a listener's doing, while it hears an event)

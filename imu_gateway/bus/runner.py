@@ -310,6 +310,9 @@ class BusThread:
             if not await asyncio.to_thread(self.reactor.join, 5.0):
                 return  # (its pipe stays open: the thread may still post to it)
         self.reactor.close()
+        # The masters' last counters and states: nobody may read the cache again to
+        # take them, and a lazy hand-over's timer would not run before the loop ends.
+        self.writer.cache.apply_handed()
 
     # ------------------------------------------------------------ a reload
 

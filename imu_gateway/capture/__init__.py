@@ -63,13 +63,16 @@ class Captures:
     """The rings, the triggers, and the captures written so far (on the main loop)."""
 
     def __init__(self, config: CaptureConfig, gateway: GatewayConfig,
-                 frames: FramesOf) -> None:
+                 frames: FramesOf, catch_up: Callable[[], None] = lambda: None) -> None:
+        """``catch_up``: the cache's, so that the window has every sample handed over
+        by its end (``Cache.catch_up``)."""
         self.config = config
         self.gateway = gateway
         self.folder = Path(config.dir)
         self.rings = {s.name: SensorRing(series_fields(s.series), config.pre_s)
                       for _, s in gateway.iter_sensors()}
         self._frames = frames
+        self._catch_up = catch_up
         self._index: list[CaptureInfo] = []  # oldest first
         self._pending: _Pending | None = None
         self._timer: asyncio.TimerHandle | None = None
@@ -200,6 +203,7 @@ class Captures:
     # ------------------------------------------------------------ writing
 
     def _write_pending(self) -> None:
+        self._catch_up()  # (its samples a lazy hand-over has not brought yet)
         pending, self._pending, self._timer = self._pending, None, None
         if pending is None:
             return
@@ -212,7 +216,8 @@ class Captures:
         frames = await self._window_frames(pending)
         info = CaptureInfo(pending.id, pending.reason, pending.alarm, pending.at, 0)
         sensors = [SensorRows(name, self.rings[name].fields, tuple(
-            row for row in self.rings[name].unpack(rows) if row.receive <= pending.end))
+            row for row in self.rings[name].unpack(rows)
+            if (row.receive if row.wire is None else row.wire) <= pending.end))
             for name, rows in pending.rows.items()]
         try:
             size = await asyncio.to_thread(write_capture, self.folder, info,

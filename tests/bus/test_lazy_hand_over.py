@@ -16,10 +16,15 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from datetime import UTC, datetime
+from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import httpx
 import pytest
+from asyncua import ua
+from asyncua.server.address_space import AttributeValue, NodeData
+from support.harness import until
 
 from imu_gateway.app import Gateway
 from imu_gateway.bus import runner
@@ -27,9 +32,11 @@ from imu_gateway.bus.runner import CacheWriter
 from imu_gateway.cache import Cache, EventKind, Snapshot
 from imu_gateway.capture.ring import SensorRing
 from imu_gateway.config import config_from_dict
+from imu_gateway.frontends.opcua.writes import DirectWriter, tell
 from imu_gateway.frontends.rest.routes import create_app
 from imu_gateway.frontends.rest.streams import StreamHub
-from imu_gateway.model import Angles, Reading
+from imu_gateway.model import Angles, KnownSettings, Reading, Series, WireProtocol
+from imu_gateway.simulator import make_sensor, simulated
 
 READ_FLOATS = bytes((0x03, 0, 100, 0, 6))  # FC03, registers 100-105: pitch, roll, yaw
 TARGET_FAILED = 0x0B
@@ -273,3 +280,85 @@ async def test_with_a_prompt_listener_a_read_runs_no_listener() -> None:
     assert cache.snapshot("s").seq == 0 and heard == []
     await asyncio.sleep(0)  # the loop runs the hand-over
     assert heard == [1] and cache.snapshot("s").seq == 1
+
+
+def test_a_write_on_the_main_loop_applies_no_turn_in_its_middle() -> None:
+    """A write made on the main loop (settings learned, a status tick) tells its own
+    event before any waiting turn is applied: a turn applied inside it would have come
+    between its state and its event."""
+    cache = Cache([("s", 1000)])
+    heard: list[EventKind] = []
+    cache.subscribe(lambda kind, snap: heard.append(kind), prompt=False)
+    waiting = [1.0]
+
+    def drain() -> None:
+        while waiting:
+            cache.publish("s", reading(waiting.pop()), time.monotonic())
+
+    cache.add_source(drain)
+    cache.learn("s", KnownSettings(declination=3.0))
+    assert heard == [EventKind.SETTINGS]
+    cache.catch_up()
+    assert heard[1:] == [EventKind.READING, EventKind.STATUS]
+
+
+@pytest.mark.anyio
+async def test_becoming_prompt_applies_what_waits_first() -> None:
+    """An SSE stream opens while turns wait for the lazy timer: they are applied
+    before the claim, so readers are not behind after it, and the new stream's queue
+    does not get them again after its first events (which show them)."""
+    gw = gateway(http={"listen": "127.0.0.1:0"})
+    hub = StreamHub(gw)
+    writer = writer_for(gw.cache)
+    turn(writer, "boom", 7.0)
+    sub = hub.subscribe(None)
+    assert gw.cache.prompt
+    assert gw.cache._entries["boom"].seq == 1  # (applied: no read was needed)
+    assert not sub.events  # the stream's first events are its current() snapshot
+
+
+@pytest.mark.anyio
+async def test_the_buses_stop_with_every_turn_applied(tmp_path: Path) -> None:
+    """At the end nobody reads the cache again and the loop ends before a lazy
+    timer: the masters' last counters and states are applied by the stop itself."""
+    sim = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=115200)
+    with simulated([sim]) as line:
+        gw = Gateway(config_from_dict({"buses": [{
+            "name": "line", "port": line.path, "baudrate": 115200, "protocol": "native",
+            "sensors": [{"name": "boom", "series": "AH", "poll_hz": 0}]}]}, env={}))
+        stop = asyncio.Event()
+        task = asyncio.create_task(gw.run(stop))
+        await until(lambda: gw.cache.snapshot("boom").seq >= 3)
+        assert not gw.cache.prompt
+        stop.set()
+        await asyncio.wait_for(task, 30)
+    assert not gw.buses.writer._out
+    master = gw.masters["line"]
+    assert gw.cache._buses["line"].transactions == master.stats.transactions
+
+
+@pytest.mark.anyio
+async def test_an_opc_ua_item_deleted_before_its_value_is_told_gets_nothing(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """The value is written at once and its monitored items told later (in one task):
+    an item deleted in between (by its client, or a reload retiring the node) is not
+    told (asyncua's callback would fail on the gone handle; a retired node's item
+    would get a value after its BadNodeIdUnknown)."""
+    nodeid = ua.NodeId("x", 2)
+    node = NodeData(nodeid)
+    node.attributes[ua.AttributeIds.Value] = AttributeValue(ua.DataValue())
+    told: list[tuple[int, float]] = []
+
+    async def callback(handle: int, value: ua.DataValue) -> None:
+        told.append((handle, value.Value.Value))
+
+    callbacks = node.attributes[ua.AttributeIds.Value].datachange_callbacks
+    callbacks.update({1: callback, 2: callback})
+    writer = DirectWriter(SimpleNamespace(_nodes={nodeid: node}))
+    due: list[Any] = []
+    writer.write(nodeid, ua.DataValue(ua.Variant(1.5, ua.VariantType.Double)), due)
+    del callbacks[1]
+    await tell(due)
+    assert told == [(2, 1.5)]
+    assert not [r for r in caplog.records if r.levelname == "ERROR"]
+    assert node.attributes[ua.AttributeIds.Value].value.Value.Value == 1.5

@@ -39,7 +39,7 @@ from .methods import Caller, instance_caller, type_caller
 from .nodes import VALUE_TYPE, Callers, Ids, build_sensor, build_type, variant
 from .security import ConfigUsers, secure
 from .space import BUS_VARS, NAMESPACE, quality
-from .writes import Callback, DirectWriter, tell
+from .writes import DirectWriter, Due, tell
 
 log = logging.getLogger("imu_gateway.opcua")
 
@@ -358,10 +358,10 @@ class OpcUaServer(Frontend):
         if not task.cancelled() and task.exception() is not None:
             self.fail(task.exception())  # type: ignore[arg-type]
 
-    def _write_sensor(self, snap: Snapshot) -> list[tuple[Callback, int, ua.DataValue]]:
+    def _write_sensor(self, snap: Snapshot) -> list[Due]:
         """The sample into its sensor's nodes, now (``writes``); returns the monitored
         items' callbacks it is due to."""
-        due: list[tuple[Callback, int, ua.DataValue]] = []
+        due: list[Due] = []
         if self.server is None or snap.name not in self.values:
             return due
         now = datetime.now(UTC)

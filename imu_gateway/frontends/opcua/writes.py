@@ -30,6 +30,9 @@ from asyncua import ua
 log = logging.getLogger("imu_gateway.opcua")
 
 Callback = Callable[[int, ua.DataValue], Awaitable[None]]
+#: A monitored item due a value: its node's callbacks (looked up when it is told, so an
+#: item deleted meanwhile, or a node a reload retired, is told nothing), its handle.
+Due = tuple[dict[int, Callback], int, ua.DataValue]
 _VALUE = ua.AttributeIds.Value
 _NULL = ua.Variant(None, ua.VariantType.Null)
 
@@ -41,8 +44,7 @@ class DirectWriter:
         self._nodes = aspace._nodes  # (its own dict of NodeData: read per write, so
         # nodes a reload added or removed are those written)
 
-    def write(self, nodeid: ua.NodeId, value: ua.DataValue,
-              due: list[tuple[Callback, int, ua.DataValue]]) -> None:
+    def write(self, nodeid: ua.NodeId, value: ua.DataValue, due: list[Due]) -> None:
         """Set the node's value now; its monitored items' callbacks go into ``due``."""
         node = self._nodes.get(nodeid)
         attval = None if node is None else node.attributes.get(_VALUE)
@@ -55,14 +57,18 @@ class DirectWriter:
         else:
             attval.value = value
             attval.value_callback = None
-        for handle, callback in attval.datachange_callbacks.items():
-            due.append((callback, handle, value))
+        callbacks = attval.datachange_callbacks
+        for handle in callbacks:
+            due.append((callbacks, handle, value))
 
 
-async def tell(due: list[tuple[Callback, int, ua.DataValue]]) -> None:
-    """The monitored items' callbacks of one sample, in order; one's failure is logged
-    and the rest go on (as asyncua's own write does)."""
-    for callback, handle, value in due:
+async def tell(due: list[Due]) -> None:
+    """The monitored items' callbacks of one sample, in order, those still there; one's
+    failure is logged and the rest go on (as asyncua's own write does)."""
+    for callbacks, handle, value in due:
+        callback = callbacks.get(handle)
+        if callback is None:
+            continue  # (deleted since the value was written)
         try:
             await callback(handle, value)
         except Exception:

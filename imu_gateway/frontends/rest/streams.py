@@ -123,8 +123,8 @@ class StreamHub:
                                                     ALL_EVENTS, prompt=False)
         self._release: Callable[[], None] | None = None
 
-    def _prompt_while_open(self) -> None:
-        if self.subscribers and not self.closed and self._release is None:
+    def _prompt_while_open(self, opening: bool = False) -> None:
+        if (self.subscribers or opening) and not self.closed and self._release is None:
             self._release = self.gateway.cache.claim_prompt()
         elif (self.closed or not self.subscribers) and self._release is not None:
             self._release()
@@ -169,8 +169,10 @@ class StreamHub:
         if self.closed:
             sub.end()
         else:
+            # prompt first: the turns the claim applies are not this stream's (its
+            # first events show where each sensor stands after them)
+            self._prompt_while_open(opening=True)
             self.subscribers.add(sub)
-            self._prompt_while_open()
         return sub
 
     def unsubscribe(self, sub: Subscription) -> None:
