@@ -12,7 +12,10 @@ the gateway's own Modbus TCP server and REST app, as a client calls them."""
 from __future__ import annotations
 
 import asyncio
+import csv
+import io
 import time
+import zipfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from datetime import UTC, datetime
@@ -362,3 +365,32 @@ async def test_an_opc_ua_item_deleted_before_its_value_is_told_gets_nothing(
     assert told == [(2, 1.5)]
     assert not [r for r in caplog.records if r.levelname == "ERROR"]
     assert node.attributes[ua.AttributeIds.Value].value.Value.Value == 1.5
+
+
+@pytest.mark.anyio
+async def test_a_capture_window_has_the_samples_a_lazy_hand_over_still_held(
+        tmp_path: Path) -> None:
+    """A sample that came in 20 ms before the window's end, in a turn still waiting
+    for the lazy hand-over when the window closes: the capture applies the waiting
+    turns, and keeps its readings by their wire time (the cache has it only after the
+    end)."""
+    gw = gateway(capture={"dir": str(tmp_path), "pre_s": 0.5, "post_s": 0.2})
+    assert gw.captures is not None
+    await gw.captures.start()
+    written: list[Any] = []
+    gw.captures.subscribe(written.append)
+    waiting: list[float] = []
+
+    def drain() -> None:
+        while waiting:
+            gw.cache.publish("boom", reading(4.25), waiting.pop())
+
+    gw.cache.add_source(drain)
+    capture_id = gw.captures.trigger("manual")
+    # received 20 ms before the window's end, applied (by nothing else reading the
+    # cache) only when the window closes
+    waiting.append(time.monotonic() + gw.captures.armed(capture_id)["ready_in_s"] - 0.02)
+    await until(lambda: bool(written), 10)
+    with zipfile.ZipFile(gw.captures.path(capture_id)) as archive:
+        rows = list(csv.DictReader(io.StringIO(archive.read("boom.csv").decode())))
+    assert [float(r["pitch"]) for r in rows if r["kind"] == "reading"] == [4.25]
