@@ -119,7 +119,14 @@ def _status(e: _Entry, now: float) -> Status:
 
 
 class _Claim:
-    """(``Cache.claim_prompt``) One claim, told apart from the others by identity."""
+    """(``Cache.claim_prompt``) One claim, told apart from the others by identity;
+    ``owner``: the object whose method is the prompt listener that made it (``forget``
+    drops it with the listener)."""
+
+    __slots__ = ("owner",)
+
+    def __init__(self, owner: object = None) -> None:
+        self.owner = owner
 
 
 class Cache:
@@ -133,11 +140,8 @@ class Cache:
         self._entries = {name: _Entry(stale_ms / 1000) for name, stale_ms in sensors}
         self._clock = clock
         self._listeners: list[tuple[Listener, ErrorHook | None, Collection[EventKind]]] = []
-        # the listeners that need each event at once, and claims (``claim_prompt``)
-        self._prompt: list[Listener | _Claim] = []
-        #: Whether a listener needs each event at once (its bus writes are handed over
-        #: per turn, ``bus.runner``); read from the bus thread.
-        self.prompt = False
+        # one per prompt listener, and one per ``claim_prompt``
+        self._claims: list[_Claim] = []
         # Writes made elsewhere and not applied yet (a bus thread's turns): each source
         # applies its own, in order, when anything reads the cache (``catch_up``).
         self._sources: list[Callable[[], None]] = []
@@ -171,6 +175,12 @@ class Cache:
             raise unknown_sensor(name) from None
 
     # ------------------------------------------------------------ reading
+
+    @property
+    def prompt(self) -> bool:
+        """Whether a listener needs each event at once (the bus writes are then handed
+        over per turn, ``bus.runner``); read from the bus thread."""
+        return bool(self._claims)
 
     def add_source(self, drain: Callable[[], None]) -> None:
         """``drain()`` applies writes made elsewhere and not applied yet; every read
@@ -227,48 +237,39 @@ class Cache:
         must reach it at once.  Without one, events come in bursts, up to
         ``bus.runner.LAZY_HAND_OVER`` late (or when something reads the cache), each
         with its own times."""
-        if prompt:
-            self.catch_up()  # (nothing left waiting for a lazy timer: ``claim_prompt``)
+        release = self.claim_prompt(getattr(listener, "__self__", None)) if prompt \
+            else None
         entry = (listener, on_error, frozenset(kinds))
         self._listeners.append(entry)
-        if prompt:
-            self._prompt.append(listener)
-            self.prompt = True
 
         def unsubscribe() -> None:
             if entry in self._listeners:
                 self._listeners.remove(entry)
-                if prompt:
-                    self._prompt.remove(listener)
-                    self.prompt = bool(self._prompt)
+                if release is not None:
+                    release()
 
         return unsubscribe
 
-    def claim_prompt(self) -> Callable[[], None]:
+    def claim_prompt(self, owner: object = None) -> Callable[[], None]:
         """Each event at once (as a prompt listener's) until the returned release is
         called: for a listener that pushes only while it has clients.  What waits for
         the lazy hand-over's timer is applied first: readers are never behind after."""
         self.catch_up()
-        claim = _Claim()
-        self._prompt.append(claim)
-        self.prompt = True
+        claim = _Claim(owner)
+        self._claims.append(claim)
 
         def release() -> None:
-            if claim in self._prompt:
-                self._prompt.remove(claim)
-                self.prompt = bool(self._prompt)
+            if claim in self._claims:
+                self._claims.remove(claim)
 
         return release
 
     def forget(self, owner: object) -> None:
         """Unsubscribe every listener that is a method of ``owner`` (a front end a
         reload replaced)."""
-        def kept(listener: Listener | _Claim) -> bool:
-            return getattr(listener, "__self__", None) is not owner
-
-        self._listeners = [e for e in self._listeners if kept(e[0])]
-        self._prompt = [listener for listener in self._prompt if kept(listener)]
-        self.prompt = bool(self._prompt)
+        self._listeners = [e for e in self._listeners
+                           if getattr(e[0], "__self__", None) is not owner]
+        self._claims = [claim for claim in self._claims if claim.owner is not owner]
 
     # ------------------------------------------------------------ writing (bus masters)
 

@@ -86,7 +86,7 @@ class CacheWriter:
     def hand_urgent(self, fn: Callable[..., Any], *args: Any) -> None:
         """``hand``, for someone waiting: the turn is handed over at once."""
         self._urgent = True
-        self._batch.append(functools.partial(fn, *args))
+        self.hand(fn, *args)
 
     def flush(self) -> None:
         """Hand the turn's writes over (the bus loop calls this after each turn)."""
