@@ -7,7 +7,7 @@ import asyncio
 import logging
 import typing
 from collections import deque
-from collections.abc import AsyncGenerator, Callable, Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from fastapi import Request
@@ -117,16 +117,18 @@ class StreamHub:
         self.skipped = 0  # events skipped for subscribers whose queue was full
         self.closed = False
         self.history = gateway.history  # the gateway's, shared with the other front ends
-        # Prompt only while a stream is open (``_prompt_while_open``): a REST server
-        # nobody streams from lets the buses hand their turns over lazily.
+        # Prompt only while a stream is open (``_claim``): a REST server nobody
+        # streams from lets the buses hand their turns over lazily.
         self._unsubscribe = gateway.cache.subscribe(self._on_cache_event, on_error,
                                                     ALL_EVENTS, prompt=False)
         self._release: Callable[[], None] | None = None
 
-    def _prompt_while_open(self, opening: bool = False) -> None:
-        if (self.subscribers or opening) and not self.closed and self._release is None:
+    def _claim(self) -> None:
+        if self._release is None:
             self._release = self.gateway.cache.claim_prompt()
-        elif (self.closed or not self.subscribers) and self._release is not None:
+
+    def _release_if_idle(self) -> None:
+        if (self.closed or not self.subscribers) and self._release is not None:
             self._release()
             self._release = None
 
@@ -153,7 +155,7 @@ class StreamHub:
         sub.dropped = True
         sub.events.clear()
         self.subscribers.discard(sub)
-        self._prompt_while_open()
+        self._release_if_idle()
         self.dropped += 1
         log.info("http: dropped a stream client that took nothing for %g s", STALL_S)
         # Its send waits on a full socket, so the stream could only end once the client
@@ -171,14 +173,14 @@ class StreamHub:
         else:
             # prompt first: the turns the claim applies are not this stream's (its
             # first events show where each sensor stands after them)
-            self._prompt_while_open(opening=True)
+            self._claim()
             self.subscribers.add(sub)
         return sub
 
     def unsubscribe(self, sub: Subscription) -> None:
         sub.end()
         self.subscribers.discard(sub)
-        self._prompt_while_open()
+        self._release_if_idle()
         self.open -= 1
 
     def current(self, sensor: str | None) -> bytes:
@@ -188,23 +190,12 @@ class StreamHub:
         return b"".join(_event("reading" if snap.has_reading else "status", snap)
                         for snap in snaps)
 
-    async def stream(self, sensor: str | None,
-                     peer: StreamPeer | None = None) -> AsyncGenerator[bytes, None]:
-        """The stream as an iterator of chunks (``EventStream`` is the server's)."""
-        sub = self.subscribe(sensor, peer)
-        try:
-            yield self.current(sensor)
-            while (chunk := await sub.next()) is not None:
-                yield chunk
-        finally:
-            self.unsubscribe(sub)
-
     def close(self) -> None:
         self.closed = True
         for sub in list(self.subscribers):
             sub.end()
         self._unsubscribe()
-        self._prompt_while_open()
+        self._release_if_idle()
 
 
 def _event(name: str, snap: Snapshot) -> bytes:

@@ -31,6 +31,7 @@ import httpx
 import pytest
 import yaml
 from support.harness import free_port, interrupt, running, until
+from support.streams import hub_stream
 
 from imu_gateway.app import Gateway
 from imu_gateway.config import config_from_dict
@@ -527,7 +528,8 @@ async def test_the_hub_skips_the_oldest_for_a_client_behind_and_drops_only_a_sta
     gateway.cache.subscribe(lambda kind, snap: events.append(kind))
     hub = StreamHub(gateway)
     reading, stalled = _Peer(stalled=False), _Peer(stalled=True)
-    behind, stuck, bare = hub.stream("s", reading), hub.stream("s", stalled), hub.stream("s")
+    behind, stuck = hub_stream(hub, "s", reading), hub_stream(hub, "s", stalled)
+    bare = hub_stream(hub, "s")
     for stream in (behind, stuck, bare):
         assert b"event: status" in await anext(stream)  # subscribed; reads no further
     sample = Motion.from_seed(3).sample(1.0)

@@ -15,6 +15,7 @@ from typing import Any
 
 import pytest
 from support.harness import running, until
+from support.streams import hub_stream
 
 from imu_gateway.app import Gateway
 from imu_gateway.config import config_from_dict
@@ -80,7 +81,7 @@ async def test_a_waiting_stream_arms_no_timer_per_event(monkeypatch: pytest.Monk
     hub = StreamHub(gateway)
     motion = Motion.from_seed(4)
     gateway.cache.publish("s", motion.sample(0.0))  # (s online: then a reading an event)
-    stream = hub.stream("s")
+    stream = hub_stream(hub, "s")
     await anext(stream)  # subscribed
     loop = asyncio.get_running_loop()
     armed: list[float] = []
@@ -112,7 +113,7 @@ async def test_an_idle_stream_sends_a_keep_alive_a_period_after_its_last_chunk(
     hub = StreamHub(gateway)
     motion = Motion.from_seed(1)
     gateway.cache.publish("s", motion.sample(0.0))  # (s online: the next is a reading only)
-    stream = hub.stream("s")
+    stream = hub_stream(hub, "s")
     loop = asyncio.get_running_loop()
     await anext(stream)
     for n in range(3):
