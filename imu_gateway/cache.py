@@ -118,6 +118,24 @@ def _status(e: _Entry, now: float) -> Status:
     return Status.OK
 
 
+#: How far back a reading's wall time may come out and still be taken for the two
+#: clocks read a moment apart (``_wall_time``), s; more is the wall clock set back.
+CLOCK_JITTER = 1.0
+
+
+def _wall_time(stamp: float, before: datetime | None) -> datetime:
+    """A reading's wall time: when it was received (``stamp``, from its monotonic time:
+    a burst of turns handed over late keeps each sample's own time), never before the
+    sensor's last one (the reading JSON's ``ts`` never goes back).  The monotonic and
+    the wall clock are read one after the other, and a thread held between the two
+    reads (a busy machine) puts ``stamp`` later by as much: the next sample's may then
+    come out a little earlier than this one's.  A wall clock set back by more than
+    ``CLOCK_JITTER`` is followed."""
+    if before is not None and 0.0 < before.timestamp() - stamp < CLOCK_JITTER:
+        return before
+    return datetime.fromtimestamp(stamp, UTC)
+
+
 class _Claim:
     """(``Cache.claim_prompt``) One claim, told apart from the others by identity;
     ``owner``: the object whose method is the prompt listener that made it (``forget``
@@ -279,12 +297,10 @@ class Cache:
         listener, on the main loop rather than the bus thread."""
         e = self._entry(name)
         e.seq += 1
-        now = self._clock()
+        now, wall = self._clock(), time.time()
         e.received = now if at is None else at
         e.reading = e.derivation.complete(reading, e.received)
-        # the wall time it was received, not now: a burst of turns handed over late
-        # (``subscribe``'s prompt) keeps each sample's own time
-        e.timestamp = datetime.fromtimestamp(time.time() - max(0.0, now - e.received), UTC)
+        e.timestamp = _wall_time(wall - max(0.0, now - e.received), e.timestamp)
         e.online = e.reached = True
         snap = self._snapshot(name)
         self._notify(EventKind.READING, snap)

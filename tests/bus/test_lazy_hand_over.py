@@ -394,3 +394,22 @@ async def test_a_capture_window_has_the_samples_a_lazy_hand_over_still_held(
     with zipfile.ZipFile(gw.captures.path(capture_id)) as archive:
         rows = list(csv.DictReader(io.StringIO(archive.read("boom.csv").decode())))
     assert [float(r["pitch"]) for r in rows if r["kind"] == "reading"] == [4.25]
+
+
+def test_a_readings_ts_never_goes_back_for_the_clocks_read_apart(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The monotonic and the wall clock are read one after the other: a thread held
+    between the two reads makes a wall time late, and the next sample's would come out
+    earlier (a reconnect test beside CPU burners saw ``ts`` go back). It stays; a wall
+    clock set back by seconds is followed."""
+    mono = [10.0]
+    walls = iter([1000.025, 1000.010, 1000.030, 995.040])  # late, on time, on time, set back
+    monkeypatch.setattr(time, "time", lambda: next(walls))
+    cache = Cache([("s", 10_000)], clock=lambda: mono[0])
+    stamps = []
+    for step in range(4):
+        mono[0] = 10.0 + step * 0.01
+        cache.publish("s", reading(1.0), mono[0])
+        stamps.append(cache._entries["s"].timestamp.timestamp())  # type: ignore[union-attr]
+    assert stamps[:3] == pytest.approx([1000.025, 1000.025, 1000.030])
+    assert stamps[3] == pytest.approx(995.040)
