@@ -31,13 +31,17 @@ OPC UA's are the sampled ones), the gateway's CPU
 ``none`` of the same round.  The target (issue 29): ``all`` − ``none`` ≤ 0.15 ms.
 ``--rounds`` repeats every case, in turn; the range over the rounds is printed last.
 
+``--encode``: instead, a notification of one value made and encoded in a loop, by
+asyncua's path and by the gateway's (``frontends/opcua/encoding.py``), and a publish of
+one sample's notifications, per item.
+
 ``--writes``: instead, asyncua's write paths for one value in a loop (process time per
 write), without and with a monitored item (a server-side subscription whose publish
 never comes in the loop): ``write_attribute_value`` with asyncua's DataValue, with the
 gateway's ``Sample`` (its own deep copy), and a node's ``write_value``.
 
 Run: ``.venv/bin/python bench/fanout.py [--seconds 5] [--rounds 3] [--cases none,all]
-[--items 16] [--sampling 250]``.
+[--items 16] [--sampling 250]``, or ``--encode``, or ``--writes``.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import math
 import multiprocessing
 import os
 import shutil
@@ -60,11 +65,13 @@ from typing import Any
 
 import paho.mqtt.client as paho
 from asyncua import Client, ua
+from asyncua.ua import ua_binary
 from common import FED_SENSORS, fed, fed_config, free_port
 from paho.mqtt.enums import CallbackAPIVersion
 
 from imu_gateway.app import GIL_SWITCH_INTERVAL, Gateway
 from imu_gateway.cache import EventKind, Snapshot
+from imu_gateway.frontends.opcua import encoding
 from imu_gateway.frontends.opcua.server import Sample
 from imu_gateway.frontends.opcua.writes import DirectWriter, tell
 from imu_gateway.model import VALUE_GROUPS
@@ -303,6 +310,42 @@ async def write_paths(pki: str, writes: int = 300) -> None:
     await gw.opcua.stop()
 
 
+def encode_paths(rounds: int = 5, count: int = 20_000) -> None:
+    """``--encode``: µs of process time per notification of one value, made and encoded
+    by asyncua's path and by the gateway's (``opcua/encoding.py``); best of ``rounds``."""
+    encoding.install()
+    asyncua = encoding.reference()
+    now = datetime.now(UTC)
+    value = Sample(ua.Variant(1.2345, ua.VariantType.Double), ua.StatusCode(),
+                   SourceTimestamp=now, ServerTimestamp=now)
+
+    def made_by_asyncua() -> Any:
+        item = ua.MonitoredItemNotification()  # (as its datachange_callback does)
+        item.ClientHandle, item.Value = 7, value
+        return item
+
+    message = ua.NotificationMessage(SequenceNumber=1, PublishTime=now, NotificationData=[
+        ua.DataChangeNotification(MonitoredItems=[made_by_asyncua()] * len(FIELDS))])
+    paths: dict[str, Callable[[], object]] = {
+        "notification made, asyncua": made_by_asyncua,
+        "notification made, the gateway's": lambda: encoding.notification(7, value),
+        "DataValue encoded, asyncua": lambda: asyncua(value),
+        "DataValue encoded, the gateway's": lambda: ua_binary.struct_to_binary(value),
+        f"publish of one sample ({len(FIELDS)} items), per item":
+            lambda: ua_binary.struct_to_binary(message),
+    }
+    print(f"{'path':<48} {'us':>6}")
+    for name, path in paths.items():
+        best = math.inf
+        for _ in range(rounds):
+            c0 = time.process_time()
+            for _ in range(count):
+                path()
+            best = min(best, (time.process_time() - c0) / count)
+        per_item = len(FIELDS) if "per item" in name else 1
+        print(f"{name:<48} {best * 1e6 / per_item:>6.2f}")
+
+
 def _broker(folder: Path, port: int) -> subprocess.Popen[bytes]:
     mosquitto = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
     conf = folder / "mosquitto.conf"
@@ -328,7 +371,12 @@ def main() -> None:
                         help=f"comma-separated, of {', '.join(CASES)}")
     parser.add_argument("--writes", action="store_true",
                         help="asyncua's write paths in a loop instead (see above)")
+    parser.add_argument("--encode", action="store_true",
+                        help="a notification's making and encoding in a loop instead")
     args = parser.parse_args()
+    if args.encode:
+        encode_paths()
+        return
     if args.writes:
         with tempfile.TemporaryDirectory() as pki:
             asyncio.run(write_paths(pki))

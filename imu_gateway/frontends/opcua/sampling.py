@@ -17,8 +17,9 @@ sample of a 100 Hz sensor, and that was most of the OPC UA server's CPU
 * **Sampling:** a write to the node of an item with an interval > 0 is only held, the
   newest replacing the one before (a change between two samples is not seen).  A
   ticker for each interval of the subscription hands each item's held value, if any,
-  to asyncua's data-change path once per interval: the item's trigger and deadband,
-  and its queue (queueSize, below), are asyncua's, as before.  A value written
+  to the data-change path once per interval: the item's trigger and deadband, and
+  its queue (queueSize, below), are asyncua's, as before (``_changed`` is asyncua's
+  path with the notification made for less: ``encoding.py``).  A value written
   and then left (a sensor gone offline: its bad status) is sampled at the next tick.
   The initial value of a new item is reported at once (asyncua reads it then).
 * Reads are not concerned: every sample is still written to the node.
@@ -48,6 +49,8 @@ from typing import Any
 from asyncua import ua
 from asyncua.server.monitored_item_service import MonitoredItemService
 from asyncua.server.subscription_service import SubscriptionService
+
+from .encoding import notification
 
 log = logging.getLogger("imu_gateway.opcua")
 
@@ -134,10 +137,31 @@ class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is u
 
     async def datachange_callback(self, handle: int, value: Any, error: Any = None) -> None:
         # the one path of every write to a monitored node: kept short
-        if error is None and handle in self._interval:
+        if error is not None:
+            await super().datachange_callback(handle, value, error)
+        elif handle in self._interval:
             self._held[handle] = value  # sampled at the item's next tick
+        else:
+            await self._changed(handle, value)
+
+    async def _changed(self, handle: int, value: Any) -> None:
+        """asyncua's data change of a value, as its ``datachange_callback`` makes it
+        (mode, trigger, deadband, queue), with the notification made with its value:
+        asyncua's makes a default DataValue first (``encoding.notification``)."""
+        mid = self._monitored_datachange[handle]
+        mdata = self._monitored_items[mid]
+        if mdata.mode == ua.MonitoringMode.Disabled:
             return
-        await super().datachange_callback(handle, value, error)
+        mdata.mvalue.set_current_datavalue(value)
+        flt = mdata.filter
+        if flt:
+            passes = self._is_data_changed(mdata.mvalue, flt.Trigger) \
+                and self._is_deadband_exceeded(mdata.mvalue, flt)
+        else:
+            passes = self._is_data_changed(mdata.mvalue, ua.DataChangeTrigger.StatusValue)
+        if passes:
+            await self.isub.enqueue_datachange_event(
+                mid, notification(mdata.client_handle, value), mdata.queue_size)
 
     def _revise(self, handle: int, requested: float) -> float:
         interval = revised_interval(requested, self.isub.data.RevisedPublishingInterval,
@@ -181,9 +205,9 @@ class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is u
                     await self._hand_on(handle, held)
 
     async def _hand_on(self, handle: int, value: Any) -> None:
-        """asyncua's data-change path (trigger, deadband, queue) for a sampled value."""
+        """The data-change path (trigger, deadband, queue) for a sampled value."""
         try:
-            await super().datachange_callback(handle, value)
+            await self._changed(handle, value)
         except Exception:  # (asyncua's own writes log theirs too, and go on)
             log.exception("opcua: sampling monitored item %s", handle)
 

@@ -28,7 +28,7 @@ from ...model import CAPABILITIES
 from ...stats import FrontendCounts
 from ...supervise import Frontend, RepeatFilter
 from ..common import GatewayLike
-from . import standard_space
+from . import encoding, standard_space
 from .conditions import Conditions
 from .guard import MAX_SUBSCRIPTIONS_PER_SESSION, GatewayUaServer
 from .history import GatewayHistory
@@ -156,6 +156,7 @@ class OpcUaServer(Frontend):
         cannot be bound, ``StartupError`` when ``pki_dir`` cannot be used."""
         gid = self.gateway.config.gateway_id
         quiet_asyncua()
+        encoding.install()
         server = GatewayUaServer(user_manager=ConfigUsers(self.config))
         await server.init(await standard_space.shelf())
         server.set_endpoint(self.endpoint)
