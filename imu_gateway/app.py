@@ -323,12 +323,17 @@ class Gateway(_GatewayAlarms):
         await self.buses.stop(SHUTDOWN_GRACE)
 
     async def _watch_staleness(self, stop: asyncio.Event) -> None:
-        while not stop.is_set():
-            self.cache.check_staleness()
-            if self._evaluating:
-                self._check_communication()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(stop.wait(), STALENESS_TICK)
+        # one task waits for ``stop`` the whole time: ``wait_for(stop.wait(), tick)``
+        # made a task per tick, and four turns of the loop to start and cancel it
+        stopped = asyncio.ensure_future(stop.wait())
+        try:
+            while not stopped.done():
+                self.cache.check_staleness()
+                if self._evaluating:
+                    self._check_communication()
+                await asyncio.wait((stopped,), timeout=STALENESS_TICK)
+        finally:
+            stopped.cancel()
 
     async def read(self, sensor: str, max_age_ms: float) -> Snapshot:
         """The sensor's snapshot with a reading at most ``max_age_ms`` old: the bus is

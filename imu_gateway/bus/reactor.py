@@ -76,6 +76,7 @@ class Reactor:
         self._finished = False  # the loop ran its last posts: no more are taken
         self._thread = threading.Thread(target=self._main, name=name, daemon=True)
         self._after: list[Callable[[], None]] = []  # run at the end of each turn of the loop
+        self._deadlines: list[Callable[[], float]] = []  # (theirs: a turn by then)
         self.running = False
         self._ended = False
 
@@ -133,10 +134,14 @@ class Reactor:
     def unwatch(self, fd: int) -> None:
         self._readers.pop(fd, None)
 
-    def after_each_turn(self, fn: Callable[[], None]) -> None:
-        """Run ``fn`` at the end of every turn of the loop (the cache writers' flush:
-        one hand-over to the main loop per turn, whatever the turn did)."""
+    def after_each_turn(self, fn: Callable[[], None],
+                        next_at: Callable[[], float] | None = None) -> None:
+        """Run ``fn`` at the end of every turn of the loop (the cache writer's flush:
+        one hand-over to the main loop per turn, whatever the turn did), and a turn at
+        ``next_at()`` at the latest (its lazy hand-over's time)."""
         self._after.append(fn)
+        if next_at is not None:
+            self._deadlines.append(next_at)
 
     def _main(self) -> None:
         tighten_timers(BUS_NICE)
@@ -170,6 +175,8 @@ class Reactor:
     def _once(self) -> None:
         now = time.monotonic()
         wake = min((c.next_at() for c in self.clients), default=now + IDLE_WAIT)
+        for deadline in self._deadlines:
+            wake = min(wake, deadline())
         timeout = min(max(wake - now, 0.0), IDLE_WAIT)
         if self._posted:
             timeout = 0.0

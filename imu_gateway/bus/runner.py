@@ -19,10 +19,11 @@ depends on who listens (``Cache.prompt``):
   not run yet is waiting: later turns join that one;
 * otherwise (only Modbus TCP and REST, which read on demand): the turns wait, and the
   main loop takes them when something reads the cache (``Cache.catch_up``), or after
-  ``LAZY_HAND_OVER`` at the latest (history, alarms, captures).  A wake-up of the main
-  loop costs more CPU than the work it brings: on one native line, the main loop's
-  CPU per exchange went from 0.12-0.13 ms to 0.07-0.08, the process's from 0.35-0.39
-  to 0.26-0.27 (``docs/benchmarks.md``, "The lazy hand-over").
+  ``LAZY_HAND_OVER`` at the latest (history, alarms, captures), timed by the bus
+  thread, which then wakes the main loop once.  A wake-up of the main loop costs more
+  CPU than the work it brings: on one native line, the main loop's CPU per exchange
+  went from 0.12-0.13 ms to 0.07-0.08, the process's from 0.35-0.39 to 0.26-0.27
+  (``docs/benchmarks.md``, "The lazy hand-over").
 
 Counters travel the same way, as frozen snapshots made on the bus thread
 (``BusMaster.stats_snapshot``), and so do the answers of whoever asked (after the
@@ -36,6 +37,7 @@ import contextlib
 import functools
 import logging
 import math
+import time
 from collections import deque
 from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
@@ -71,12 +73,13 @@ class CacheWriter:
         self.loop: asyncio.AbstractEventLoop | None = None  # the cache's loop, set at start
         self._batch: list[Callable[[], None]] = []
         self._urgent = False  # the turn answers someone waiting: handed over at once
-        # turns' writes handed over and not run yet, whether the cache's loop has been
-        # asked to run them, and whether it has a timer to (all shared with that loop:
-        # deque and bool are safe to use from two threads under the GIL)
+        # turns' writes handed over and not run yet, and whether the cache's loop has
+        # been asked to run them (both shared with that loop: deque and bool are safe to
+        # use from two threads under the GIL)
         self._out: deque[list[Callable[[], None]]] = deque()
         self._asked = False
-        self._armed = False
+        # (the bus thread's own) since when turns have waited lazily, unasked
+        self._waiting_since: float | None = None
         cache.add_source(self._drain)
 
     def hand(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
@@ -89,29 +92,35 @@ class CacheWriter:
         self.hand(fn, *args)
 
     def flush(self) -> None:
-        """Hand the turn's writes over (the bus loop calls this after each turn)."""
-        if not self._batch or self.loop is None:
+        """Hand the turn's writes over (the bus loop calls this after each turn, and at
+        ``next_at`` at the latest).  A lazy turn's wait is timed here, on the bus
+        thread: the main loop is not woken to arm a timer of its own."""
+        if self.loop is None:
             return
-        self._out.append(self._batch)
-        self._batch = []
-        urgent, self._urgent = self._urgent, False
-        if self._asked:
-            return
+        urgent = False
+        if self._batch:
+            self._out.append(self._batch)
+            self._batch = []
+            urgent, self._urgent = self._urgent, False
+        if self._asked or not self._out:  # (a reader may have taken them all)
+            self._waiting_since = None
+        elif urgent or self.cache.prompt:
+            self._ask()
+        elif self._waiting_since is None:
+            self._waiting_since = time.monotonic()
+        elif time.monotonic() - self._waiting_since >= LAZY_HAND_OVER:
+            self._ask()
+
+    def next_at(self) -> float:
+        """When the bus loop must turn to hand lazy turns over (``flush``)."""
+        since = self._waiting_since
+        return math.inf if since is None else since + LAZY_HAND_OVER
+
+    def _ask(self) -> None:
+        self._asked, self._waiting_since = True, None
         with contextlib.suppress(RuntimeError):  # the main loop closed: the process ends
-            if urgent or self.cache.prompt:
-                self._asked = True
-                self.loop.call_soon_threadsafe(self._run)
-            elif not self._armed:
-                self._armed = True
-                self.loop.call_soon_threadsafe(self._arm)
-
-    def _arm(self) -> None:
-        assert self.loop is not None  # (set before the bus thread starts)
-        self.loop.call_later(LAZY_HAND_OVER, self._run_late)
-
-    def _run_late(self) -> None:
-        self._armed = False  # (first: a turn handed over from now on arms again)
-        self.cache.apply_handed()
+            assert self.loop is not None
+            self.loop.call_soon_threadsafe(self._run)
 
     def _run(self) -> None:
         """On the cache's loop: the turns handed over by now, in order.  (The flag is
@@ -287,7 +296,7 @@ class BusThread:
     def __init__(self, buses: list[BusConfig], cache: Cache) -> None:
         self.reactor = Reactor("bus")
         self.writer = CacheWriter(cache)  # one for every line: one hand-over per turn
-        self.reactor.after_each_turn(self.writer.flush)
+        self.reactor.after_each_turn(self.writer.flush, self.writer.next_at)
         self.runners = {bus.name: BusRunner(bus, self.writer, self.reactor)
                         for bus in buses}
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import csv
 import io
+import math
 import time
 import zipfile
 from collections.abc import Callable, Iterator
@@ -30,7 +31,9 @@ from asyncua.server.address_space import AttributeValue, NodeData
 from support.harness import until
 
 from imu_gateway.app import Gateway
+from imu_gateway.bus import reactor as reactor_module
 from imu_gateway.bus import runner
+from imu_gateway.bus.reactor import Reactor
 from imu_gateway.bus.runner import CacheWriter
 from imu_gateway.cache import Cache, EventKind, Snapshot
 from imu_gateway.capture.ring import SensorRing
@@ -79,9 +82,12 @@ def turn(writer: CacheWriter, name: str, pitch: float, at: float | None = None) 
 
 
 @pytest.mark.anyio
-async def test_without_a_prompt_listener_turns_wait_for_a_reader() -> None:
-    """Ten turns, one wake-up (to arm the late hand-over), nothing heard yet; the first
-    read applies all ten, in order, before it answers."""
+async def test_without_a_prompt_listener_turns_wait_for_a_reader(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ten turns, no wake-up of the main loop (the lazy period is timed on the bus
+    thread), nothing heard yet; the first read applies all ten, in order, before it
+    answers; the bus thread then has nothing left to hand over."""
+    monkeypatch.setattr(runner, "LAZY_HAND_OVER", 600.0)  # (however slow the machine)
     cache = Cache([("s", 1000)])
     heard: list[float] = []
     cache.subscribe(lambda kind, snap: heard.append(snap.reading.angles.pitch)  # type: ignore[union-attr]
@@ -90,25 +96,43 @@ async def test_without_a_prompt_listener_turns_wait_for_a_reader() -> None:
     with wake_ups(asyncio.get_running_loop()) as asked:
         for i in range(10):
             turn(writer, "s", float(i))
-        assert asked == ["_arm"]
+        assert asked == []
         assert heard == []
+        assert writer.next_at() < math.inf  # (a turn is due when the period ends)
         assert cache.snapshot("s").seq == 10
         assert heard == [float(i) for i in range(10)]
+        writer.flush()  # (the bus loop's next turn: nothing waits now)
+        assert writer.next_at() == math.inf
+        assert asked == []
 
 
 @pytest.mark.anyio
-async def test_without_a_reader_the_turns_come_after_the_lazy_period(
+async def test_without_a_reader_the_bus_thread_hands_over_after_the_lazy_period(
         monkeypatch: pytest.MonkeyPatch) -> None:
+    """A real bus loop (``Reactor``) with no line: it turns at the writer's time and
+    wakes the main loop once; the next turn's writes wait again."""
     monkeypatch.setattr(runner, "LAZY_HAND_OVER", 0.01)
+    monkeypatch.setattr(reactor_module, "IDLE_WAIT", 600.0)  # (only the writer's time)
     cache = Cache([("s", 1000)])
     came = asyncio.Event()
     cache.subscribe(lambda kind, snap: came.set(), prompt=False)
     writer = writer_for(cache)
-    turn(writer, "s", 1.0)
-    await asyncio.wait_for(came.wait(), 10)
-    came.clear()
-    turn(writer, "s", 2.0)  # (the timer is armed again for the next turn)
-    await asyncio.wait_for(came.wait(), 10)
+    reactor = Reactor("lazy test")
+    reactor.after_each_turn(writer.flush, writer.next_at)
+    reactor.start()
+    try:
+        with wake_ups(asyncio.get_running_loop()) as asked:
+            for pitch in (1.0, 2.0):
+                came.clear()
+                reactor.post(lambda p=pitch: writer.publish(  # type: ignore[misc]
+                    "s", reading(p), time.monotonic()))
+                await asyncio.wait_for(came.wait(), 10)
+                assert cache.snapshot("s").reading.angles.pitch == pitch  # type: ignore[union-attr]
+            assert asked == ["_run", "_run"]
+    finally:
+        reactor.end()
+        assert await asyncio.to_thread(reactor.join, 10)
+        reactor.close()
 
 
 @pytest.mark.anyio
