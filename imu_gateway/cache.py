@@ -252,9 +252,9 @@ class Cache:
         logged: it never reaches the bus that published, nor the other listeners.
 
         ``prompt``: the listener pushes what it hears to the outside, so each event
-        must reach it at once.  Without one, events come in bursts, up to
-        ``bus.runner.LAZY_HAND_OVER`` late (or when something reads the cache), each
-        with its own times."""
+        must reach it at once.  Without one, events come in bursts when something
+        reads the cache (the staleness watch does every 0.1 s), at most
+        ``bus.runner.LAZY_HAND_OVER`` late, each with its own times."""
         release = self.claim_prompt(getattr(listener, "__self__", None)) if prompt \
             else None
         entry = (listener, on_error, frozenset(kinds))

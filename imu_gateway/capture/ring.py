@@ -10,8 +10,8 @@ The times of a row (wall-clock seconds since the epoch):
 * **wire**: when the sample's last byte came in from the line.  The bus master notes
   that moment, and the cache makes it the snapshot's time (``Snapshot.timestamp``).
 * **receive**: when the main loop put it in the cache (the capture hears it then):
-  the hand-over from the bus thread is in between, up to 50 ms when nobody pushes
-  readings out (``bus.runner``).
+  the hand-over from the bus thread is in between, up to 0.1 s (0.25 at most) when
+  nobody pushes readings out (``bus.runner``).
 
 A change of status (``stale``, ``offline``) is a row too, with no wire time and no
 values: the capture shows when a sensor stopped answering.
