@@ -129,6 +129,9 @@ def test_a_bus_only_gateway_imports_no_front_end(line: str, tmp_path: Path) -> N
     assert "imu_gateway.bus.runner" in modules  # (the log is read right)
     assert loaded(modules, HEAVY) == []
     assert loaded(modules, ("imu_gateway.frontends",)) == []
+    # the config file's text is kept as read; ruamel parses it when it is first shown,
+    # saved or reloaded
+    assert loaded(modules, ("ruamel",)) == []
 
 
 @pytest.mark.parametrize("name", sorted(STACKS))

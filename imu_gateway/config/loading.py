@@ -7,7 +7,6 @@ import contextlib
 import os
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -173,19 +172,34 @@ _ONLY_REFS = re.compile(r"(?:\$\{[A-Za-z_][A-Za-z0-9_]*\}|\$\$\{|[^$])*")
 Place = tuple[Any, Any, tuple[Any, ...]]  # (mapping or list, key or index, its YAML path)
 
 
-@dataclass
 class ConfigSource:
     """The config as written: its file (``None``: given in memory) and its data with
-    every ``${VAR}`` unexpanded (what ``GET`` shows, and what a ``PUT`` saves)."""
+    every ``${VAR}`` unexpanded (what ``GET`` shows, and what a ``PUT`` saves): a
+    ruamel CommentedMap as read (comments kept), or plain data.
 
-    path: Path | None
-    data: Any  # a ruamel CommentedMap as read (comments kept), or plain data
+    A file's text is kept as read and parsed when first asked for: ruamel.yaml and
+    the parsed tree took 1.2 MB of a gateway that never shows nor saves its config."""
+
+    def __init__(self, path: Path | None, data: Any = None, *, text: str | None = None) -> None:
+        self.path = path
+        self._data = data
+        self._text = text  # (not parsed yet)
+
+    @property
+    def data(self) -> Any:
+        if self._text is not None:
+            self._data, self._text = round_trip_load(self._text), None
+        return self._data
+
+    @data.setter
+    def data(self, data: Any) -> None:
+        self._data, self._text = data, None
 
     @classmethod
     def read(cls, path: str | os.PathLike[str]) -> ConfigSource:
-        """The file's text, parsed without expanding anything (after ``load_config``
-        accepted it)."""
-        return cls(Path(path), round_trip_load(Path(path).read_text("utf-8-sig")))
+        """The file's text, to be parsed without expanding anything (``load_config``
+        has accepted it)."""
+        return cls(Path(path), text=Path(path).read_text("utf-8-sig"))
 
 
 def round_trip_load(text: str) -> Any:
