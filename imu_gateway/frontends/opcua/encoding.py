@@ -50,10 +50,6 @@ _UINT32 = struct.Struct("<I").pack
 _INT64 = struct.Struct("<q").pack
 
 
-class _Fallback(Exception):
-    """Not a case of the fast path: asyncua's serializer encodes it."""
-
-
 class _Encoder:
     """The DataValue serializer, with asyncua's (``slow``) for the rest.  The last
     timestamp converted is kept (a sample's values share it)."""
@@ -69,9 +65,11 @@ class _Encoder:
             self._last = (when, packed)
         return packed
 
-    def _variant(self, variant: Any) -> bytes:
+    @staticmethod
+    def _variant(variant: Any) -> bytes | None:
+        """The Variant's bytes, or None: not a case of the fast path."""
         if variant.is_array or variant.Dimensions is not None:
-            raise _Fallback
+            return None
         value = variant.Value
         vtype = variant.VariantType
         scalar = _SCALARS.get(vtype)
@@ -80,18 +78,21 @@ class _Encoder:
             try:
                 return tag + pack(value)
             except (struct.error, TypeError, OverflowError):
-                raise _Fallback from None  # (asyncua's says which value did not fit)
+                return None  # (asyncua's error says which value did not fit)
         if vtype is _STRING and (value is None or type(value) is str):
             text: bytes = ua_binary.Primitives.String.pack(value)
             return _STRING_TAG + text
-        raise _Fallback
+        return None
 
-    def _data_value(self, dv: Any) -> bytes:
+    def data_value(self, dv: Any) -> bytes:
         if dv.SourcePicoseconds is not None or dv.ServerPicoseconds is not None:
-            raise _Fallback
+            return self.slow(dv)
         mask, parts = 0, [b""]
         if dv.Value is not None:
-            mask, parts = 1, [b"", self._variant(dv.Value)]
+            variant = self._variant(dv.Value)
+            if variant is None:
+                return self.slow(dv)
+            mask, parts = 1, [b"", variant]
         if dv.StatusCode is not None:
             mask |= 2
             parts.append(_UINT32(dv.StatusCode.value))
@@ -103,12 +104,6 @@ class _Encoder:
             parts.append(self._time(dv.ServerTimestamp))
         parts[0] = bytes([mask])
         return b"".join(parts)
-
-    def data_value(self, dv: Any) -> bytes:
-        try:
-            return self._data_value(dv)
-        except _Fallback:
-            return self.slow(dv)
 
 
 def notification(client_handle: int, value: Any) -> Any:
