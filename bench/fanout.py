@@ -35,13 +35,16 @@ OPC UA's are the sampled ones), the gateway's CPU
 asyncua's path and by the gateway's (``frontends/opcua/encoding.py``), and a publish of
 one sample's notifications, per item.
 
+``--monitored``: instead, a sample's way into the OPC UA values a client monitors at
+sampling interval 0 (written, checked, queued; not published), in bursts.
+
 ``--writes``: instead, asyncua's write paths for one value in a loop (process time per
 write), without and with a monitored item (a server-side subscription whose publish
 never comes in the loop): ``write_attribute_value`` with asyncua's DataValue, with the
 gateway's ``Sample`` (its own deep copy), and a node's ``write_value``.
 
 Run: ``.venv/bin/python bench/fanout.py [--seconds 5] [--rounds 3] [--cases none,all]
-[--items 16] [--sampling 250]``, or ``--encode``, or ``--writes``.
+[--items 16] [--sampling 250]``, or ``--encode``, ``--monitored``, ``--writes``.
 """
 
 from __future__ import annotations
@@ -76,6 +79,7 @@ from imu_gateway.frontends.opcua import encoding
 from imu_gateway.frontends.opcua.server import Sample
 from imu_gateway.frontends.opcua.writes import DirectWriter, tell
 from imu_gateway.model import VALUE_GROUPS
+from imu_gateway.simulator.motion import Motion
 
 FIELDS = [f"{spec.title}.{name}" for spec in VALUE_GROUPS.values() for name in spec.fields]
 FRONT_ENDS = ("mqtt", "sse", "opcua", "modbus")
@@ -351,6 +355,44 @@ def encode_paths(rounds: int = 5, count: int = 20_000) -> None:
         print(f"{name:<48} {best * 1e6 / per_item:>6.2f}")
 
 
+async def monitored_path(pki: str, rounds: int = 7, samples: int = 300) -> None:
+    """``--monitored``: µs of process time per sample put into the cache, with a real
+    client subscribed to every value of the sensor at sampling interval 0 (a queue of
+    1000, publishing every second: the publish's encoding is left out, ``--encode``
+    has it); best of ``rounds`` bursts of ``samples``."""
+    port = free_port()
+    gw = Gateway(fed_config(opcua={"listen": f"127.0.0.1:{port}", "allow_none": True,
+                                   "pki_dir": pki}))
+    stop = asyncio.Event()
+    running = asyncio.create_task(gw.run(stop))
+    while gw.opcua is None or not gw.opcua.listening:
+        await asyncio.sleep(0.05)
+    told = [0]
+
+    class Handler:
+        def datachange_notification(self, *_: object) -> None:
+            told[0] += 1
+
+    async with Client(f"opc.tcp://127.0.0.1:{port}/") as client:
+        idx = await client.get_namespace_index("urn:imu-gateway")
+        subscription = await client.create_subscription(1000, Handler())
+        await subscription.subscribe_data_change(
+            [client.get_node(ua.NodeId(f"bench.Sensors.s0.{f}", idx)) for f in FIELDS],
+            queuesize=1000, sampling_interval=0.0)
+        motion, best = Motion.from_seed(1), math.inf
+        for r in range(rounds):
+            c0 = time.process_time()
+            for n in range(samples):
+                gw.cache.publish("s0", motion.sample((r * samples + n) / 100))
+                await asyncio.sleep(0)
+            best = min(best, (time.process_time() - c0) / samples)
+            await asyncio.sleep(1.2)  # (the publish, between two bursts)
+    stop.set()
+    await running
+    print(f"a sample with {len(FIELDS)} monitored values: {best * 1e6:.1f} µs "
+          f"(best of {rounds} x {samples}); notifications {told[0]}")
+
+
 def _broker(folder: Path, port: int) -> subprocess.Popen[bytes]:
     mosquitto = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
     conf = folder / "mosquitto.conf"
@@ -378,9 +420,15 @@ def main() -> None:
                         help="asyncua's write paths in a loop instead (see above)")
     parser.add_argument("--encode", action="store_true",
                         help="a notification's making and encoding in a loop instead")
+    parser.add_argument("--monitored", action="store_true",
+                        help="a sample's way into monitored OPC UA values instead")
     args = parser.parse_args()
     if args.encode:
         encode_paths()
+        return
+    if args.monitored:
+        with tempfile.TemporaryDirectory() as pki:
+            asyncio.run(monitored_path(pki))
         return
     if args.writes:
         with tempfile.TemporaryDirectory() as pki:

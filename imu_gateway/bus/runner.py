@@ -102,6 +102,8 @@ class CacheWriter:
             return
         urgent = False
         if self._batch:
+            if not self._out:  # (a reader took what waited: the wait starts again)
+                self._waiting_since = None
             self._out.append(self._batch)
             self._batch = []
             urgent, self._urgent = self._urgent, False

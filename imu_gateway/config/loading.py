@@ -4,6 +4,7 @@ environment, and every problem found at once."""
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import re
 from collections.abc import Mapping
@@ -20,6 +21,8 @@ from .checks import cross_problems
 from .fields import show, yaml_path
 from .problems import pydantic_problem, salvage
 from .schema import GatewayConfig
+
+log = logging.getLogger("imu_gateway.config")
 
 _ENV_REF = re.compile(r"\$\$\{|\$\{([^}]*)\}|\$\{")
 _ENV_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
@@ -100,18 +103,19 @@ class _Loader(yaml.SafeLoader):
 
 
 def _construct_mapping(loader: _Loader, node: yaml.MappingNode) -> dict[Any, Any]:
-    seen: dict[Any, int] = {}
+    seen: dict[Any, tuple[int, int]] = {}
     for key_node, _ in node.value:
         if key_node.tag == "tag:yaml.org,2002:merge":
             continue
         key = loader.construct_object(key_node)
+        at = (key_node.start_mark.line, key_node.start_mark.column)
         try:
-            first = seen.setdefault(key, key_node.start_mark.line)
+            first = seen.setdefault(key, at)
         except TypeError:  # an unhashable key: SafeLoader reports it
             continue
-        if first != key_node.start_mark.line:
+        if first != at:  # (by place, not line: ``{port: 1, port: 2}`` is one line)
             raise yaml.constructor.ConstructorError(
-                None, None, f"duplicate key {show(key)} (first given on line {first + 1})",
+                None, None, f"duplicate key {show(key)} (first given on line {first[0] + 1})",
                 key_node.start_mark,
             )
     return loader.construct_mapping(node)
@@ -188,7 +192,7 @@ class ConfigSource:
     @property
     def data(self) -> Any:
         if self._text is not None:
-            self._data, self._text = round_trip_load(self._text), None
+            self._data, self._text = _as_written(self._text), None
         return self._data
 
     @data.setter
@@ -200,6 +204,20 @@ class ConfigSource:
         """The file's text, to be parsed without expanding anything (``load_config``
         has accepted it)."""
         return cls(Path(path), text=Path(path).read_text("utf-8-sig"))
+
+
+def _as_written(text: str) -> Any:
+    """``round_trip_load``, or where ruamel.yaml refuses what the config's own reading
+    accepted, that reading's plain data (no comments kept): the config can still be
+    shown and saved."""
+    from ruamel.yaml.error import YAMLError
+
+    try:
+        return round_trip_load(text)
+    except YAMLError as exc:
+        log.warning("config: its comments will not be kept when it is saved: ruamel.yaml "
+                    "cannot read it (%s)", " ".join(str(exc).split()))
+        return parse_text(text)
 
 
 def round_trip_load(text: str) -> Any:

@@ -107,6 +107,23 @@ async def test_without_a_prompt_listener_turns_wait_for_a_reader(
 
 
 @pytest.mark.anyio
+async def test_the_lazy_period_starts_again_when_a_reader_took_what_waited(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A busy line (a write every turn) whose turns readers keep taking: the period is
+    timed from the oldest turn still waiting, not from the first since the last
+    hand-over (which would wake the main loop for turns a few ms old)."""
+    monkeypatch.setattr(runner, "LAZY_HAND_OVER", 600.0)
+    cache = Cache([("s", 1000)])
+    writer = writer_for(cache)
+    turn(writer, "s", 1.0)
+    first = writer.next_at()
+    cache.catch_up()  # (a reader: the staleness watch, a PLC's request)
+    before = time.monotonic()
+    turn(writer, "s", 2.0)
+    assert writer.next_at() >= before + 600.0 > first
+
+
+@pytest.mark.anyio
 async def test_without_a_reader_the_bus_thread_hands_over_after_the_lazy_period(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """A real bus loop (``Reactor``) with no line: it turns at the writer's time and

@@ -759,6 +759,8 @@ def test_top_level_not_a_mapping(text: str, kind: str) -> None:
      "start any token"),
     ("gateway_id: a\ngateway_id: b\n", 'test.yaml:2:1: invalid YAML: duplicate key '
      '"gateway_id" (first given on line 1)'),
+    ("mqtt: {url: 'mqtt://a', url: 'mqtt://b'}\n", 'test.yaml:1:25: invalid YAML: '
+     'duplicate key "url" (first given on line 1)'),
     ("x: !!python/name:os.system\n", "test.yaml:1:4: invalid YAML: could not determine a "
      "constructor for the tag 'tag:yaml.org,2002:python/name:os.system'"),
 ])
@@ -905,6 +907,33 @@ def test_opcua_access_rules_are_checked(opcua: dict[str, object], message: str) 
                                      "sensors": [{"name": "s", "series": "AH"}]}],
                           "opcua": opcua}, env={})
     assert any(p.startswith(message) for p in failed.value.problems), failed.value.problems
+
+
+def test_a_config_ruamel_cannot_read_is_shown_without_its_comments(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """The file's text is parsed when first asked for; where ruamel.yaml refuses what
+    the config's own reading accepted, the data is that reading's (the config can still
+    be shown and saved), and a warning says why."""
+    from ruamel.yaml.error import YAMLError
+
+    from imu_gateway.config import loading
+
+    text = "# ours\ngateway_id: plant\nbuses: []\n"
+    source = loading.ConfigSource(None, text=text)
+
+    def refuse(text: str) -> Any:
+        raise YAMLError("a construct ruamel does not take")
+
+    monkeypatch.setattr(loading, "round_trip_load", refuse)
+    with caplog.at_level("WARNING", logger="imu_gateway.config"):
+        assert source.data == {"gateway_id": "plant", "buses": []}
+    assert "a construct ruamel does not take" in caplog.text
+    monkeypatch.undo()
+    assert source.data == {"gateway_id": "plant", "buses": []}  # (parsed once)
+    fresh = loading.ConfigSource(None, text=text)
+    assert fresh.data.ca is not None  # (ruamel's, comments kept)
+    fresh.data = {"gateway_id": "other"}
+    assert fresh.data == {"gateway_id": "other"}
 
 
 @pytest.mark.parametrize("style", [

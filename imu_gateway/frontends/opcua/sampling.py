@@ -145,13 +145,46 @@ class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is u
             await self._changed(handle, value)
 
     async def _changed(self, handle: int, value: Any) -> None:
+        """asyncua's data change of a value (``_noticed``), queued its way."""
+        due = self._noticed(handle, value)
+        if due is not None:
+            await self.isub.enqueue_datachange_event(*due)
+
+    def datachange_now(self, handle: int, value: Any) -> bool:
+        """``datachange_callback`` of a value, without a coroutine: what nearly every
+        sample of a monitored value is (``writes.tell_now``).  False, and nothing done,
+        where asyncua's path would await: a subscription without a publishing loop
+        publishes at its first change."""
+        if handle in self._interval:
+            self._held[handle] = value
+            return True
+        isub = self.isub
+        if isub._task is None:
+            return False
+        due = self._noticed(handle, value)
+        if due is not None:
+            # asyncua's ``_enqueue_event``; its publish trigger does nothing while the
+            # subscription's publishing loop runs
+            mid, item, size = due
+            queued = isub._triggered_datachanges.get(mid)
+            if queued is None:
+                isub._triggered_datachanges[mid] = [item]
+            else:
+                if size and len(queued) >= size:
+                    queued.pop(0)
+                queued.append(item)
+        return True
+
+    def _noticed(self, handle: int, value: Any) -> tuple[int, Any, int] | None:
         """asyncua's data change of a value, as its ``datachange_callback`` makes it
-        (mode, trigger, deadband, queue), with the notification made with its value:
-        asyncua's makes a default DataValue first (``encoding.notification``)."""
+        (mode, trigger, deadband; the item's current value set): what to queue (its
+        id, the notification, its queue's size), or None.  The notification is made
+        with its value: asyncua's makes a default DataValue first
+        (``encoding.notification``)."""
         mid = self._monitored_datachange[handle]
         mdata = self._monitored_items[mid]
         if mdata.mode == ua.MonitoringMode.Disabled:
-            return
+            return None
         mdata.mvalue.set_current_datavalue(value)
         flt = mdata.filter
         if flt:
@@ -159,9 +192,9 @@ class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is u
                 and self._is_deadband_exceeded(mdata.mvalue, flt)
         else:
             passes = self._is_data_changed(mdata.mvalue, ua.DataChangeTrigger.StatusValue)
-        if passes:
-            await self.isub.enqueue_datachange_event(
-                mid, notification(mdata.client_handle, value), mdata.queue_size)
+        if not passes:
+            return None
+        return mid, notification(mdata.client_handle, value), mdata.queue_size
 
     def _revise(self, handle: int, requested: float) -> float:
         interval = revised_interval(requested, self.isub.data.RevisedPublishingInterval,

@@ -39,7 +39,7 @@ from .methods import Caller, instance_caller, type_caller
 from .nodes import VALUE_TYPE, Callers, Ids, build_sensor, build_type, variant
 from .security import ConfigUsers, secure
 from .space import BUS_VARS, NAMESPACE, quality
-from .writes import DirectWriter, Due, tell
+from .writes import DirectWriter, Due, tell, tell_now
 
 log = logging.getLogger("imu_gateway.opcua")
 
@@ -132,6 +132,7 @@ class OpcUaServer(Frontend):
         self.shapes: dict[str, Shape] = {}  # sensor -> what its subtree was built from
         self._history: GatewayHistory | None = None
         self._writer: DirectWriter  # (with the server, at start)
+        self._telling: asyncio.Task[None] | None = None  # a sample's items still told
         self._sensors: Node | None = None  # the Sensors folder
         self._type_id = ua.NodeId()  # ImuSensorType's
         self._changing = asyncio.Lock()  # one reload's changes at a time
@@ -351,8 +352,11 @@ class OpcUaServer(Frontend):
                 self.conditions.on_alarm(snap.alarm)
         elif kind is not EventKind.SETTINGS and self.server is not None:
             due = self._write_sensor(snap)
-            if due:  # (monitored: a task for the sample's callbacks, in order)
-                task = asyncio.create_task(tell(due))
+            before = self._telling
+            if due and (before is None or before.done()):
+                due = tell_now(due)  # (nearly always all of them: no task)
+            if due:  # (the rest, in order, after the sample before's)
+                self._telling = task = asyncio.create_task(tell(due, before))
                 task.add_done_callback(self._written)
 
     def _written(self, task: asyncio.Task[None]) -> None:

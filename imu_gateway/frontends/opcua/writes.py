@@ -21,6 +21,7 @@ every one does.
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import logging
 from collections.abc import Awaitable, Callable
@@ -63,9 +64,31 @@ class DirectWriter:
             due.append((callbacks, handle, value))
 
 
-async def tell(due: list[Due]) -> None:
-    """The monitored items' callbacks of one sample, in order, those still there; one's
-    failure is logged and the rest go on (as asyncua's own write does)."""
+def tell_now(due: list[Due]) -> list[Due]:
+    """Tell the sample's items that need no coroutine (``SampledItems.datachange_now``:
+    nearly all), in order; returns the rest, from the first that does, for ``tell``.
+    One's failure is logged and the rest go on."""
+    for n, (callbacks, handle, value) in enumerate(due):
+        callback = callbacks.get(handle)
+        if callback is None:
+            continue  # (deleted since the value was written)
+        now = getattr(getattr(callback, "__self__", None), "datachange_now", None)
+        if now is None:
+            return due[n:]
+        try:
+            if not now(handle, value):
+                return due[n:]
+        except Exception:
+            log.exception("opcua: a monitored item's data change (handle %s)", handle)
+    return []
+
+
+async def tell(due: list[Due], after: asyncio.Task[None] | None = None) -> None:
+    """The monitored items' callbacks of one sample, in order, those still there, once
+    ``after`` (the sample before's) has ended; one's failure is logged and the rest go
+    on (as asyncua's own write does)."""
+    if after is not None:
+        await asyncio.wait((after,))
     for callbacks, handle, value in due:
         callback = callbacks.get(handle)
         if callback is None:

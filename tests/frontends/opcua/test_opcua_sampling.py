@@ -142,6 +142,7 @@ async def test_each_item_is_sampled_at_its_revised_interval(
         await until(lambda: len(told.of[2]) >= 8, 20)
         every = told.values(1)
         assert all(b == a + 1 for a, b in pairwise(every)), every
+        assert gw.opcua is not None and gw.opcua._telling is None  # (no task: tell_now)
         sampled = told.values(2)
         assert sampled == sorted(set(sampled)) and set(sampled) <= set(every) | {every[-1] + 1}
         gaps = told.gaps(2)
