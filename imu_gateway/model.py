@@ -171,16 +171,27 @@ class Reading:
         A value that is not a finite number (a Modbus float register can hold NaN) is
         ``None``: JSON has no NaN, and one would break every client's parser."""
         out: dict[str, dict[str, float | None]] = {}
-        for group in Group:
-            value: Any = getattr(self, group.value)
+        isfinite = math.isfinite
+        for key in _GROUP_KEYS:
+            value: Any = getattr(self, key)
             if value is not None:
-                out[group.value] = {f.name: _finite(getattr(value, f.name))
-                                    for f in fields(value)}
+                out[key] = {name: v if isfinite(v := getattr(value, name)) else None
+                            for name in _field_names(type(value))}
         return out
 
 
-def _finite(value: float) -> float | None:
-    return value if math.isfinite(value) else None
+#: the groups' keys, and each value group's field names, worked out once: the reading
+#: JSON is made for every sample a front end pushes, and ``dataclasses.fields`` per
+#: group made it a fifth of MQTT's CPU per sample (``docs/benchmarks.md``)
+_GROUP_KEYS = tuple(group.value for group in Group)
+_FIELD_NAMES: dict[type, tuple[str, ...]] = {}
+
+
+def _field_names(kind: type) -> tuple[str, ...]:
+    names = _FIELD_NAMES.get(kind)
+    if names is None:
+        names = _FIELD_NAMES[kind] = tuple(f.name for f in fields(kind))
+    return names
 
 
 #: A float32's bytes (little-endian), and the formats tried for its shortest decimal.
