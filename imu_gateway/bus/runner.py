@@ -13,12 +13,13 @@ turn of the bus loop wrote (every line's) and hands it to the loop that owns the
 in one piece, in order, so cache listeners (the front ends) always run there.  How soon
 depends on who listens (``Cache.prompt``):
 
-* a listener that pushes to the outside (MQTT, Sparkplug, OPC UA, an SSE stream), or a
-  turn that answers someone waiting (a command, a fresh read, the traffic monitor):
-  the main loop is woken at most once per turn, and not again while a hand-over it has
-  not run yet is waiting: later turns join that one;
-* otherwise (only Modbus TCP and REST, which read on demand): the turns wait, and the
-  main loop takes them when something reads the cache (``Cache.catch_up``), or after
+* a listener that pushes to the outside (MQTT, Sparkplug, an SSE stream), or a turn
+  that answers someone waiting (a command, a fresh read, the traffic monitor): the
+  main loop is woken at most once per turn, and not again while a hand-over it has not
+  run yet is waiting: later turns join that one;
+* otherwise (only Modbus TCP, REST and OPC UA, whose clients read, and whose
+  subscriptions publish and sample, at their own times): the turns wait, and the main
+  loop takes them when something reads the cache (``Cache.catch_up``), or after
   ``LAZY_HAND_OVER`` at the latest (history, alarms, captures), timed by the bus
   thread, which then wakes the main loop once.  A wake-up of the main loop costs more
   CPU than the work it brings: on one native line, the main loop's CPU per exchange

@@ -26,9 +26,9 @@ from typing import Any
 
 import httpx
 import pytest
-from asyncua import ua
+from asyncua import Client, ua
 from asyncua.server.address_space import AttributeValue, NodeData
-from support.harness import until
+from support.harness import free_port, until
 
 from imu_gateway.app import Gateway
 from imu_gateway.bus import reactor as reactor_module
@@ -274,6 +274,40 @@ async def test_a_rest_request_answers_with_what_was_handed_over() -> None:
     assert [(a["alarm"], a["active"]) for a in alarms] == \
         [("lean", True), ("communication", False)]
     assert history["fields"]["pitch"]["last"][-1] == 6.5
+
+
+@pytest.mark.anyio
+async def test_opc_ua_reads_and_publishes_what_was_handed_over(tmp_path: Path) -> None:
+    """OPC UA is no prompt listener: a client's Read, and a subscription's publish,
+    apply the waiting turns first (no staleness watch runs here to do it)."""
+    port = free_port()
+    gw = gateway(opcua={"listen": f"127.0.0.1:{port}", "allow_none": True,
+                        "pki_dir": str(tmp_path / "pki")})
+    assert gw.opcua is not None
+    await gw.opcua.start()
+    try:
+        assert not gw.cache.prompt
+        async with Client(f"opc.tcp://127.0.0.1:{port}/") as client:
+            idx = await client.get_namespace_index("urn:imu-gateway")
+            pitch = client.get_node(ua.NodeId(f"{gw.config.gateway_id}.Sensors.boom.Angles.pitch",
+                                              idx))
+            pending(gw, (12.5, time.monotonic()))
+            assert await pitch.read_value() == 12.5
+            told: list[float] = []
+
+            class Told:
+                def datachange_notification(self, node: Any, value: Any, data: Any) -> None:
+                    told.append(value)
+
+            subscription = await client.create_subscription(100, Told())
+            await subscription.subscribe_data_change([pitch], sampling_interval=0.0,
+                                                     queuesize=10)
+            await until(lambda: told == [12.5], 10)  # (the initial value)
+            pending(gw, (7.25, time.monotonic()), (7.5, time.monotonic()))
+            await until(lambda: told[1:] == [7.25, 7.5], 10)
+            await subscription.delete()
+    finally:
+        await gw.opcua.stop()
 
 
 @pytest.mark.anyio

@@ -216,7 +216,10 @@ def _quality() -> list[str]:
     return ["", "### Timestamps and quality", "",
             "A value's SourceTimestamp is the wire time of its sample (when its answer came "
             "off the line), not when it was published; the ServerTimestamp is when it was "
-            "written. Its StatusCode says how the sensor is:", "",
+            "written into the address space: with no MQTT, Sparkplug or live stream on, "
+            "the samples the bus brought are written at the next request, publish or "
+            "sampling tick, within 0.1 s of coming in (0.25 s at most). Its StatusCode "
+            "says how the sensor is:", "",
             "| sensor | StatusCode |", "|---|---|",
             *(f"| {status.value} | `{code}` |" for status, code in QUALITY.items()),
             f"| never read since the start | `{NEVER_READ}` (the value is null or NaN) |", "",

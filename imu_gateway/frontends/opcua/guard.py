@@ -46,6 +46,7 @@ from __future__ import annotations
 import logging
 import socket
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -97,15 +98,22 @@ _PASSWORD_ENCRYPTION = {SecurityPolicyBasic256Sha256.URI:
                         SecurityPolicyBasic256Sha256.AsymmetricEncryptionURI}
 
 
+def _nothing() -> None:
+    return None
+
+
 @dataclass(frozen=True, slots=True)
 class Watch:
     """What the connections of one server share: the client certificate each session
-    was created with, and the warnings about peers (a line a kind a minute; the owner
-    flushes the counts held back)."""
+    was created with, the warnings about peers (a line a kind a minute; the owner
+    flushes the counts held back), and the cache's ``catch_up``: the bus's turns wait
+    for a reader (``Cache.catch_up``), and each request, publish and sampling tick is
+    one."""
 
     origins: weakref.WeakKeyDictionary[Any, bytes | None] = field(
         default_factory=weakref.WeakKeyDictionary)
     peers: PeerLog = field(default_factory=lambda: PeerLog(log))
+    catch_up: Callable[[], None] = _nothing
 
     def refuse(self, code: int, why: str, peer: Any) -> ServiceError:
         name = ua.StatusCode(code).name
@@ -170,6 +178,7 @@ class GuardedProcessor(UaProcessor):
             body = self._revise_subscription(body)
         elif typeid == _CLOSE:
             body = Buffer(ua.ua_binary.Primitives.Boolean.pack(True))  # deleteSubscriptions
+        self._watch.catch_up()  # (a Read gives the newest sample the bus has)
         # a method learns who calls it from here (asyncua passes it only the object)
         caller = CALLER.set(self._caller()) if typeid == _CALL else None
         try:
@@ -185,7 +194,7 @@ class GuardedProcessor(UaProcessor):
             self._watch.origins[self.session] = channel.peer_certificate
         elif typeid == _SUBSCRIBE and self.session is not None:
             sample_items(self.iserver.subscription_service, self.session.session_id,
-                         MAX_PUBLISHING_INTERVAL_MS)
+                         MAX_PUBLISHING_INTERVAL_MS, self._watch.catch_up)
         return answer
 
     def _caller(self) -> Caller | None:
@@ -374,9 +383,10 @@ class _BinaryServer(BinaryServer):
 class GatewayUaServer(Server):
     """asyncua's server, listening through :class:`_BinaryServer`."""
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, catch_up: Callable[[], None] = _nothing,
+                 **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        self.watch = Watch()
+        self.watch = Watch(catch_up=catch_up)
 
     async def start(self) -> None:
         # asyncua's Server.start, with the one change of the binary server's class

@@ -44,6 +44,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 from asyncua import ua
@@ -84,9 +85,11 @@ class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is u
     """asyncua's monitored items of one subscription, each value's sampled at its
     revised sampling interval."""
 
-    def __init__(self, isub: Any, aspace: Any, most: float) -> None:
+    def __init__(self, isub: Any, aspace: Any, most: float,
+                 catch_up: Callable[[], None] = lambda: None) -> None:
         super().__init__(isub, aspace)
         self.most = most  # ms: the longest interval given
+        self._catch_up = catch_up  # (the cache's: a tick samples the newest value)
         self._interval: dict[int, float] = {}  # callback handle -> ms, of items sampled
         self._held: dict[int, ua.DataValue] = {}  # handle -> newest value not sampled
         self._tickers: dict[float, tuple[set[int], asyncio.Task[None]]] = {}
@@ -234,6 +237,7 @@ class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is u
         while True:
             await asyncio.sleep(max(0.0, woke + interval / 1000 - loop.time()))
             woke = loop.time()
+            self._catch_up()
             for handle in list(handles):
                 held = self._held.pop(handle, None)
                 if held is not None:
@@ -247,10 +251,25 @@ class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is u
             log.exception("opcua: sampling monitored item %s", handle)
 
 
-def sample_items(service: SubscriptionService, session_id: ua.NodeId, most: float) -> None:
+def sample_items(service: SubscriptionService, session_id: ua.NodeId, most: float,
+                 catch_up: Callable[[], None] = lambda: None) -> None:
     """Give the session's subscriptions that have asyncua's service a
     :class:`SampledItems` (called when one is made: it has no item yet); ``most``: the
-    longest sampling interval, ms."""
+    longest sampling interval, ms.  ``catch_up`` (the cache's) runs before each of the
+    subscription's publishes and sampling ticks: the bus's turns wait for a reader."""
     for sub in service.subscriptions.values():
         if sub.session_id == session_id and not isinstance(sub.monitored_item_srv, SampledItems):
-            sub.monitored_item_srv = SampledItems(sub, service.aspace, most)
+            sub.monitored_item_srv = SampledItems(sub, service.aspace, most, catch_up)
+            sub.publish_results = _caught_up(sub.publish_results, catch_up)
+
+
+def _caught_up(publish: Callable[..., Awaitable[bool]],
+               catch_up: Callable[[], None]) -> Callable[..., Awaitable[bool]]:
+    """A subscription's ``publish_results`` (asyncua's publishing loop and publish
+    requests call it through the instance), the cache caught up first."""
+
+    async def publish_results(*args: Any, **kwargs: Any) -> bool:
+        catch_up()
+        return await publish(*args, **kwargs)
+
+    return publish_results

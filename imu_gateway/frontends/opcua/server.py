@@ -158,7 +158,8 @@ class OpcUaServer(Frontend):
         gid = self.gateway.config.gateway_id
         quiet_asyncua()
         encoding.install()
-        server = GatewayUaServer(user_manager=ConfigUsers(self.config))
+        server = GatewayUaServer(user_manager=ConfigUsers(self.config),
+                                 catch_up=self.gateway.cache.catch_up)
         await server.init(await standard_space.shelf())
         server.set_endpoint(self.endpoint)
         server.set_server_name(f"imu-gateway {gid}")
@@ -188,8 +189,10 @@ class OpcUaServer(Frontend):
         self._writer = DirectWriter(server.iserver.aspace)
         for snap in self.gateway.cache.snapshots():
             await tell(self._write_sensor(snap))
+        # not prompt: its clients read, publish and sample at their own times, and each
+        # of those catches the cache up first (``guard.Watch.catch_up``)
         self._unsubscribe = self.gateway.cache.subscribe(self._on_cache_event, self.fail,
-                                                         kinds=ALL_EVENTS)
+                                                         kinds=ALL_EVENTS, prompt=False)
         self._events = asyncio.create_task(self.conditions.run(), name="opcua alarm events")
         self.guarded(self._events)
         self._bus_timer = asyncio.create_task(self._write_buses(), name="opcua buses")
