@@ -98,10 +98,6 @@ _PASSWORD_ENCRYPTION = {SecurityPolicyBasic256Sha256.URI:
                         SecurityPolicyBasic256Sha256.AsymmetricEncryptionURI}
 
 
-def _nothing() -> None:
-    return None
-
-
 @dataclass(frozen=True, slots=True)
 class Watch:
     """What the connections of one server share: the client certificate each session
@@ -110,10 +106,10 @@ class Watch:
     for a reader (``Cache.catch_up``), and each request, publish and sampling tick is
     one."""
 
+    catch_up: Callable[[], None]
     origins: weakref.WeakKeyDictionary[Any, bytes | None] = field(
         default_factory=weakref.WeakKeyDictionary)
     peers: PeerLog = field(default_factory=lambda: PeerLog(log))
-    catch_up: Callable[[], None] = _nothing
 
     def refuse(self, code: int, why: str, peer: Any) -> ServiceError:
         name = ua.StatusCode(code).name
@@ -383,8 +379,7 @@ class _BinaryServer(BinaryServer):
 class GatewayUaServer(Server):
     """asyncua's server, listening through :class:`_BinaryServer`."""
 
-    def __init__(self, *args: Any, catch_up: Callable[[], None] = _nothing,
-                 **kwargs: Any) -> None:
+    def __init__(self, *args: Any, catch_up: Callable[[], None], **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.watch = Watch(catch_up=catch_up)
 

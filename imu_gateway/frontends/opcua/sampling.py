@@ -86,7 +86,7 @@ class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is u
     revised sampling interval."""
 
     def __init__(self, isub: Any, aspace: Any, most: float,
-                 catch_up: Callable[[], None] = lambda: None) -> None:
+                 catch_up: Callable[[], None]) -> None:
         super().__init__(isub, aspace)
         self.most = most  # ms: the longest interval given
         self._catch_up = catch_up  # (the cache's: a tick samples the newest value)
@@ -252,7 +252,7 @@ class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is u
 
 
 def sample_items(service: SubscriptionService, session_id: ua.NodeId, most: float,
-                 catch_up: Callable[[], None] = lambda: None) -> None:
+                 catch_up: Callable[[], None]) -> None:
     """Give the session's subscriptions that have asyncua's service a
     :class:`SampledItems` (called when one is made: it has no item yet); ``most``: the
     longest sampling interval, ms.  ``catch_up`` (the cache's) runs before each of the

@@ -11,8 +11,10 @@ What asyncua's write does that matters is kept:
 
 * a Bad StatusCode makes the value null (Part 4, 7.7.1);
 * a value setter on the node gets the value instead;
-* the node's data-change callbacks (its monitored items) get it, in order: awaited in
-  one task per sample, only when there are any.
+* the node's data-change callbacks (its monitored items) get it, in order: at once,
+  without a coroutine, where the item is the gateway's (``tell_now``,
+  ``SampledItems.datachange_now``: nearly always), the rest awaited in a task after
+  the sample before's (``tell``).
 
 The type check is left out: the gateway made these nodes and writes each with the
 Variant type of its DataType (``nodes.variant``); ``tests/frontends/opcua`` checks that
