@@ -63,7 +63,7 @@ class Captures:
     """The rings, the triggers, and the captures written so far (on the main loop)."""
 
     def __init__(self, config: CaptureConfig, gateway: GatewayConfig,
-                 frames: FramesOf, catch_up: Callable[[], None] = lambda: None) -> None:
+                 frames: FramesOf, catch_up: Callable[[], None]) -> None:
         """``catch_up``: the cache's, so that the window has every sample handed over
         by its end (``Cache.catch_up``)."""
         self.config = config

@@ -306,8 +306,7 @@ class CountRequests:
     ``before()`` before each: the cache's ``catch_up``, so history, alarms and captures
     answer with every sample the buses have handed over."""
 
-    def __init__(self, app: Any, counts: dict[str, int],
-                 before: Callable[[], None] = lambda: None) -> None:
+    def __init__(self, app: Any, counts: dict[str, int], before: Callable[[], None]) -> None:
         self.app, self.counts, self.before = app, counts, before
 
     async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
