@@ -215,10 +215,12 @@ class Captures:
     async def _write(self, pending: _Pending) -> None:
         frames = await self._window_frames(pending)
         info = CaptureInfo(pending.id, pending.reason, pending.alarm, pending.at, 0)
+        # a reading by its wire time (it may have reached the cache later: the lazy
+        # hand-over), a status row by when it was made
         sensors = [SensorRows(name, self.rings[name].fields, tuple(
             row for row in self.rings[name].unpack(rows)
-            if (row.receive if row.wire is None else row.wire) <= pending.end))
-            for name, rows in pending.rows.items()]
+            if pending.start <= (row.receive if row.wire is None else row.wire)
+            <= pending.end)) for name, rows in pending.rows.items()]
         try:
             size = await asyncio.to_thread(write_capture, self.folder, info,
                                            self._meta(pending), sensors, frames)

@@ -33,7 +33,7 @@ from ..model import CAPABILITIES, VALUE_GROUPS, Series
 #: the rows a sensor's ring holds at most, whatever its rate (1000 Hz for ``pre_s``)
 MAX_RATE_HZ = 1000
 _HEAD = struct.Struct("<ddIIB")  # wire, receive, seq, errors, kind and status
-_TIME = struct.Struct("<d")  # the wire time alone (the ring is trimmed by it)
+_TIME = struct.Struct("<d")  # one time of a row: its receive time, at 8 (trimmed by it)
 _STATUSES = tuple(Status)
 _READING, _STATUS = 0, 1
 KINDS = ("reading", "status")
@@ -101,7 +101,8 @@ class SensorRing:
             self.rows.popleft()
 
     def since(self, start: float) -> list[bytes]:
-        """The rows received at ``start`` or later (a copy: the ring goes on)."""
+        """The rows received at ``start`` or later (a copy: the ring goes on): every
+        reading that came off the wire then or later too, as it is received after."""
         return [row for row in self.rows if _TIME.unpack_from(row, 8)[0] >= start]
 
     def unpack(self, rows: Sequence[bytes]) -> Iterator[Row]:

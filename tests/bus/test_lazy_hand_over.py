@@ -448,7 +448,8 @@ async def test_a_capture_window_has_the_samples_a_lazy_hand_over_still_held(
     """A sample that came in 20 ms before the window's end, in a turn still waiting
     for the lazy hand-over when the window closes: the capture applies the waiting
     turns, and keeps its readings by their wire time (the cache has it only after the
-    end)."""
+    end).  Its twin at the start: a sample that came in 20 ms before the window began,
+    applied only after the trigger, is not in it."""
     gw = gateway(capture={"dir": str(tmp_path), "pre_s": 0.5, "post_s": 0.2})
     assert gw.captures is not None
     await gw.captures.start()
@@ -462,6 +463,8 @@ async def test_a_capture_window_has_the_samples_a_lazy_hand_over_still_held(
 
     gw.cache.add_source(drain)
     capture_id = gw.captures.trigger("manual")
+    # received 20 ms before the window began, applied after the trigger
+    gw.cache.publish("boom", reading(3.5), time.monotonic() - 0.5 - 0.02)
     # received 20 ms before the window's end, applied (by nothing else reading the
     # cache) only when the window closes
     waiting.append(time.monotonic() + gw.captures.armed(capture_id)["ready_in_s"] - 0.02)
