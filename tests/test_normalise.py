@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import math
 import random
+from datetime import UTC, datetime, timedelta, timezone
+from zoneinfo import ZoneInfo
 
 import pytest
 from support.vectors import ANSWER, NATIVE_VECTORS, Vector
 
-from imu_gateway.cache import Cache, EventKind, Snapshot
+from imu_gateway.cache import Cache, EventKind, Snapshot, iso_time
 from imu_gateway.model import (
     CAPABILITIES,
     MEASURED_GROUPS,
@@ -280,3 +282,20 @@ def test_the_cache_completes_each_reading_once_for_every_listener() -> None:
     assert cache.snapshot("s").reading == seen[-1].reading
     assert seen[-1].to_json()["tilt"] == {"tilt": 30.0, "tilt_direction": 270.0}
     assert seen[0].to_json()["vibration"] == {"vibration": None}  # null, not 0
+
+
+@pytest.mark.parametrize("moment", [
+    datetime(2026, 11, 22, 3, 40, 0, 123456, tzinfo=UTC),
+    datetime(2026, 11, 22, 3, 40, 0, tzinfo=UTC),  # (isoformat would drop no digits)
+    datetime(2026, 12, 31, 23, 59, 59, 999999, tzinfo=UTC),  # (truncated, never rounded)
+    datetime(2026, 3, 29, 1, 30, 0, 5000, tzinfo=ZoneInfo("Europe/Berlin")),
+    datetime(2026, 1, 1, 0, 0, 0, 1000, tzinfo=timezone(timedelta(hours=-5))),
+    datetime(1, 1, 1, 12, 0, 0, tzinfo=timezone(timedelta(hours=1))),
+])
+def test_iso_time_is_utc_in_milliseconds_with_a_z(moment: datetime) -> None:
+    """The readings' time: the same as the format written out field by field."""
+    utc = moment.astimezone(UTC)
+    assert iso_time(moment) == (f"{utc.year:04d}-{utc.month:02d}-{utc.day:02d}T"
+                                f"{utc.hour:02d}:{utc.minute:02d}:{utc.second:02d}."
+                                f"{utc.microsecond // 1000:03d}Z")
+    assert iso_time(None) is None

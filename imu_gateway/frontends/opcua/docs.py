@@ -216,14 +216,19 @@ def _quality() -> list[str]:
     return ["", "### Timestamps and quality", "",
             "A value's SourceTimestamp is the wire time of its sample (when its answer came "
             "off the line), not when it was published; the ServerTimestamp is when it was "
-            "written into the address space: with no MQTT, Sparkplug or live stream on, "
-            "the samples the bus brought are written at the next request, publish or "
-            "sampling tick, within 0.1 s of coming in (0.25 s at most). Its StatusCode "
-            "says how the sensor is:", "",
+            "written into the address space, which is when a client looks: a sensor's "
+            "newest sample is written at the next request, publish or sampling tick of "
+            "any client (where a monitored item of one of its values has sampling "
+            "interval 0, each sample as it comes, within 0.1 s and at most 0.25 s with no "
+            "MQTT, Sparkplug or live stream on). Its StatusCode says how the sensor is:",
+            "",
             "| sensor | StatusCode |", "|---|---|",
             *(f"| {status.value} | `{code}` |" for status, code in QUALITY.items()),
             f"| never read since the start | `{NEVER_READ}` (the value is null or NaN) |", "",
-            "Every new sample is written once; a Read gets the newest. A monitored item "
+            "A Read gets the newest sample; a sample that came between two looks is "
+            "written only where an item takes every value, since no client could see it "
+            "(a 100 Hz sensor read every 100 ms is written ten times a second, not a "
+            "hundred). A monitored item "
             "gets the samples at its sampling interval (below), at the publishing interval "
             "of its subscription. A value that repeats (a sensor at rest) changes only its "
             "timestamp: ask for the DataChangeTrigger StatusValueTimestamp (and sampling "

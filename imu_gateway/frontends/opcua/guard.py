@@ -63,7 +63,7 @@ from cryptography import x509
 
 from ...supervise import PeerLog
 from .conditions import CALLER, Caller
-from .sampling import sample_items
+from .sampling import EveryValue, sample_items
 
 log = logging.getLogger("imu_gateway.opcua")
 
@@ -104,9 +104,12 @@ class Watch:
     was created with, the warnings about peers (a line a kind a minute; the owner
     flushes the counts held back), and the cache's ``catch_up``: the bus's turns wait
     for a reader (``Cache.catch_up``), and each request, publish and sampling tick is
-    one."""
+    one; it also writes the newest samples into the address space
+    (``writes.Newest``), by the register of the items that take every value
+    (``every``)."""
 
     catch_up: Callable[[], None]
+    every: EveryValue = field(default_factory=EveryValue)
     origins: weakref.WeakKeyDictionary[Any, bytes | None] = field(
         default_factory=weakref.WeakKeyDictionary)
     peers: PeerLog = field(default_factory=lambda: PeerLog(log))
@@ -190,7 +193,7 @@ class GuardedProcessor(UaProcessor):
             self._watch.origins[self.session] = channel.peer_certificate
         elif typeid == _SUBSCRIBE and self.session is not None:
             sample_items(self.iserver.subscription_service, self.session.session_id,
-                         MAX_PUBLISHING_INTERVAL_MS, self._watch.catch_up)
+                         MAX_PUBLISHING_INTERVAL_MS, self._watch.catch_up, self._watch.every)
         return answer
 
     def _caller(self) -> Caller | None:

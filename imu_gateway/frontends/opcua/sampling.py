@@ -22,7 +22,9 @@ sample of a 100 Hz sensor, and that was most of the OPC UA server's CPU
   path with the notification made for less: ``encoding.py``).  A value written
   and then left (a sensor gone offline: its bad status) is sampled at the next tick.
   The initial value of a new item is reported at once (asyncua reads it then).
-* Reads are not concerned: every sample is still written to the node.
+* **Writes:** a sensor whose nodes no item takes every value of (``EveryValue``)
+  has only its newest sample written, when a client looks (``writes.Samples``):
+  a Read, a tick and a publish each catch up first.
 * **Queues** (Part 4 7.21, MonitoringParameters): for a value, a requested queueSize
   of 0 or 1 is a queue of 1, which keeps only the newest value; for events (alarms), 0
   is the server's default, ``MAX_QUEUE_SIZE``; never more than that.  asyncua makes 0
@@ -44,6 +46,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import weakref
 from collections.abc import Awaitable, Callable
 from typing import Any
 
@@ -81,28 +84,60 @@ def revised_interval(requested: float, publishing: float, most: float) -> float:
     return min(step * math.ceil(requested / step), most)  # (never sooner than asked)
 
 
+class EveryValue:
+    """Which nodes a monitored item takes every value of (sampling interval 0), over
+    every subscription of a server: the others' values need only be written when a
+    client looks (``writes.Newest``).  ``version`` changes with any item created,
+    modified or deleted; ``nodes`` is worked out again then, by whoever asks."""
+
+    def __init__(self) -> None:
+        self.version = 0
+        self._services: weakref.WeakSet[SampledItems] = weakref.WeakSet()
+
+    def add(self, service: SampledItems) -> None:
+        self._services.add(service)
+        self.version += 1
+
+    def changed(self) -> None:
+        self.version += 1
+
+    def nodes(self) -> set[ua.NodeId]:
+        return {node for service in self._services for node in service.every_value()}
+
+
 class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is untyped)
     """asyncua's monitored items of one subscription, each value's sampled at its
     revised sampling interval."""
 
     def __init__(self, isub: Any, aspace: Any, most: float,
-                 catch_up: Callable[[], None]) -> None:
+                 catch_up: Callable[[], None], every: EveryValue) -> None:
         super().__init__(isub, aspace)
         self.most = most  # ms: the longest interval given
         self._catch_up = catch_up  # (the cache's: a tick samples the newest value)
+        self._every = every
         self._interval: dict[int, float] = {}  # callback handle -> ms, of items sampled
         self._held: dict[int, ua.DataValue] = {}  # handle -> newest value not sampled
         self._tickers: dict[float, tuple[set[int], asyncio.Task[None]]] = {}
         self._handing: set[asyncio.Task[None]] = set()  # values handed on by a Modify
+        every.add(self)
+
+    def every_value(self) -> list[ua.NodeId]:
+        """The nodes of this subscription's items that take every value."""
+        return [mdata.read_value_id.NodeId for mdata in self._monitored_items.values()
+                if mdata.callback_handle is not None and
+                mdata.callback_handle not in self._interval]
 
     async def create_monitored_items(self, params: Any) -> list[Any]:
-        results: list[Any] = await super().create_monitored_items(params)
-        for item, result in zip(params.ItemsToCreate or (), results, strict=True):
-            mdata = self._monitored_items.get(result.MonitoredItemId)
-            if result.StatusCode.is_good() and mdata is not None and \
-                    mdata.callback_handle is not None:  # (None: an item of events)
-                result.RevisedSamplingInterval = self._revise(
-                    mdata.callback_handle, item.RequestedParameters.SamplingInterval)
+        try:
+            results: list[Any] = await super().create_monitored_items(params)
+            for item, result in zip(params.ItemsToCreate or (), results, strict=True):
+                mdata = self._monitored_items.get(result.MonitoredItemId)
+                if result.StatusCode.is_good() and mdata is not None and \
+                        mdata.callback_handle is not None:  # (None: an item of events)
+                    result.RevisedSamplingInterval = self._revise(
+                        mdata.callback_handle, item.RequestedParameters.SamplingInterval)
+        finally:
+            self._every.changed()
         return results
 
     def _make_monitored_item_common(self, params: Any) -> tuple[Any, Any]:
@@ -113,6 +148,12 @@ class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is u
         return result, mdata
 
     def modify_monitored_items(self, params: Any) -> list[Any]:
+        try:
+            return self._modify(params)
+        finally:
+            self._every.changed()
+
+    def _modify(self, params: Any) -> list[Any]:
         results = []
         for item in params.ItemsToModify or ():
             mdata = self._monitored_items.get(item.MonitoredItemId)
@@ -136,7 +177,10 @@ class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is u
             if mdata is not None and mdata.callback_handle is not None:
                 self._held.pop(mdata.callback_handle, None)
                 self._sample(mdata.callback_handle, 0.0)
-        return list(super().delete_monitored_items(ids))
+        try:
+            return list(super().delete_monitored_items(ids))
+        finally:
+            self._every.changed()
 
     async def datachange_callback(self, handle: int, value: Any, error: Any = None) -> None:
         # the one path of every write to a monitored node: kept short
@@ -252,14 +296,16 @@ class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is u
 
 
 def sample_items(service: SubscriptionService, session_id: ua.NodeId, most: float,
-                 catch_up: Callable[[], None]) -> None:
+                 catch_up: Callable[[], None], every: EveryValue) -> None:
     """Give the session's subscriptions that have asyncua's service a
     :class:`SampledItems` (called when one is made: it has no item yet); ``most``: the
-    longest sampling interval, ms.  ``catch_up`` (the cache's) runs before each of the
-    subscription's publishes and sampling ticks: the bus's turns wait for a reader."""
+    longest sampling interval, ms.  ``catch_up`` (the cache's, and the newest samples
+    written) runs before each of the subscription's publishes and sampling ticks: the
+    bus's turns wait for a reader.  ``every``: the server's register of items that
+    take every value."""
     for sub in service.subscriptions.values():
         if sub.session_id == session_id and not isinstance(sub.monitored_item_srv, SampledItems):
-            sub.monitored_item_srv = SampledItems(sub, service.aspace, most, catch_up)
+            sub.monitored_item_srv = SampledItems(sub, service.aspace, most, catch_up, every)
             sub.publish_results = _caught_up(sub.publish_results, catch_up)
 
 

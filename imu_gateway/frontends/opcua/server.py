@@ -39,7 +39,7 @@ from .methods import Caller, instance_caller, type_caller
 from .nodes import VALUE_TYPE, Callers, Ids, build_sensor, build_type, variant
 from .security import ConfigUsers, secure
 from .space import BUS_VARS, NAMESPACE, quality
-from .writes import DirectWriter, Due, tell, tell_now
+from .writes import DirectWriter, Due, Samples, tell
 
 log = logging.getLogger("imu_gateway.opcua")
 
@@ -131,8 +131,8 @@ class OpcUaServer(Frontend):
         self.conditions = Conditions(gateway, config.allow_commands)
         self.shapes: dict[str, Shape] = {}  # sensor -> what its subtree was built from
         self._history: GatewayHistory | None = None
-        self._writer: DirectWriter  # (with the server, at start)
-        self._telling: asyncio.Task[None] | None = None  # a sample's items still told
+        self._writer: DirectWriter  # (with the server, and the next, at start)
+        self._samples: Samples
         self._sensors: Node | None = None  # the Sensors folder
         self._type_id = ua.NodeId()  # ImuSensorType's
         self._changing = asyncio.Lock()  # one reload's changes at a time
@@ -159,7 +159,7 @@ class OpcUaServer(Frontend):
         quiet_asyncua()
         encoding.install()
         server = GatewayUaServer(user_manager=ConfigUsers(self.config),
-                                 catch_up=self.gateway.cache.catch_up)
+                                 catch_up=self._catch_up)
         await server.init(await standard_space.shelf())
         server.set_endpoint(self.endpoint)
         server.set_server_name(f"imu-gateway {gid}")
@@ -187,6 +187,7 @@ class OpcUaServer(Frontend):
             raise
         self.server = server
         self._writer = DirectWriter(server.iserver.aspace)
+        self._samples = Samples(self._write_sensor, server.watch.every, self._nodes, self.fail)
         for snap in self.gateway.cache.snapshots():
             await tell(self._write_sensor(snap))
         # not prompt: its clients read, publish and sample at their own times, and each
@@ -354,17 +355,20 @@ class OpcUaServer(Frontend):
             if snap.alarm is not None:
                 self.conditions.on_alarm(snap.alarm)
         elif kind is not EventKind.SETTINGS and self.server is not None:
-            due = self._write_sensor(snap)
-            before = self._telling
-            if due and (before is None or before.done()):
-                due = tell_now(due)  # (nearly always all of them: no task)
-            if due:  # (the rest, in order, after the sample before's)
-                self._telling = task = asyncio.create_task(tell(due, before))
-                task.add_done_callback(self._written)
+            self.counts["samples"] += 1
+            self._samples.offer(snap)  # written now, or when a client looks
 
-    def _written(self, task: asyncio.Task[None]) -> None:
-        if not task.cancelled() and task.exception() is not None:
-            self.fail(task.exception())  # type: ignore[arg-type]
+    def _catch_up(self) -> None:
+        """A client looks (a request, a publish, a sampling tick): the bus's turns
+        into the cache, and the newest samples into the address space."""
+        self.gateway.cache.catch_up()
+        if self.server is not None:
+            self._samples.flush()
+
+    def _nodes(self) -> list[tuple[str, ua.NodeId]]:
+        """Each sensor's value and status nodes, (sensor, node)."""
+        return [(name, node) for name, pairs in self.values.items() for _, node in pairs] + \
+            [(name, node) for name, pairs in self.status_nodes.items() for _, node in pairs]
 
     def _write_sensor(self, snap: Snapshot) -> list[Due]:
         """The sample into its sensor's nodes, now (``writes``); returns the monitored
@@ -383,7 +387,6 @@ class OpcUaServer(Frontend):
         for row, nodeid in self.status_nodes[snap.name]:
             write(nodeid, Sample(variant(row.value(snap), row.datatype),
                                  SourceTimestamp=source, ServerTimestamp=now), due)
-        self.counts["samples"] += 1
         return due
 
     async def _write_buses(self) -> None:

@@ -142,7 +142,7 @@ async def test_each_item_is_sampled_at_its_revised_interval(
         await until(lambda: len(told.of[2]) >= 8, 20)
         every = told.values(1)
         assert all(b == a + 1 for a, b in pairwise(every)), every
-        assert gw.opcua is not None and gw.opcua._telling is None  # (no task: tell_now)
+        assert gw.opcua is not None and gw.opcua._samples._telling is None  # (no task: tell_now)
         assert not gw.cache.prompt  # (OPC UA catches up when it reads, publishes, samples)
         sampled = told.values(2)
         assert sampled == sorted(set(sampled)) and set(sampled) <= set(every) | {every[-1] + 1}
@@ -219,3 +219,68 @@ async def test_a_stalled_sensors_bad_status_reaches_a_slow_item_within_its_inter
         late = came - value.ServerTimestamp  # written (the server's clock is this one's)
         assert late <= timedelta(seconds=1.0 + PUBLISHING_MS / 1000 + 1.0), late
         await subscription.delete()
+
+
+class Writes:
+    """How many samples the server wrote into the sensor's nodes, and how many times
+    it wrote what it held because a client looked (``writes.Samples``)."""
+
+    def __init__(self, samples: Any) -> None:
+        self.samples = samples
+        self.written = self.flushes = 0
+        write, flush = samples._write, samples.flush
+
+        def counted_write(snap: Any) -> Any:
+            self.written += 1
+            return write(snap)
+
+        def counted_flush() -> None:
+            self.flushes += 1
+            flush()
+
+        samples._write, samples.flush = counted_write, counted_flush
+
+    async def over(self, gw: Any, samples: int) -> tuple[int, int, int]:
+        """(samples that came, written, flushes) while ``samples`` came."""
+        seq, written, flushes = gw.cache.snapshot("boom").seq, self.written, self.flushes
+        await until(lambda: gw.cache.snapshot("boom").seq >= seq + samples, 30)
+        gw.cache.catch_up()
+        return (gw.cache.snapshot("boom").seq - seq, self.written - written,
+                self.flushes - flushes)
+
+
+@pytest.mark.anyio
+async def test_a_sensor_is_written_when_a_client_looks_unless_an_item_takes_every_value(
+        tmp_path: Path, line: tuple[str, Faults]) -> None:
+    """With one item sampled every 200 ms, the 50 Hz sensor's samples are written only
+    when a client looks (a publish, a tick, a request: at most one each), far fewer
+    than came, and a Read still gives the newest.  Modified to sampling 0, each sample
+    is written as it comes, and told in order; deleted, it is back to when a client
+    looks."""
+    port = free_port()
+    async with running(_config(port, tmp_path / "pki", line[0])) as gw, \
+            Client(f"opc.tcp://127.0.0.1:{port}/") as client:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 2)
+        assert gw.opcua is not None
+        writes = Writes(gw.opcua._samples)
+        idx = await client.get_namespace_index(NS)
+        (sequence,) = _nodes(idx, "Sequence")
+        told = Told()
+        subscription, made = await _subscribe(client, told, [_watch(1, sequence, 200.0)])
+        came, written, flushes = await writes.over(gw, 50)
+        assert written <= flushes and written < came / 2, (came, written, flushes)
+        newest = gw.cache.snapshot("boom").seq
+        assert await client.get_node(sequence).read_value() >= newest  # a fresh Read
+
+        changed = await subscription.server.modify_monitored_items(
+            _modify(subscription, made[0].MonitoredItemId, 0.0, queue=100))
+        assert [c.RevisedSamplingInterval for c in changed] == [0.0]
+        seen = len(told.of[1])
+        came, written, _ = await writes.over(gw, 50)
+        assert written >= came, (came, written)  # (each one; a flush may add one more)
+        every = told.values(1)[seen + 1:]  # (the first may be the one held at the Modify)
+        assert len(every) >= 40 and all(b == a + 1 for a, b in pairwise(every)), every
+
+        await subscription.delete()
+        came, written, flushes = await writes.over(gw, 50)
+        assert written <= flushes and written < came, (came, written, flushes)
