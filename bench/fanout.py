@@ -355,11 +355,14 @@ def encode_paths(rounds: int = 5, count: int = 20_000) -> None:
         print(f"{name:<48} {best * 1e6 / per_item:>6.2f}")
 
 
-async def monitored_path(pki: str, rounds: int = 7, samples: int = 300) -> None:
+async def monitored_path(pki: str, sampling: float = 0.0, rounds: int = 7,
+                         samples: int = 300) -> None:
     """``--monitored``: µs of process time per sample put into the cache, with a real
     client subscribed to every value of the sensor at sampling interval 0 (a queue of
     1000, publishing every second: the publish's encoding is left out, ``--encode``
-    has it); best of ``rounds`` bursts of ``samples``."""
+    has it); best of ``rounds`` bursts of ``samples``.  ``sampling`` > 0 (ms): the
+    items are sampled so (a queue of one), and the samples come at 100 Hz, paced, so
+    that the ticks and publishes that write the newest fall into the time measured."""
     port = free_port()
     gw = Gateway(fed_config(opcua={"listen": f"127.0.0.1:{port}", "allow_none": True,
                                    "pki_dir": pki}))
@@ -375,21 +378,25 @@ async def monitored_path(pki: str, rounds: int = 7, samples: int = 300) -> None:
 
     async with Client(f"opc.tcp://127.0.0.1:{port}/") as client:
         idx = await client.get_namespace_index("urn:imu-gateway")
-        subscription = await client.create_subscription(1000, Handler())
+        subscription = await client.create_subscription(1000 if not sampling else 500,
+                                                        Handler())
         await subscription.subscribe_data_change(
             [client.get_node(ua.NodeId(f"bench.Sensors.s0.{f}", idx)) for f in FIELDS],
-            queuesize=1000, sampling_interval=0.0)
+            queuesize=1 if sampling else 1000, sampling_interval=sampling)
         motion, best = Motion.from_seed(1), math.inf
+        loop = asyncio.get_running_loop()
         for r in range(rounds):
-            c0 = time.process_time()
+            c0, t0 = time.process_time(), loop.time()
             for n in range(samples):
                 gw.cache.publish("s0", motion.sample((r * samples + n) / 100))
-                await asyncio.sleep(0)
+                await asyncio.sleep(max(0.0, t0 + (n + 1) / 100 - loop.time()) if sampling
+                                    else 0)
             best = min(best, (time.process_time() - c0) / samples)
             await asyncio.sleep(1.2)  # (the publish, between two bursts)
     stop.set()
     await running
-    print(f"a sample with {len(FIELDS)} monitored values: {best * 1e6:.1f} µs "
+    how = f"sampled every {sampling:g} ms, 100 Hz paced" if sampling else "sampling 0"
+    print(f"a sample with {len(FIELDS)} monitored values ({how}): {best * 1e6:.1f} µs "
           f"(best of {rounds} x {samples}); notifications {told[0]}")
 
 
@@ -428,7 +435,7 @@ def main() -> None:
         return
     if args.monitored:
         with tempfile.TemporaryDirectory() as pki:
-            asyncio.run(monitored_path(pki))
+            asyncio.run(monitored_path(pki, args.sampling))
         return
     if args.writes:
         with tempfile.TemporaryDirectory() as pki:
