@@ -21,6 +21,14 @@ One gateway carries all the lines.  Printed per protocol and line count:
 
 Run: ``.venv/bin/python bench/lines.py [--seconds 5] [--lines 1 --lines 8]
 [--protocol native] [--capture]`` (``--capture``: with event capture's rings filled).
+
+``--warm``: instead, the bus path alone, warm: a ``BusMaster`` on a link that takes
+each request and is handed the sensor's answer at once (the answer made once by the
+simulator's sensor, then reused), on a clock of its own, in one thread, with nothing
+between two exchanges.  Its µs per exchange is the Python work of an exchange (schedule,
+framing, decoding, the reading, the hand-over's batch); the real line's CPU per
+exchange, less the bare loop's, less this, is what running cold costs: the caches
+emptied by the 8 ms between two exchanges, the thread's wake-ups.
 """
 
 from __future__ import annotations
@@ -28,22 +36,27 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import math
 import os
 import select
 import statistics
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 
 import serial
 from bus import Case, start_simulator
 
 from imu_gateway.app import GIL_SWITCH_INTERVAL, Gateway
+from imu_gateway.bus import master as bus_master
+from imu_gateway.bus.link import SerialLink
 from imu_gateway.config import config_from_dict
-from imu_gateway.model import Series
+from imu_gateway.model import KnownSettings, Reading, Series, WireProtocol
 from imu_gateway.protocol.exchanges import ModbusAdapter, NativeAdapter, rtu_silence
+from imu_gateway.simulator import make_sensor
+from imu_gateway.stats import BusStats, SensorStats
 
 BAUD = 115200
 DELAY = 0.002  # the simulated sensors' answer delay, s
@@ -155,6 +168,89 @@ def bare(protocol: str, ports: list[str], seconds: float) -> Figures:
     return Figures([done[fd] / elapsed for fd in fds], [], cpu / max(sum(done.values()), 1))
 
 
+class _AtOnce(SerialLink):
+    """A link that keeps each request written (``sent``) and never has bytes of its
+    own: the benchmark hands the answers over itself."""
+
+    def __init__(self) -> None:
+        super().__init__("(warm)", BAUD)
+        self.sent: bytes | None = None
+
+    @property
+    def watched(self) -> bool:
+        return True
+
+    def write(self, data: bytes, expect: int = 0, look_after: float = 0.0,
+              latest: float = math.inf) -> bool:
+        self.sent = data
+        return True
+
+    def pending(self) -> int:
+        return 0
+
+    def set_baudrate(self, baudrate: int) -> None:
+        self.baudrate = baudrate
+
+
+class _Counted:
+    """The cache side of a bus master, counting the readings (``BusToCache``)."""
+
+    readings = 0
+
+    def publish(self, name: str, reading: Reading, at: float | None = None) -> object:
+        self.readings += 1
+        return None
+
+    def set_state(self, name: str, *, online: bool | None = None, busy: bool | None = None,
+                  streaming: bool | None = None) -> None:
+        pass
+
+    def count_error(self, name: str) -> None:
+        pass
+
+    def learn(self, name: str, shown: KnownSettings) -> None:
+        pass
+
+    def note_stats(self, bus: BusStats, sensors: Mapping[str, SensorStats]) -> None:
+        pass
+
+
+def warm(protocol: str, exchanges: int = 20000) -> float:
+    """``--warm``: process time per exchange (s) of the bus path alone."""
+    clock = [1000.0]
+    bus_master.BusMaster.now = staticmethod(lambda: clock[0])  # type: ignore[method-assign]
+    address = first_address(protocol)
+    sensor = make_sensor(WireProtocol[protocol.upper()], Series.AH, address, baud=BAUD)
+    config = config_from_dict({"buses": [{
+        "name": "warm", "port": "(warm)", "baudrate": BAUD, "protocol": protocol,
+        "sensors": [{"name": "s0", "series": "AH", "address": address, "poll_hz": 0}]}]},
+        env={})
+    link, counted = _AtOnce(), _Counted()
+    master = bus_master.BusMaster(config.buses[0], counted, link)
+    master.schedule.start(clock[0])
+    master.port._opened(None)  # (the port "opened": the first turn)
+    answers: dict[bytes, bytes] = {}
+
+    def exchange() -> None:
+        while link.sent is None:  # (the RTU gap, or the quiet after the open)
+            clock[0] = max(clock[0], master.next_at())
+            master.on_timer(clock[0])
+        request, link.sent = link.sent, None
+        if request not in answers:
+            answers[request] = b"".join(o.frame for o in sensor.hear(
+                request, clock[0], after_silence=True) if o.solicited)
+        clock[0] += 0.004
+        master.on_bytes(answers[request], clock[0])
+
+    for _ in range(1000):
+        exchange()
+    done, c0 = master.stats.transactions, time.process_time()
+    for _ in range(exchanges):
+        exchange()
+    assert counted.readings > exchanges
+    return (time.process_time() - c0) / (master.stats.transactions - done)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=5.0)
@@ -165,7 +261,13 @@ def main() -> None:
     parser.add_argument("--capture", action="store_true",
                         help="with event capture on (capture: with its defaults): the "
                         "cost of its rings")
+    parser.add_argument("--warm", action="store_true",
+                        help="the bus path alone, warm, in one thread: µs per exchange")
     args = parser.parse_args()
+    if args.warm:
+        for protocol in args.protocol or ("native", "modbus"):
+            print(f"{protocol}: the bus path warm, {warm(protocol) * 1e6:.1f} µs per exchange")
+        return
     sys.setswitchinterval(GIL_SWITCH_INTERVAL)  # as `imu-gateway run` does
     counts = sorted(set(args.lines or (1, 2, 4, 8)) | {1})  # 1: the reference
     print(f"lines at {BAUD} baud, one AH each, poll_hz 0, answer delay "
