@@ -27,7 +27,8 @@ run, collisions and overlaps on the lines, streams invented, live sensors report
 offline.  Exit 1 when a goal is missed or a rule broken, 2 when the cgroup cannot be
 made (not root, no cpu controller): the message says why.
 
-Run: ``.venv/bin/python bench/edge.py [--seconds 20] [--rounds 2]``.
+Run: ``.venv/bin/python bench/edge.py [--seconds 20] [--rounds 2] [--hand-over-ms 20]``
+(``--hand-over-ms``: the gateway's ``hand_over_ms``, docs/deployment.md).
 """
 
 from __future__ import annotations
@@ -172,8 +173,8 @@ class Health:
 
 
 def config_yaml(ports: dict[str, str], modbus: int, http: int, mqtt: int, opcua: int,
-                pki: Path) -> str:
-    return ("gateway_id: edge\n" + buses_yaml(LINES, ports)
+                pki: Path, hand_over_ms: int = 0) -> str:
+    return (f"gateway_id: edge\nhand_over_ms: {hand_over_ms}\n" + buses_yaml(LINES, ports)
             + f"modbus: {{listen: '127.0.0.1:{modbus}'}}\n"
             f"mqtt: {{url: 'mqtt://127.0.0.1:{mqtt}', homeassistant_discovery: true}}\n"
             f"http: {{listen: '127.0.0.1:{http}'}}\n"
@@ -245,7 +246,8 @@ async def run(args: argparse.Namespace, group: QuarterCore) -> int:
         modbus, http, opcua = free_port(), free_port(), free_port()
         config = folder / "edge.yaml"
         config.write_text(config_yaml({n: port for n, (port, _) in sims.items()}, modbus,
-                                      http, broker.port, opcua, folder / "pki"))
+                                      http, broker.port, opcua, folder / "pki",
+                                      args.hand_over_ms))
         gateway = GatewayProcess(config, folder / "gateway.log", realtime=False)
         stack.callback(gateway.stop)
         favour()  # the clients stand for other machines: the load is the gateway's
@@ -357,6 +359,8 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--log", help="keep the gateway's log in this file")
+    parser.add_argument("--hand-over-ms", type=int, default=0,
+                        help="the gateway's hand_over_ms (docs/deployment.md)")
     parser.add_argument("-v", "--verbose", action="store_true",
                         help="print the first overlaps and collisions with what led to them")
     args = parser.parse_args()

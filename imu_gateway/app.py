@@ -137,6 +137,7 @@ class Gateway(_GatewayAlarms):
         self.config = config
         self.cache = Cache([(s.name, s.stale_after_ms) for _, s in config.iter_sensors()])
         self.buses = BusThread(list(config.buses), self.cache)
+        self.hand_over_within(config.hand_over_ms)
         self.runners = self.buses.runners
         self.masters = {name: runner.master for name, runner in self.runners.items()}
         self._runner_of = {s.name: self.runners[b.name] for b, s in config.iter_sensors()}
@@ -193,6 +194,10 @@ class Gateway(_GatewayAlarms):
         frames = ring_size(capture.pre_s + capture.post_s, config.baudrate) \
             if capture is not None else None
         self.buses.start_one(config, frames)
+
+    def hand_over_within(self, ms: int) -> None:
+        """``hand_over_ms``: the buses' turns reach pushing front ends within ``ms``."""
+        self.buses.writer.window = ms / 1000
 
     def index_buses(self) -> None:
         """The maps of buses and sensors, after buses were stopped and started."""

@@ -68,6 +68,8 @@ class Gateway(Protocol):
 
     def alarm_journal(self, since: float | None = None) -> list[Transition]: ...
 
+    def hand_over_within(self, ms: int) -> None: ...
+
 log = logging.getLogger("imu_gateway")
 
 SHUTDOWN_GRACE = 10.0  # seconds a bus stopped by a reload gets for its exchange in flight
@@ -78,7 +80,7 @@ NOT_THE_BUS = frozenset({"unit_id", "raw_unit_id", "alarms", "stale_after_ms"})
 #: The front ends a reload can restart, in the order they are started.
 LIVE_FRONTENDS = ("modbus", "opcua", "mqtt")
 #: Sections the reloader applies itself (``sections.py``).
-LIVE_SECTIONS = ("http", "alarm_journal", "capture")
+LIVE_SECTIONS = ("http", "alarm_journal", "capture", "hand_over_ms")
 #: Of these, those that only a restart turns on or off: the REST server answering the
 #: request; the lines' frame rings, sized when their ports open.
 ON_OFF_RESTART = ("http", "capture")

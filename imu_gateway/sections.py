@@ -9,7 +9,8 @@ reload (docs/configuration.md, "Changing the config while running"):
 - ``alarm_journal``: the old file closed once what is queued for it is written, the
   new one written from the moment of the switch (nothing falls in between: both
   happen in one turn of the loop);
-- ``capture``: the capture's new settings (``Captures.configure``).
+- ``capture``: the capture's new settings (``Captures.configure``);
+- ``hand_over_ms``: from the bus thread's next turn.
 """
 
 from __future__ import annotations
@@ -53,9 +54,12 @@ class Gateway(Protocol):
 
     def alarm_journal(self, since: float | None = None) -> list[Transition]: ...
 
+    def hand_over_within(self, ms: int) -> None: ...
+
 
 class LiveSections:
-    """Applies ``http``, ``alarm_journal`` and ``capture`` (one per reloader)."""
+    """Applies ``http``, ``alarm_journal``, ``capture`` and ``hand_over_ms`` (one per
+    reloader)."""
 
     def __init__(self, gateway: Gateway) -> None:
         self.gateway = gateway
@@ -69,6 +73,10 @@ class LiveSections:
         config = self.gateway.config
         if "alarm_journal" in names:
             await self._journal(config.alarm_journal)
+        if "hand_over_ms" in names:
+            self.gateway.hand_over_within(config.hand_over_ms)
+            log.info("reload: the buses' turns are handed over within %d ms",
+                     config.hand_over_ms)
         captures = self.gateway.captures
         if captures is not None and config.capture is not None \
                 and ("capture" in names or sensors_changed):

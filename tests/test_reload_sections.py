@@ -1,7 +1,7 @@
 """The sections a reload applies itself (docs/configuration.md, "Changing the config
-while running"): ``http``, ``alarm_journal`` and ``capture`` changed through a real
-``PUT /api/v1/config`` on a running gateway, on a simulated line, its config in a real
-file; the effect seen from the side of a client."""
+while running"): ``http``, ``alarm_journal``, ``capture`` and ``hand_over_ms`` changed
+through a real ``PUT /api/v1/config`` on a running gateway, on a simulated line, its
+config in a real file; the effect seen from the side of a client."""
 
 from __future__ import annotations
 
@@ -164,6 +164,28 @@ async def test_a_capture_section_changed_is_applied_live(setup: Path) -> None:
 
             await until(listed)
     assert (folder / f"{capture_id}.zip").exists()
+
+
+@pytest.mark.anyio
+async def test_hand_over_ms_is_applied_live_and_a_live_stream_still_gets_every_sample(
+        setup: Path) -> None:
+    """``hand_over_ms`` set and back to 0 by a PUT: the bus thread's window follows,
+    nothing restarts, and an open live stream gets every sample, in order, in both."""
+    async with running(setup) as gw:
+        body = await put(gw, lambda c: c.update(hand_over_ms=40))
+        assert "hand_over_ms" in [c["name"] for c in body["diff"]["sections"]["changed"]]
+        assert gw.buses.writer.window == 0.04
+        async with at(port_of(gw)) as http, \
+                http.stream("GET", "/api/v1/sensors/boom/stream") as stream:
+            seqs: list[int] = []
+            async for line in stream.aiter_lines():
+                if line.startswith("data: ") and '"seq"' in line:
+                    seqs.append(json.loads(line[6:])["seq"])
+                if len(seqs) >= 30:
+                    break
+        assert seqs == list(range(seqs[0], seqs[0] + 30)), seqs
+        await put(gw, lambda c: c.update(hand_over_ms=0))
+        assert gw.buses.writer.window == 0.0
 
 
 @pytest.mark.anyio

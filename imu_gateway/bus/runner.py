@@ -13,10 +13,13 @@ turn of the bus loop wrote (every line's) and hands it to the loop that owns the
 in one piece, in order, so cache listeners (the front ends) always run there.  How soon
 depends on who listens (``Cache.prompt``):
 
-* a listener that pushes to the outside (MQTT, Sparkplug, an SSE stream), or a turn
-  that answers someone waiting (a command, a fresh read, the traffic monitor): the
-  main loop is woken at most once per turn, and not again while a hand-over it has not
-  run yet is waiting: later turns join that one;
+* a turn that answers someone waiting (a command, a fresh read, the traffic monitor):
+  the main loop is woken at once;
+* a listener that pushes to the outside (MQTT, Sparkplug, an SSE stream): the main
+  loop is woken at most once per turn, or, with ``hand_over_ms`` (``window``), at
+  most once in that time (the turns in between join: a fifth less CPU on a small box,
+  for that much more latency); and not again while a hand-over it has not run yet is
+  waiting: later turns join that one;
 * otherwise (only Modbus TCP, REST and OPC UA, whose clients read, and whose
   subscriptions publish and sample, at their own times): the turns wait, and the main
   loop takes them when something reads the cache (``Cache.catch_up``), or after
@@ -84,6 +87,10 @@ class CacheWriter:
         self._asked = False
         # (the bus thread's own) since when turns have waited lazily, unasked
         self._waiting_since: float | None = None
+        #: (``hand_over_ms``, s) the longest a prompt turn waits: 0, none (set from the
+        #: main loop: a float is read whole)
+        self.window = 0.0
+        self._asked_at = -math.inf  # (the bus thread's own) when it last asked
         cache.add_source(self._drain)
 
     def hand(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
@@ -110,20 +117,28 @@ class CacheWriter:
             urgent, self._urgent = self._urgent, False
         if self._asked or not self._out:  # (a reader may have taken them all)
             self._waiting_since = None
-        elif urgent or self.cache.prompt:
+        elif urgent:
             self._ask()
+        elif self.cache.prompt:
+            now = time.monotonic()
+            if now >= self._asked_at + self.window:
+                self._ask(now)
+            else:  # (within the window: ``next_at`` is its end)
+                self._waiting_since = self._asked_at + self.window - LAZY_HAND_OVER
         elif self._waiting_since is None:
             self._waiting_since = time.monotonic()
         elif time.monotonic() - self._waiting_since >= LAZY_HAND_OVER:
             self._ask()
 
     def next_at(self) -> float:
-        """When the bus loop must turn to hand lazy turns over (``flush``)."""
+        """When the bus loop must turn to hand waiting turns over (``flush``): lazy
+        ones, or prompt ones at the end of the window."""
         since = self._waiting_since
         return math.inf if since is None else since + LAZY_HAND_OVER
 
-    def _ask(self) -> None:
+    def _ask(self, now: float | None = None) -> None:
         self._asked, self._waiting_since = True, None
+        self._asked_at = time.monotonic() if now is None else now
         with contextlib.suppress(RuntimeError):  # the main loop closed: the process ends
             assert self.loop is not None
             self.loop.call_soon_threadsafe(self._run)

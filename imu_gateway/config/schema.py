@@ -707,6 +707,13 @@ class GatewayConfig(_Model):
 
     capture: CaptureConfig | None = Field(default=None, description=(
         "event capture (`capture`); left out: off, and no ring is kept"))
+    hand_over_ms: Annotated[int, Field(ge=0, le=100)] = Field(default=0, description=(
+        "0-100; the longest the buses' readings wait to be handed to the front ends "
+        "that push them (MQTT, Sparkplug B, live streams): 0 hands each turn of the "
+        "lines over at once (the least latency); 20 on a small box takes a fifth off "
+        "the gateway's CPU with every front end on, for up to 20 ms more latency "
+        "([deployment.md](deployment.md#small-boxes)). Nothing is dropped; a command's "
+        "answer and a fresh read never wait"))
 
     @model_validator(mode="before")
     @classmethod

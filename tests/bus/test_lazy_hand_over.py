@@ -179,6 +179,49 @@ async def test_a_prompt_listener_a_claim_or_a_waiter_is_handed_each_turn_at_once
         await asyncio.wait_for(settled, 10)
 
 
+@pytest.mark.anyio
+async def test_with_a_window_prompt_turns_join_until_its_end_but_a_waiter_never_waits(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """``hand_over_ms``: the first turn goes at once; the turns within the window after
+    it wait, the bus loop told to turn at its end (``next_at``), where they go together,
+    in order, none lost; a command's answer within the window goes at once."""
+    clock = [100.0]
+    monkeypatch.setattr(runner, "time", SimpleNamespace(monotonic=lambda: clock[0]))
+    cache = Cache([("s", 1000)])
+    writer = writer_for(cache)
+    writer.window = 0.02
+    seen: list[float] = []
+    cache.subscribe(lambda kind, snap: seen.append(snap.reading.angles.pitch)
+                    if kind is EventKind.READING and snap.reading and snap.reading.angles
+                    else None)
+    with wake_ups(asyncio.get_running_loop()) as asked:
+        turn(writer, "s", 1.0, at=clock[0])
+        assert asked == ["_run"]
+        await asyncio.sleep(0)  # (the hand-over ran)
+        for pitch in (2.0, 3.0):
+            clock[0] += 0.005
+            turn(writer, "s", pitch, at=clock[0])
+        assert asked == ["_run"] and seen == [1.0]
+        assert writer.next_at() == pytest.approx(100.02)
+        settled: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        writer.hand_urgent(settled.set_result, None)  # a command's answer
+        writer.flush()
+        assert asked == ["_run", "_run"]
+        await asyncio.wait_for(settled, 10)
+        assert seen == [1.0, 2.0, 3.0]  # (what waited went with it, first)
+        clock[0] += 0.001
+        turn(writer, "s", 4.0, at=clock[0])  # (a new window from that hand-over)
+        assert asked == ["_run", "_run"]
+        clock[0] = writer.next_at()
+        writer.flush()  # the bus loop's turn at the window's end
+        assert asked == ["_run", "_run", "_run"]
+        await asyncio.sleep(0)
+        assert seen == [1.0, 2.0, 3.0, 4.0]
+        writer.window = 0.0  # (a reload to 0: each turn at once again)
+        turn(writer, "s", 5.0, at=clock[0])
+        assert asked == ["_run"] * 4
+
+
 def test_a_front_end_forgotten_by_a_reload_leaves_no_claim() -> None:
     class FrontEnd:
         def on_event(self, kind: EventKind, snap: Snapshot) -> None:

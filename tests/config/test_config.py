@@ -377,7 +377,7 @@ RULES: list[tuple[str, dict[str, Any], str]] = [
      "poll_hz, stream_hz, stale_after_ms, raw_unit_id, alarms); did you mean poll_hz?"),
     ("unknown top key", base(mqqt={}),
      "mqqt: unknown key (allowed: gateway_id, buses, modbus, mqtt, http, opcua, alarm_journal, "
-     "capture); "
+     "capture, hand_over_ms); "
      "did you mean mqtt?"),
     ("unknown bus key", with_bus(0, baud=9600),
      "buses[0].baud: unknown key (allowed: name, port, baudrate, protocol, timeout_ms, "
