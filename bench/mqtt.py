@@ -17,7 +17,8 @@ The reference in the same run: a bare paho publisher sending the same number of
 messages per second straight to the broker, stamped just before ``publish()``.
 Its latency is what the broker and the subscriber alone cost.
 
-Run: ``.venv/bin/python bench/mqtt.py [--seconds 10] [--rate 500] [--baud 460800]``
+Run: ``.venv/bin/python bench/mqtt.py [--seconds 10] [--rate 500] [--baud 460800]
+[--hand-over-ms 20]``
 """
 
 from __future__ import annotations
@@ -135,9 +136,9 @@ def percentile(values: list[float], p: float) -> float:
 
 
 async def run_gateway(broker: Mosquitto, port: str, baud: int, rate: float,
-                      seconds: float) -> dict[str, Any]:
+                      seconds: float, hand_over_ms: int = 0) -> dict[str, Any]:
     config = config_from_dict({
-        "gateway_id": "bench",
+        "gateway_id": "bench", "hand_over_ms": hand_over_ms,
         "buses": [{"name": "line", "port": port, "baudrate": baud, "protocol": "native",
                    "sensors": [{"name": "boom", "series": "AH", "stream_hz": rate}]}],
         "mqtt": {"url": broker.url, "qos": 0, "retain": False},
@@ -191,6 +192,8 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--rate", type=float, default=500.0, help="the sensor's stream_hz")
     parser.add_argument("--baud", type=int, default=460800)
+    parser.add_argument("--hand-over-ms", type=int, default=0,
+                        help="the gateway's hand_over_ms (docs/deployment.md)")
     args = parser.parse_args()
     sys.setswitchinterval(GIL_SWITCH_INTERVAL)  # as `imu-gateway run` does
 
@@ -203,7 +206,8 @@ def main() -> None:
         port = ours.recv()
 
         sub = subscribe(broker, TOPIC, args.seconds + WARM_UP + 5, folder / "gateway.txt")
-        result = asyncio.run(run_gateway(broker, port, args.baud, args.rate, args.seconds))
+        result = asyncio.run(run_gateway(broker, port, args.baud, args.rate, args.seconds,
+                                         args.hand_over_ms))
         ours.send("stop")
         sent = frame_times(ours.recv())
         sim.join(10)

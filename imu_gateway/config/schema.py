@@ -711,9 +711,9 @@ class GatewayConfig(_Model):
         "0-100; the longest the buses' readings wait to be handed to the front ends "
         "that push them (MQTT, Sparkplug B, live streams): 0 hands each turn of the "
         "lines over at once (the least latency); 20 on a small box takes a fifth off "
-        "the gateway's CPU with every front end on, for up to 20 ms more latency "
-        "([deployment.md](deployment.md#small-boxes)). Nothing is dropped; a command's "
-        "answer and a fresh read never wait"))
+        "the gateway's CPU with every front end on, for about 10 ms more latency at the "
+        "median ([deployment.md](deployment.md#small-boxes)). Nothing is dropped; a "
+        "command's answer and a fresh read never wait"))
 
     @model_validator(mode="before")
     @classmethod
