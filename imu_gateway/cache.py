@@ -386,7 +386,9 @@ class Cache:
         self._notify(EventKind.ALARM, snap)
 
     def check_staleness(self) -> None:
-        self.catch_up()
+        # (every turn handed over, even with a prompt listener: with ``hand_over_ms``
+        # turns wait for the window's end, and a sensor must not look older than it is)
+        self.apply_handed()
         for name in self._entries:
             self._check(name)
 

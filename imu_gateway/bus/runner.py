@@ -18,8 +18,9 @@ depends on who listens (``Cache.prompt``):
 * a listener that pushes to the outside (MQTT, Sparkplug, an SSE stream): the main
   loop is woken at most once per turn, or, with ``hand_over_ms`` (``window``), at
   most once in that time (the turns in between join: a fifth less CPU on a small box,
-  for that much more latency); and not again while a hand-over it has not run yet is
-  waiting: later turns join that one;
+  for that much more latency, readers' included: ``Cache.catch_up`` leaves the turns
+  to the hand-over while a listener is prompt); and not again while a hand-over it
+  has not run yet is waiting: later turns join that one;
 * otherwise (only Modbus TCP, REST and OPC UA, whose clients read, and whose
   subscriptions publish and sample, at their own times): the turns wait, and the main
   loop takes them when something reads the cache (``Cache.catch_up``), or after

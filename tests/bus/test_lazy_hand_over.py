@@ -222,6 +222,32 @@ async def test_with_a_window_prompt_turns_join_until_its_end_but_a_waiter_never_
         assert asked == ["_run"] * 4
 
 
+@pytest.mark.anyio
+async def test_the_staleness_watch_takes_the_turns_a_window_holds(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A turn held by ``hand_over_ms`` is not left to the window's end by the staleness
+    watch: a sensor must not look older than it is (a reader's ``catch_up`` leaves it,
+    as with any prompt listener)."""
+    clock = [100.0]
+    monkeypatch.setattr(runner, "time", SimpleNamespace(monotonic=lambda: clock[0]))
+    cache = Cache([("s", 1000)])
+    writer = writer_for(cache)
+    writer.window = 0.02
+    cache.subscribe(lambda kind, snap: None)  # prompt
+    turn(writer, "s", 1.0, at=clock[0])
+    await asyncio.sleep(0)  # (the hand-over ran)
+    clock[0] += 0.005
+    turn(writer, "s", 2.0, at=clock[0])  # held: within the window
+    def pitch() -> float:
+        snap = cache._snapshot("s")
+        assert snap.reading is not None and snap.reading.angles is not None
+        return snap.reading.angles.pitch
+
+    assert pitch() == 1.0
+    cache.check_staleness()
+    assert pitch() == 2.0
+
+
 def test_a_front_end_forgotten_by_a_reload_leaves_no_claim() -> None:
     class FrontEnd:
         def on_event(self, kind: EventKind, snap: Snapshot) -> None:

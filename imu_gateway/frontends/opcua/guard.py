@@ -105,7 +105,7 @@ class Watch:
     flushes the counts held back), and the cache's ``catch_up``: the bus's turns wait
     for a reader (``Cache.catch_up``), and each request, publish and sampling tick is
     one; it also writes the newest samples into the address space
-    (``writes.Newest``), by the register of the items that take every value
+    (``writes.Samples``), by the register of the items that take every value
     (``every``)."""
 
     catch_up: Callable[[], None]

@@ -87,7 +87,7 @@ def revised_interval(requested: float, publishing: float, most: float) -> float:
 class EveryValue:
     """Which nodes a monitored item takes every value of (sampling interval 0), over
     every subscription of a server: the others' values need only be written when a
-    client looks (``writes.Newest``).  ``version`` changes with any item created,
+    client looks (``writes.Samples``).  ``version`` changes with any item created,
     modified or deleted; ``nodes`` is worked out again then, by whoever asks."""
 
     def __init__(self) -> None:

@@ -278,6 +278,7 @@ class OpcUaServer(Frontend):
         """A sensor's subtree gone: its writes stop at once, its methods and conditions
         are forgotten, its monitored items are told ``BadNodeIdUnknown``."""
         root = self._ids(name)()
+        self._samples.forget(name)
         values = self.values.pop(name, [])
         self.status_nodes.pop(name, None)
         self.shapes.pop(name, None)

@@ -147,12 +147,20 @@ class Samples:
             self._held[snap.name] = snap
 
     def flush(self) -> None:
-        """Write what is held: a client looks."""
+        """Write what is held: a client looks.  A sample that fails is the server's
+        failure (``fail``), not the client's request's nor the publish's: the other
+        sensors' are written all the same."""
         if self._every.version != self._version:
             self._refresh()
         held, self._held = self._held, {}
         for snap in held.values():
-            self._take(snap)
+            self._take_guarded(snap)
+
+    def forget(self, name: str) -> None:
+        """The sensor's nodes are gone (a reload): what was held for them is not
+        written into nodes a later reload may build again."""
+        self._held.pop(name, None)
+        self._version = -1  # (its nodes may come back: worked out again)
 
     def _refresh(self) -> None:
         self._version = self._every.version
@@ -161,8 +169,14 @@ class Samples:
         for name in each - self._each:  # (now every value: the one held goes first)
             snap = self._held.pop(name, None)
             if snap is not None:
-                self._take(snap)
+                self._take_guarded(snap)
         self._each = each
+
+    def _take_guarded(self, snap: Snapshot) -> None:
+        try:
+            self._take(snap)
+        except Exception as exc:
+            self._fail(exc)
 
     def _take(self, snap: Snapshot) -> None:
         """A sample written into its nodes, its monitored items told."""

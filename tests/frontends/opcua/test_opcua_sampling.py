@@ -84,10 +84,10 @@ def _watch(handle: int, node: ua.NodeId, sampling: float,
             DiscardOldest=True))
 
 
-async def _subscribe(client: Client, told: Told,
-                     items: list[ua.MonitoredItemCreateRequest]) -> tuple[Any, list[Any]]:
-    """A subscription of ``PUBLISHING_MS`` with ``items``; the server's results."""
-    subscription = await client.create_subscription(PUBLISHING_MS, told)
+async def _subscribe(client: Client, told: Told, items: list[ua.MonitoredItemCreateRequest],
+                     publishing: float = PUBLISHING_MS) -> tuple[Any, list[Any]]:
+    """A subscription of ``publishing`` ms with ``items``; the server's results."""
+    subscription = await client.create_subscription(publishing, told)
     made: list[Any] = []
     session = subscription.server  # (the session's calls, which the subscription makes)
     create = session.create_monitored_items
@@ -252,9 +252,10 @@ class Writes:
 @pytest.mark.anyio
 async def test_a_sensor_is_written_when_a_client_looks_unless_an_item_takes_every_value(
         tmp_path: Path, line: tuple[str, Faults]) -> None:
-    """With one item sampled every 200 ms, the 50 Hz sensor's samples are written only
-    when a client looks (a publish, a tick, a request: at most one each), far fewer
-    than came, and a Read still gives the newest.  Modified to sampling 0, each sample
+    """With one item sampled every second (publishing every second), the 50 Hz
+    sensor's samples are written only when a client looks (a publish, a tick, a
+    request: at most one each), far fewer than came, and a Read still gives the
+    newest.  Modified to sampling 0, each sample
     is written as it comes, and told in order; deleted, it is back to when a client
     looks."""
     port = free_port()
@@ -266,7 +267,8 @@ async def test_a_sensor_is_written_when_a_client_looks_unless_an_item_takes_ever
         idx = await client.get_namespace_index(NS)
         (sequence,) = _nodes(idx, "Sequence")
         told = Told()
-        subscription, made = await _subscribe(client, told, [_watch(1, sequence, 200.0)])
+        subscription, made = await _subscribe(client, told, [_watch(1, sequence, 1000.0)],
+                                              publishing=1000.0)
         came, written, flushes = await writes.over(gw, 50)
         assert written <= flushes and written < came / 2, (came, written, flushes)
         newest = gw.cache.snapshot("boom").seq
@@ -278,9 +280,12 @@ async def test_a_sensor_is_written_when_a_client_looks_unless_an_item_takes_ever
         seen = len(told.of[1])
         came, written, _ = await writes.over(gw, 50)
         assert written >= came, (came, written)  # (each one; a flush may add one more)
+        await until(lambda: len(told.of[1]) >= seen + 41, 20)  # (published every second)
         every = told.values(1)[seen + 1:]  # (the first may be the one held at the Modify)
         assert len(every) >= 40 and all(b == a + 1 for a, b in pairwise(every)), every
 
         await subscription.delete()
         came, written, flushes = await writes.over(gw, 50)
         assert written <= flushes and written < came, (came, written, flushes)
+        newest = gw.cache.snapshot("boom").seq
+        assert await client.get_node(sequence).read_value() >= newest  # (the Read's look)
