@@ -231,7 +231,8 @@ def differences(old: Any, new: Any, prefix: str = "") -> list[str]:
             else:
                 found += differences(old.get(key), new.get(key), f"{where}.")
         return found
-    return [f"{prefix.rstrip('.')} {_shown(old)}→{_shown(new)}"]
+    where = prefix.rstrip(".")  # (none: a top-level value, named by its Change)
+    return [f"{where} {_shown(old)}→{_shown(new)}" if where else f"{_shown(old)}→{_shown(new)}"]
 
 
 def _shown(value: Any) -> str:

@@ -69,6 +69,16 @@ def test_the_diff_names_each_part_and_its_change() -> None:
         "unchanged: line-c, modbus")
 
 
+def test_a_top_level_value_changed_is_named_once() -> None:
+    """``hand_over_ms`` (a number at the top): applied live, shown ``name (0→20)``."""
+    old = config_from_dict(gateway([bus("a", "/dev/null", [{"name": "s", "series": "AH"}])]))
+    new = config_from_dict({**gateway([bus("a", "/dev/null", [{"name": "s", "series": "AH"}])]),
+                            "hand_over_ms": 20})
+    diff = diff_configs(old, new)
+    assert [c.describe() for c in diff.sections_changed] == ["hand_over_ms (0→20)"]
+    assert not diff.needs_restart and not diff.buses_changed
+
+
 def test_a_kept_sensor_s_bus_setting_changed_restarts_its_bus() -> None:
     """A sensor removed beside a kept one whose rate changed: the bus restarts (the
     summary says so), it is not merely rescheduled."""
