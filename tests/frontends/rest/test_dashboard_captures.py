@@ -71,11 +71,18 @@ def page(driver: Any) -> dict[str, Any] | None:
 
 def page_when(driver: Any, ok: Callable[[dict[str, Any]], bool], what: str,
               timeout: float = 15.0) -> dict[str, Any]:
+    """The page's state once ``ok``; past ``timeout``, the failure shows the last one
+    seen (the button's result says why a capture was not taken)."""
+    last: list[dict[str, Any] | None] = [None]
+
     def check() -> dict[str, Any] | None:
-        p = page(driver)
+        p = last[0] = page(driver)
         return p if p is not None and ok(p) else None
 
-    return wait(check, what, timeout)
+    try:
+        return wait(check, what, timeout)
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}; the page last showed {last[0]}") from None
 
 
 def config(line: str, folder: Path, http: dict[str, Any], **capture: Any) -> dict[str, Any]:
