@@ -231,8 +231,8 @@ def differences(old: Any, new: Any, prefix: str = "") -> list[str]:
             else:
                 found += differences(old.get(key), new.get(key), f"{where}.")
         return found
-    where = prefix.rstrip(".")  # (none: a top-level value, named by its Change)
-    return [f"{where} {_shown(old)}→{_shown(new)}" if where else f"{_shown(old)}→{_shown(new)}"]
+    where, change = prefix.rstrip("."), f"{_shown(old)}→{_shown(new)}"
+    return [f"{where} {change}" if where else change]  # (no where: a top-level value)
 
 
 def _shown(value: Any) -> str:

@@ -131,8 +131,8 @@ class OpcUaServer(Frontend):
         self.conditions = Conditions(gateway, config.allow_commands)
         self.shapes: dict[str, Shape] = {}  # sensor -> what its subtree was built from
         self._history: GatewayHistory | None = None
-        self._writer: DirectWriter  # (with the server, and the next, at start)
-        self._samples: Samples
+        self._writer: DirectWriter  # (with the server, at start)
+        self._samples: Samples  # (likewise)
         self._sensors: Node | None = None  # the Sensors folder
         self._type_id = ua.NodeId()  # ImuSensorType's
         self._changing = asyncio.Lock()  # one reload's changes at a time

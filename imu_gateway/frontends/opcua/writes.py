@@ -106,7 +106,6 @@ async def tell(due: list[Due], after: asyncio.Task[None] | None = None) -> None:
             log.exception("opcua: a monitored item's data change (handle %s)", handle)
 
 
-
 class Samples:
     """The gateway's samples into the address space, each sensor's newest written when
     a client looks: before each request, publish and sampling tick (``flush``, which
@@ -122,7 +121,8 @@ class Samples:
 
     ``write(snap)`` writes a sample into its nodes and returns its monitored items'
     callbacks; ``nodes()`` gives each sensor's nodes, (sensor, node) pairs (a reload
-    changes them); ``fail`` is told of a callback's task that failed."""
+    changes them); ``fail`` is told of a sample a look could not write, and of a
+    callback's task that failed."""
 
     def __init__(self, write: Callable[[Snapshot], list[Due]], every: EveryValue,
                  nodes: Callable[[], Iterable[tuple[str, ua.NodeId]]],
