@@ -209,18 +209,13 @@ class Cache:
         self._sources.append(drain)
 
     def catch_up(self) -> None:
-        """Apply the writes handed over and waiting for a reader (``add_source``): on
-        every read, and by whoever answers from state kept outside the cache (the
-        Modbus TCP register images).  With a prompt listener there are none to wait
-        for: the hand-over is on its way to the loop (``apply_handed``), and the
-        listeners never run inside a reader's call (a stream's first events would
-        show a reading its queue then gets again)."""
-        if not self.prompt:
-            self.apply_handed()
-
-    def apply_handed(self) -> None:
-        """Apply every write handed over and not applied yet, in order (the hand-over
-        itself, on the loop)."""
+        """Apply every write handed over and not applied yet, in order: on every read
+        (a reader never sees older than the buses handed over, whatever the
+        hand-over's window), by whoever answers from state kept outside the cache (the
+        Modbus TCP register images), and by the hand-over itself, on the loop.  The
+        listeners hear those writes inside the reader's call: a reader that also
+        listens takes its snapshots before it listens (``snapshots``, the SSE
+        stream's first events)."""
         if self._catching_up:  # (a write's listener reading: the rest come next)
             return
         self._catching_up = True
@@ -242,8 +237,11 @@ class Cache:
         return Snapshot(name, e.reading, e.seq, e.timestamp, age, _status(e, now), e.online,
                         e.busy, e.streaming, e.errors)
 
-    def snapshots(self) -> list[Snapshot]:
-        return [self.snapshot(name) for name in self._entries]
+    def snapshots(self, names: Iterable[str] | None = None) -> list[Snapshot]:
+        """Every sensor (or ``names``) at one moment: caught up once, then no write
+        applied between two of them."""
+        self.catch_up()
+        return [self._snapshot(name) for name in (self._entries if names is None else names)]
 
     def subscribe(self, listener: Listener, on_error: ErrorHook | None = None,
                   kinds: Collection[EventKind] = SENSOR_EVENTS,
@@ -386,9 +384,7 @@ class Cache:
         self._notify(EventKind.ALARM, snap)
 
     def check_staleness(self) -> None:
-        # (every turn handed over, even with a prompt listener: with ``hand_over_ms``
-        # turns wait for the window's end, and a sensor must not look older than it is)
-        self.apply_handed()
+        self.catch_up()
         for name in self._entries:
             self._check(name)
 

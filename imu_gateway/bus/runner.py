@@ -18,9 +18,9 @@ depends on who listens (``Cache.prompt``):
 * a listener that pushes to the outside (MQTT, Sparkplug, an SSE stream): the main
   loop is woken at most once per turn, or, with ``hand_over_ms`` (``window``), at
   most once in that time (the turns in between join: a fifth less CPU on a small box,
-  for that much more latency, readers' included: ``Cache.catch_up`` leaves the turns
-  to the hand-over while a listener is prompt); and not again while a hand-over it
-  has not run yet is waiting: later turns join that one;
+  for that much more latency to those listeners; a reader takes them at once,
+  ``Cache.catch_up``); and not again while a hand-over it has not run yet is waiting:
+  later turns join that one;
 * otherwise (only Modbus TCP, REST and OPC UA, whose clients read, and whose
   subscriptions publish and sample, at their own times): the turns wait, and the main
   loop takes them when something reads the cache (``Cache.catch_up``), or after
@@ -148,10 +148,10 @@ class CacheWriter:
         """On the cache's loop: the turns handed over by now, in order.  (The flag is
         cleared first: a turn handed over from now on asks again, so none waits.)"""
         self._asked = False
-        self.cache.apply_handed()
+        self.cache.catch_up()
 
     def _drain(self) -> None:
-        """(``Cache.apply_handed``'s source) Only the turns here now: those handed over
+        """(``Cache.catch_up``'s source) Only the turns here now: those handed over
         meanwhile have asked again, and the loop's other work (sockets, timers) goes
         first, however busy the lines."""
         for _ in range(len(self._out)):
@@ -343,7 +343,7 @@ class BusThread:
         self.reactor.close()
         # The masters' last counters and states: nobody may read the cache again to
         # take them, and a lazy hand-over's timer would not run before the loop ends.
-        self.writer.cache.apply_handed()
+        self.writer.cache.catch_up()
 
     # ------------------------------------------------------------ a reload
 

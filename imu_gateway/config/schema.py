@@ -712,9 +712,9 @@ class GatewayConfig(_Model):
         "that push them (MQTT, Sparkplug B, live streams): 0 hands each turn of the "
         "lines over at once (the least latency); 20 on a small box takes a fifth off "
         "the gateway's CPU with every front end on, for about 10 ms more latency at the "
-        "median ([deployment.md](deployment.md#small-boxes)); while one of those is on, "
-        "REST, Modbus TCP and OPC UA read the lines up to that much late too. Nothing "
-        "is dropped; a command's answer and a fresh read never wait"))
+        "median ([deployment.md](deployment.md#small-boxes)). Nothing is dropped, and "
+        "nothing else waits: REST, Modbus TCP and OPC UA reads, a command's answer and a "
+        "fresh read see each reading at once"))
 
     @model_validator(mode="before")
     @classmethod

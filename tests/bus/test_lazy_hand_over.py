@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import csv
 import io
+import json
 import math
 import time
 import zipfile
@@ -414,19 +415,50 @@ async def test_a_capture_row_keeps_the_wire_time_and_when_the_cache_had_it() -> 
 
 
 @pytest.mark.anyio
-async def test_with_a_prompt_listener_a_read_runs_no_listener() -> None:
-    """The hand-over is on its way to the loop: a reader's call does not run the
-    listeners inside it (a stream's first events, made from snapshots, would show a
-    reading its queue then got again)."""
+async def test_with_a_prompt_listener_a_read_takes_the_turn_and_it_is_heard_once() -> None:
+    """The hand-over is on its way to the loop, but a read does not wait for it: it
+    applies the turn (the listener hears it inside the read), and the hand-over then
+    finds nothing left to tell again."""
     cache = Cache([("s", 1000)])
     heard: list[int] = []
     cache.subscribe(lambda kind, snap: heard.append(snap.seq)
                     if kind is EventKind.READING else None)
     writer = writer_for(cache)
     turn(writer, "s", 1.0)
-    assert cache.snapshot("s").seq == 0 and heard == []
+    assert cache.snapshot("s").seq == 1 and heard == [1]
     await asyncio.sleep(0)  # the loop runs the hand-over
     assert heard == [1] and cache.snapshot("s").seq == 1
+
+
+@pytest.mark.anyio
+async def test_a_window_holds_the_listeners_turns_but_no_readers(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """With ``hand_over_ms``, a turn within the window waits for its end to be pushed,
+    but a reader (a PLC's request, a REST read) sees it at once; the window's end then
+    wakes the loop for nothing, and the listener heard each turn once, in order."""
+    clock = [100.0]
+    monkeypatch.setattr(runner, "time", SimpleNamespace(monotonic=lambda: clock[0]))
+    cache = Cache([("s", 1000)])
+    heard: list[int] = []
+    cache.subscribe(lambda kind, snap: heard.append(snap.seq)
+                    if kind is EventKind.READING else None)
+    writer = writer_for(cache)
+    writer.window = 0.02
+    with wake_ups(asyncio.get_running_loop()) as asked:
+        turn(writer, "s", 1.0)
+        await asyncio.sleep(0)
+        assert asked == ["_run"] and heard == [1]
+        clock[0] += 0.005
+        turn(writer, "s", 2.0)  # held: within the window
+        assert asked == ["_run"] and heard == [1]
+        assert cache.snapshot("s").seq == 2 and heard == [1, 2]
+        clock[0] = writer.next_at()
+        writer.flush()  # the bus loop's turn at the window's end: nothing waits now
+        assert asked == ["_run"] and writer.next_at() == math.inf
+        clock[0] += 0.005
+        turn(writer, "s", 3.0)  # (the window that began at 100.0 is over)
+        await asyncio.sleep(0)
+        assert asked == ["_run", "_run"] and heard == [1, 2, 3]
 
 
 def test_a_write_on_the_main_loop_applies_no_turn_in_its_middle() -> None:
@@ -449,11 +481,20 @@ def test_a_write_on_the_main_loop_applies_no_turn_in_its_middle() -> None:
     assert heard[1:] == [EventKind.READING, EventKind.STATUS]
 
 
+def first_events(chunk: bytes) -> list[tuple[str, int]]:
+    """(event, seq) of each event in a stream's chunk."""
+    out = []
+    for event in chunk.decode().strip().split("\n\n"):
+        kind, data = event.split("\n", 1)
+        out.append((kind.removeprefix("event: "), json.loads(data.removeprefix("data: "))["seq"]))
+    return out
+
+
 @pytest.mark.anyio
 async def test_becoming_prompt_applies_what_waits_first() -> None:
     """An SSE stream opens while turns wait for the lazy timer: they are applied
-    before the claim, so readers are not behind after it, and the new stream's queue
-    does not get them again after its first events (which show them)."""
+    before the claim, so readers are not behind after it, and the new stream's first
+    events show them; its queue does not get them again."""
     gw = gateway(http={"listen": "127.0.0.1:0"})
     hub = StreamHub(gw)
     writer = writer_for(gw.cache)
@@ -461,7 +502,41 @@ async def test_becoming_prompt_applies_what_waits_first() -> None:
     sub = hub.subscribe(None)
     assert gw.cache.prompt
     assert gw.cache._entries["boom"].seq == 1  # (applied: no read was needed)
-    assert not sub.events  # the stream's first events are its current() snapshot
+    assert [first_events(chunk) for chunk in sub.events] == [[("reading", 1)]]
+
+
+@pytest.mark.anyio
+async def test_a_stream_opened_within_a_window_gets_each_reading_once(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A stream is open and the window holds a turn; a second stream opens (its first
+    events are taken after the held turn is applied), then a reader takes the next
+    held turn: each stream gets each reading once, in order, and the window's end adds
+    nothing."""
+    clock = [100.0]
+    monkeypatch.setattr(runner, "time", SimpleNamespace(monotonic=lambda: clock[0]))
+    gw = gateway(http={"listen": "127.0.0.1:0"})
+    hub = StreamHub(gw)
+    writer = writer_for(gw.cache)
+    writer.window = 0.02
+    one = hub.subscribe(None)
+    turn(writer, "boom", 1.0)
+    await asyncio.sleep(0)  # (the first turn's hand-over)
+    clock[0] += 0.005
+    turn(writer, "boom", 2.0)  # held
+    two = hub.subscribe(None)
+    clock[0] += 0.005
+    turn(writer, "boom", 3.0)  # held
+    assert gw.cache.snapshot("boom").seq == 3  # a reader takes it
+    clock[0] = writer.next_at()
+    writer.flush()
+    await asyncio.sleep(0)
+
+    def readings(sub: Any) -> list[int]:
+        return [seq for chunk in sub.events for kind, seq in first_events(chunk)
+                if kind == "reading"]
+
+    assert readings(one) == [1, 2, 3]
+    assert readings(two) == [2, 3]
 
 
 @pytest.mark.anyio

@@ -10,10 +10,10 @@ from imu_gateway.frontends.rest.streams import StreamHub, StreamPeer
 async def hub_stream(hub: StreamHub, sensor: str | None,
                      peer: StreamPeer | None = None) -> AsyncGenerator[bytes, None]:
     """A live stream of ``hub`` as an iterator of chunks, without the HTTP server: what
-    the server's ``EventStream`` sends (its first chunk, then each one ``next`` gives)."""
+    the server's ``EventStream`` sends (each chunk ``next`` gives, the first events
+    queued by the subscription first)."""
     sub = hub.subscribe(sensor, peer)
     try:
-        yield hub.current(sensor)
         while (chunk := await sub.next()) is not None:
             yield chunk
     finally:

@@ -165,15 +165,20 @@ class StreamHub:
         sub.end()
 
     def subscribe(self, sensor: str | None, peer: StreamPeer | None = None) -> Subscription:
-        """A new stream's subscription (``unsubscribe`` it when the stream ends)."""
+        """A new stream's subscription (``unsubscribe`` it when the stream ends), its
+        first events queued: where each sensor (or ``sensor``) stands now.  They are
+        taken before it listens, so a write they show is not queued again after them,
+        and none comes between the two."""
         sub = Subscription(sensor, peer)
         self.open += 1
         if self.closed:
             sub.end()
         else:
-            # prompt first: the turns the claim applies are not this stream's (its
-            # first events show where each sensor stands after them)
-            self._claim()
+            self._claim()  # (prompt first: what the claim applies, the snapshots show)
+            names = [sensor] if sensor is not None else self.gateway.cache.names
+            sub.events.append(b"".join(
+                _event("reading" if snap.has_reading else "status", snap)
+                for snap in self.gateway.cache.snapshots(names)))
             self.subscribers.add(sub)
         return sub
 
@@ -182,13 +187,6 @@ class StreamHub:
         self.subscribers.discard(sub)
         self._release_if_idle()
         self.open -= 1
-
-    def current(self, sensor: str | None) -> bytes:
-        """Where each sensor (or ``sensor``) stands now: a stream's first events."""
-        names = [sensor] if sensor is not None else self.gateway.cache.names
-        snaps = [self.gateway.cache.snapshot(name) for name in names]
-        return b"".join(_event("reading" if snap.has_reading else "status", snap)
-                        for snap in snaps)
 
     def close(self) -> None:
         self.closed = True
@@ -229,7 +227,7 @@ class EventStream(Response):
         try:
             await send({"type": "http.response.start", "status": self.status_code,
                         "headers": self.raw_headers})
-            chunk: bytes | None = self.hub.current(self.sensor)
+            chunk = await sub.next()  # (the first: ``StreamHub.subscribe``)
             while chunk is not None:
                 await send({"type": "http.response.body", "body": chunk, "more_body": True})
                 chunk = await sub.next()
