@@ -207,6 +207,10 @@ class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is u
         if handle in self._interval:
             self._held[handle] = value
             return True
+        return self._queue_now(handle, value)
+
+    def _queue_now(self, handle: int, value: Any) -> bool:
+        """(``datachange_now``) A value of an item that takes every value, queued."""
         isub = self.isub
         if isub._task is None:
             return False
@@ -267,8 +271,11 @@ class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is u
                 self._tickers[interval] = (handles, asyncio.create_task(
                     self._tick(interval, handles), name=f"opcua sampling {interval:g} ms"))
             self._tickers[interval][0].add(handle)
-        elif (held := self._held.pop(handle, None)) is not None:
-            # now every value: the one held is not lost (a Modify cannot wait for it)
+        elif (held := self._held.pop(handle, None)) is not None and \
+                not self._queue_now(handle, held):
+            # Now every value: the one held is not lost.  It was queued above, before
+            # any newer one could be (a Modify cannot await asyncua's path); in a task
+            # only for a subscription with no publishing loop yet.
             task = asyncio.create_task(self._hand_on(handle, held))
             self._handing.add(task)
             task.add_done_callback(self._handing.discard)

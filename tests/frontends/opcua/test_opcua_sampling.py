@@ -180,7 +180,11 @@ async def test_a_modify_changes_the_interval(tmp_path: Path, line: tuple[str, Fa
         assert [c.RevisedSamplingInterval for c in changed] == [0.0]
         seen = len(told.of[1])
         await until(lambda: len(told.of[1]) >= seen + 20, 20)
-        every = told.values(1)[seen + 1:]  # (the first may be the one held at the Modify)
+        # the first is the one held at the Modify (older by any number), never after a
+        # newer one; then each one
+        every = told.values(1)[seen:]
+        assert every[0] < every[1], every[:2]
+        every = every[1:]
         assert all(b == a + 1 for a, b in pairwise(every)), every
         wrong = await subscription.server.modify_monitored_items(
             _modify(subscription, 4242, 50))
@@ -281,7 +285,11 @@ async def test_a_sensor_is_written_when_a_client_looks_unless_an_item_takes_ever
         came, written, _ = await writes.over(gw, 50)
         assert written >= came, (came, written)  # (each one; a flush may add one more)
         await until(lambda: len(told.of[1]) >= seen + 41, 20)  # (published every second)
-        every = told.values(1)[seen + 1:]  # (the first may be the one held at the Modify)
+        # the first is the one held at the Modify (older by any number), never after a
+        # newer one; then each one
+        every = told.values(1)[seen:]
+        assert every[0] < every[1], every[:2]
+        every = every[1:]
         assert len(every) >= 40 and all(b == a + 1 for a, b in pairwise(every)), every
 
         await subscription.delete()
@@ -289,3 +297,35 @@ async def test_a_sensor_is_written_when_a_client_looks_unless_an_item_takes_ever
         assert written <= flushes and written < came, (came, written, flushes)
         newest = gw.cache.snapshot("boom").seq
         assert await client.get_node(sequence).read_value() >= newest  # (the Read's look)
+
+
+@pytest.mark.anyio
+async def test_a_value_held_at_a_modify_to_zero_is_queued_before_any_newer(
+        tmp_path: Path, line: tuple[str, Faults]) -> None:
+    """An item sampled every second holds a value; a Modify to 0 and a newer value
+    written in the same turn of the loop (nothing awaited between): the held one is
+    queued first, and both are told in that order."""
+    port = free_port()
+    async with running(_config(port, tmp_path / "pki", line[0])) as gw, \
+            Client(f"opc.tcp://127.0.0.1:{port}/") as client:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 2)
+        idx = await client.get_namespace_index(NS)
+        (sequence,) = _nodes(idx, "Sequence")
+        told = Told()
+        subscription, made = await _subscribe(client, told, [_watch(1, sequence, 1000.0)])
+        assert gw.opcua is not None
+        [isub] = gw.opcua.server.iserver.subscription_service.subscriptions.values()
+        items = isub.monitored_item_srv
+        mid = made[0].MonitoredItemId
+        handle = items._monitored_items[mid].callback_handle
+        held, newer = (ua.DataValue(ua.Variant(n, ua.VariantType.UInt32))
+                       for n in (4_000_000, 4_000_001))
+        items._held[handle] = held
+        items._modify(_modify(subscription, mid, 0.0, queue=100))
+        assert items.datachange_now(handle, newer)
+        queued = [n.Value.Value.Value for n in isub._triggered_datachanges[mid]]
+        assert queued[-2:] == [4_000_000, 4_000_001], queued
+        await until(lambda: 4_000_001 in told.values(1), 10)
+        values = told.values(1)
+        assert values.index(4_000_000) == values.index(4_000_001) - 1, values
+        await subscription.delete()
