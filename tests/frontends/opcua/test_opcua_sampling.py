@@ -313,7 +313,7 @@ async def test_a_value_held_at_a_modify_to_zero_is_queued_before_any_newer(
         (sequence,) = _nodes(idx, "Sequence")
         told = Told()
         subscription, made = await _subscribe(client, told, [_watch(1, sequence, 1000.0)])
-        assert gw.opcua is not None
+        assert gw.opcua is not None and gw.opcua.server is not None
         [isub] = gw.opcua.server.iserver.subscription_service.subscriptions.values()
         items = isub.monitored_item_srv
         mid = made[0].MonitoredItemId
