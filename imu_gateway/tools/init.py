@@ -105,6 +105,11 @@ def _text(starter: Starter, poll_hz: float) -> str:
 # Every key: docs/config-reference.md; the file explained: docs/configuration.md.
 {notes}
 {gateway}
+# On a small box (a Pi, one slow core shared with other work): hand the readings to
+# MQTT and live streams at most every 20 ms, a fifth less CPU for ~10 ms more latency
+# (docs/deployment.md, "Small boxes"). Reads never wait.
+# hand_over_ms: 20
+
 buses:
   - name: line-a
 {port}\

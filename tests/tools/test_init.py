@@ -59,6 +59,11 @@ def test_init_from_questions_on_a_piped_stdin(tmp_path: Path) -> None:
         "sensor motion (IMU) on line-a: modbus address 7, Modbus TCP unit 2"]
     bus = yaml.safe_load(written)["buses"][0]
     assert (bus["port"], bus["baudrate"]) == ("/dev/imu-line-b", 19200)
+    # the small box's setting, commented out, is one to take as it is
+    small = tmp_path / "small.yaml"
+    small.write_text(written.replace("# hand_over_ms: 20", "hand_over_ms: 20"))
+    assert yaml.safe_load(small.read_text())["hand_over_ms"] == 20
+    checked(small)
 
 
 def test_init_yes_takes_the_defaults_and_never_overwrites_without_force(
