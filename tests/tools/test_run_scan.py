@@ -60,7 +60,8 @@ buses:
                 watchdog.cancel()
             err = "".join(lines) + rest
         assert proc.returncode == 0, err
-        assert sim.bus.stats.masters_overlaps == 0, sim.bus.stats.incidents
+        assert sim.bus.stats.masters_overlaps == 0, "\n\n".join(  # (each whole, timed)
+            "\n".join(incident) for incident in sim.bus.stats.incidents)
     assert err.count("sensor boom: online") == 1
     assert err.count("sensor cab: offline") == 1
     assert "Traceback" not in err

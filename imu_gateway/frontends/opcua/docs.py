@@ -133,6 +133,14 @@ SECURITY = """
   session services; a connection holds one (a second CreateSession closes the first),
   and a connection with none activated after 10 s is closed.
 - **RegisterServer** is `BadServiceUnsupported`: the gateway is no discovery server.
+- **A subscription is its session's** (Part 4 5.13): another session, anonymous or
+  not, gets `BadSubscriptionIdInvalid` for it in DeleteSubscriptions,
+  ModifySubscription, SetPublishingMode, Republish, the monitored-item services and a
+  Publish's acknowledgements, as if it did not exist (asyncua found a subscription by
+  its id alone, and ids count 1, 2, 3: any session could delete or silence a SCADA
+  client's subscription). TransferSubscriptions takes another session's subscription
+  only for the same user (the same user name; both anonymous: the same client
+  certificate), else `BadUserAccessDenied` for that id.
 - **Limits:** {clients} clients at once; {subs} subscriptions a session, a publishing
   interval of at most {interval:g} s (a longer one is revised down) and a lifetime of
   at most {lifetime:g} s; a closed session's subscriptions are deleted, whatever the

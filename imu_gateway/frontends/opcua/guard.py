@@ -32,6 +32,8 @@ authentication token.  So here:
   publishing interval of at most ``MAX_PUBLISHING_INTERVAL_MS`` and a lifetime of at
   most ``MAX_SUBSCRIPTION_LIFETIME_S``; a closed session's subscriptions go with it
   (a client cannot leave them behind to hold the server's).
+* **A subscription is its session's**: no other session may touch it or its items,
+  nor take it over unless it acts for the same user (``ownership.py``).
 * **Monitored items**: a new subscription's items get their queues as Part 4 has
   them and are sampled at their revised sampling intervals (``sampling.py``).
 * **A message chunk** larger than the receive buffer is refused from its header, before
@@ -62,6 +64,7 @@ from asyncua.ua.ua_binary import struct_from_binary, struct_to_binary, uatcp_to_
 from cryptography import x509
 
 from ...supervise import PeerLog
+from . import ownership
 from .conditions import CALLER, Caller
 from .sampling import EveryValue, sample_items
 
@@ -191,6 +194,7 @@ class GuardedProcessor(UaProcessor):
                 CALLER.reset(caller)
         if typeid == _CREATE and self.session is not None:
             self._watch.origins[self.session] = channel.peer_certificate
+            ownership.guard(self.session, self._watch.origins)
         elif typeid == _SUBSCRIBE and self.session is not None:
             sample_items(self.iserver.subscription_service, self.session.session_id,
                          MAX_PUBLISHING_INTERVAL_MS, self._watch.catch_up, self._watch.every)

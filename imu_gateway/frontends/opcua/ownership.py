@@ -1,0 +1,176 @@
+"""A subscription is its session's (OPC UA Part 4, 5.13; its items, 5.12).
+
+asyncua 2.1 finds a subscription by its id alone, and hands out ids 1, 2, 3...: any
+activated session, an anonymous one included, could delete a SCADA client's
+subscription, switch its publishing off, add items to it, change or delete its items,
+acknowledge its notifications (so they cannot be asked again) or take it over with
+TransferSubscriptions.  Here each of those services is checked against the session
+that asks, on the session object itself (``guard``), before asyncua's own method:
+
+* an id that is not this session's subscription is ``BadSubscriptionIdInvalid``, as
+  if it did not exist (a service on one subscription fails whole; a service on a list
+  answers that for each such id, and the others are done);
+* **TransferSubscriptions** takes another session's subscription only for the same
+  user (Part 4, 5.13.7): the same user name, or, both anonymous, the same client
+  certificate (a secured channel's).  Else ``BadUserAccessDenied`` for that id.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Awaitable, Callable, Iterable, Mapping
+from typing import Any
+
+from asyncua import ua
+from asyncua.common.utils import ServiceError
+
+INVALID: int = ua.StatusCodes.BadSubscriptionIdInvalid
+DENIED: int = ua.StatusCodes.BadUserAccessDenied
+
+#: the session's methods of the services on subscriptions and their items (asyncua's
+#: ``UaProcessor`` calls these on the session: replacing them on the instance is the
+#: hook)
+_ONE = ("modify_subscription", "republish")
+_ONE_ASYNC = ("create_monitored_items", "modify_monitored_items", "delete_monitored_items",
+              "set_monitoring_mode")
+
+
+def guard(session: Any, origins: Mapping[Any, bytes | None]) -> None:
+    """Check every service on subscriptions of ``session`` (an asyncua
+    ``InternalSession``) for ownership; ``origins``: every session of the server, with
+    the client certificate it was created with."""
+    _Owned(session, origins).install()
+
+
+class _Owned:
+    def __init__(self, session: Any, origins: Mapping[Any, bytes | None]) -> None:
+        self.session = session
+        self.origins = origins
+        self.subscriptions: dict[int, Any] = session.subscription_service.subscriptions
+        self.real: dict[str, Callable[..., Any]] = {}
+
+    def install(self) -> None:
+        for name in (*_ONE, *_ONE_ASYNC, "delete_subscriptions", "set_publishing_mode",
+                     "publish", "transfer_subscriptions"):
+            self.real[name] = getattr(self.session, name)
+        for name in _ONE:
+            setattr(self.session, name, self._one(name))
+        for name in _ONE_ASYNC:
+            setattr(self.session, name, self._one_async(name))
+        self.session.delete_subscriptions = self.delete_subscriptions
+        self.session.set_publishing_mode = self.set_publishing_mode
+        self.session.publish = self.publish
+        self.session.transfer_subscriptions = self.transfer_subscriptions
+
+    def mine(self, sub_id: int) -> bool:
+        sub = self.subscriptions.get(int(sub_id))
+        return sub is not None and sub.session_id == self.session.session_id
+
+    def _check(self, params: Any) -> None:
+        if not self.mine(params.SubscriptionId):
+            raise ServiceError(INVALID)
+
+    def _one(self, name: str) -> Callable[[Any], Any]:
+        def checked(params: Any) -> Any:
+            self._check(params)
+            return self.real[name](params)
+        return checked
+
+    def _one_async(self, name: str) -> Callable[[Any], Awaitable[Any]]:
+        async def checked(params: Any) -> Any:
+            self._check(params)
+            return await self.real[name](params)
+        return checked
+
+    # ------------------------------------------------------------ services on lists
+
+    async def delete_subscriptions(self, ids: list[int]) -> list[ua.StatusCode]:
+        mine = [self.mine(i) for i in ids]
+        done = await self.real["delete_subscriptions"]([i for i, m in zip(ids, mine,
+                                                                          strict=True) if m])
+        return _merged(mine, done, lambda: ua.StatusCode(INVALID))
+
+    async def set_publishing_mode(self, params: ua.SetPublishingModeParameters
+                                  ) -> list[ua.StatusCode]:
+        ids = list(params.SubscriptionIds or ())
+        mine = [self.mine(i) for i in ids]
+        done = await self.real["set_publishing_mode"](ua.SetPublishingModeParameters(
+            PublishingEnabled=params.PublishingEnabled,
+            SubscriptionIds=[i for i, m in zip(ids, mine, strict=True) if m]))
+        return _merged(mine, done, lambda: ua.StatusCode(INVALID))
+
+    def publish(self, acks: Iterable[ua.SubscriptionAcknowledgement] | None = None
+                ) -> tuple[int, list[ua.StatusCode]]:
+        acks = list(acks or ())
+        mine = [self.mine(a.SubscriptionId) for a in acks]
+        subscriptions, done = self.real["publish"](
+            [a for a, m in zip(acks, mine, strict=True) if m])
+        return subscriptions, _merged(mine, done, lambda: ua.StatusCode(INVALID))
+
+    async def transfer_subscriptions(self, params: ua.TransferSubscriptionsParameters,
+                                     callback: Callable[..., Any]) -> list[ua.TransferResult]:
+        ids = list(params.SubscriptionIds or ())
+        refusals = [self._transfer_refusal(i) for i in ids]
+        allowed = [i for i, r in zip(ids, refusals, strict=True) if r is None]
+        moved = await self.real["transfer_subscriptions"](
+            ua.TransferSubscriptionsParameters(SubscriptionIds=allowed,
+                                               SendInitialValues=params.SendInitialValues),
+            callback)
+        for sub_id, result in zip(allowed, moved, strict=True):
+            if result.StatusCode.is_good():
+                self._rebind(self.subscriptions[int(sub_id)], callback)
+        done = iter(moved)
+        return [next(done) if r is None else ua.TransferResult(StatusCode=ua.StatusCode(r))
+                for r in refusals]
+
+    def _rebind(self, sub: Any, callback: Callable[..., Any]) -> None:
+        """asyncua's transfer gives the subscription the new connection's way to send a
+        publish response, not its way to take a publish request: it went on taking the
+        old connection's requests and answering them on the new one (a request id the
+        new client never sent: it closed its connection), or, the old one gone, never
+        published again.  Both are the new connection's now (as asyncua does for a
+        session that moves), and a publish request of another session, queued before
+        the transfer, is not answered by it."""
+        processor = getattr(callback, "__self__", None)
+        if processor is not None:
+            sub.pub_request_callback = processor.get_publish_request
+        if getattr(sub, "owner_checked", False):
+            return
+        publish, origins = sub.publish_results, self.origins
+
+        async def publish_results(requestdata: Any = None) -> bool:
+            if requestdata is not None:
+                token = requestdata.requesthdr.AuthenticationToken
+                if not any(s.session_id == sub.session_id and s.auth_token == token
+                           for s in list(origins)):
+                    return False  # (the old session's request: it stays queued there)
+            return bool(await publish(requestdata))
+
+        sub.publish_results, sub.owner_checked = publish_results, True
+
+    def _transfer_refusal(self, sub_id: int) -> int | None:
+        """Why this session may not take the subscription (None: it may)."""
+        sub = self.subscriptions.get(int(sub_id))
+        if sub is None:
+            return INVALID
+        if sub.session_id == self.session.session_id:
+            return None
+        owner = next((s for s in list(self.origins) if s.session_id == sub.session_id), None)
+        if owner is None or _identity(owner, self.origins) != _identity(self.session,
+                                                                         self.origins):
+            return DENIED
+        return None
+
+
+def _identity(session: Any, origins: Mapping[Any, bytes | None]) -> tuple[str, bytes | str]:
+    """Who a session acts for: its user's name, or, anonymous, its client certificate
+    (a session over a channel without one is nobody anyone else can be)."""
+    name = getattr(session.user, "name", None)
+    if name is not None:
+        return ("user", str(name))
+    return ("anonymous", origins.get(session) or f"no certificate: {id(session)}")
+
+
+def _merged(mine: list[bool], done: Iterable[Any], refused: Callable[[], Any]) -> list[Any]:
+    """The results of the items passed on, in place, among the refused ones'."""
+    results = iter(done)
+    return [next(results) if m else refused() for m in mine]

@@ -1,0 +1,221 @@
+"""A subscription is its session's (OPC UA Part 4, 5.13 and 5.12): another session,
+anonymous or not, cannot delete it, silence it, change it, add items to it or take
+its items away, acknowledge its notifications, or take the subscription itself over,
+unless it acts for the same user.  asyncua 2.1 looks a subscription up by its id
+alone, and its ids are 1, 2, 3...: any session could do all of these to a SCADA
+client's subscription.
+
+Each attempt is made from the side of the one trying, with asyncua's low-level client
+(the services as a client sends them), and the owner's subscription is checked after
+all of them: still there, still publishing, its item still reporting."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import AsyncExitStack
+from itertools import pairwise
+from pathlib import Path
+from typing import Any
+
+import pytest
+from asyncua import Client, ua
+from asyncua.server.uaprocessor import PublishRequestData
+from asyncua.ua.uaerrors import UaStatusCodeError
+from support.harness import free_port, running, until
+from test_opcua_security import (
+    GID,
+    PASSWORD,
+    Mode,
+    Rig,
+    activate,
+    channel,
+    clear_password,
+    create_session,
+    made_rig,
+    namespace,
+)
+
+INVALID = ua.StatusCodes.BadSubscriptionIdInvalid
+
+
+@pytest.fixture
+async def rig(tmp_path: Path) -> AsyncIterator[Rig]:
+    async with made_rig(tmp_path) as r:
+        yield r
+
+
+class Notified:
+    """What a low-level subscription's publishes brought: data changes by client
+    handle."""
+
+    def __init__(self) -> None:
+        self.values: list[Any] = []
+
+    def __call__(self, result: Any) -> None:
+        for data in result.NotificationMessage.NotificationData or ():
+            for item in getattr(data, "MonitoredItems", None) or ():
+                self.values.append(item.Value.Value.Value)
+
+
+async def subscribe(client: Client, told: Notified) -> int:
+    result: ua.CreateSubscriptionResult = await client.uaclient.create_subscription(
+        ua.CreateSubscriptionParameters(
+            RequestedPublishingInterval=100.0, RequestedLifetimeCount=3000,
+            RequestedMaxKeepAliveCount=10, MaxNotificationsPerPublish=0,
+            PublishingEnabled=True, Priority=0), told)
+    return int(result.SubscriptionId)
+
+
+def watch(node: ua.NodeId, handle: int) -> ua.MonitoredItemCreateRequest:
+    return ua.MonitoredItemCreateRequest(
+        ItemToMonitor=ua.ReadValueId(NodeId=node, AttributeId=ua.AttributeIds.Value),
+        MonitoringMode=ua.MonitoringMode.Reporting,
+        RequestedParameters=ua.MonitoringParameters(
+            ClientHandle=handle, SamplingInterval=0.0, QueueSize=10, DiscardOldest=True))
+
+
+async def add_items(client: Client, sub: int, node: ua.NodeId) -> list[Any]:
+    results: list[Any] = await client.uaclient.create_monitored_items(
+        ua.CreateMonitoredItemsParameters(
+            SubscriptionId=sub, TimestampsToReturn=ua.TimestampsToReturn.Both,
+            ItemsToCreate=[watch(node, 7)]))
+    return results
+
+
+async def code_of(call: Any) -> list[int]:
+    """The status codes a service answered: its per-item results, or the service
+    result it failed with."""
+    try:
+        answer = await call
+    except UaStatusCodeError as exc:
+        return [int(exc.code or 0)]
+    if not isinstance(answer, list):
+        return [ua.StatusCodes.Good]  # (a service whose answer carries no code: done)
+    codes: list[int] = []
+    for item in answer:
+        code: ua.StatusCode = item if isinstance(item, ua.StatusCode) else item.StatusCode
+        codes.append(code.value)
+    return codes
+
+
+async def session(rig: Rig, port: int, token: ua.UserIdentityToken | None = None,
+                  stack: Any = None) -> Client:
+    client = await stack.enter_async_context(channel(rig, port, Mode.SignAndEncrypt))
+    await create_session(client)
+    await activate(client, token)
+    return client
+
+
+@pytest.mark.anyio
+@pytest.mark.parametrize("thief_is", ["anonymous", "another user"])
+async def test_another_session_can_do_nothing_to_a_subscription(rig: Rig, thief_is: str) -> None:
+    port = free_port()
+    users = {"operator": PASSWORD, "viewer": PASSWORD}
+    async with running(rig.config(port, users=users)) as gw, AsyncExitStack() as stack:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+        scada = await session(rig, port, clear_password("operator"), stack)
+        ns = await namespace(scada)
+        sequence = ua.NodeId(f"{GID}.Sensors.boom.Sequence", ns)
+        told = Notified()
+        sub = await subscribe(scada, told)
+        [item] = await add_items(scada, sub, sequence)
+        assert item.StatusCode.is_good()
+        token = None if thief_is == "anonymous" else clear_password("viewer")
+        thief = await session(rig, port, token, stack)
+        low = thief.uaclient
+        attempts = {
+            "ModifySubscription": low.update_subscription(ua.ModifySubscriptionParameters(
+                SubscriptionId=sub, RequestedPublishingInterval=60_000.0,
+                RequestedLifetimeCount=3000, RequestedMaxKeepAliveCount=10)),
+            "SetPublishingMode": low.set_publishing_mode(ua.SetPublishingModeParameters(
+                PublishingEnabled=False, SubscriptionIds=[sub])),
+            "CreateMonitoredItems": add_items(thief, sub, sequence),
+            "ModifyMonitoredItems": low.modify_monitored_items(
+                ua.ModifyMonitoredItemsParameters(SubscriptionId=sub, ItemsToModify=[
+                    ua.MonitoredItemModifyRequest(
+                        MonitoredItemId=item.MonitoredItemId,
+                        RequestedParameters=ua.MonitoringParameters(
+                            ClientHandle=1, SamplingInterval=60_000.0, QueueSize=1))])),
+            "SetMonitoringMode": low.set_monitoring_mode(ua.SetMonitoringModeParameters(
+                SubscriptionId=sub, MonitoringMode=ua.MonitoringMode.Disabled,
+                MonitoredItemIds=[item.MonitoredItemId])),
+            "DeleteMonitoredItems": low.delete_monitored_items(
+                ua.DeleteMonitoredItemsParameters(
+                    SubscriptionId=sub, MonitoredItemIds=[item.MonitoredItemId])),
+            "TransferSubscriptions": low.transfer_subscriptions(
+                ua.TransferSubscriptionsParameters(SubscriptionIds=[sub],
+                                                   SendInitialValues=True)),
+            "DeleteSubscriptions": low.delete_subscriptions([sub]),
+        }
+        got = {}
+        for name, call in attempts.items():  # (in this order: the deletion last)
+            got[name] = await code_of(call)
+        # a Publish (answered once the thief has a subscription of its own) that
+        # acknowledges the owner's notifications, so that they cannot be asked again
+        await subscribe(thief, Notified())
+        published = await low.publish([ua.SubscriptionAcknowledgement(
+            SubscriptionId=sub, SequenceNumber=n) for n in (1, 2)])
+        got["Publish"] = [code.value for code in published.Parameters.Results]
+        expected = {name: [INVALID] for name in attempts} | {"Publish": [INVALID] * 2}
+        expected["TransferSubscriptions"] = [ua.StatusCodes.BadUserAccessDenied]
+        assert got == expected
+        # the owner's subscription is whole: its item reports every sample, at its pace
+        seen = len(told.values)
+        await until(lambda: len(told.values) >= seen + 10, 20)
+        values = told.values[seen:]
+        assert all(b == a + 1 for a, b in pairwise(values)), values
+        assert gw.opcua is not None and gw.opcua.server is not None
+        subs = gw.opcua.server.iserver.subscription_service.subscriptions
+        assert subs[sub].data.RevisedPublishingInterval == 100.0
+
+
+@pytest.mark.anyio
+async def test_a_list_is_answered_per_id_and_the_same_user_may_take_a_subscription_over(
+        rig: Rig) -> None:
+    """DeleteSubscriptions of [another's, one's own, none]: only one's own goes, and
+    the answer says so per id.  The same user, from a second session (a SCADA client
+    that reconnected), takes its subscription over: it then publishes to that session,
+    every sample in order, and the first can no longer touch it."""
+    port = free_port()
+    async with running(rig.config(port, users={"operator": PASSWORD})) as gw, \
+            AsyncExitStack() as stack:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+        assert gw.opcua is not None and gw.opcua.server is not None
+        held = gw.opcua.server.iserver.subscription_service.subscriptions
+        first = await session(rig, port, clear_password("operator"), stack)
+        ns = await namespace(first)
+        sequence = ua.NodeId(f"{GID}.Sensors.boom.Sequence", ns)
+        theirs = await subscribe(first, Notified())
+        other = await session(rig, port, None, stack)  # anonymous
+        own = await subscribe(other, Notified())
+        codes = await other.uaclient.delete_subscriptions([theirs, own, 4242])
+        assert [c.value for c in codes] == [INVALID, ua.StatusCodes.Good, INVALID]
+        assert theirs in held and own not in held
+
+        [item] = await add_items(first, theirs, sequence)
+        assert item.StatusCode.is_good()
+        again = await session(rig, port, clear_password("operator"), stack)
+        [moved] = await again.uaclient.transfer_subscriptions(
+            ua.TransferSubscriptionsParameters(SubscriptionIds=[theirs],
+                                               SendInitialValues=True))
+        assert moved.StatusCode.is_good()
+        # it publishes to its new session now (the client's own bookkeeping of it, as
+        # its create_subscription would have made), while the first goes on publishing
+        told = Notified()
+        again.uaclient.session._subscription_callbacks[theirs] = told
+        again.uaclient.session.ensure_publish_loop()
+        await until(lambda: len(told.values) >= 10, 20)
+        assert all(b == a + 1 for a, b in pairwise(told.values[1:])), told.values
+        # a publish request the first session had queued before the transfer is not
+        # answered by the subscription (its answer would go to the new session's
+        # client, under a request id that client never sent)
+        old_request = PublishRequestData(requesthdr=ua.RequestHeader(
+            AuthenticationToken=first.uaclient.session.authentication_token), results=[])
+        moved_sub = held[theirs]
+        moved_sub._keep_alive_count = moved_sub.data.RevisedMaxKeepAliveCount  # (one due)
+        assert await moved_sub.publish_results(old_request) is False
+        assert await code_of(first.uaclient.delete_subscriptions([theirs])) == [INVALID]
+        assert theirs in held
+        assert await code_of(again.uaclient.delete_subscriptions([theirs])) == \
+            [ua.StatusCodes.Good]
+        assert theirs not in held
