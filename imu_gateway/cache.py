@@ -17,11 +17,12 @@ Staleness changes with time alone, so ``check_staleness()`` is called periodical
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import logging
 import time
 from collections import deque
-from collections.abc import Callable, Collection, Iterable, Mapping
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from typing import Any
@@ -224,6 +225,19 @@ class Cache:
                 drain()
         finally:
             self._catching_up = False
+
+    @contextlib.contextmanager
+    def heard(self) -> Iterator[None]:
+        """Reads within show what the listeners have heard: no waiting write is applied
+        in them.  For a listener's own reads outside its events (a deferred send, an
+        announcement after a connect): a write applied there would tell the listener
+        a reading inside its own call, which it would then send a second time.  (What
+        waits comes to it as events, next.)"""
+        was, self._catching_up = self._catching_up, True
+        try:
+            yield
+        finally:
+            self._catching_up = was
 
     def snapshot(self, name: str) -> Snapshot:
         self.catch_up()

@@ -74,6 +74,10 @@ _UNIT_ANSWER_BYTES = 7  # unit, function, byte count, one register, CRC
 QUERY_TRIES = 5
 #: A request beside a stream whose answer came garbled is sent this many times in all.
 STREAM_TRIES = 5
+#: A sensor found (it answered) is asked what it is this many times at most before
+#: its series is "unknown": one answer missed (a busy machine, a pseudo-terminal's
+#: late hand-over) must not leave a found sensor nameless.
+IDENTIFY_TRIES = 3
 #: Waiting for a stream's frame to go right after it: no longer than this (a stream
 #: slower than once a second is asked past, as a quiet line is).
 STREAM_WAIT = 1.0
@@ -322,10 +326,13 @@ def _answer_framer() -> native.NativeFramer:
 
 def _native_series(prober: Prober, address: int) -> str:
     exchange = NativeAdapter().poll(Series.VG, address)  # the request is the same for all
-    heard = prober.ask(exchange.request, native.MAX_FRAME,
-                       _answer_framer,
-                       wanted=lambda f: f.address == address and _shape_key(f) in _READ_ALL_SHAPES)
-    return _READ_ALL_SHAPES[_shape_key(heard.answers[0])] if heard.answers else "unknown"
+    for _ in range(IDENTIFY_TRIES):
+        heard = prober.ask(exchange.request, native.MAX_FRAME, _answer_framer,
+                           wanted=lambda f: f.address == address and
+                           _shape_key(f) in _READ_ALL_SHAPES)
+        if heard.answers:
+            return _READ_ALL_SHAPES[_shape_key(heard.answers[0])]
+    return "unknown"
 
 
 def _shape_key(frame: native.NativeFrame) -> tuple[int, int]:
@@ -406,8 +413,11 @@ def _answers_from(unit: int) -> Any:
 def _modbus_series(prober: Prober, unit: int) -> str:
     start, count = poll_span(Series.AH)
     gap = rtu_silence(prober.port.baudrate)
-    heard = prober.ask(rtu.read_request(unit, start, count), 5 + 2 * count,
-                       functools.partial(_answers_from, unit), gap, wanted=_unit_is(unit))
+    for _ in range(IDENTIFY_TRIES):
+        heard = prober.ask(rtu.read_request(unit, start, count), 5 + 2 * count,
+                           functools.partial(_answers_from, unit), gap, wanted=_unit_is(unit))
+        if heard.answers:
+            break
     for frame in heard.answers:
         if isinstance(frame, rtu.ReadResponse):
             values = rtu.read_values(start, frame.registers)

@@ -39,6 +39,7 @@ from imu_gateway.bus.runner import CacheWriter
 from imu_gateway.cache import Cache, EventKind, Snapshot
 from imu_gateway.capture.ring import SensorRing
 from imu_gateway.config import config_from_dict
+from imu_gateway.errors import ErrorKind, RequestFailed
 from imu_gateway.frontends.opcua.writes import DirectWriter, tell
 from imu_gateway.frontends.rest.routes import create_app
 from imu_gateway.frontends.rest.streams import StreamHub
@@ -537,6 +538,44 @@ async def test_a_stream_opened_within_a_window_gets_each_reading_once(
 
     assert readings(one) == [1, 2, 3]
     assert readings(two) == [2, 3]
+
+
+@pytest.mark.anyio
+async def test_a_stream_of_a_sensor_gone_leaves_nothing_behind() -> None:
+    """A stream of a sensor a reload removed after its route looked: refused as an
+    unknown sensor, and it holds no count against the streams' limit, no prompt
+    claim and no subscription."""
+    gw = gateway(http={"listen": "127.0.0.1:0"})
+    hub = StreamHub(gw)
+    with pytest.raises(RequestFailed) as gone:
+        hub.subscribe("gone")
+    assert gone.value.kind is ErrorKind.UNKNOWN_SENSOR
+    assert (hub.open, gw.cache.prompt, hub.subscribers) == (0, False, set())
+
+
+@pytest.mark.anyio
+async def test_first_events_show_every_sensor_at_one_moment() -> None:
+    """A stream of every sensor opens while the bus hands a reading over at every
+    read: its first events are taken after one catch-up, none applied between two of
+    them (one applied there, after the first sensor's snapshot and before the stream
+    listens, would be lost to it), so it sees every reading once, in order."""
+    gw = Gateway(config_from_dict({"buses": [{
+        "name": "line", "port": "/dev/null", "protocol": "native",
+        "sensors": [{"name": n, "series": "AH", "address": a}
+                    for n, a in (("boom", 0), ("arm", 1))]}],
+        "http": {"listen": "127.0.0.1:0"}}, env={}))
+    hub = StreamHub(gw)
+    pitches = iter(range(1, 100))
+
+    def hand_one() -> None:
+        gw.cache.publish("boom", reading(float(next(pitches))), time.monotonic())
+
+    gw.cache.add_source(hand_one)
+    sub = hub.subscribe(None)
+    gw.cache.catch_up()  # (a reader: one more)
+    seen = [seq for chunk in sub.events for kind, seq in first_events(chunk)
+            if kind == "reading"]
+    assert seen == list(range(seen[0], seen[0] + len(seen))) and len(seen) >= 2, seen
 
 
 @pytest.mark.anyio

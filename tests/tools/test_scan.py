@@ -12,6 +12,7 @@ import serial
 
 from imu_gateway.model import WireProtocol
 from imu_gateway.protocol import modbus_rtu as rtu
+from imu_gateway.bus.scan import IDENTIFY_TRIES
 from imu_gateway.tools.scan import (
     Found,
     Prober,
@@ -152,6 +153,38 @@ def test_scan_modbus_finds_a_sensor_at_a_reserved_unit() -> None:
     found = list(scan_modbus(prober, [249, 250, 251]))
     assert [unit for unit, _ in found] == [250]
     assert line.asked == [249, 250, 250, 251]  # 250 twice: found, then read for its series
+
+
+class MissesAnAnswer(OneReservedSensor):
+    """The sensor of ``OneReservedSensor``, whose answer to the read of its values is
+    lost the first ``misses`` times (a busy machine, a late pseudo-terminal)."""
+
+    def __init__(self, unit: int, misses: int) -> None:
+        super().__init__(unit)
+        self.misses = misses
+
+    def write(self, request: bytes) -> int:
+        if request[2:4] != b"\x00\x04" and self.misses > 0:  # (not the address query)
+            self.misses -= 1
+            self.asked.append(request[0])
+            return len(request)
+        return super().write(request)
+
+
+@pytest.mark.parametrize("misses", [1, 2])
+def test_a_found_sensor_missing_an_answer_is_asked_again_what_it_is(misses: int) -> None:
+    line = MissesAnAnswer(250, misses)
+    prober = Prober(cast(serial.Serial, line), margin=0.005)
+    [(unit, series)] = list(scan_modbus(prober, [250]))
+    assert unit == 250 and series != "unknown", series
+    assert line.asked == [250] * (2 + misses)
+
+
+def test_a_found_sensor_that_never_says_what_it_is_is_unknown() -> None:
+    line = MissesAnAnswer(250, misses=100)
+    prober = Prober(cast(serial.Serial, line), margin=0.005)
+    assert list(scan_modbus(prober, [250])) == [(250, "unknown")]
+    assert line.asked == [250] * (1 + IDENTIFY_TRIES)
 
 
 @pytest.mark.parametrize("code", [errno.EAGAIN, errno.EWOULDBLOCK, errno.EBUSY])

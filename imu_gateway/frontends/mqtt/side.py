@@ -104,13 +104,15 @@ class SideTopics:
         loop = asyncio.get_running_loop()
         wait = send_delay(sent_at, self._ha_interval, loop.time())
         if wait <= 0:
-            self._ha_state(self.gateway.cache.snapshot(name))
+            with self.gateway.cache.heard():
+                self._ha_state(self.gateway.cache.snapshot(name))
         else:
             self._ha_trailing[name] = loop.call_later(wait, self._ha_trailing_send, name)
 
     def _ha_trailing_send(self, name: str) -> None:
         self._ha_trailing.pop(name, None)
-        snap = self.gateway.cache.snapshot(name)
+        with self.gateway.cache.heard():
+            snap = self.gateway.cache.snapshot(name)
         if snap.has_reading and self.connected():
             self._ha_state(snap)
 

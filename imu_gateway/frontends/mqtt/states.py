@@ -140,8 +140,13 @@ class StateDesk:
         self.side = SideTopics(gateway, config, topics, send, send_control, connected)
 
     def announce(self) -> None:
-        """Every sensor's availability and latest state, anew (after a connect).  The
-        states still queued from before are old news: to the backfill, or dropped."""
+        """Every sensor's availability and latest state, anew (after a connect), as
+        heard (``Cache.heard``).  The states still queued from before are old news: to
+        the backfill, or dropped."""
+        with self.gateway.cache.heard():
+            self._announce()
+
+    def _announce(self) -> None:
         for message in reversed(self.take_waiting()):  # the newest first, each in front
             self._miss(message, older=True)
         for snap in self.gateway.cache.snapshots():
@@ -169,10 +174,11 @@ class StateDesk:
         self.side.forget(gone)
         if self.backfill is not None:
             self.backfill.forget(gone)
-        for name in announced:
-            self._out(name).availability = None
-            self._publish_availability(self.gateway.cache.snapshot(name))
-        self.side.announce(announced)
+        with self.gateway.cache.heard():
+            for name in announced:
+                self._out(name).availability = None
+                self._publish_availability(self.gateway.cache.snapshot(name))
+            self.side.announce(announced)
 
     def _out(self, name: str) -> _SensorOut:
         """What was sent for a sensor (a sensor a reload just added: nothing yet; its
@@ -235,7 +241,8 @@ class StateDesk:
 
     def _send_trailing(self, name: str) -> None:
         self._sensors[name].trailing = None
-        snap = self.gateway.cache.snapshot(name)
+        with self.gateway.cache.heard():
+            snap = self.gateway.cache.snapshot(name)
         if snap.has_reading and not self._within_deadband(snap, self._sensors[name]):
             self._publish_state(snap)
 

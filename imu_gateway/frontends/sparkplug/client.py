@@ -142,8 +142,10 @@ class SparkplugClient(Frontend):
 
     def _birth(self) -> None:
         self._last_birth = time.monotonic()
-        for message in self.node.birth(self.gateway.cache.snapshots(), self.gateway.stats(),
-                                       _now_ms(), self.gateway.alarm_states()):
+        with self.gateway.cache.heard():  # (what waits comes as DDATA after the births)
+            births = self.node.birth(self.gateway.cache.snapshots(), self.gateway.stats(),
+                                     _now_ms(), self.gateway.alarm_states())
+        for message in births:
             self.pipe.send(message)
 
     def on_message(self, message: paho.MQTTMessage) -> None:
