@@ -10,9 +10,9 @@ from typing import cast
 import pytest
 import serial
 
+from imu_gateway.bus.scan import IDENTIFY_TRIES
 from imu_gateway.model import WireProtocol
 from imu_gateway.protocol import modbus_rtu as rtu
-from imu_gateway.bus.scan import IDENTIFY_TRIES
 from imu_gateway.tools.scan import (
     Found,
     Prober,
