@@ -13,6 +13,8 @@ that asks, on the session object itself (``guard``), before asyncua's own method
 * **TransferSubscriptions** takes another session's subscription only for the same
   user (Part 4, 5.13.7): the same user name, or, both anonymous, the same client
   certificate (a secured channel's).  Else ``BadUserAccessDenied`` for that id.
+* **Publish** from a session with no subscription is ``BadNoSubscription`` (Part 4,
+  5.13.5).
 """
 
 from __future__ import annotations
@@ -100,6 +102,11 @@ class _Owned:
 
     def publish(self, acks: Iterable[ua.SubscriptionAcknowledgement] | None = None
                 ) -> tuple[int, list[ua.StatusCode]]:
+        if not any(sub.session_id == self.session.session_id
+                   for sub in self.subscriptions.values()):
+            # (asyncua queued it, to be answered by another session's subscriptions'
+            # keep-alives, or never)
+            raise ServiceError(ua.StatusCodes.BadNoSubscription)
         acks = list(acks or ())
         mine = [self.mine(a.SubscriptionId) for a in acks]
         subscriptions, done = self.real["publish"](

@@ -150,8 +150,13 @@ async def test_another_session_can_do_nothing_to_a_subscription(rig: Rig, thief_
         got = {}
         for name, call in attempts.items():  # (in this order: the deletion last)
             got[name] = await code_of(call)
-        # a Publish (answered once the thief has a subscription of its own) that
-        # acknowledges the owner's notifications, so that they cannot be asked again
+        # a Publish that acknowledges the owner's notifications, so that they cannot
+        # be asked again: with no subscription of its own, BadNoSubscription; with one,
+        # answered, and the owner's acknowledgements refused
+        with pytest.raises(UaStatusCodeError) as none:
+            await low.publish([ua.SubscriptionAcknowledgement(SubscriptionId=sub,
+                                                              SequenceNumber=1)])
+        assert none.value.code == ua.StatusCodes.BadNoSubscription
         await subscribe(thief, Notified())
         published = await low.publish([ua.SubscriptionAcknowledgement(
             SubscriptionId=sub, SequenceNumber=n) for n in (1, 2)])
