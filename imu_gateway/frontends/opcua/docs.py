@@ -141,8 +141,7 @@ SECURITY = """
   client's subscription). TransferSubscriptions takes another session's subscription
   only for the same user (the same user name; both anonymous: the same client
   certificate), else `BadUserAccessDenied` for that id. A Publish from a session with
-  no subscription is `BadNoSubscription` (asyncua queued it, to be answered by
-  another session's keep-alives or never).
+  no subscription is `BadNoSubscription` (asyncua kept it unanswered).
 - **Limits:** {clients} clients at once; {subs} subscriptions a session, a publishing
   interval of at most {interval:g} s (a longer one is revised down) and a lifetime of
   at most {lifetime:g} s; a closed session's subscriptions are deleted, whatever the

@@ -104,8 +104,7 @@ class _Owned:
                 ) -> tuple[int, list[ua.StatusCode]]:
         if not any(sub.session_id == self.session.session_id
                    for sub in self.subscriptions.values()):
-            # (asyncua queued it, to be answered by another session's subscriptions'
-            # keep-alives, or never)
+            # (asyncua kept it, unanswered: nothing of this session would ever take it)
             raise ServiceError(ua.StatusCodes.BadNoSubscription)
         acks = list(acks or ())
         mine = [self.mine(a.SubscriptionId) for a in acks]
