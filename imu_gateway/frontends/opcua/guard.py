@@ -80,6 +80,7 @@ _REGISTER = frozenset({ua.ObjectIds.RegisterServerRequest_Encoding_DefaultBinary
                        ua.ObjectIds.RegisterServer2Request_Encoding_DefaultBinary})
 _CLOSE = ua.NodeId(ua.ObjectIds.CloseSessionRequest_Encoding_DefaultBinary)
 _SUBSCRIBE = ua.NodeId(ua.ObjectIds.CreateSubscriptionRequest_Encoding_DefaultBinary)
+_MODIFY = ua.NodeId(ua.ObjectIds.ModifySubscriptionRequest_Encoding_DefaultBinary)
 _CALL = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
 MAX_SUBSCRIPTIONS_PER_SESSION = 10
 MAX_PUBLISHING_INTERVAL_MS = 60_000.0
@@ -177,7 +178,10 @@ class GuardedProcessor(UaProcessor):
         elif typeid == _ACTIVATE:
             self._check_activation(requesthdr, body.copy(), channel)
         elif typeid == _SUBSCRIBE:
-            body = self._revise_subscription(body)
+            self._check_share()
+            body = _revised(ua.CreateSubscriptionParameters, body)
+        elif typeid == _MODIFY:
+            body = _revised(ua.ModifySubscriptionParameters, body)
         elif typeid == _CLOSE:
             body = Buffer(ua.ua_binary.Primitives.Boolean.pack(True))  # deleteSubscriptions
         self._watch.catch_up()  # (a Read gives the newest sample the bus has)
@@ -283,25 +287,29 @@ class GuardedProcessor(UaProcessor):
                     "session's nonce (a replay, or garbage)")
         return None
 
-    def _revise_subscription(self, body: Buffer) -> Buffer:
-        """The CreateSubscription's parameters within the limits, re-encoded for asyncua
-        (which takes the publishing interval as asked and has no cap per session)."""
+    def _check_share(self) -> None:
+        """A new subscription within the session's share."""
         assert self.session is not None  # (activated: _check_service)
         mine = sum(1 for sub in self.iserver.subscription_service.subscriptions.values()
                    if sub.session_id == self.session.session_id)
         if mine >= MAX_SUBSCRIPTIONS_PER_SESSION:
             raise self._watch.refuse(ua.StatusCodes.BadTooManySubscriptions, f"a subscription over "
                           f"{MAX_SUBSCRIPTIONS_PER_SESSION} of one session", self.name)
-        params = struct_from_binary(ua.CreateSubscriptionParameters, body)
-        interval = params.RequestedPublishingInterval
-        if not 0 < interval <= MAX_PUBLISHING_INTERVAL_MS:  # (NaN too)
-            interval = MAX_PUBLISHING_INTERVAL_MS if interval > 0 else 0.0
-        params.RequestedPublishingInterval = interval
-        most = int(MAX_SUBSCRIPTION_LIFETIME_S * 1000 / max(interval, 1.0))
-        params.RequestedLifetimeCount = max(3, min(params.RequestedLifetimeCount or most, most))
-        params.RequestedMaxKeepAliveCount = max(1, min(
-            params.RequestedMaxKeepAliveCount or 1, params.RequestedLifetimeCount // 3))
-        return Buffer(struct_to_binary(params))
+
+
+def _revised(kind: Any, body: Buffer) -> Buffer:
+    """A Create- or ModifySubscription's parameters within the limits, re-encoded for
+    asyncua (which takes the publishing interval as asked)."""
+    params = struct_from_binary(kind, body)
+    interval = params.RequestedPublishingInterval
+    if not 0 < interval <= MAX_PUBLISHING_INTERVAL_MS:  # (NaN too)
+        interval = MAX_PUBLISHING_INTERVAL_MS if interval > 0 else 0.0
+    params.RequestedPublishingInterval = interval
+    most = int(MAX_SUBSCRIPTION_LIFETIME_S * 1000 / max(interval, 1.0))
+    params.RequestedLifetimeCount = max(3, min(params.RequestedLifetimeCount or most, most))
+    params.RequestedMaxKeepAliveCount = max(1, min(
+        params.RequestedMaxKeepAliveCount or 1, params.RequestedLifetimeCount // 3))
+    return Buffer(struct_to_binary(params))
 
 
 def password_secret(private_key: Any, token: ua.UserNameIdentityToken) -> bytes | None:

@@ -13,12 +13,16 @@ that asks, on the session object itself (``guard``), before asyncua's own method
 * **TransferSubscriptions** takes another session's subscription only for the same
   user (Part 4, 5.13.7): the same user name, or, both anonymous, the same client
   certificate (a secured channel's).  Else ``BadUserAccessDenied`` for that id.
+* **ModifySubscription** is applied: the publishing interval (the loop restarted at
+  the new one), lifetime and keep-alive counts, revised as a CreateSubscription's
+  (asyncua answered the old values and changed nothing).
 * **Publish** from a session with no subscription is ``BadNoSubscription`` (Part 4,
   5.13.5).
 """
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Awaitable, Callable, Iterable, Mapping
 from typing import Any
 
@@ -31,7 +35,7 @@ DENIED: int = ua.StatusCodes.BadUserAccessDenied
 #: the session's methods of the services on subscriptions and their items (asyncua's
 #: ``UaProcessor`` calls these on the session: replacing them on the instance is the
 #: hook)
-_ONE = ("modify_subscription", "republish")
+_ONE = ("republish",)
 _ONE_ASYNC = ("create_monitored_items", "modify_monitored_items", "delete_monitored_items",
               "set_monitoring_mode")
 
@@ -51,13 +55,14 @@ class _Owned:
         self.real: dict[str, Callable[..., Any]] = {}
 
     def install(self) -> None:
-        for name in (*_ONE, *_ONE_ASYNC, "delete_subscriptions", "set_publishing_mode",
-                     "publish", "transfer_subscriptions"):
+        for name in (*_ONE, *_ONE_ASYNC, "modify_subscription", "delete_subscriptions",
+                     "set_publishing_mode", "publish", "transfer_subscriptions"):
             self.real[name] = getattr(self.session, name)
         for name in _ONE:
             setattr(self.session, name, self._one(name))
         for name in _ONE_ASYNC:
             setattr(self.session, name, self._one_async(name))
+        self.session.modify_subscription = self.modify_subscription
         self.session.delete_subscriptions = self.delete_subscriptions
         self.session.set_publishing_mode = self.set_publishing_mode
         self.session.publish = self.publish
@@ -82,6 +87,25 @@ class _Owned:
             self._check(params)
             return await self.real[name](params)
         return checked
+
+    def modify_subscription(self, params: ua.ModifySubscriptionParameters
+                            ) -> ua.ModifySubscriptionResult:
+        """Applied (asyncua answered the values of the CreateSubscription and changed
+        nothing); the parameters come revised within the limits (``guard``)."""
+        self._check(params)
+        sub = self.subscriptions[int(params.SubscriptionId)]
+        data, interval = sub.data, params.RequestedPublishingInterval
+        restart = interval != data.RevisedPublishingInterval
+        data.RevisedPublishingInterval = interval
+        data.RevisedLifetimeCount = params.RequestedLifetimeCount
+        data.RevisedMaxKeepAliveCount = params.RequestedMaxKeepAliveCount
+        if restart:  # (asyncua's publishing loop took its period when it started)
+            if sub._task is not None:
+                sub._task.cancel()
+            sub._task = asyncio.create_task(sub._subscription_loop()) if interval > 0 \
+                else None
+        result: ua.ModifySubscriptionResult = self.real["modify_subscription"](params)
+        return result
 
     # ------------------------------------------------------------ services on lists
 

@@ -5,12 +5,16 @@ unless it acts for the same user.  asyncua 2.1 looks a subscription up by its id
 alone, and its ids are 1, 2, 3...: any session could do all of these to a SCADA
 client's subscription.
 
+ModifySubscription, of one's own subscription, is applied (asyncua changed nothing).
+
 Each attempt is made from the side of the one trying, with asyncua's low-level client
 (the services as a client sends them), and the owner's subscription is checked after
 all of them: still there, still publishing, its item still reporting."""
 
 from __future__ import annotations
 
+import statistics
+import time
 from collections.abc import AsyncIterator
 from contextlib import AsyncExitStack
 from itertools import pairwise
@@ -35,6 +39,11 @@ from test_opcua_security import (
     namespace,
 )
 
+from imu_gateway.frontends.opcua.guard import (
+    MAX_PUBLISHING_INTERVAL_MS,
+    MAX_SUBSCRIPTION_LIFETIME_S,
+)
+
 INVALID = ua.StatusCodes.BadSubscriptionIdInvalid
 
 
@@ -50,17 +59,19 @@ class Notified:
 
     def __init__(self) -> None:
         self.values: list[Any] = []
+        self.published: list[float] = []  # (monotonic) when each publish came
 
     def __call__(self, result: Any) -> None:
+        self.published.append(time.monotonic())
         for data in result.NotificationMessage.NotificationData or ():
             for item in getattr(data, "MonitoredItems", None) or ():
                 self.values.append(item.Value.Value.Value)
 
 
-async def subscribe(client: Client, told: Notified) -> int:
+async def subscribe(client: Client, told: Notified, interval: float = 100.0) -> int:
     result: ua.CreateSubscriptionResult = await client.uaclient.create_subscription(
         ua.CreateSubscriptionParameters(
-            RequestedPublishingInterval=100.0, RequestedLifetimeCount=3000,
+            RequestedPublishingInterval=interval, RequestedLifetimeCount=3000,
             RequestedMaxKeepAliveCount=10, MaxNotificationsPerPublish=0,
             PublishingEnabled=True, Priority=0), told)
     return int(result.SubscriptionId)
@@ -224,3 +235,35 @@ async def test_a_list_is_answered_per_id_and_the_same_user_may_take_a_subscripti
         assert await code_of(again.uaclient.delete_subscriptions([theirs])) == \
             [ua.StatusCodes.Good]
         assert theirs not in held
+
+
+@pytest.mark.anyio
+async def test_a_modify_subscription_is_applied_within_the_limits(rig: Rig) -> None:
+    """ModifySubscription of one's own subscription from 1 s to 100 ms: answered 100,
+    and the publishes come about every 100 ms from then on (asyncua answered 1000 and
+    went on at 1 s); an interval past the limit is revised down to it, and a lifetime
+    past the limit's with it."""
+    port = free_port()
+    async with running(rig.config(port)) as gw, AsyncExitStack() as stack:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+        scada = await session(rig, port, None, stack)
+        sequence = ua.NodeId(f"{GID}.Sensors.boom.Sequence", await namespace(scada))
+        told = Notified()
+        sub = await subscribe(scada, told, interval=1000.0)
+        await add_items(scada, sub, sequence)
+        await until(lambda: len(told.published) >= 2, 20)
+        revised = await scada.uaclient.update_subscription(ua.ModifySubscriptionParameters(
+            SubscriptionId=sub, RequestedPublishingInterval=100.0,
+            RequestedLifetimeCount=600, RequestedMaxKeepAliveCount=10))
+        assert (revised.RevisedPublishingInterval, revised.RevisedLifetimeCount,
+                revised.RevisedMaxKeepAliveCount) == (100.0, 600, 10)
+        seen = len(told.published)
+        await until(lambda: len(told.published) >= seen + 11, 20)
+        gaps = [b - a for a, b in pairwise(told.published[seen + 1:])]
+        assert statistics.median(gaps) < 0.5, gaps  # (1 s before the Modify)
+        capped = await scada.uaclient.update_subscription(ua.ModifySubscriptionParameters(
+            SubscriptionId=sub, RequestedPublishingInterval=1e12,
+            RequestedLifetimeCount=4_000_000_000, RequestedMaxKeepAliveCount=10))
+        assert capped.RevisedPublishingInterval == MAX_PUBLISHING_INTERVAL_MS
+        assert capped.RevisedPublishingInterval * capped.RevisedLifetimeCount <= \
+            MAX_SUBSCRIPTION_LIFETIME_S * 1000
