@@ -130,6 +130,16 @@ class BusStats:
         return self.collisions - self.collisions_after_hold
 
 
+def overdue(pending: Sequence[Outgoing], tx_end: float, now: float) -> bool:
+    """Whether a request heard at ``now`` meets the ``pending`` answers only because
+    the simulator is late with them: nothing is on the wire (``tx_end``), and a
+    punctual sensor would have sent each one whole by now (from its ``not_before``).
+    A hold of the simulator's thread this short (under ``HELD`` since its last beat)
+    escapes ``HoldWatch``; its answer due and unsent shows it all the same."""
+    return now >= tx_end and bool(pending) and all(
+        now >= o.not_before + len(o.frame) * char_time(o.baud) for o in pending)
+
+
 class HoldWatch:
     """Notices when the simulator is held off its CPU for ``HELD`` or more.
 
@@ -182,17 +192,20 @@ class LineLog:
         self.holds: HoldWatch | None = None
         self._recent: deque[str] = deque(maxlen=8)
 
-    def note(self, text: str, heard_late: bool = False) -> None:
+    def note(self, text: str, heard_late: bool = False, overdue: bool = False) -> None:
         """``heard_late``: an incident of a request the pty may have handed over late
-        (``WireWatch``), or of its answer."""
+        (``WireWatch``), or of its answer; ``overdue``: an overlap only because the
+        simulator had not sent an answer yet that a punctual sensor would have sent
+        whole by then (``overdue``)."""
         incident = text.startswith(("OVERLAP", "COLLISION"))
         held = self.holds is not None and self.holds.in_shadow()
-        if incident and (held or heard_late):
+        if incident and (held or heard_late or overdue):
             if text.startswith("OVERLAP"):
                 self.stats.overlaps_after_hold += 1
             else:
                 self.stats.collisions_after_hold += 1
             text += " (of a request the pty handed over late)" if heard_late else \
+                " (the simulator's answer was overdue: it was held)" if overdue else \
                 " (right after the simulator was held)"
         self.timeline(text)
         if incident and len(self.stats.incidents) < 10:
@@ -432,12 +445,12 @@ class PtyBus:
         assert self._loop is not None
         now = self._loop.time()
         baud = self.line_baud()
-        pending_answer = any(o.solicited for o in self._queue)
+        pending = [o for o in self._queue if o.solicited]
         late = self._wire.late(time.monotonic())
-        if now < self._tx_end or pending_answer:
+        if now < self._tx_end or pending:
             self.stats.overlaps += 1
             self.log.note(f"OVERLAP: master sent {data.hex(' ')} while a sensor was answering",
-                          heard_late=late)
+                          heard_late=late, overdue=overdue(pending, self._tx_end, now))
         self.stats.requests_bytes += len(data)
         self.log.timeline(f"master -> {data.hex(' ')}")
         # A gap of more than 3.5 characters ends any frame in progress (RTU's rule; the

@@ -19,8 +19,10 @@ from support.harness import run, until
 
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.protocol import native
+from imu_gateway.protocol.exchanges import char_time
 from imu_gateway.simulator import SimSensor, SimulatorThread, make_sensor, simulated
-from imu_gateway.simulator.bus import LAGGED, BusStats, WireWatch
+from imu_gateway.simulator.bus import LAGGED, BusStats, WireWatch, overdue
+from imu_gateway.simulator.sensor import Outgoing
 
 
 def test_a_late_canary_says_the_line_s_bytes_may_be_late() -> None:
@@ -101,3 +103,21 @@ def test_a_collision_of_answers_to_a_request_handed_over_late_is_the_rig_s(
         stats = sim.bus.stats
     assert stats.collisions == 1
     assert stats.masters_collisions == (0 if late else 1) or stats.holds > 0
+
+
+def test_an_answer_the_simulator_has_not_sent_when_a_punctual_one_would_be_over() -> None:
+    """The master's retry meets an answer the simulator still holds: the simulator's
+    doing if a punctual sensor would have sent it whole by then (a hold of its thread
+    too short for ``HoldWatch``: in CI beside burners the answer due at .2166 had not
+    gone at .2318, 7.4 ms past its last beat), the master's if the answer is on the wire
+    or would still be."""
+    frame = bytes(57)  # an AH's read_all answer: 4.95 ms at 115200 baud
+    answer = Outgoing(frame, not_before=10.0, baud=115200, solicited=True, sender="AH@0")
+    wire = len(frame) * char_time(115200)
+    assert overdue([answer], tx_end=0.0, now=10.0 + wire + 0.001)
+    assert not overdue([answer], tx_end=0.0, now=10.0 + wire / 2)  # it would be sending
+    assert not overdue([answer], tx_end=0.0, now=9.999)  # not due yet
+    assert not overdue([answer], tx_end=11.0, now=10.5)  # one on the wire now
+    assert not overdue([], tx_end=0.0, now=10.5)
+    later = Outgoing(frame, not_before=10.2, baud=115200, solicited=True, sender="AH@1")
+    assert not overdue([answer, later], tx_end=0.0, now=10.1)  # the second still due
