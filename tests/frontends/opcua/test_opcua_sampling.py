@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import statistics
 from collections import defaultdict
-from collections.abc import Iterator
+from collections.abc import AsyncIterator, Iterator
+from contextlib import asynccontextmanager
+from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from itertools import pairwise
 from pathlib import Path
@@ -19,6 +21,7 @@ import pytest
 from asyncua import Client, ua
 from support.harness import free_port, running, until
 
+from imu_gateway.app import Gateway
 from imu_gateway.model import Series, WireProtocol
 from imu_gateway.simulator import Faults, hold, make_sensor, simulated
 from imu_gateway.simulator.motion import Motion
@@ -119,6 +122,33 @@ def _nodes(idx: int, *paths: str) -> list[ua.NodeId]:
     return [ua.NodeId(f"{GID}.Sensors.boom.{p}", idx) for p in paths]
 
 
+@dataclass
+class Watching:
+    """A gateway, a client, and its subscription of one item of the sensor's."""
+
+    gw: Gateway
+    client: Client
+    node: ua.NodeId
+    subscription: Any
+    item: Any  # the item's create result
+    told: Told
+
+
+@asynccontextmanager
+async def watching(tmp_path: Path, path: str, sampling: float, node: str = "Sequence",
+                   publishing: float = PUBLISHING_MS) -> AsyncIterator[Watching]:
+    port = free_port()
+    async with running(_config(port, tmp_path / "pki", path)) as gw, \
+            Client(f"opc.tcp://127.0.0.1:{port}/") as client:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 2)
+        idx = await client.get_namespace_index(NS)
+        (watched,) = _nodes(idx, node)
+        told = Told()
+        subscription, made = await _subscribe(client, told, [_watch(1, watched, sampling)],
+                                              publishing=publishing)
+        yield Watching(gw, client, watched, subscription, made[0], told)
+
+
 @pytest.mark.anyio
 async def test_each_item_is_sampled_at_its_revised_interval(
         tmp_path: Path, line: tuple[str, Faults]) -> None:
@@ -159,15 +189,8 @@ async def test_a_modify_changes_the_interval(tmp_path: Path, line: tuple[str, Fa
     """An item at 200 ms modified to 500 ms is answered 500 and sampled so; then to 0,
     every sample; an item that is not there is BadMonitoredItemIdInvalid (asyncua's
     own answer to it was a TypeError, the whole request's fault)."""
-    port = free_port()
-    async with running(_config(port, tmp_path / "pki", line[0])) as gw, \
-            Client(f"opc.tcp://127.0.0.1:{port}/") as client:
-        await until(lambda: gw.cache.snapshot("boom").seq >= 2)
-        idx = await client.get_namespace_index(NS)
-        (sequence,) = _nodes(idx, "Sequence")
-        told = Told()
-        subscription, made = await _subscribe(client, told, [_watch(1, sequence, 200.0)])
-        item = made[0].MonitoredItemId
+    async with watching(tmp_path, line[0], 200.0) as w:
+        subscription, told, item = w.subscription, w.told, w.item.MonitoredItemId
         changed = await subscription.server.modify_monitored_items(
             _modify(subscription, item, 500))
         assert [c.RevisedSamplingInterval for c in changed] == [500.0]
@@ -200,15 +223,9 @@ async def test_a_stalled_sensors_bad_status_reaches_a_slow_item_within_its_inter
     one interval (and a publish) after it was written, though nothing is written after
     it."""
     path, faults = line
-    port = free_port()
-    async with running(_config(port, tmp_path / "pki", path)) as gw, \
-            Client(f"opc.tcp://127.0.0.1:{port}/") as client:
-        await until(lambda: gw.cache.snapshot("boom").seq >= 2)
-        idx = await client.get_namespace_index(NS)
-        (pitch,) = _nodes(idx, "Angles.pitch")
-        told = Told()
-        subscription, made = await _subscribe(client, told, [_watch(1, pitch, 1000.0)])
-        assert [m.RevisedSamplingInterval for m in made] == [1000.0]
+    async with watching(tmp_path, path, 1000.0, node="Angles.pitch") as w:
+        subscription, told = w.subscription, w.told
+        assert w.item.RevisedSamplingInterval == 1000.0
         await until(lambda: len(told.of[1]) >= 1, 10)  # the initial value (a held reading)
         faults.stalled = True
 
@@ -305,18 +322,12 @@ async def test_a_value_held_at_a_modify_to_zero_is_queued_before_any_newer(
     """An item sampled every second holds a value; a Modify to 0 and a newer value
     written in the same turn of the loop (nothing awaited between): the held one is
     queued first, and both are told in that order."""
-    port = free_port()
-    async with running(_config(port, tmp_path / "pki", line[0])) as gw, \
-            Client(f"opc.tcp://127.0.0.1:{port}/") as client:
-        await until(lambda: gw.cache.snapshot("boom").seq >= 2)
-        idx = await client.get_namespace_index(NS)
-        (sequence,) = _nodes(idx, "Sequence")
-        told = Told()
-        subscription, made = await _subscribe(client, told, [_watch(1, sequence, 1000.0)])
+    async with watching(tmp_path, line[0], 1000.0) as w:
+        gw, subscription, told = w.gw, w.subscription, w.told
         assert gw.opcua is not None and gw.opcua.server is not None
         [isub] = gw.opcua.server.iserver.subscription_service.subscriptions.values()
         items = isub.monitored_item_srv
-        mid = made[0].MonitoredItemId
+        mid = w.item.MonitoredItemId
         handle = items._monitored_items[mid].callback_handle
         held, newer = (ua.DataValue(ua.Variant(n, ua.VariantType.UInt32))
                        for n in (4_000_000, 4_000_001))
