@@ -153,6 +153,7 @@ async def test_another_session_can_do_nothing_to_a_subscription(rig: Rig, thief_
             "DeleteMonitoredItems": low.delete_monitored_items(
                 ua.DeleteMonitoredItemsParameters(
                     SubscriptionId=sub, MonitoredItemIds=[item.MonitoredItemId])),
+            "Republish": low.session.republish(sub, 1),  # (it takes the notification)
             "TransferSubscriptions": low.transfer_subscriptions(
                 ua.TransferSubscriptionsParameters(SubscriptionIds=[sub],
                                                    SendInitialValues=True)),
