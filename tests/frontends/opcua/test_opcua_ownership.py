@@ -45,6 +45,7 @@ from imu_gateway.frontends.opcua.guard import (
 )
 
 INVALID = ua.StatusCodes.BadSubscriptionIdInvalid
+DENIED = ua.StatusCodes.BadUserAccessDenied
 
 
 @pytest.fixture
@@ -174,7 +175,7 @@ async def test_another_session_can_do_nothing_to_a_subscription(rig: Rig, thief_
             SubscriptionId=sub, SequenceNumber=n) for n in (1, 2)])
         got["Publish"] = [code.value for code in published.Parameters.Results]
         expected = {name: [INVALID] for name in attempts} | {"Publish": [INVALID] * 2}
-        expected["TransferSubscriptions"] = [ua.StatusCodes.BadUserAccessDenied]
+        expected["TransferSubscriptions"] = [DENIED]
         assert got == expected
         # the owner's subscription is whole: its item reports every sample, at its pace
         seen = len(told.values)
@@ -189,10 +190,12 @@ async def test_another_session_can_do_nothing_to_a_subscription(rig: Rig, thief_
 @pytest.mark.anyio
 async def test_a_list_is_answered_per_id_and_the_same_user_may_take_a_subscription_over(
         rig: Rig) -> None:
-    """DeleteSubscriptions of [another's, one's own, none]: only one's own goes, and
-    the answer says so per id.  The same user, from a second session (a SCADA client
-    that reconnected), takes its subscription over: it then publishes to that session,
-    every sample in order, and the first can no longer touch it."""
+    """DeleteSubscriptions and SetPublishingMode of [another's, one's own, none]: only
+    one's own is done, and the answer says so per id.  A transfer of [the same user's,
+    an anonymous session's, none] takes the first only: the same user, from a second
+    session (a SCADA client that reconnected), takes its subscription over; it then
+    publishes to that session, every sample in order, and the first can no longer
+    touch it."""
     port = free_port()
     async with running(rig.config(port, users={"operator": PASSWORD})) as gw, \
             AsyncExitStack() as stack:
@@ -208,14 +211,20 @@ async def test_a_list_is_answered_per_id_and_the_same_user_may_take_a_subscripti
         codes = await other.uaclient.delete_subscriptions([theirs, own, 4242])
         assert [c.value for c in codes] == [INVALID, ua.StatusCodes.Good, INVALID]
         assert theirs in held and own not in held
+        own = await subscribe(other, Notified())
+        modes = await other.uaclient.set_publishing_mode(ua.SetPublishingModeParameters(
+            PublishingEnabled=True, SubscriptionIds=[theirs, own, 4242]))
+        assert [c.value for c in modes] == [INVALID, ua.StatusCodes.Good, INVALID]
 
         [item] = await add_items(first, theirs, sequence)
         assert item.StatusCode.is_good()
         again = await session(rig, port, clear_password("operator"), stack)
-        [moved] = await again.uaclient.transfer_subscriptions(
-            ua.TransferSubscriptionsParameters(SubscriptionIds=[theirs],
+        moved, anonymous, none = await again.uaclient.transfer_subscriptions(
+            ua.TransferSubscriptionsParameters(SubscriptionIds=[theirs, own, 4242],
                                                SendInitialValues=True))
-        assert moved.StatusCode.is_good()
+        assert [r.StatusCode.value for r in (moved, anonymous, none)] == \
+            [ua.StatusCodes.Good, DENIED, INVALID]
+        assert held[own].session_id != held[theirs].session_id
         # it publishes to its new session now (the client's own bookkeeping of it, as
         # its create_subscription would have made), while the first goes on publishing
         told = Notified()
