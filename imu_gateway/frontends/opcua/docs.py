@@ -140,7 +140,8 @@ SECURITY = """
   its id alone, and ids count 1, 2, 3: any session could delete or silence a SCADA
   client's subscription). TransferSubscriptions takes another session's subscription
   only for the same user (the same user name; both anonymous: the same client
-  certificate), else `BadUserAccessDenied` for that id. A Publish from a session with
+  certificate), else `BadUserAccessDenied` for that id; the session it was taken from
+  is told (`Good_SubscriptionTransferred`). A Publish from a session with
   no subscription is `BadNoSubscription` (asyncua kept it unanswered).
 - **ModifySubscription** is applied, revised within the limits below: the publishing
   interval (the next publish comes one new interval after the Modify), the lifetime

@@ -12,7 +12,8 @@ that asks, on the session object itself (``guard``), before asyncua's own method
   answers that for each such id, and the others are done);
 * **TransferSubscriptions** takes another session's subscription only for the same
   user (Part 4, 5.13.7): the same user name, or, both anonymous, the same client
-  certificate (a secured channel's).  Else ``BadUserAccessDenied`` for that id.
+  certificate (a secured channel's).  Else ``BadUserAccessDenied`` for that id.  The
+  session it was taken from is told (``Good_SubscriptionTransferred``).
 * **ModifySubscription** is applied: the publishing interval (the loop restarted at
   the new one), lifetime and keep-alive counts, revised as a CreateSubscription's
   (asyncua answered the old values and changed nothing).
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Awaitable, Callable, Iterable, Mapping
+from datetime import UTC, datetime
 from typing import Any
 
 from asyncua import ua
@@ -141,13 +143,20 @@ class _Owned:
         ids = list(params.SubscriptionIds or ())
         refusals = [self._transfer_refusal(i) for i in ids]
         allowed = [i for i, r in zip(ids, refusals, strict=True) if r is None]
+        # (the old session's ways to take a publish request and answer it, to tell it)
+        before = {int(i): (sub.session_id, sub.pub_request_callback, sub.pub_result_callback)
+                  for i in allowed if (sub := self.subscriptions.get(int(i))) is not None}
         moved = await self.real["transfer_subscriptions"](
             ua.TransferSubscriptionsParameters(SubscriptionIds=allowed,
                                                SendInitialValues=params.SendInitialValues),
             callback)
         for sub_id, result in zip(allowed, moved, strict=True):
+            sub = self.subscriptions[int(sub_id)]
             if result.StatusCode.is_good():
-                self._rebind(self.subscriptions[int(sub_id)], callback)
+                self._rebind(sub, callback)
+                owner, take, answer = before[int(sub_id)]
+                if owner != self.session.session_id:
+                    await _tell_transferred(sub, take, answer)
         done = iter(moved)
         return [next(done) if r is None else ua.TransferResult(StatusCode=ua.StatusCode(r))
                 for r in refusals]
@@ -189,6 +198,27 @@ class _Owned:
                                                                          self.origins):
             return DENIED
         return None
+
+
+async def _tell_transferred(sub: Any, take: Callable[..., Any] | None,
+                            answer: Callable[..., Awaitable[None]] | None) -> None:
+    """Tell the session a subscription was taken from that it is gone (Part 4 5.13.7:
+    a StatusChangeNotification of Good_SubscriptionTransferred), on a publish request
+    it has waiting (none waiting: it learns it from its next request's answer, which
+    no longer names the subscription).  The message takes no sequence number from the
+    subscription's, which its new session goes on with."""
+    if take is None or answer is None:
+        return
+    request = take(sub.data.SubscriptionId)
+    if request is None:
+        return
+    told = ua.PublishResult()
+    told.SubscriptionId = sub.data.SubscriptionId
+    told.NotificationMessage.SequenceNumber = sub._notification_seq
+    told.NotificationMessage.PublishTime = datetime.now(UTC)
+    told.NotificationMessage.NotificationData = [ua.StatusChangeNotification(
+        Status=ua.StatusCode(ua.StatusCodes.GoodSubscriptionTransferred))]
+    await answer(told, request)
 
 
 def _identity(session: Any, origins: Mapping[Any, bytes | None]) -> tuple[str, bytes | str]:

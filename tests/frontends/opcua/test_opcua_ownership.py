@@ -61,10 +61,13 @@ class Notified:
     def __init__(self) -> None:
         self.values: list[Any] = []
         self.published: list[float] = []  # (monotonic) when each publish came
+        self.statuses: list[int] = []  # StatusChangeNotifications' codes
 
     def __call__(self, result: Any) -> None:
         self.published.append(time.monotonic())
         for data in result.NotificationMessage.NotificationData or ():
+            if isinstance(data, ua.StatusChangeNotification):
+                self.statuses.append(data.Status.value)
             for item in getattr(data, "MonitoredItems", None) or ():
                 self.values.append(item.Value.Value.Value)
 
@@ -193,9 +196,9 @@ async def test_a_list_is_answered_per_id_and_the_same_user_may_take_a_subscripti
     """DeleteSubscriptions and SetPublishingMode of [another's, one's own, none]: only
     one's own is done, and the answer says so per id.  A transfer of [the same user's,
     an anonymous session's, none] takes the first only: the same user, from a second
-    session (a SCADA client that reconnected), takes its subscription over; it then
-    publishes to that session, every sample in order, and the first can no longer
-    touch it."""
+    session (a SCADA client that reconnected), takes its subscription over; the first
+    is told (Good_SubscriptionTransferred), the subscription then publishes to the
+    second, every sample in order, and the first can no longer touch it."""
     port = free_port()
     async with running(rig.config(port, users={"operator": PASSWORD})) as gw, \
             AsyncExitStack() as stack:
@@ -205,7 +208,8 @@ async def test_a_list_is_answered_per_id_and_the_same_user_may_take_a_subscripti
         first = await session(rig, port, clear_password("operator"), stack)
         ns = await namespace(first)
         sequence = ua.NodeId(f"{GID}.Sensors.boom.Sequence", ns)
-        theirs = await subscribe(first, Notified())
+        first_told = Notified()
+        theirs = await subscribe(first, first_told)
         other = await session(rig, port, None, stack)  # anonymous
         own = await subscribe(other, Notified())
         codes = await other.uaclient.delete_subscriptions([theirs, own, 4242])
@@ -225,6 +229,9 @@ async def test_a_list_is_answered_per_id_and_the_same_user_may_take_a_subscripti
         assert [r.StatusCode.value for r in (moved, anonymous, none)] == \
             [ua.StatusCodes.Good, DENIED, INVALID]
         assert held[own].session_id != held[theirs].session_id
+        # the session it was taken from is told, on a publish request it had waiting
+        await until(lambda: ua.StatusCodes.GoodSubscriptionTransferred in first_told.statuses,
+                    10)
         # it publishes to its new session now (the client's own bookkeeping of it, as
         # its create_subscription would have made), while the first goes on publishing
         told = Notified()
