@@ -144,9 +144,10 @@ SECURITY = """
   is told (`Good_SubscriptionTransferred`). A Publish from a session with
   no subscription is `BadNoSubscription` (asyncua kept it unanswered).
 - **ModifySubscription** is applied, revised within the limits below: the publishing
-  interval (the next publish comes one new interval after the Modify), the lifetime
-  and keep-alive counts. (asyncua answered the values the subscription was created
-  with, and changed nothing.)
+  interval (the next publish comes one new interval after the Modify; 0 or less is
+  the fastest, 10 ms), the lifetime and keep-alive counts; the lifetime starts again.
+  (asyncua answered the values the subscription was created with, and changed
+  nothing.)
 - **Limits:** {clients} clients at once; {subs} subscriptions a session, a publishing
   interval of at most {interval:g} s (a longer one is revised down) and a lifetime of
   at most {lifetime:g} s; a closed session's subscriptions are deleted, whatever the

@@ -66,7 +66,7 @@ from cryptography import x509
 from ...supervise import PeerLog
 from . import ownership
 from .conditions import CALLER, Caller
-from .sampling import EveryValue, sample_items
+from .sampling import SAMPLING_STEP_MS, EveryValue, sample_items
 
 log = logging.getLogger("imu_gateway.opcua")
 
@@ -179,9 +179,11 @@ class GuardedProcessor(UaProcessor):
             self._check_activation(requesthdr, body.copy(), channel)
         elif typeid == _SUBSCRIBE:
             self._check_share()
-            body = _revised(ua.CreateSubscriptionParameters, body)
+            body = _revised(ua.CreateSubscriptionParameters, body, fastest=0.0)
         elif typeid == _MODIFY:
-            body = _revised(ua.ModifySubscriptionParameters, body)
+            # (0 is asyncua's publish-on-change, which only a new subscription starts
+            # right: a running one switched to it kept its queued values unsent)
+            body = _revised(ua.ModifySubscriptionParameters, body, fastest=SAMPLING_STEP_MS)
         elif typeid == _CLOSE:
             body = Buffer(ua.ua_binary.Primitives.Boolean.pack(True))  # deleteSubscriptions
         self._watch.catch_up()  # (a Read gives the newest sample the bus has)
@@ -297,13 +299,14 @@ class GuardedProcessor(UaProcessor):
                           f"{MAX_SUBSCRIPTIONS_PER_SESSION} of one session", self.name)
 
 
-def _revised(kind: Any, body: Buffer) -> Buffer:
+def _revised(kind: Any, body: Buffer, fastest: float) -> Buffer:
     """A Create- or ModifySubscription's parameters within the limits, re-encoded for
-    asyncua (which takes the publishing interval as asked)."""
+    asyncua (which takes the publishing interval as asked); ``fastest``: what an
+    interval of 0 or less (or NaN) becomes."""
     params = struct_from_binary(kind, body)
     interval = params.RequestedPublishingInterval
-    if not 0 < interval <= MAX_PUBLISHING_INTERVAL_MS:  # (NaN too)
-        interval = MAX_PUBLISHING_INTERVAL_MS if interval > 0 else 0.0
+    if not fastest < interval <= MAX_PUBLISHING_INTERVAL_MS:  # (NaN too)
+        interval = MAX_PUBLISHING_INTERVAL_MS if interval > fastest else fastest
     params.RequestedPublishingInterval = interval
     most = int(MAX_SUBSCRIPTION_LIFETIME_S * 1000 / max(interval, 1.0))
     params.RequestedLifetimeCount = max(3, min(params.RequestedLifetimeCount or most, most))

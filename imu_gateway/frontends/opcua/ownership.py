@@ -96,11 +96,15 @@ class _Owned:
         nothing); the parameters come revised within the limits (``guard``)."""
         self._check(params)
         sub = self.subscriptions[int(params.SubscriptionId)]
+        service = self.session.subscription_service
         data, interval = sub.data, params.RequestedPublishingInterval
         restart = interval != data.RevisedPublishingInterval
         data.RevisedPublishingInterval = interval
-        data.RevisedLifetimeCount = params.RequestedLifetimeCount
-        data.RevisedMaxKeepAliveCount = params.RequestedMaxKeepAliveCount
+        # (asyncua's own caps, as its CreateSubscription has them)
+        data.RevisedLifetimeCount = service._clamp_lifetime_count(params.RequestedLifetimeCount)
+        data.RevisedMaxKeepAliveCount = service._clamp_keep_alive_count(
+            params.RequestedMaxKeepAliveCount)
+        sub._publish_cycles_count = 0  # (a request for it: its lifetime starts again)
         if restart:  # (asyncua's publishing loop took its period when it started)
             if sub._task is not None:
                 sub._task.cancel()
@@ -154,8 +158,11 @@ class _Owned:
             sub = self.subscriptions[int(sub_id)]
             if result.StatusCode.is_good():
                 self._rebind(sub, callback)
-                owner, take, answer = before[int(sub_id)]
-                if owner != self.session.session_id:
+                owner, take, answer = before.pop(int(sub_id), (None, None, None))
+                # (the same connection: its client has the transfer's answer itself)
+                if owner not in (None, self.session.session_id) and \
+                        getattr(take, "__self__", None) is not getattr(callback, "__self__",
+                                                                      None):
                     await _tell_transferred(sub, take, answer)
         done = iter(moved)
         return [next(done) if r is None else ua.TransferResult(StatusCode=ua.StatusCode(r))

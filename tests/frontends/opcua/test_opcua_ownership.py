@@ -43,6 +43,7 @@ from imu_gateway.frontends.opcua.guard import (
     MAX_PUBLISHING_INTERVAL_MS,
     MAX_SUBSCRIPTION_LIFETIME_S,
 )
+from imu_gateway.frontends.opcua.sampling import SAMPLING_STEP_MS
 
 INVALID = ua.StatusCodes.BadSubscriptionIdInvalid
 DENIED = ua.StatusCodes.BadUserAccessDenied
@@ -258,8 +259,9 @@ async def test_a_list_is_answered_per_id_and_the_same_user_may_take_a_subscripti
 async def test_a_modify_subscription_is_applied_within_the_limits(rig: Rig) -> None:
     """ModifySubscription of one's own subscription from 1 s to 100 ms: answered 100,
     and the publishes come about every 100 ms from then on (asyncua answered 1000 and
-    went on at 1 s); an interval past the limit is revised down to it, and a lifetime
-    past the limit's with it."""
+    went on at 1 s), though the subscription had gone without a publish request for
+    longer than its new lifetime; an interval past the limit is revised down to it,
+    and a lifetime past the limit's with it; 0 is the fastest loop's 10 ms."""
     port = free_port()
     async with running(rig.config(port)) as gw, AsyncExitStack() as stack:
         await until(lambda: gw.cache.snapshot("boom").seq >= 1)
@@ -269,6 +271,11 @@ async def test_a_modify_subscription_is_applied_within_the_limits(rig: Rig) -> N
         sub = await subscribe(scada, told, interval=1000.0)
         await add_items(scada, sub, sequence)
         await until(lambda: len(told.published) >= 2, 20)
+        assert gw.opcua is not None and gw.opcua.server is not None
+        held = gw.opcua.server.iserver.subscription_service.subscriptions
+        # (as if 1 000 publishing cycles had passed without a publish request: the
+        # Modify is a request for it, and its lifetime starts again)
+        held[sub]._publish_cycles_count = 1000
         revised = await scada.uaclient.update_subscription(ua.ModifySubscriptionParameters(
             SubscriptionId=sub, RequestedPublishingInterval=100.0,
             RequestedLifetimeCount=600, RequestedMaxKeepAliveCount=10))
@@ -284,3 +291,12 @@ async def test_a_modify_subscription_is_applied_within_the_limits(rig: Rig) -> N
         assert capped.RevisedPublishingInterval == MAX_PUBLISHING_INTERVAL_MS
         assert capped.RevisedPublishingInterval * capped.RevisedLifetimeCount <= \
             MAX_SUBSCRIPTION_LIFETIME_S * 1000
+        # 0 is the fastest loop, not asyncua's publish-on-change (a running subscription
+        # switched to that kept what it had queued unsent, and sent nothing more)
+        fastest = await scada.uaclient.update_subscription(ua.ModifySubscriptionParameters(
+            SubscriptionId=sub, RequestedPublishingInterval=0.0,
+            RequestedLifetimeCount=600, RequestedMaxKeepAliveCount=10))
+        assert fastest.RevisedPublishingInterval == SAMPLING_STEP_MS
+        seen = len(told.values)
+        await until(lambda: len(told.values) >= seen + 10, 20)
+        assert sub in held
