@@ -324,15 +324,20 @@ def _answer_framer() -> native.NativeFramer:
     return native.NativeFramer(native.ANSWER_SHAPES)
 
 
+def _until_answered(ask: Callable[[], Heard]) -> Heard:
+    """``ask()`` again until an answer comes, ``IDENTIFY_TRIES`` times at most."""
+    for _ in range(IDENTIFY_TRIES - 1):
+        if (heard := ask()).answers:
+            return heard
+    return ask()
+
+
 def _native_series(prober: Prober, address: int) -> str:
     exchange = NativeAdapter().poll(Series.VG, address)  # the request is the same for all
-    for _ in range(IDENTIFY_TRIES):
-        heard = prober.ask(exchange.request, native.MAX_FRAME, _answer_framer,
-                           wanted=lambda f: f.address == address and
-                           _shape_key(f) in _READ_ALL_SHAPES)
-        if heard.answers:
-            return _READ_ALL_SHAPES[_shape_key(heard.answers[0])]
-    return "unknown"
+    heard = _until_answered(functools.partial(
+        prober.ask, exchange.request, native.MAX_FRAME, _answer_framer,
+        wanted=lambda f: f.address == address and _shape_key(f) in _READ_ALL_SHAPES))
+    return _READ_ALL_SHAPES[_shape_key(heard.answers[0])] if heard.answers else "unknown"
 
 
 def _shape_key(frame: native.NativeFrame) -> tuple[int, int]:
@@ -413,11 +418,9 @@ def _answers_from(unit: int) -> Any:
 def _modbus_series(prober: Prober, unit: int) -> str:
     start, count = poll_span(Series.AH)
     gap = rtu_silence(prober.port.baudrate)
-    for _ in range(IDENTIFY_TRIES):
-        heard = prober.ask(rtu.read_request(unit, start, count), 5 + 2 * count,
-                           functools.partial(_answers_from, unit), gap, wanted=_unit_is(unit))
-        if heard.answers:
-            break
+    heard = _until_answered(functools.partial(
+        prober.ask, rtu.read_request(unit, start, count), 5 + 2 * count,
+        functools.partial(_answers_from, unit), gap, wanted=_unit_is(unit)))
     for frame in heard.answers:
         if isinstance(frame, rtu.ReadResponse):
             values = rtu.read_values(start, frame.registers)

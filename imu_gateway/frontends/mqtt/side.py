@@ -105,7 +105,8 @@ class SideTopics:
         wait = send_delay(sent_at, self._ha_interval, loop.time())
         if wait <= 0:
             with self.gateway.cache.heard():
-                self._ha_state(self.gateway.cache.snapshot(name))
+                snap = self.gateway.cache.snapshot(name)
+            self._ha_state(snap)
         else:
             self._ha_trailing[name] = loop.call_later(wait, self._ha_trailing_send, name)
 

@@ -26,10 +26,12 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Awaitable, Callable, Iterable, Mapping
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, TypeVar
 
 from asyncua import ua
 from asyncua.common.utils import ServiceError
+
+T = TypeVar("T")
 
 INVALID: int = ua.StatusCodes.BadSubscriptionIdInvalid
 DENIED: int = ua.StatusCodes.BadUserAccessDenied
@@ -74,6 +76,12 @@ class _Owned:
         sub = self.subscriptions.get(int(sub_id))
         return sub is not None and sub.session_id == self.session.session_id
 
+    def _sorted_out(self, items: list[T], sub_id: Callable[[T], int]
+                    ) -> tuple[list[bool], list[T]]:
+        """Which of ``items`` name this session's subscriptions, and those items."""
+        mine = [self.mine(sub_id(item)) for item in items]
+        return mine, [item for item, m in zip(items, mine, strict=True) if m]
+
     def _check(self, params: Any) -> None:
         if not self.mine(params.SubscriptionId):
             raise ServiceError(INVALID)
@@ -116,18 +124,15 @@ class _Owned:
     # ------------------------------------------------------------ services on lists
 
     async def delete_subscriptions(self, ids: list[int]) -> list[ua.StatusCode]:
-        mine = [self.mine(i) for i in ids]
-        done = await self.real["delete_subscriptions"]([i for i, m in zip(ids, mine,
-                                                                          strict=True) if m])
+        mine, kept = self._sorted_out(list(ids), int)
+        done = await self.real["delete_subscriptions"](kept)
         return _merged(mine, done, lambda: ua.StatusCode(INVALID))
 
     async def set_publishing_mode(self, params: ua.SetPublishingModeParameters
                                   ) -> list[ua.StatusCode]:
-        ids = list(params.SubscriptionIds or ())
-        mine = [self.mine(i) for i in ids]
+        mine, kept = self._sorted_out(list(params.SubscriptionIds or ()), int)
         done = await self.real["set_publishing_mode"](ua.SetPublishingModeParameters(
-            PublishingEnabled=params.PublishingEnabled,
-            SubscriptionIds=[i for i, m in zip(ids, mine, strict=True) if m]))
+            PublishingEnabled=params.PublishingEnabled, SubscriptionIds=kept))
         return _merged(mine, done, lambda: ua.StatusCode(INVALID))
 
     def publish(self, acks: Iterable[ua.SubscriptionAcknowledgement] | None = None
@@ -136,10 +141,8 @@ class _Owned:
                    for sub in self.subscriptions.values()):
             # (asyncua kept it, unanswered: nothing of this session would ever take it)
             raise ServiceError(ua.StatusCodes.BadNoSubscription)
-        acks = list(acks or ())
-        mine = [self.mine(a.SubscriptionId) for a in acks]
-        subscriptions, done = self.real["publish"](
-            [a for a, m in zip(acks, mine, strict=True) if m])
+        mine, kept = self._sorted_out(list(acks or ()), lambda ack: ack.SubscriptionId)
+        subscriptions, done = self.real["publish"](kept)
         return subscriptions, _merged(mine, done, lambda: ua.StatusCode(INVALID))
 
     async def transfer_subscriptions(self, params: ua.TransferSubscriptionsParameters,
@@ -185,9 +188,8 @@ class _Owned:
 
         async def publish_results(requestdata: Any = None) -> bool:
             if requestdata is not None:
-                token = requestdata.requesthdr.AuthenticationToken
-                if not any(s.session_id == sub.session_id and s.auth_token == token
-                           for s in list(origins)):
+                owner = _owner(sub, origins)
+                if owner is None or owner.auth_token != requestdata.requesthdr.AuthenticationToken:
                     return False  # (the old session's request: it stays queued there)
             return bool(await publish(requestdata))
 
@@ -200,7 +202,7 @@ class _Owned:
             return INVALID
         if sub.session_id == self.session.session_id:
             return None
-        owner = next((s for s in list(self.origins) if s.session_id == sub.session_id), None)
+        owner = _owner(sub, self.origins)
         if owner is None or _identity(owner, self.origins) != _identity(self.session,
                                                                          self.origins):
             return DENIED
@@ -226,6 +228,11 @@ async def _tell_transferred(sub: Any, take: Callable[..., Any] | None,
     told.NotificationMessage.NotificationData = [ua.StatusChangeNotification(
         Status=ua.StatusCode(ua.StatusCodes.GoodSubscriptionTransferred))]
     await answer(told, request)
+
+
+def _owner(sub: Any, origins: Mapping[Any, bytes | None]) -> Any:
+    """The session ``sub`` is of now (None: not one of the server's clients')."""
+    return next((s for s in list(origins) if s.session_id == sub.session_id), None)
 
 
 def _identity(session: Any, origins: Mapping[Any, bytes | None]) -> tuple[str, bytes | str]:

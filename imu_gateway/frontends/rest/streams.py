@@ -169,25 +169,28 @@ class StreamHub:
         first events queued: where each sensor (or ``sensor``) stands now.  They are
         taken before it listens, so a write they show is not queued again after them,
         and none comes between the two."""
-        first = b""
-        if not self.closed:
-            self._claim()  # (prompt first: what the claim applies, the snapshots show)
-            names = [sensor] if sensor is not None else self.gateway.cache.names
-            try:  # (a sensor a reload removed since the route looked)
-                snaps = self.gateway.cache.snapshots(names)
-            except Exception:
-                self._release_if_idle()
-                raise
-            first = b"".join(_event("reading" if snap.has_reading else "status", snap)
-                             for snap in snaps)
+        first = None if self.closed else self._first_events(sensor)
         sub = Subscription(sensor, peer)
         self.open += 1
-        if self.closed:
+        if first is None:
             sub.end()
         else:
             sub.events.append(first)
             self.subscribers.add(sub)
         return sub
+
+    def _first_events(self, sensor: str | None) -> bytes:
+        """Where each sensor (or ``sensor``) stands now, prompt first: what the claim
+        applies, the snapshots show."""
+        self._claim()
+        names = [sensor] if sensor is not None else self.gateway.cache.names
+        try:  # (a sensor a reload removed since the route looked)
+            snaps = self.gateway.cache.snapshots(names)
+        except Exception:
+            self._release_if_idle()
+            raise
+        return b"".join(_event("reading" if snap.has_reading else "status", snap)
+                        for snap in snaps)
 
     def unsubscribe(self, sub: Subscription) -> None:
         sub.end()
