@@ -141,8 +141,9 @@ SECURITY = """
   client's subscription). TransferSubscriptions takes another session's subscription
   only for the same user (the same user name; both anonymous: the same client
   certificate), else `BadUserAccessDenied` for that id; the session it was taken from
-  is told (`Good_SubscriptionTransferred`). A Publish from a session with
-  no subscription is `BadNoSubscription` (asyncua kept it unanswered).
+  is told (`Good_SubscriptionTransferred`), on a publish request it has waiting or
+  else on its next one. A Publish from a session with no subscription, and no such
+  notice to take, is `BadNoSubscription` (asyncua kept it unanswered).
 - **ModifySubscription** is applied, revised within the limits below: the publishing
   interval (the next publish comes one new interval after the Modify; 0 or less is
   the fastest, 10 ms), the lifetime and keep-alive counts; the lifetime starts again.

@@ -13,7 +13,8 @@ that asks, on the session object itself (``guard``), before asyncua's own method
 * **TransferSubscriptions** takes another session's subscription only for the same
   user (Part 4, 5.13.7): the same user name, or, both anonymous, the same client
   certificate (a secured channel's).  Else ``BadUserAccessDenied`` for that id.  The
-  session it was taken from is told (``Good_SubscriptionTransferred``).
+  session it was taken from is told (``Good_SubscriptionTransferred``), on a publish
+  request it has waiting, or else on its next one.
 * **ModifySubscription** is applied: the publishing interval (the loop restarted at
   the new one), lifetime and keep-alive counts, revised as a CreateSubscription's
   (asyncua answered the old values and changed nothing).
@@ -137,9 +138,12 @@ class _Owned:
 
     def publish(self, acks: Iterable[ua.SubscriptionAcknowledgement] | None = None
                 ) -> tuple[int, list[ua.StatusCode]]:
+        token = self.session.auth_token
         if not any(sub.session_id == self.session.session_id
+                   or token in getattr(sub, "transfer_notices", {})
                    for sub in self.subscriptions.values()):
-            # (asyncua kept it, unanswered: nothing of this session would ever take it)
+            # (asyncua kept it, unanswered: nothing of this session would ever take it;
+            # a notice of a transfer still to tell takes it)
             raise ServiceError(ua.StatusCodes.BadNoSubscription)
         mine, kept = self._sorted_out(list(acks or ()), lambda ack: ack.SubscriptionId)
         subscriptions, done = self.real["publish"](kept)
@@ -150,8 +154,9 @@ class _Owned:
         ids = list(params.SubscriptionIds or ())
         refusals = [self._transfer_refusal(i) for i in ids]
         allowed = [i for i, r in zip(ids, refusals, strict=True) if r is None]
-        # (the old session's ways to take a publish request and answer it, to tell it)
-        before = {int(i): (sub.session_id, sub.pub_request_callback, sub.pub_result_callback)
+        # (the old session, and its ways to take a publish request and answer it)
+        before = {int(i): (_owner(sub, self.origins), sub.pub_request_callback,
+                           sub.pub_result_callback)
                   for i in allowed if (sub := self.subscriptions.get(int(i))) is not None}
         moved = await self.real["transfer_subscriptions"](
             ua.TransferSubscriptionsParameters(SubscriptionIds=allowed,
@@ -163,10 +168,10 @@ class _Owned:
                 self._rebind(sub, callback)
                 owner, take, answer = before.pop(int(sub_id), (None, None, None))
                 # (the same connection: its client has the transfer's answer itself)
-                if owner not in (None, self.session.session_id) and \
+                if owner not in (None, self.session) and \
                         getattr(take, "__self__", None) is not getattr(callback, "__self__",
                                                                       None):
-                    await _tell_transferred(sub, take, answer)
+                    await _tell_transferred(sub, owner, take, answer, self.origins)
         done = iter(moved)
         return [next(done) if r is None else ua.TransferResult(StatusCode=ua.StatusCode(r))
                 for r in refusals]
@@ -188,10 +193,18 @@ class _Owned:
 
         async def publish_results(requestdata: Any = None) -> bool:
             if requestdata is not None:
-                owner = _owner(sub, origins)
-                if owner is None or owner.auth_token != requestdata.requesthdr.AuthenticationToken:
-                    return False  # (the old session's request: it stays queued there)
+                owner, token = _owner(sub, origins), requestdata.requesthdr.AuthenticationToken
+                if owner is None or owner.auth_token != token:
+                    # (an old session's request: it takes the notice of the transfer that
+                    # waited for it, or stays queued there)
+                    tell = sub.transfer_notices.pop(token, None)
+                    if tell is None:
+                        return False
+                    await tell(requestdata)
+                    return True
             return bool(await publish(requestdata))
+
+        sub.transfer_notices = {}
 
         sub.publish_results, sub.owner_checked = publish_results, True
 
@@ -209,25 +222,35 @@ class _Owned:
         return None
 
 
-async def _tell_transferred(sub: Any, take: Callable[..., Any] | None,
-                            answer: Callable[..., Awaitable[None]] | None) -> None:
-    """Tell the session a subscription was taken from that it is gone (Part 4 5.13.7:
-    a StatusChangeNotification of Good_SubscriptionTransferred), on a publish request
-    it has waiting (none waiting: it learns it from its next request's answer, which
-    no longer names the subscription).  The message takes no sequence number from the
-    subscription's, which its new session goes on with."""
+async def _tell_transferred(sub: Any, old: Any, take: Callable[..., Any] | None,
+                            answer: Callable[..., Awaitable[None]] | None,
+                            origins: Mapping[Any, bytes | None]) -> None:
+    """Tell the session ``old`` a subscription was taken from that it is gone (Part 4
+    5.13.7: a StatusChangeNotification of Good_SubscriptionTransferred), on a publish
+    request it has waiting; none waiting, on its next one (asyncua's ``take`` then
+    asks the old connection for the subscription's turn at its next request, and the
+    subscription's ``publish_results`` answers it with the notice).  The message takes
+    no sequence number from the subscription's, which its new session goes on with."""
     if take is None or answer is None:
-        return
-    request = take(sub.data.SubscriptionId)
-    if request is None:
         return
     told = ua.PublishResult()
     told.SubscriptionId = sub.data.SubscriptionId
     told.NotificationMessage.SequenceNumber = sub._notification_seq
-    told.NotificationMessage.PublishTime = datetime.now(UTC)
     told.NotificationMessage.NotificationData = [ua.StatusChangeNotification(
         Status=ua.StatusCode(ua.StatusCodes.GoodSubscriptionTransferred))]
-    await answer(told, request)
+
+    async def tell(request: Any) -> None:
+        told.NotificationMessage.PublishTime = datetime.now(UTC)
+        await answer(told, request)
+
+    request = take(sub.data.SubscriptionId)
+    if request is not None:
+        await tell(request)
+        return
+    # (a notice for a session that has gone since is dropped: bounded by the sessions)
+    live = {session.auth_token for session in list(origins)}
+    sub.transfer_notices = {token: t for token, t in sub.transfer_notices.items()
+                            if token in live} | {old.auth_token: tell}
 
 
 def _owner(sub: Any, origins: Mapping[Any, bytes | None]) -> Any:

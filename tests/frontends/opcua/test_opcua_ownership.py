@@ -256,6 +256,38 @@ async def test_a_list_is_answered_per_id_and_the_same_user_may_take_a_subscripti
 
 
 @pytest.mark.anyio
+async def test_a_session_with_no_publish_request_waiting_is_told_of_the_transfer_at_its_next(
+        rig: Rig) -> None:
+    """The session a subscription was taken from had no publish request waiting when it
+    was taken (a client between two requests): its next Publish is answered with the
+    notice (Good_SubscriptionTransferred), not BadNoSubscription, and the one after
+    that, with nothing left to tell, is BadNoSubscription."""
+    port = free_port()
+    async with running(rig.config(port, users={"operator": PASSWORD})) as gw, \
+            AsyncExitStack() as stack:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+        first = await session(rig, port, clear_password("operator"), stack)
+        theirs = await subscribe(first, Notified())
+        # (its client's publish loop, created and not yet run, never sends a request)
+        loop_task = first.uaclient.session._publish_task
+        assert loop_task is not None
+        loop_task.cancel()
+        again = await session(rig, port, clear_password("operator"), stack)
+        [moved] = await again.uaclient.transfer_subscriptions(
+            ua.TransferSubscriptionsParameters(SubscriptionIds=[theirs],
+                                               SendInitialValues=False))
+        assert moved.StatusCode.is_good()
+        answer = await first.uaclient.publish([])
+        told = Notified()
+        told(answer.Parameters)
+        assert answer.Parameters.SubscriptionId == theirs
+        assert told.statuses == [ua.StatusCodes.GoodSubscriptionTransferred]
+        with pytest.raises(UaStatusCodeError) as none:
+            await first.uaclient.publish([])
+        assert none.value.code == ua.StatusCodes.BadNoSubscription
+
+
+@pytest.mark.anyio
 async def test_a_modify_subscription_is_applied_within_the_limits(rig: Rig) -> None:
     """ModifySubscription of one's own subscription from 1 s to 100 ms: answered 100,
     and the publishes come about every 100 ms from then on (asyncua answered 1000 and
