@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import multiprocessing
+import resource
 import socket
 import subprocess
 import sys
@@ -13,6 +14,7 @@ import tempfile
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import NamedTuple
 
 from imu_gateway.app import Gateway
 from imu_gateway.config import GatewayConfig, config_from_dict
@@ -76,13 +78,20 @@ def fed_config(**front_ends: object) -> GatewayConfig:
         **front_ends}, env={})
 
 
+class Fed(NamedTuple):
+    """What a fed run measured."""
+
+    delivered: int  # what the counter put in its queue
+    cores: float  # the gateway's CPU: process time ÷ wall time
+    system: float  # of which in the kernel (system calls: sockets, epoll, the loopback)
+
+
 async def fed(config: GatewayConfig, rate: float, seconds: float,
               ready: Callable[[Gateway], bool], counter: Callable[..., None],
-              args: tuple[object, ...], settle: float) -> tuple[int, float]:
+              args: tuple[object, ...], settle: float) -> Fed:
     """Run the gateway on ``config`` with readings fed at ``rate`` a second (round the
     sensors, moving values) and ``counter(*args, seconds, queue)`` in a process of its
-    own; measured ``settle`` seconds after the counter started, for ``seconds``.
-    Returns what the counter put in its queue and the gateway's CPU (cores)."""
+    own; measured ``settle`` seconds after the counter started, for ``seconds``."""
     gw = Gateway(config)
     stop, feeding = asyncio.Event(), asyncio.Event()
     task = asyncio.create_task(gw.run(stop))
@@ -101,13 +110,18 @@ async def fed(config: GatewayConfig, rate: float, seconds: float,
     process = multiprocessing.Process(target=counter, args=(*args, seconds, results))
     process.start()
     await asyncio.sleep(settle)
-    c0, t0 = time.process_time(), time.monotonic()
+    # (the total exact; its split into user and system from the kernel's accounting)
+    c0, s0, t0 = time.process_time(), _system(), time.monotonic()
     await asyncio.sleep(seconds)
-    cpu, elapsed = time.process_time() - c0, time.monotonic() - t0
+    cpu, system, elapsed = time.process_time() - c0, _system() - s0, time.monotonic() - t0
     delivered = await asyncio.to_thread(results.get, True, 120)
     await asyncio.to_thread(process.join, 30)
     feeding.set()
     await feeder
     stop.set()
     await task
-    return delivered, cpu / elapsed
+    return Fed(delivered, cpu / elapsed, system / elapsed)
+
+
+def _system() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_stime

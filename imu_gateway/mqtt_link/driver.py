@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+from collections.abc import Callable
 from typing import Any
 
 import paho.mqtt.client as paho
@@ -52,8 +53,12 @@ def close_sockets(client: paho.Client) -> None:
 class Driver:
     """One connected paho client's network loop, on the running event loop."""
 
-    def __init__(self, client: paho.Client) -> None:
+    def __init__(self, client: paho.Client, progress: Callable[[], None] = lambda: None
+                 ) -> None:
         self.client = client
+        #: called after each read and write: what paho wrote or had acknowledged is
+        #: published now (``MQTTMessageInfo.is_published``)
+        self._progress = progress
         self._loop = asyncio.get_running_loop()
         self._fd: int | None = None  # the socket watched, until paho closes it
         self._writer = False  # add_writer is on: the socket's buffer was full
@@ -92,6 +97,7 @@ class Driver:
         if self._fd is None:  # (a read asked for before paho closed the socket)
             return
         self.client.loop_read()  # on an error paho closes the socket (_closing)
+        self._progress()
         self._read_pending()
 
     def _read_pending(self) -> None:
@@ -111,6 +117,7 @@ class Driver:
         if self._fd is None:
             return
         self.client.loop_write()
+        self._progress()
         if self._fd is None:  # the write failed: paho closed the socket
             return
         full = self.client.want_write()

@@ -43,7 +43,7 @@ class Counters:
     """The MQTT client's running totals (its ``stats()``)."""
 
     published: int = 0  # handed to paho
-    written: int = 0  # written (QoS 0) or acknowledged: paho's on_publish
+    written: int = 0  # written (QoS 0) or acknowledged: paho says it is published
     undeliverable: int = 0  # paho can never send it (a bad topic): dropped
     ignored: int = 0  # commands not run: retained, empty, too large, bad properties
     lost_in_flight: int = 0  # handed to paho, unwritten or unacknowledged when it went

@@ -69,16 +69,25 @@ class Pipe:
         self._peers = peers
         self._client = client
         self._connected = connected
-        # Messages in paho's hands: ``_handed - counters.written``.
-        self._handed = 0
-        self._window_full = False  # drain stopped at a full window: written_one drains
+        # Messages in paho's hands, in the order handed: each is done when paho says
+        # it is published (QoS 0: written; else acknowledged).  Asked after each of the
+        # driver's reads and writes (``settle``) rather than told by paho's
+        # ``on_publish``: for each QoS 0 message written, paho builds a ReasonCode and
+        # a Properties (its tables of every property name) only to call it, a seventh
+        # of what MQTT costs a sample (docs/benchmarks.md).
+        self._in_flight: deque[paho.MQTTMessageInfo] = deque()
+        self._window_full = False  # drain stopped at a full window: settle drains
         self._stale: list[Message] = []  # states of before the last connect
 
-    def written_one(self) -> None:
-        """paho wrote (or had acknowledged) a message (its ``on_publish``): what waited
-        for room in the window goes on."""
-        self.counters.written += 1
-        if self._window_full:
+    def settle(self) -> None:
+        """Count what paho has written or had acknowledged since (in order: a QoS 1
+        message waiting for its acknowledgement holds the count of those behind it
+        for a round trip); what waited for room in the window goes on."""
+        flight = self._in_flight
+        while flight and flight[0].is_published():
+            flight.popleft()
+            self.counters.written += 1
+        if self._window_full and len(flight) < WINDOW:
             self.drain()
 
     def connected_anew(self) -> None:
@@ -87,7 +96,7 @@ class Pipe:
         states still waiting are old news by now: set aside, before anything drains
         (the state desk takes them: ``waiting``)."""
         self.counters.lost_in_flight += self.in_window()
-        self._handed = self.counters.written
+        self._in_flight.clear()
         while self.outbox:
             self._stale.append(self.outbox.take())
 
@@ -103,7 +112,7 @@ class Pipe:
         return len(self.outbox) + len(self.control)
 
     def in_window(self) -> int:
-        return max(0, self._handed - self.counters.written)
+        return len(self._in_flight)
 
     def send(self, message: Message) -> None:
         """Queue a message and send what the window allows."""
@@ -152,7 +161,7 @@ class Pipe:
         if info.rc == MQTTErrorCode.MQTT_ERR_SUCCESS:
             if not self.in_window():  # the wait starts now
                 self._progress = (self.counters.written, asyncio.get_running_loop().time())
-            self._handed += 1
+            self._in_flight.append(info)
             self.counters.published += 1
             return True
         return False

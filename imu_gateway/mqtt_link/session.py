@@ -123,7 +123,6 @@ class Session:
         client.max_queued_messages_set(WINDOW * 2)
         client.on_connect = self._paho_connect
         client.on_disconnect = self._paho_disconnect
-        client.on_publish = self._paho_publish
         client.on_message = self._paho_message
         client.on_subscribe = self._paho_subscribe
         return client
@@ -208,7 +207,7 @@ class Session:
         # is set yet, so it writes it itself)
         self.connect_sent()
         self._answered.clear()
-        self._driver = driver = Driver(client)
+        self._driver = driver = Driver(client, lambda: self._guard(self.pipe.settle))
         driver.attach()
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(self._answered.wait(), CONNACK_TIMEOUT)
@@ -253,10 +252,6 @@ class Session:
     def _paho_disconnect(self, client: paho.Client, userdata: Any, flags: Any,
                          reason: ReasonCode, properties: Properties | None) -> None:
         self._guard(self._on_disconnect, reason, client)
-
-    def _paho_publish(self, client: paho.Client, userdata: Any, mid: int,
-                      reason: ReasonCode, properties: Properties | None) -> None:
-        self._guard(self.pipe.written_one)
 
     def _paho_message(self, client: paho.Client, userdata: Any,
                       message: paho.MQTTMessage) -> None:
