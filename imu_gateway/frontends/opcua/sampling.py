@@ -122,10 +122,15 @@ class SampledItems(MonitoredItemService):  # type: ignore[misc]  # (asyncua is u
         every.add(self)
 
     def every_value(self) -> list[ua.NodeId]:
-        """The nodes of this subscription's items that take every value."""
+        """The nodes of this subscription's items that take every value.  An item whose
+        node a reload deleted (``live.retire``: it stays until its client deletes it,
+        and hears nothing more) is not one: its handle is no longer the address
+        space's, and a sensor rebuilt with the same NodeIds is not written sample by
+        sample for it."""
+        live = self.aspace._handle_to_attribute_map
         return [mdata.read_value_id.NodeId for mdata in self._monitored_items.values()
                 if mdata.callback_handle is not None and
-                mdata.callback_handle not in self._interval]
+                mdata.callback_handle not in self._interval and mdata.callback_handle in live]
 
     async def create_monitored_items(self, params: Any) -> list[Any]:
         try:

@@ -289,6 +289,7 @@ class OpcUaServer(Frontend):
             for _, node in values:
                 self._history.variables.pop(node, None)
         await retire(server, server.get_node(root))
+        server.watch.every.changed()  # (its items take no value now: ``every_value``)
 
     async def sensors_changed(self) -> None:
         """A reload changed the sensors (docs/opcua.md, "A reload"): a sensor added

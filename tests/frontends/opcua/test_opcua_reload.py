@@ -96,7 +96,8 @@ async def test_a_reload_adds_and_removes_sensors_in_the_same_session(
             subscription = await client.create_subscription(50, seen)
             sub_id = subscription.subscription_id
             await subscription.subscribe_data_change([node("boom.Angles.pitch"),
-                                                      node("arm.Angles.pitch")])
+                                                      node("arm.Angles.pitch")],
+                                                     sampling_interval=0)  # (every value)
             await subscription.subscribe_events(
                 client.nodes.server, ua.NodeId(ua.ObjectIds.GeneralModelChangeEventType))
             await until(lambda: len(seen.of("boom.Angles.pitch")) >= 3
@@ -167,7 +168,8 @@ async def test_a_changed_sensor_is_rebuilt_or_written_in_place(
             seen = _Seen()
             subscription = await client.create_subscription(50, seen)
             await subscription.subscribe_data_change([node("boom.Angles.pitch"),
-                                                      node("arm.Angles.pitch")])
+                                                      node("arm.Angles.pitch")],
+                                                     sampling_interval=0)  # (every value)
             await subscription.subscribe_events(
                 client.nodes.server, ua.NodeId(ua.ObjectIds.GeneralModelChangeEventType))
             await until(lambda: len(seen.of("arm.Angles.pitch")) >= 1)
@@ -182,6 +184,17 @@ async def test_a_changed_sensor_is_rebuilt_or_written_in_place(
             await until(lambda: any(v.StatusCode.value == ua.StatusCodes.BadNodeIdUnknown
                                     for v in seen.of("arm.Angles.pitch")))
             await until(lambda: len(seen.events) >= 1)
+            # the item on the old pitch stays (its client deletes it), but takes no
+            # value: the rebuilt arm's samples are not written one by one for it
+            assert gw.opcua is not None and gw.opcua.server is not None
+            every = gw.opcua.server.watch.every.nodes()
+            assert node("boom.Angles.pitch").nodeid in every
+            assert node("arm.Angles.pitch").nodeid not in every
+            seq = gw.cache.snapshot("arm").seq
+            await until(lambda: gw.cache.snapshot("arm").seq >= seq + 2)
+            gw.cache.catch_up()
+            each = gw.opcua._samples._each  # (the sensors written sample by sample)
+            assert "boom" in each and "arm" not in each
             verbs = [(str(c.Affected.Identifier), c.Verb) for c in seen.events[0].Changes]
             assert (f"{GID}.Sensors.arm", NODE_DELETED) in verbs
             assert (f"{GID}.Sensors.arm", NODE_ADDED) in verbs
