@@ -38,7 +38,8 @@ asyncua's path and by the gateway's (``frontends/opcua/encoding.py``), and a pub
 one sample's notifications, per item.
 
 ``--monitored``: instead, a sample's way into the OPC UA values a client monitors at
-sampling interval 0 (written, checked, queued; not published), in bursts.
+sampling interval 0 (written, checked, queued; not published), in bursts; ``--items
+N``: the first N of the sensor's values.
 
 ``--writes``: instead, asyncua's write paths for one value in a loop (process time per
 write), without and with a monitored item (a server-side subscription whose publish
@@ -359,8 +360,8 @@ def encode_paths(rounds: int = 5, count: int = 20_000) -> None:
         print(f"{name:<48} {best * 1e6 / per_item:>6.2f}")
 
 
-async def monitored_path(pki: str, sampling: float = 0.0, rounds: int = 7,
-                         samples: int = 300) -> None:
+async def monitored_path(pki: str, sampling: float = 0.0, items: int = len(FIELDS),
+                         rounds: int = 7, samples: int = 300) -> None:
     """``--monitored``: µs of process time per sample put into the cache, with a real
     client subscribed to every value of the sensor at sampling interval 0 (a queue of
     1000, publishing every second: the publish's encoding is left out, ``--encode``
@@ -385,7 +386,7 @@ async def monitored_path(pki: str, sampling: float = 0.0, rounds: int = 7,
         subscription = await client.create_subscription(1000 if not sampling else 500,
                                                         Handler())
         await subscription.subscribe_data_change(
-            [client.get_node(ua.NodeId(f"bench.Sensors.s0.{f}", idx)) for f in FIELDS],
+            [client.get_node(ua.NodeId(f"bench.Sensors.s0.{f}", idx)) for f in FIELDS[:items]],
             queuesize=1 if sampling else 1000, sampling_interval=sampling)
         motion, best = Motion.from_seed(1), math.inf
         loop = asyncio.get_running_loop()
@@ -400,7 +401,8 @@ async def monitored_path(pki: str, sampling: float = 0.0, rounds: int = 7,
     stop.set()
     await running
     how = f"sampled every {sampling:g} ms, 100 Hz paced" if sampling else "sampling 0"
-    print(f"a sample with {len(FIELDS)} monitored values ({how}): {best * 1e6:.1f} µs "
+    print(f"a sample with {min(items, len(FIELDS))} monitored values ({how}): "
+          f"{best * 1e6:.1f} µs "
           f"(best of {rounds} x {samples}); notifications {told[0]}")
 
 
@@ -439,7 +441,7 @@ def main() -> None:
         return
     if args.monitored:
         with tempfile.TemporaryDirectory() as pki:
-            asyncio.run(monitored_path(pki, args.sampling))
+            asyncio.run(monitored_path(pki, args.sampling, args.items))
         return
     if args.writes:
         with tempfile.TemporaryDirectory() as pki:

@@ -234,17 +234,18 @@ def _quality() -> list[str]:
             "off the line), not when it was published; the ServerTimestamp is when it was "
             "written into the address space, which is when a client looks: a sensor's "
             "newest sample is written at the next request, publish or sampling tick of "
-            "any client (where a monitored item of one of its values has sampling "
-            "interval 0, each sample as it comes, within 0.1 s and at most 0.25 s with no "
-            "MQTT, Sparkplug or live stream on). Its StatusCode says how the sensor is:",
+            "any client (into a value a monitored item takes with sampling interval 0, "
+            "each sample as it comes, within 0.1 s and at most 0.25 s with no MQTT, "
+            "Sparkplug or live stream on). Its StatusCode says how the sensor is:",
             "",
             "| sensor | StatusCode |", "|---|---|",
             *(f"| {status.value} | `{code}` |" for status, code in QUALITY.items()),
             f"| never read since the start | `{NEVER_READ}` (the value is null or NaN) |", "",
             "A Read gets the newest sample; a sample that came between two looks is "
-            "written only where an item takes every value, since no client could see it "
-            "(a 100 Hz sensor read every 100 ms is written ten times a second, not a "
-            "hundred). A monitored item "
+            "written only into the values an item takes every value of, since no client "
+            "could see it elsewhere (a 100 Hz sensor read every 100 ms is written ten "
+            "times a second, not a hundred; with an item taking every pitch, its pitch a "
+            "hundred times and its other values ten). A monitored item "
             "gets the samples at its sampling interval (below), at the publishing interval "
             "of its subscription. A value that repeats (a sensor at rest) changes only its "
             "timestamp: ask for the DataChangeTrigger StatusValueTimestamp (and sampling "

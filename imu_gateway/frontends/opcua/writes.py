@@ -106,6 +106,22 @@ async def tell(due: list[Due], after: asyncio.Task[None] | None = None) -> None:
             log.exception("opcua: a monitored item's data change (handle %s)", handle)
 
 
+@dataclasses.dataclass(frozen=True, slots=True)
+class Part:
+    """Which of a sensor's nodes a write writes: ``nodes``, or (``inside`` False) all
+    but those.  (A key: its writer keeps the nodes it picks out for it.)"""
+
+    nodes: frozenset[ua.NodeId]
+    inside: bool
+
+    def takes(self, node: ua.NodeId) -> bool:
+        return (node in self.nodes) == self.inside
+
+
+#: which of a sensor's nodes a write writes (None: every one)
+Which = Part | None
+
+
 class Samples:
     """The gateway's samples into the address space, each sensor's newest written when
     a client looks: before each request, publish and sampling tick (``flush``, which
@@ -115,36 +131,40 @@ class Samples:
     clients read, or sample every 100 ms, is written ten times a second, not a
     hundred.
 
-    Except where a monitored item takes every value (sampling interval 0,
-    ``EveryValue``): each of that sensor's samples is written as it comes, and what
-    was held for it goes first.
+    Except the nodes a monitored item takes every value of (sampling interval 0,
+    ``EveryValue``): each sample is written into those as it comes (what was held
+    for them goes first), and into the sensor's other nodes when a client looks, as
+    above.  A client that takes every pitch and roll has two nodes written a sample,
+    not the sensor's 25.
 
-    ``write(snap)`` writes a sample into its nodes and returns its monitored items'
-    callbacks; ``nodes()`` gives each sensor's nodes, (sensor, node) pairs (a reload
-    changes them); ``fail`` is told of a sample a look could not write, and of a
-    callback's task that failed."""
+    ``write(snap, which)`` writes a sample into its nodes (those ``which`` says, None:
+    all) and returns its monitored items' callbacks; ``nodes()`` gives each sensor's
+    nodes, (sensor, node) pairs (a reload changes them); ``fail`` is told of a sample
+    a look could not write, and of a callback's task that failed."""
 
-    def __init__(self, write: Callable[[Snapshot], list[Due]], every: EveryValue,
+    def __init__(self, write: Callable[[Snapshot, Which], list[Due]], every: EveryValue,
                  nodes: Callable[[], Iterable[tuple[str, ua.NodeId]]],
                  fail: Callable[[BaseException], None]) -> None:
         self._write = write
         self._every = every
         self._nodes = nodes
         self._fail = fail
+        # the newest sample not yet written into a sensor's nodes (of a sensor in
+        # ``_each``: into those outside its every-value nodes)
         self._held: dict[str, Snapshot] = {}
         self._version = -1  # of ``every`` when ``_each`` was worked out
-        self._each: frozenset[str] = frozenset()  # sensors with an item of every value
+        # sensor -> its nodes an item takes every value of (only sensors with one)
+        self._each: dict[str, Part] = {}
         self._telling: asyncio.Task[None] | None = None  # a sample's items still told
 
     def offer(self, snap: Snapshot) -> None:
         """A sample (or a status change) of ``snap.name``."""
         if self._every.version != self._version:
             self._refresh()
-        if snap.name in self._each:
-            self._held.pop(snap.name, None)  # (older: this one replaces it)
-            self._take(snap)
-        else:
-            self._held[snap.name] = snap
+        every = self._each.get(snap.name)
+        if every is not None:
+            self._take(snap, every)
+        self._held[snap.name] = snap  # (older: this one replaces it)
 
     def flush(self) -> None:
         """Write what is held: a client looks.  A sample that fails is the server's
@@ -153,8 +173,8 @@ class Samples:
         if self._every.version != self._version:
             self._refresh()
         held, self._held = self._held, {}
-        for snap in held.values():
-            self._take_guarded(snap)
+        for name, snap in held.items():
+            self._take_guarded(snap, _outside(self._each.get(name)))
 
     def forget(self, name: str) -> None:
         """The sensor's nodes are gone (a reload): what was held for them is not
@@ -165,22 +185,27 @@ class Samples:
     def _refresh(self) -> None:
         self._version = self._every.version
         watched = self._every.nodes()
-        each = frozenset(name for name, node in self._nodes() if node in watched)
-        for name in each - self._each:  # (now every value: the one held goes first)
-            snap = self._held.pop(name, None)
-            if snap is not None:
-                self._take_guarded(snap)
-        self._each = each
+        each: dict[str, set[ua.NodeId]] = {}
+        for name, node in self._nodes():
+            if node in watched:
+                each.setdefault(name, set()).add(node)
+        now = {name: Part(frozenset(nodes), inside=True) for name, nodes in each.items()}
+        for name in now.keys() | self._each.keys():
+            before = self._each.get(name)
+            if now.get(name) != before and (snap := self._held.pop(name, None)) is not None:
+                # (what was held goes first, into the nodes it is not in yet)
+                self._take_guarded(snap, _outside(before))
+        self._each = now
 
-    def _take_guarded(self, snap: Snapshot) -> None:
+    def _take_guarded(self, snap: Snapshot, which: Which) -> None:
         try:
-            self._take(snap)
+            self._take(snap, which)
         except Exception as exc:
             self._fail(exc)
 
-    def _take(self, snap: Snapshot) -> None:
-        """A sample written into its nodes, its monitored items told."""
-        due = self._write(snap)
+    def _take(self, snap: Snapshot, which: Which) -> None:
+        """A sample written into its nodes (``which``), its monitored items told."""
+        due = self._write(snap, which)
         before = self._telling
         if due and (before is None or before.done()):
             due = tell_now(due)  # (nearly always all of them: no task)
@@ -191,3 +216,8 @@ class Samples:
     def _written(self, task: asyncio.Task[None]) -> None:
         if not task.cancelled() and task.exception() is not None:
             self._fail(task.exception())  # type: ignore[arg-type]
+
+
+def _outside(every: Part | None) -> Which:
+    """A sensor's nodes other than those taken every value of (None: all)."""
+    return None if every is None else Part(every.nodes, inside=False)

@@ -249,11 +249,14 @@ class Writes:
     def __init__(self, samples: Any) -> None:
         self.samples = samples
         self.written = self.flushes = 0
+        self.selected: list[int] = []  # how many of the sensor's nodes each write wrote
         write, flush = samples._write, samples.flush
 
-        def counted_write(snap: Any) -> Any:
+        def counted_write(snap: Any, which: Any = None) -> Any:
             self.written += 1
-            return write(snap)
+            nodes = [node for name, node in samples._nodes() if name == snap.name]
+            self.selected.append(sum(1 for node in nodes if which is None or which.takes(node)))
+            return write(snap, which)
 
         def counted_flush() -> None:
             self.flushes += 1
@@ -277,8 +280,8 @@ async def test_a_sensor_is_written_when_a_client_looks_unless_an_item_takes_ever
     sensor's samples are written only when a client looks (a publish, a tick, a
     request: at most one each), far fewer than came, and a Read still gives the
     newest.  Modified to sampling 0, each sample
-    is written as it comes, and told in order; deleted, it is back to when a client
-    looks."""
+    is written as it comes into that item's node (the sensor's others still when a
+    client looks), and told in order; deleted, it is back to when a client looks."""
     port = free_port()
     async with running(_config(port, tmp_path / "pki", line[0])) as gw, \
             Client(f"opc.tcp://127.0.0.1:{port}/") as client:
@@ -299,8 +302,13 @@ async def test_a_sensor_is_written_when_a_client_looks_unless_an_item_takes_ever
             _modify(subscription, made[0].MonitoredItemId, 0.0, queue=100))
         assert [c.RevisedSamplingInterval for c in changed] == [0.0]
         seen = len(told.of[1])
+        first = len(writes.selected)
         came, written, _ = await writes.over(gw, 50)
         assert written >= came, (came, written)  # (each one; a flush may add one more)
+        # each into the one node taken every value of; the sensor's others when a
+        # client looks, as before
+        selected = writes.selected[first:]
+        assert selected.count(1) >= came and max(selected) > 1, selected
         await until(lambda: len(told.of[1]) >= seen + 41, 20)  # (published every second)
         # the first is the one held at the Modify (older by any number), never after a
         # newer one; then each one
