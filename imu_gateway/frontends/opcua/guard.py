@@ -81,6 +81,7 @@ _REGISTER = frozenset({ua.ObjectIds.RegisterServerRequest_Encoding_DefaultBinary
 _CLOSE = ua.NodeId(ua.ObjectIds.CloseSessionRequest_Encoding_DefaultBinary)
 _SUBSCRIBE = ua.NodeId(ua.ObjectIds.CreateSubscriptionRequest_Encoding_DefaultBinary)
 _MODIFY = ua.NodeId(ua.ObjectIds.ModifySubscriptionRequest_Encoding_DefaultBinary)
+_PUBLISH = ua.NodeId(ua.ObjectIds.PublishRequest_Encoding_DefaultBinary)
 _CALL = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
 MAX_SUBSCRIPTIONS_PER_SESSION = 10
 MAX_PUBLISHING_INTERVAL_MS = 60_000.0
@@ -201,6 +202,8 @@ class GuardedProcessor(UaProcessor):
         if typeid == _CREATE and self.session is not None:
             self._watch.origins[self.session] = channel.peer_certificate
             ownership.guard(self.session, self._watch.origins)
+        elif typeid == _PUBLISH and self.session is not None:
+            await ownership.answer_notice(self, requesthdr)
         elif typeid == _SUBSCRIBE and self.session is not None:
             sample_items(self.iserver.subscription_service, self.session.session_id,
                          MAX_PUBLISHING_INTERVAL_MS, self._watch.catch_up, self._watch.every)

@@ -14,7 +14,7 @@ that asks, on the session object itself (``guard``), before asyncua's own method
   user (Part 4, 5.13.7): the same user name, or, both anonymous, the same client
   certificate (a secured channel's).  Else ``BadUserAccessDenied`` for that id.  The
   session it was taken from is told (``Good_SubscriptionTransferred``), on a publish
-  request it has waiting, or else on its next one.
+  request it has waiting, or else on its next one (on whatever connection).
 * **ModifySubscription** is applied: the publishing interval (the loop restarted at
   the new one), lifetime and keep-alive counts, revised as a CreateSubscription's
   (asyncua answered the old values and changed nothing).
@@ -25,6 +25,7 @@ that asks, on the session object itself (``guard``), before asyncua's own method
 from __future__ import annotations
 
 import asyncio
+import weakref
 from collections.abc import Awaitable, Callable, Iterable, Mapping
 from datetime import UTC, datetime
 from typing import Any, TypeVar
@@ -138,12 +139,11 @@ class _Owned:
 
     def publish(self, acks: Iterable[ua.SubscriptionAcknowledgement] | None = None
                 ) -> tuple[int, list[ua.StatusCode]]:
-        token = self.session.auth_token
-        if not any(sub.session_id == self.session.session_id
-                   or token in getattr(sub, "transfer_notices", {})
-                   for sub in self.subscriptions.values()):
+        if not _NOTICES.get(self.session) and not any(
+                sub.session_id == self.session.session_id
+                for sub in self.subscriptions.values()):
             # (asyncua kept it, unanswered: nothing of this session would ever take it;
-            # a notice of a transfer still to tell takes it)
+            # a notice of a transfer still to tell takes it: ``answer_notice``)
             raise ServiceError(ua.StatusCodes.BadNoSubscription)
         mine, kept = self._sorted_out(list(acks or ()), lambda ack: ack.SubscriptionId)
         subscriptions, done = self.real["publish"](kept)
@@ -166,12 +166,13 @@ class _Owned:
             sub = self.subscriptions[int(sub_id)]
             if result.StatusCode.is_good():
                 self._rebind(sub, callback)
+                _forget_notice(self.session, int(sub_id))  # (it has it back)
                 owner, take, answer = before.pop(int(sub_id), (None, None, None))
                 # (the same connection: its client has the transfer's answer itself)
                 if owner not in (None, self.session) and \
                         getattr(take, "__self__", None) is not getattr(callback, "__self__",
                                                                       None):
-                    await _tell_transferred(sub, owner, take, answer, self.origins)
+                    await _tell_transferred(sub, owner, take, answer)
         done = iter(moved)
         return [next(done) if r is None else ua.TransferResult(StatusCode=ua.StatusCode(r))
                 for r in refusals]
@@ -193,18 +194,11 @@ class _Owned:
 
         async def publish_results(requestdata: Any = None) -> bool:
             if requestdata is not None:
-                owner, token = _owner(sub, origins), requestdata.requesthdr.AuthenticationToken
-                if owner is None or owner.auth_token != token:
-                    # (an old session's request: it takes the notice of the transfer that
-                    # waited for it, or stays queued there)
-                    tell = sub.transfer_notices.pop(token, None)
-                    if tell is None:
-                        return False
-                    await tell(requestdata)
-                    return True
+                owner = _owner(sub, origins)
+                if owner is None or owner.auth_token != requestdata.requesthdr.AuthenticationToken:
+                    return False  # (the old session's request: it stays queued there)
             return bool(await publish(requestdata))
 
-        sub.transfer_notices = {}
 
         sub.publish_results, sub.owner_checked = publish_results, True
 
@@ -222,15 +216,19 @@ class _Owned:
         return None
 
 
+#: the notices of subscriptions transferred away that a session still has to get,
+#: oldest first (it had no publish request waiting then)
+_NOTICES: weakref.WeakKeyDictionary[Any, list[ua.PublishResult]] = \
+    weakref.WeakKeyDictionary()
+
+
 async def _tell_transferred(sub: Any, old: Any, take: Callable[..., Any] | None,
-                            answer: Callable[..., Awaitable[None]] | None,
-                            origins: Mapping[Any, bytes | None]) -> None:
+                            answer: Callable[..., Awaitable[None]] | None) -> None:
     """Tell the session ``old`` a subscription was taken from that it is gone (Part 4
     5.13.7: a StatusChangeNotification of Good_SubscriptionTransferred), on a publish
-    request it has waiting; none waiting, on its next one (asyncua's ``take`` then
-    asks the old connection for the subscription's turn at its next request, and the
-    subscription's ``publish_results`` answers it with the notice).  The message takes
-    no sequence number from the subscription's, which its new session goes on with."""
+    request it has waiting; none waiting, on its next one, on whichever connection
+    that comes (``answer_notice``).  The message takes no sequence number from the
+    subscription's, which its new session goes on with."""
     if take is None or answer is None:
         return
     told = ua.PublishResult()
@@ -238,19 +236,37 @@ async def _tell_transferred(sub: Any, old: Any, take: Callable[..., Any] | None,
     told.NotificationMessage.SequenceNumber = sub._notification_seq
     told.NotificationMessage.NotificationData = [ua.StatusChangeNotification(
         Status=ua.StatusCode(ua.StatusCodes.GoodSubscriptionTransferred))]
-
-    async def tell(request: Any) -> None:
-        told.NotificationMessage.PublishTime = datetime.now(UTC)
-        await answer(told, request)
-
     request = take(sub.data.SubscriptionId)
-    if request is not None:
-        await tell(request)
+    if request is None:
+        _NOTICES.setdefault(old, []).append(told)
         return
-    # (a notice for a session that has gone since is dropped: bounded by the sessions)
-    live = {session.auth_token for session in list(origins)}
-    sub.transfer_notices = {token: t for token, t in sub.transfer_notices.items()
-                            if token in live} | {old.auth_token: tell}
+    told.NotificationMessage.PublishTime = datetime.now(UTC)
+    await answer(told, request)
+
+
+async def answer_notice(processor: Any, requesthdr: Any) -> None:
+    """After a Publish of ``processor``'s session (``guard.GuardedProcessor``): if a
+    notice of a transfer waits for the session and the request was queued, the
+    request takes the notice (by the session held, not by the connection it had:
+    a session activated again on a new connection gets it there)."""
+    notices = _NOTICES.get(processor.session)
+    if not notices:
+        return
+    queued = processor._publish_requests
+    request = next((data for data in queued if data.requesthdr is requesthdr), None)
+    if request is None:
+        return  # (taken by a subscription's deferred publish: the next one)
+    queued.remove(request)
+    told = notices.pop(0)
+    told.NotificationMessage.PublishTime = datetime.now(UTC)
+    await processor.forward_publish_response(told, request)
+
+
+def _forget_notice(session: Any, sub_id: int) -> None:
+    """A subscription taken back by a session: its notice of it is old news."""
+    notices = _NOTICES.get(session)
+    if notices:
+        notices[:] = [n for n in notices if n.SubscriptionId != sub_id]
 
 
 def _owner(sub: Any, origins: Mapping[Any, bytes | None]) -> Any:

@@ -39,7 +39,7 @@ from .methods import Caller, instance_caller, type_caller
 from .nodes import VALUE_TYPE, Callers, Ids, build_sensor, build_type, variant
 from .security import ConfigUsers, secure
 from .space import BUS_VARS, NAMESPACE, quality
-from .writes import DirectWriter, Due, Part, Samples, Which, tell
+from .writes import DirectWriter, Due, Samples, SensorNodes, Which, tell
 
 log = logging.getLogger("imu_gateway.opcua")
 
@@ -120,11 +120,7 @@ class OpcUaServer(Frontend):
         self.server: GatewayUaServer | None = None
         self.certificate: Path | None = None
         self.idx = 0
-        self.values: dict[str, list[tuple[str, ua.NodeId]]] = {}  # sensor -> (field, node)
-        self.status_nodes: dict[str, list[tuple[Any, ua.NodeId]]] = {}
-        # (sensor, part) -> its value and status nodes in the part (``_part``)
-        self._parts: dict[tuple[str, Part], tuple[list[tuple[str, ua.NodeId]],
-                                                  list[tuple[Any, ua.NodeId]]]] = {}
+        self.nodes = SensorNodes()  # each sensor's value and status nodes
         self.bus_nodes: dict[str, list[tuple[Any, ua.NodeId]]] = {}
         self.callers: dict[tuple[ua.NodeId, str], Caller] = {}  # (object, command)
         self.counts: Counter[str] = Counter()
@@ -181,7 +177,7 @@ class OpcUaServer(Frontend):
         self.idx = await server.register_namespace(NAMESPACE)
         await self._build(server)
         self._history = await install_history(server, self.gateway.history, {
-            node: (s, f) for s, pairs in self.values.items() for f, node in pairs})
+            node: (s, f) for s, pairs in self.nodes.values.items() for f, node in pairs})
         try:
             await server.start()
         except OSError:
@@ -190,7 +186,8 @@ class OpcUaServer(Frontend):
             raise
         self.server = server
         self._writer = DirectWriter(server.iserver.aspace)
-        self._samples = Samples(self._write_sensor, server.watch.every, self._nodes, self.fail)
+        self._samples = Samples(self._write_sensor, server.watch.every, self.nodes.pairs,
+                                self.fail)
         for snap in self.gateway.cache.snapshots():
             await tell(self._write_sensor(snap))
         # not prompt: its clients read, publish and sample at their own times, and each
@@ -268,8 +265,7 @@ class OpcUaServer(Frontend):
             self._sensors, ids, name, self._type_id, set(CAPABILITIES[sensor.series].groups),
             {"Series": shape.series, "Protocol": shape.protocol, "Address": sensor.address},
             [c for c in self._commands if c.name in shape.commands], self._method_of(name))
-        self.values[name], self.status_nodes[name] = built.values, built.status
-        self._parts.clear()  # (of nodes gone or rebuilt)
+        self.nodes.add(name, built.values, built.status)
         self.shapes[name] = shape
         inputs = {**dict(built.values), **{row.name: node for row, node in built.status}}
         await self.conditions.add_sensor(name, server.get_node(ids()), inputs, self.idx,
@@ -283,9 +279,7 @@ class OpcUaServer(Frontend):
         are forgotten, its monitored items are told ``BadNodeIdUnknown``."""
         root = self._ids(name)()
         self._samples.forget(name)
-        values = self.values.pop(name, [])
-        self.status_nodes.pop(name, None)
-        self._parts.clear()
+        values = self.nodes.remove(name)
         self.shapes.pop(name, None)
         for key in [k for k in self.callers if k[0] == root]:
             del self.callers[key]
@@ -372,23 +366,18 @@ class OpcUaServer(Frontend):
         if self.server is not None:
             self._samples.flush()
 
-    def _nodes(self) -> list[tuple[str, ua.NodeId]]:
-        """Each sensor's value and status nodes, (sensor, node)."""
-        return [(name, node) for name, pairs in self.values.items() for _, node in pairs] + \
-            [(name, node) for name, pairs in self.status_nodes.items() for _, node in pairs]
-
     def _write_sensor(self, snap: Snapshot, which: Which = None) -> list[Due]:
         """The sample into its sensor's nodes (``which``: None, all), now (``writes``);
         returns the monitored items' callbacks it is due to."""
         due: list[Due] = []
-        if self.server is None or snap.name not in self.values:
+        if self.server is None or snap.name not in self.nodes.values:
             return due
         now = datetime.now(UTC)
         source = snap.timestamp or now
         code = _status(quality(snap))
         fields = values_of(snap)
         write = self._writer.write
-        values, status = self._part(snap.name, which)
+        values, status = self.nodes.part(snap.name, which)
         for name, nodeid in values:
             write(nodeid, Sample(variant(fields.get(name), VALUE_TYPE), StatusCode=code,
                                  SourceTimestamp=source, ServerTimestamp=now), due)
@@ -396,19 +385,6 @@ class OpcUaServer(Frontend):
             write(nodeid, Sample(variant(row.value(snap), row.datatype),
                                  SourceTimestamp=source, ServerTimestamp=now), due)
         return due
-
-    def _part(self, name: str, which: Which) -> tuple[list[tuple[str, ua.NodeId]],
-                                                      list[tuple[Any, ua.NodeId]]]:
-        """The sensor's value and status nodes ``which`` takes (kept per part: a
-        sample's write does not test each node)."""
-        if which is None:
-            return self.values[name], self.status_nodes[name]
-        part = self._parts.get((name, which))
-        if part is None:
-            part = self._parts[(name, which)] = (
-                [pair for pair in self.values[name] if which.takes(pair[1])],
-                [pair for pair in self.status_nodes[name] if which.takes(pair[1])])
-        return part
 
     async def _write_buses(self) -> None:
         while True:

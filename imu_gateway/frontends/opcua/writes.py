@@ -122,6 +122,48 @@ class Part:
 Which = Part | None
 
 
+#: a sensor's value nodes, (field, node), and status nodes, (row, node)
+Values = list[tuple[str, ua.NodeId]]
+Status = list[tuple[Any, ua.NodeId]]
+
+
+class SensorNodes:
+    """Each sensor's value and status nodes (a reload changes them), and the part of
+    them a write takes (``Part``: kept per part, so that a sample's write does not
+    test each node)."""
+
+    def __init__(self) -> None:
+        self.values: dict[str, Values] = {}
+        self.status: dict[str, Status] = {}
+        self._parts: dict[tuple[str, Part], tuple[Values, Status]] = {}
+
+    def add(self, name: str, values: Values, status: Status) -> None:
+        self.values[name], self.status[name] = values, status
+        self._parts.clear()  # (of nodes gone or rebuilt)
+
+    def remove(self, name: str) -> Values:
+        """The sensor's nodes forgotten; returns its value nodes."""
+        self.status.pop(name, None)
+        self._parts.clear()
+        return self.values.pop(name, [])
+
+    def pairs(self) -> list[tuple[str, ua.NodeId]]:
+        """Each sensor's value and status nodes, (sensor, node)."""
+        return [(name, node) for name, pairs in self.values.items() for _, node in pairs] + \
+            [(name, node) for name, pairs in self.status.items() for _, node in pairs]
+
+    def part(self, name: str, which: Which) -> tuple[Values, Status]:
+        """The sensor's value and status nodes ``which`` takes."""
+        if which is None:
+            return self.values[name], self.status[name]
+        part = self._parts.get((name, which))
+        if part is None:
+            part = self._parts[(name, which)] = (
+                [pair for pair in self.values[name] if which.takes(pair[1])],
+                [pair for pair in self.status[name] if which.takes(pair[1])])
+        return part
+
+
 class Samples:
     """The gateway's samples into the address space, each sensor's newest written when
     a client looks: before each request, publish and sampling tick (``flush``, which

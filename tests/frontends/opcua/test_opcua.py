@@ -183,8 +183,8 @@ async def test_every_sample_node_holds_the_variant_type_of_its_data_type(
         await until(lambda: all(gw.cache.snapshot(s).seq >= 2 for s in ("boom", "mast")))
         assert gw.opcua is not None
         written = [nodeid for sensor in ("boom", "mast")
-                   for nodeid in [n for _, n in gw.opcua.values[sensor]] +
-                   [n for _, n in gw.opcua.status_nodes[sensor]]]
+                   for nodeid in [n for _, n in gw.opcua.nodes.values[sensor]] +
+                   [n for _, n in gw.opcua.nodes.status[sensor]]]
         assert len(written) > 30
         for nodeid in written:
             ua_node = client.get_node(nodeid)

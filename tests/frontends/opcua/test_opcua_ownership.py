@@ -13,6 +13,7 @@ all of them: still there, still publishing, its item still reporting."""
 
 from __future__ import annotations
 
+import gc
 import statistics
 import time
 from collections.abc import AsyncIterator
@@ -39,6 +40,7 @@ from test_opcua_security import (
     namespace,
 )
 
+from imu_gateway.frontends.opcua import ownership
 from imu_gateway.frontends.opcua.guard import (
     MAX_PUBLISHING_INTERVAL_MS,
     MAX_SUBSCRIPTION_LIFETIME_S,
@@ -285,6 +287,40 @@ async def test_a_session_with_no_publish_request_waiting_is_told_of_the_transfer
         with pytest.raises(UaStatusCodeError) as none:
             await first.uaclient.publish([])
         assert none.value.code == ua.StatusCodes.BadNoSubscription
+
+
+@pytest.mark.anyio
+async def test_a_notice_is_forgotten_when_taken_back_and_holds_no_session(rig: Rig) -> None:
+    """A subscription taken, then taken back, by sessions with no publish request
+    waiting: the first's notice of the first transfer is dropped (it has the
+    subscription again, and its next Publish gets the subscription's own message), the
+    second's waits for it; and a session closed with a notice waiting is not kept
+    for it."""
+    port = free_port()
+    async with running(rig.config(port, users={"operator": PASSWORD})) as gw, \
+            AsyncExitStack() as stack:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+        first = await session(rig, port, clear_password("operator"), stack)
+        theirs = await subscribe(first, Notified())
+        loop_task = first.uaclient.session._publish_task
+        assert loop_task is not None
+        loop_task.cancel()  # (created and not yet run: it never sends a request)
+        again = await session(rig, port, clear_password("operator"), stack)
+        params = ua.TransferSubscriptionsParameters(SubscriptionIds=[theirs],
+                                                    SendInitialValues=False)
+        [moved] = await again.uaclient.transfer_subscriptions(params)
+        [back] = await first.uaclient.transfer_subscriptions(params)
+        assert moved.StatusCode.is_good() and back.StatusCode.is_good()
+        assert sorted(len(n) for n in ownership._NOTICES.values()) == [0, 1]
+        told = Notified()
+        answer = await first.uaclient.publish([])
+        told(answer.Parameters)
+        assert answer.Parameters.SubscriptionId == theirs
+        assert ua.StatusCodes.GoodSubscriptionTransferred not in told.statuses
+        await again.uaclient.close_session(True)
+        again.disconnect_socket()
+        await until(lambda: gc.collect() >= 0 and
+                    sum(len(n) for n in ownership._NOTICES.values()) == 0, 10)
 
 
 @pytest.mark.anyio
