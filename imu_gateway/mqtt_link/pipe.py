@@ -69,25 +69,28 @@ class Pipe:
         self._peers = peers
         self._client = client
         self._connected = connected
-        # Messages in paho's hands, in the order handed: each is done when paho says
-        # it is published (QoS 0: written; else acknowledged).  Asked after each of the
-        # driver's reads and writes (``settle``) rather than told by paho's
-        # ``on_publish``: for each QoS 0 message written, paho builds a ReasonCode and
-        # a Properties (its tables of every property name) only to call it, a seventh
-        # of what MQTT costs a sample (docs/benchmarks.md).
-        self._in_flight: deque[paho.MQTTMessageInfo] = deque()
+        # Messages in paho's hands: each is done when paho says it is published.
+        # Asked after each of the driver's reads and writes (``settle``) rather than
+        # told by paho's ``on_publish``: for each QoS 0 message written, paho builds a
+        # ReasonCode and a Properties (its tables of every property name) only to call
+        # it, a seventh of what MQTT costs a sample (docs/benchmarks.md).  QoS 0 ones
+        # are written in the order handed; the others (results, few) wait for their
+        # acknowledgements, each on its own: one never acknowledged holds one place.
+        self._unwritten: deque[paho.MQTTMessageInfo] = deque()
+        self._unacknowledged: list[paho.MQTTMessageInfo] = []
         self._window_full = False  # drain stopped at a full window: settle drains
         self._stale: list[Message] = []  # states of before the last connect
 
     def settle(self) -> None:
-        """Count what paho has written or had acknowledged since (in order: a QoS 1
-        message waiting for its acknowledgement holds the count of those behind it
-        for a round trip); what waited for room in the window goes on."""
-        flight = self._in_flight
-        while flight and flight[0].is_published():
-            flight.popleft()
-            self.counters.written += 1
-        if self._window_full and len(flight) < WINDOW:
+        """Count what paho has written or had acknowledged since; what waited for room
+        in the window goes on."""
+        unwritten, before = self._unwritten, self.in_window()
+        while unwritten and unwritten[0].is_published():
+            unwritten.popleft()
+        if self._unacknowledged:
+            self._unacknowledged = [i for i in self._unacknowledged if not i.is_published()]
+        self.counters.written += before - self.in_window()
+        if self._window_full and self.in_window() < WINDOW:
             self.drain()
 
     def connected_anew(self) -> None:
@@ -96,7 +99,8 @@ class Pipe:
         states still waiting are old news by now: set aside, before anything drains
         (the state desk takes them: ``waiting``)."""
         self.counters.lost_in_flight += self.in_window()
-        self._in_flight.clear()
+        self._unwritten.clear()
+        self._unacknowledged.clear()
         while self.outbox:
             self._stale.append(self.outbox.take())
 
@@ -112,7 +116,7 @@ class Pipe:
         return len(self.outbox) + len(self.control)
 
     def in_window(self) -> int:
-        return len(self._in_flight)
+        return len(self._unwritten) + len(self._unacknowledged)
 
     def send(self, message: Message) -> None:
         """Queue a message and send what the window allows."""
@@ -161,7 +165,7 @@ class Pipe:
         if info.rc == MQTTErrorCode.MQTT_ERR_SUCCESS:
             if not self.in_window():  # the wait starts now
                 self._progress = (self.counters.written, asyncio.get_running_loop().time())
-            self._in_flight.append(info)
+            (self._unacknowledged if message.qos else self._unwritten).append(info)
             self.counters.published += 1
             return True
         return False
