@@ -122,6 +122,8 @@ class Part:
 Which = Part | None
 
 
+#: parts kept at most (two a sensor with an item taking every value, as a rule)
+MAX_PARTS = 64
 #: a sensor's value nodes, (field, node), and status nodes, (row, node)
 Values = list[tuple[str, ua.NodeId]]
 Status = list[tuple[Any, ua.NodeId]]
@@ -158,6 +160,8 @@ class SensorNodes:
             return self.values[name], self.status[name]
         part = self._parts.get((name, which))
         if part is None:
+            if len(self._parts) >= MAX_PARTS:  # (clients that keep changing their items)
+                self._parts.clear()
             part = self._parts[(name, which)] = (
                 [pair for pair in self.values[name] if which.takes(pair[1])],
                 [pair for pair in self.status[name] if which.takes(pair[1])])
