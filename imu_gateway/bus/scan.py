@@ -7,7 +7,9 @@ rate, most likely first:
 
 * native: the 2.6 address query ``77 04 00 1F 23`` is answered by any sensor, so one
   request finds a lone sensor; when the answer is garbled (several sensors answering
-  at once) every address is asked for its zero type instead.  The combined read
+  at once) every address is asked for its zero type instead, unless bytes that make
+  no frame come unasked too (a sensor streaming at another rate: at this one it is
+  noise, and every address would be asked through it in vain).  The combined read
   (0x59) then tells the series by the answer's shape: IMU 0x84/LEN 0x16, VG or MINS
   0x59/0x2F (the protocol cannot tell those two apart), AH 0x59/0x38.
 * Modbus: every unit 1-247 (248-255 too with ``all_addresses``) is asked for register
@@ -299,6 +301,22 @@ class Prober:
         self.stream = self.stream or (bool(unasked) and isinstance(framer, native.NativeFramer))
         return Heard(answers, len(unasked), heard - sum(map(_wire_size, unasked)))
 
+    def unreadable_traffic(self) -> bool:
+        """Listen, asking nothing, for as long as an answer to the address query is
+        waited for: bytes came and none of them made a frame (a sensor streaming at
+        another rate: its frames are noise at this one)."""
+        framer = native.NativeFramer(native.ANSWER_SHAPES)
+        self.port.reset_input_buffer()
+        end = time.monotonic() + listen_time(self.port.baudrate, len(_QUERY),
+                                             _QUERY_ANSWER_BYTES, self.margin)
+        heard, frames = 0, 0
+        while (left := end - time.monotonic()) > 0:
+            self.port.timeout = left
+            data = self.port.read(max(1, self.port.in_waiting))
+            heard += len(data)
+            frames += len(framer.feed(data))
+        return heard > 0 and frames == 0
+
     def after_a_frame(self) -> None:
         """Wait for a native frame to end (at most ``STREAM_WAIT``): a stream's, whose
         next frame is then a period away, the line quiet for a request meanwhile."""
@@ -369,6 +387,11 @@ def scan_native(prober: Prober, addresses: Iterable[int],
     answers, garbled, streaming = _address_query(prober)
     if answers and not garbled:
         found = answers
+    elif garbled and not (answers or streaming) and prober.unreadable_traffic():
+        # Not several sensors answering at once: the line carries what this rate
+        # cannot read, asked or not.  Asking 256 addresses through it would take the
+        # margin each (25 s at the default) and be garbled all the same.
+        return
     elif garbled or streaming:  # several sensors at once; or a stream, not answering
         found = []
         for asked, address in enumerate(addresses):

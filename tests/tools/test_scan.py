@@ -5,14 +5,16 @@ the wording of port errors and of the next-time suggestion."""
 from __future__ import annotations
 
 import errno
+import time
 from typing import cast
 
 import pytest
 import serial
 
-from imu_gateway.bus.scan import IDENTIFY_TRIES
+from imu_gateway.bus.scan import IDENTIFY_TRIES, scan_native
 from imu_gateway.model import WireProtocol
 from imu_gateway.protocol import modbus_rtu as rtu
+from imu_gateway.protocol import native
 from imu_gateway.tools.scan import (
     Found,
     Prober,
@@ -185,6 +187,39 @@ def test_a_found_sensor_that_never_says_what_it_is_is_unknown() -> None:
     prober = Prober(cast(serial.Serial, line), margin=0.005)
     assert list(scan_modbus(prober, [250])) == [(250, "unknown")]
     assert line.asked == [250] * (1 + IDENTIFY_TRIES)
+
+
+class StreamAtAnotherRate:
+    """Just enough of a serial port for ``Prober``: a line that carries, asked or not,
+    bytes that make no frame at this rate (a sensor streaming at another: at 9600, its
+    115200-baud frames come as a few bytes of 0x00, 0x80, 0xF8 each), and that nobody
+    answers."""
+
+    baudrate = 9600
+
+    def __init__(self) -> None:
+        self.timeout = 0.0
+        self.written: list[bytes] = []
+
+    in_waiting = 0
+
+    def reset_input_buffer(self) -> None:
+        pass
+
+    def write(self, request: bytes) -> int:
+        self.written.append(request)
+        return len(request)
+
+    def read(self, size: int = 1) -> bytes:
+        time.sleep(min(self.timeout, 0.002))  # (a frame of the stream every 2 ms)
+        return b"\x00\x80\xf8"
+
+
+def test_a_stream_at_another_rate_does_not_send_the_scan_through_every_address() -> None:
+    line = StreamAtAnotherRate()
+    prober = Prober(cast(serial.Serial, line), margin=0.005)
+    assert list(scan_native(prober, range(256))) == []
+    assert line.written == [native.encode_request("read_address")]  # the query alone
 
 
 @pytest.mark.parametrize("code", [errno.EAGAIN, errno.EWOULDBLOCK, errno.EBUSY])
