@@ -7,9 +7,10 @@ rate, most likely first:
 
 * native: the 2.6 address query ``77 04 00 1F 23`` is answered by any sensor, so one
   request finds a lone sensor; when the answer is garbled (several sensors answering
-  at once) every address is asked for its zero type instead, unless bytes that make
-  no frame come unasked too (a sensor streaming at another rate: at this one it is
-  noise, and every address would be asked through it in vain).  The combined read
+  at once) every address is asked for its zero type instead, unless bytes with no
+  frame's start among them keep coming unasked too (a sensor streaming at another
+  rate: at this one it is noise, and every address would be asked through it in
+  vain; ``Prober.unreadable_traffic``).  The combined read
   (0x59) then tells the series by the answer's shape: IMU 0x84/LEN 0x16, VG or MINS
   0x59/0x2F (the protocol cannot tell those two apart), AH 0x59/0x38.
 * Modbus: every unit 1-247 (248-255 too with ``all_addresses``) is asked for register
@@ -302,20 +303,27 @@ class Prober:
         return Heard(answers, len(unasked), heard - sum(map(_wire_size, unasked)))
 
     def unreadable_traffic(self) -> bool:
-        """Listen, asking nothing, for as long as an answer to the address query is
-        waited for: bytes came and none of them made a frame (a sensor streaming at
-        another rate: its frames are noise at this one)."""
-        framer = native.NativeFramer(native.ANSWER_SHAPES)
+        """Whether the line carries, unasked, what this rate cannot read (a sensor
+        streaming at another rate: its frames are noise at this one).  After the
+        longest a late answer or a collision's tail can still come in (the margin and a
+        frame), two windows each as long as a frame and the margin: bytes came in each,
+        and no frame's first byte (0x77) among them.  A frame of this rate cut by the
+        listen's start is one tail, in one window at most; a frame that starts in the
+        windows shows its 0x77."""
+        frame = native.MAX_FRAME * char_time(self.port.baudrate)
+        window = max(self.margin, frame)
+        time.sleep(self.margin + frame)
         self.port.reset_input_buffer()
-        end = time.monotonic() + listen_time(self.port.baudrate, len(_QUERY),
-                                             _QUERY_ANSWER_BYTES, self.margin)
-        heard, frames = 0, 0
+        return all(self._unreadable_for(window) for _ in range(2))
+
+    def _unreadable_for(self, seconds: float) -> bool:
+        end, heard, sync = time.monotonic() + seconds, 0, False
         while (left := end - time.monotonic()) > 0:
             self.port.timeout = left
             data = self.port.read(max(1, self.port.in_waiting))
             heard += len(data)
-            frames += len(framer.feed(data))
-        return heard > 0 and frames == 0
+            sync = sync or native.SYNC in data
+        return heard > 0 and not sync
 
     def after_a_frame(self) -> None:
         """Wait for a native frame to end (at most ``STREAM_WAIT``): a stream's, whose

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import errno
 import time
+from collections.abc import Callable
 from typing import cast
 
 import pytest
@@ -220,6 +221,75 @@ def test_a_stream_at_another_rate_does_not_send_the_scan_through_every_address()
     prober = Prober(cast(serial.Serial, line), margin=0.005)
     assert list(scan_native(prober, range(256))) == []
     assert line.written == [native.encode_request("read_address")]  # the query alone
+
+
+class TimedLine:
+    """Just enough of a serial port for ``Prober``: bytes that come in at their times,
+    on the real clock (``due``: the bytes that have come by a time, in order), and
+    nobody answering."""
+
+    baudrate = 9600
+
+    def __init__(self, due: Callable[[float], bytes]) -> None:
+        self.timeout = 0.0
+        self._due = due
+        self._start = time.monotonic()
+        self._taken = 0
+
+    def _now(self) -> bytes:
+        return self._due(time.monotonic() - self._start)
+
+    @property
+    def in_waiting(self) -> int:
+        return len(self._now()) - self._taken
+
+    def reset_input_buffer(self) -> None:
+        self._taken = len(self._now())
+
+    def write(self, request: bytes) -> int:
+        return len(request)
+
+    def read(self, size: int = 1) -> bytes:
+        end = time.monotonic() + self.timeout
+        while not self.in_waiting and time.monotonic() < end:
+            time.sleep(0.001)
+        data = self._now()[self._taken:self._taken + size]
+        self._taken += len(data)
+        return data
+
+
+def _stream(period: float, phase: float, frame: bytes = b"\x77" + bytes(56)
+            ) -> Callable[[float], bytes]:
+    """A native stream at this rate: ``frame`` every ``period`` s from ``phase``."""
+    char = 10 / TimedLine.baudrate
+
+    def due(t: float) -> bytes:
+        if t < phase:
+            return b""
+        done, into = divmod(t - phase, period)
+        return frame * int(done) + frame[:min(len(frame), int(into / char))]
+
+    return due
+
+
+@pytest.mark.parametrize("period", [0.2, 0.25, 0.4])
+@pytest.mark.parametrize("phase", [0.0, 0.05, 0.13])
+def test_a_slow_stream_at_this_rate_is_not_taken_for_another_rates(
+        period: float, phase: float) -> None:
+    """A stream at the scanned rate, frames cut by the listen's start or end wherever
+    they fall: its frames are readable here, so the rate is swept as before."""
+    prober = Prober(cast(serial.Serial, TimedLine(_stream(period, phase))), margin=0.1)
+    assert not prober.unreadable_traffic()
+
+
+def test_a_collision_ending_late_is_not_taken_for_another_rates_stream() -> None:
+    """Two answers to the query that collided and came in late (60 ms of bytes with
+    no frame start, ending 100 ms on): nothing more comes, so the rate is swept."""
+    def due(t: float) -> bytes:
+        return b"\x80\xf8" * int(min(max(t - 0.04, 0.0), 0.06) / 0.002)
+
+    prober = Prober(cast(serial.Serial, TimedLine(due)), margin=0.02)
+    assert not prober.unreadable_traffic()
 
 
 @pytest.mark.parametrize("code", [errno.EAGAIN, errno.EWOULDBLOCK, errno.EBUSY])
