@@ -173,6 +173,7 @@ class _Owned:
                         getattr(take, "__self__", None) is not getattr(callback, "__self__",
                                                                       None):
                     await _tell_transferred(sub, owner, take, answer)
+                    _refuse_waiting(owner, take, self.subscriptions)
         done = iter(moved)
         return [next(done) if r is None else ua.TransferResult(StatusCode=ua.StatusCode(r))
                 for r in refusals]
@@ -236,7 +237,9 @@ async def _tell_transferred(sub: Any, old: Any, take: Callable[..., Any] | None,
     told.NotificationMessage.SequenceNumber = sub._notification_seq
     told.NotificationMessage.NotificationData = [ua.StatusChangeNotification(
         Status=ua.StatusCode(ua.StatusCodes.GoodSubscriptionTransferred))]
-    request = take(sub.data.SubscriptionId)
+    # (a connection lost: a request still queued there would take the notice into a
+    # closed socket; the session, kept for its subscriptions, may come back on another)
+    request = None if _gone(getattr(take, "__self__", None)) else take(sub.data.SubscriptionId)
     if request is None:
         _NOTICES.setdefault(old, []).append(told)
         return
@@ -260,6 +263,27 @@ async def answer_notice(processor: Any, requesthdr: Any) -> None:
     told = notices.pop(0)
     told.NotificationMessage.PublishTime = datetime.now(UTC)
     await processor.forward_publish_response(told, request)
+
+
+def _refuse_waiting(old: Any, take: Callable[..., Any] | None,
+                    subscriptions: Mapping[int, Any]) -> None:
+    """The session a subscription was taken from, left with none: the publish requests
+    it still has queued are answered ``BadNoSubscription`` (Part 4, 5.13.5), as its
+    next ones will be (nothing of its own would ever take them)."""
+    processor = getattr(take, "__self__", None)
+    if processor is None or _gone(processor) or processor.session is not old or any(
+            sub.session_id == old.session_id for sub in subscriptions.values()):
+        return
+    while processor._publish_requests:
+        request = processor._publish_requests.popleft()
+        fault = ua.ServiceFault()
+        fault.ResponseHeader.ServiceResult = ua.StatusCode(ua.StatusCodes.BadNoSubscription)
+        processor.send_response(request.requesthdr.RequestHandle, request.seqhdr, fault)
+
+
+def _gone(processor: Any) -> bool:
+    """An asyncua processor whose connection is lost or closing."""
+    return processor is not None and (processor._closing or processor._transport.is_closing())
 
 
 def _forget_notice(session: Any, sub_id: int) -> None:

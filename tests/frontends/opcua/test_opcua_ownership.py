@@ -13,6 +13,7 @@ all of them: still there, still publishing, its item still reporting."""
 
 from __future__ import annotations
 
+import asyncio
 import gc
 import statistics
 import time
@@ -287,6 +288,46 @@ async def test_a_session_with_no_publish_request_waiting_is_told_of_the_transfer
         with pytest.raises(UaStatusCodeError) as none:
             await first.uaclient.publish([])
         assert none.value.code == ua.StatusCodes.BadNoSubscription
+
+
+@pytest.mark.anyio
+async def test_a_session_left_with_no_subscription_has_its_other_waiting_requests_answered(
+        rig: Rig) -> None:
+    """The session a subscription was taken from had two publish requests waiting:
+    the first takes the notice of the transfer, the second is answered
+    BadNoSubscription (nothing of the session's would ever take it)."""
+    port = free_port()
+    async with running(rig.config(port, users={"operator": PASSWORD})) as gw, \
+            AsyncExitStack() as stack:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+        first = await session(rig, port, clear_password("operator"), stack)
+        created = await first.uaclient.create_subscription(ua.CreateSubscriptionParameters(
+            RequestedPublishingInterval=100.0, RequestedLifetimeCount=3000,
+            RequestedMaxKeepAliveCount=200, MaxNotificationsPerPublish=0,
+            PublishingEnabled=True, Priority=0), Notified())  # (a keep-alive each 20 s)
+        loop_task = first.uaclient.session._publish_task
+        assert loop_task is not None
+        loop_task.cancel()  # (created and not yet run: it never sends a request)
+        await first.uaclient.publish([])  # (the subscription's first message)
+        waiting = [asyncio.ensure_future(first.uaclient.publish([])) for _ in range(2)]
+        assert gw.opcua is not None and gw.opcua.server is not None
+        bserver = gw.opcua.server.bserver
+        assert bserver is not None
+        await until(lambda: any(len(c.processor._publish_requests) == 2
+                                for c in bserver.clients if c.processor is not None))
+        again = await session(rig, port, clear_password("operator"), stack)
+        [moved] = await again.uaclient.transfer_subscriptions(
+            ua.TransferSubscriptionsParameters(SubscriptionIds=[created.SubscriptionId],
+                                               SendInitialValues=False))
+        assert moved.StatusCode.is_good()
+        told, refused = await asyncio.wait_for(
+            asyncio.gather(*waiting, return_exceptions=True), 10)
+        notified = Notified()
+        assert not isinstance(told, BaseException)
+        notified(told.Parameters)
+        assert notified.statuses == [ua.StatusCodes.GoodSubscriptionTransferred]
+        assert isinstance(refused, UaStatusCodeError)
+        assert refused.code == ua.StatusCodes.BadNoSubscription
 
 
 @pytest.mark.anyio
