@@ -79,6 +79,8 @@ class Pipe:
         self._unwritten: deque[paho.MQTTMessageInfo] = deque()
         self._unacknowledged: list[paho.MQTTMessageInfo] = []
         self._window_full = False  # drain stopped at a full window: settle drains
+        # (written, when) at the last progress seen: the stall watch's (``publishing``)
+        self._progress: tuple[int, float] = (0, 0.0)
         self._stale: list[Message] = []  # states of before the last connect
 
     def settle(self) -> None:
