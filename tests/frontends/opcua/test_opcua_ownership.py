@@ -18,7 +18,7 @@ import gc
 import statistics
 import time
 from collections.abc import AsyncIterator
-from contextlib import AsyncExitStack
+from contextlib import AsyncExitStack, asynccontextmanager
 from itertools import pairwise
 from pathlib import Path
 from typing import Any
@@ -76,13 +76,22 @@ class Notified:
                 self.values.append(item.Value.Value.Value)
 
 
-async def subscribe(client: Client, told: Notified, interval: float = 100.0) -> int:
+async def subscribe(client: Client, told: Notified, interval: float = 100.0,
+                    keep_alive: int = 10) -> int:
     result: ua.CreateSubscriptionResult = await client.uaclient.create_subscription(
         ua.CreateSubscriptionParameters(
             RequestedPublishingInterval=interval, RequestedLifetimeCount=3000,
-            RequestedMaxKeepAliveCount=10, MaxNotificationsPerPublish=0,
+            RequestedMaxKeepAliveCount=keep_alive, MaxNotificationsPerPublish=0,
             PublishingEnabled=True, Priority=0), told)
     return int(result.SubscriptionId)
+
+
+def silence(client: Client) -> None:
+    """The client's publish loop, created by its subscription and not yet run, never
+    sends a request: the test sends each Publish itself, or none."""
+    task = client.uaclient.session._publish_task
+    assert task is not None
+    task.cancel()
 
 
 def watch(node: ua.NodeId, handle: int) -> ua.MonitoredItemCreateRequest:
@@ -258,6 +267,22 @@ async def test_a_list_is_answered_per_id_and_the_same_user_may_take_a_subscripti
         assert theirs not in held
 
 
+@asynccontextmanager
+async def same_user_twice(rig: Rig, keep_alive: int = 10
+                          ) -> AsyncIterator[tuple[Any, Client, Client, int]]:
+    """A gateway; a first session of a user, with a subscription (its id) whose client
+    sends no publish request by itself (``silence``); a second session of that user."""
+    port = free_port()
+    async with running(rig.config(port, users={"operator": PASSWORD})) as gw, \
+            AsyncExitStack() as stack:
+        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
+        first = await session(rig, port, clear_password("operator"), stack)
+        theirs = await subscribe(first, Notified(), keep_alive=keep_alive)
+        silence(first)
+        again = await session(rig, port, clear_password("operator"), stack)
+        yield gw, first, again, theirs
+
+
 @pytest.mark.anyio
 async def test_a_session_with_no_publish_request_waiting_is_told_of_the_transfer_at_its_next(
         rig: Rig) -> None:
@@ -265,17 +290,7 @@ async def test_a_session_with_no_publish_request_waiting_is_told_of_the_transfer
     was taken (a client between two requests): its next Publish is answered with the
     notice (Good_SubscriptionTransferred), not BadNoSubscription, and the one after
     that, with nothing left to tell, is BadNoSubscription."""
-    port = free_port()
-    async with running(rig.config(port, users={"operator": PASSWORD})) as gw, \
-            AsyncExitStack() as stack:
-        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
-        first = await session(rig, port, clear_password("operator"), stack)
-        theirs = await subscribe(first, Notified())
-        # (its client's publish loop, created and not yet run, never sends a request)
-        loop_task = first.uaclient.session._publish_task
-        assert loop_task is not None
-        loop_task.cancel()
-        again = await session(rig, port, clear_password("operator"), stack)
+    async with same_user_twice(rig) as (_, first, again, theirs):
         [moved] = await again.uaclient.transfer_subscriptions(
             ua.TransferSubscriptionsParameters(SubscriptionIds=[theirs],
                                                SendInitialValues=False))
@@ -296,18 +311,7 @@ async def test_a_session_left_with_no_subscription_has_its_other_waiting_request
     """The session a subscription was taken from had two publish requests waiting:
     the first takes the notice of the transfer, the second is answered
     BadNoSubscription (nothing of the session's would ever take it)."""
-    port = free_port()
-    async with running(rig.config(port, users={"operator": PASSWORD})) as gw, \
-            AsyncExitStack() as stack:
-        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
-        first = await session(rig, port, clear_password("operator"), stack)
-        created = await first.uaclient.create_subscription(ua.CreateSubscriptionParameters(
-            RequestedPublishingInterval=100.0, RequestedLifetimeCount=3000,
-            RequestedMaxKeepAliveCount=200, MaxNotificationsPerPublish=0,
-            PublishingEnabled=True, Priority=0), Notified())  # (a keep-alive each 20 s)
-        loop_task = first.uaclient.session._publish_task
-        assert loop_task is not None
-        loop_task.cancel()  # (created and not yet run: it never sends a request)
+    async with same_user_twice(rig, keep_alive=200) as (gw, first, again, theirs):
         await first.uaclient.publish([])  # (the subscription's first message)
         waiting = [asyncio.ensure_future(first.uaclient.publish([])) for _ in range(2)]
         assert gw.opcua is not None and gw.opcua.server is not None
@@ -315,9 +319,8 @@ async def test_a_session_left_with_no_subscription_has_its_other_waiting_request
         assert bserver is not None
         await until(lambda: any(len(c.processor._publish_requests) == 2
                                 for c in bserver.clients if c.processor is not None))
-        again = await session(rig, port, clear_password("operator"), stack)
         [moved] = await again.uaclient.transfer_subscriptions(
-            ua.TransferSubscriptionsParameters(SubscriptionIds=[created.SubscriptionId],
+            ua.TransferSubscriptionsParameters(SubscriptionIds=[theirs],
                                                SendInitialValues=False))
         assert moved.StatusCode.is_good()
         told, refused = await asyncio.wait_for(
@@ -337,16 +340,7 @@ async def test_a_notice_is_forgotten_when_taken_back_and_holds_no_session(rig: R
     subscription again, and its next Publish gets the subscription's own message), the
     second's waits for it; and a session closed with a notice waiting is not kept
     for it."""
-    port = free_port()
-    async with running(rig.config(port, users={"operator": PASSWORD})) as gw, \
-            AsyncExitStack() as stack:
-        await until(lambda: gw.cache.snapshot("boom").seq >= 1)
-        first = await session(rig, port, clear_password("operator"), stack)
-        theirs = await subscribe(first, Notified())
-        loop_task = first.uaclient.session._publish_task
-        assert loop_task is not None
-        loop_task.cancel()  # (created and not yet run: it never sends a request)
-        again = await session(rig, port, clear_password("operator"), stack)
+    async with same_user_twice(rig) as (_, first, again, theirs):
         params = ua.TransferSubscriptionsParameters(SubscriptionIds=[theirs],
                                                     SendInitialValues=False)
         [moved] = await again.uaclient.transfer_subscriptions(params)
