@@ -187,6 +187,9 @@ class GuardedProcessor(UaProcessor):
             body = _revised(ua.ModifySubscriptionParameters, body, fastest=SAMPLING_STEP_MS)
         elif typeid == _CLOSE:
             body = Buffer(ua.ua_binary.Primitives.Boolean.pack(True))  # deleteSubscriptions
+        elif typeid == _PUBLISH and self.session is not None and \
+                await ownership.answer_notice(self, requesthdr, seqhdr, body.copy()):
+            return True
         self._watch.catch_up()  # (a Read gives the newest sample the bus has)
         # a method learns who calls it from here (asyncua passes it only the object)
         caller = CALLER.set(self._caller()) if typeid == _CALL else None
@@ -202,8 +205,6 @@ class GuardedProcessor(UaProcessor):
         if typeid == _CREATE and self.session is not None:
             self._watch.origins[self.session] = channel.peer_certificate
             ownership.guard(self.session, self._watch.origins)
-        elif typeid == _PUBLISH and self.session is not None:
-            await ownership.answer_notice(self, requesthdr)
         elif typeid == _SUBSCRIBE and self.session is not None:
             sample_items(self.iserver.subscription_service, self.session.session_id,
                          MAX_PUBLISHING_INTERVAL_MS, self._watch.catch_up, self._watch.every)

@@ -32,6 +32,8 @@ from typing import Any, TypeVar
 
 from asyncua import ua
 from asyncua.common.utils import ServiceError
+from asyncua.server.uaprocessor import PublishRequestData
+from asyncua.ua.ua_binary import struct_from_binary
 
 T = TypeVar("T")
 
@@ -143,7 +145,7 @@ class _Owned:
                 sub.session_id == self.session.session_id
                 for sub in self.subscriptions.values()):
             # (asyncua kept it, unanswered: nothing of this session would ever take it;
-            # a notice of a transfer still to tell takes it: ``answer_notice``)
+            # with a notice of a transfer still to tell, ``answer_notice`` answers it)
             raise ServiceError(ua.StatusCodes.BadNoSubscription)
         mine, kept = self._sorted_out(list(acks or ()), lambda ack: ack.SubscriptionId)
         subscriptions, done = self.real["publish"](kept)
@@ -247,22 +249,23 @@ async def _tell_transferred(sub: Any, old: Any, take: Callable[..., Any] | None,
     await answer(told, request)
 
 
-async def answer_notice(processor: Any, requesthdr: Any) -> None:
-    """After a Publish of ``processor``'s session (``guard.GuardedProcessor``): if a
-    notice of a transfer waits for the session and the request was queued, the
-    request takes the notice (by the session held, not by the connection it had:
-    a session activated again on a new connection gets it there)."""
+async def answer_notice(processor: Any, requesthdr: Any, seqhdr: Any, body: Any) -> bool:
+    """A Publish of ``processor``'s session (``guard.GuardedProcessor``, before asyncua
+    sees it): if a notice of a transfer waits for the session, the request takes it,
+    at once (its acknowledgements done as asyncua would).  By the session held, not by
+    the connection it had: a session activated again on a new connection gets it
+    there; and before any subscription of the session's, which could take every
+    request for ever.  False: no notice waits, asyncua's own path goes on."""
     notices = _NOTICES.get(processor.session)
-    if not notices:
-        return
-    queued = processor._publish_requests
-    request = next((data for data in queued if data.requesthdr is requesthdr), None)
-    if request is None:
-        return  # (taken by a subscription's deferred publish: the next one)
-    queued.remove(request)
+    if not notices or not processor.session.is_activated():  # (asyncua refuses that)
+        return False
+    params = struct_from_binary(ua.PublishParameters, body)
+    _, results = processor.session.publish(params.SubscriptionAcknowledgements)
     told = notices.pop(0)
     told.NotificationMessage.PublishTime = datetime.now(UTC)
-    await processor.forward_publish_response(told, request)
+    await processor.forward_publish_response(
+        told, PublishRequestData(requesthdr=requesthdr, seqhdr=seqhdr, results=results))
+    return True
 
 
 def _refuse_waiting(old: Any, take: Callable[..., Any] | None,

@@ -306,6 +306,29 @@ async def test_a_session_with_no_publish_request_waiting_is_told_of_the_transfer
 
 
 @pytest.mark.anyio
+async def test_the_notice_goes_before_a_busy_subscription_of_the_same_session(rig: Rig) -> None:
+    """The old session has another subscription, with a value changing at 50 Hz, that
+    has a message ready whenever a request comes: its next Publish takes the notice
+    all the same (else that subscription could take every request for ever)."""
+    async with same_user_twice(rig) as (gw, first, again, theirs):
+        busy = await subscribe(first, Notified())
+        silence(first)  # (its client made its publish loop again)
+        ns = await namespace(first)
+        await add_items(first, busy, ua.NodeId(f"{GID}.Sensors.boom.Sequence", ns))
+        [moved] = await again.uaclient.transfer_subscriptions(
+            ua.TransferSubscriptionsParameters(SubscriptionIds=[theirs],
+                                               SendInitialValues=False))
+        assert moved.StatusCode.is_good()
+        seq = gw.cache.snapshot("boom").seq
+        await until(lambda: gw.cache.snapshot("boom").seq >= seq + 3)  # (busy has news)
+        answer = await first.uaclient.publish([])
+        told = Notified()
+        told(answer.Parameters)
+        assert (answer.Parameters.SubscriptionId, told.statuses) == \
+            (theirs, [ua.StatusCodes.GoodSubscriptionTransferred])
+
+
+@pytest.mark.anyio
 async def test_a_session_left_with_no_subscription_has_its_other_waiting_requests_answered(
         rig: Rig) -> None:
     """The session a subscription was taken from had two publish requests waiting:
