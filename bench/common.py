@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import multiprocessing
 import resource
 import socket
@@ -88,10 +89,14 @@ class Fed(NamedTuple):
 
 async def fed(config: GatewayConfig, rate: float, seconds: float,
               ready: Callable[[Gateway], bool], counter: Callable[..., None],
-              args: tuple[object, ...], settle: float) -> Fed:
+              args: tuple[object, ...], settle: float, through_bus: bool = False) -> Fed:
     """Run the gateway on ``config`` with readings fed at ``rate`` a second (round the
     sensors, moving values) and ``counter(*args, seconds, queue)`` in a process of its
-    own; measured ``settle`` seconds after the counter started, for ``seconds``."""
+    own; measured ``settle`` seconds after the counter started, for ``seconds``.
+
+    The readings go into the cache on the event loop; with ``through_bus``, they come
+    from the bus thread instead, each in a turn of its own, handed over as a line's
+    answers are (``CacheWriter``: at once, or within ``hand_over_ms``)."""
     gw = Gateway(config)
     stop, feeding = asyncio.Event(), asyncio.Event()
     task = asyncio.create_task(gw.run(stop))
@@ -105,7 +110,16 @@ async def fed(config: GatewayConfig, rate: float, seconds: float,
             n += 1
             await asyncio.sleep(max(0.0, start + n * period - time.monotonic()))
 
-    feeder = asyncio.create_task(feed())
+    def feed_bus() -> None:  # (a thread of its own: the bus thread's turns it posts)
+        motion, period, n, start = Motion.from_seed(1), 1.0 / rate, 0, time.monotonic()
+        writer, reactor = gw.buses.writer, gw.buses.reactor
+        while not feeding.is_set():
+            reading = motion.sample(n * period)
+            reactor.post(functools.partial(writer.publish, f"s{n % FED_SENSORS}", reading))
+            n += 1
+            time.sleep(max(0.0, start + n * period - time.monotonic()))
+
+    feeder = asyncio.create_task(asyncio.to_thread(feed_bus) if through_bus else feed())
     results: multiprocessing.Queue[int] = multiprocessing.Queue()
     process = multiprocessing.Process(target=counter, args=(*args, seconds, results))
     process.start()

@@ -33,6 +33,10 @@ side's), and the front ends' share: the case minus ``none`` of the same round.  
 target (issue 29): ``all`` − ``none`` ≤ 0.15 ms.
 ``--rounds`` repeats every case, in turn; the range over the rounds is printed last.
 
+``--hand-over-ms MS``: the samples come from the bus thread instead, each in a turn of
+its own, handed over to the event loop as a line's answers are: at once with 0, or
+the turns of ``MS`` together (``hand_over_ms``, docs/deployment.md, "Small boxes").
+
 ``--encode``: instead, a notification of one value made and encoded in a loop, by
 asyncua's path and by the gateway's (``frontends/opcua/encoding.py``), and a publish of
 one sample's notifications, per item.
@@ -99,6 +103,7 @@ class Ports:
     modbus: int
     items: int  # OPC UA: monitored values per sensor
     sampling: float = 0.0  # OPC UA: the items' sampling interval, ms (0: every sample)
+    hand_over_ms: int = -1  # >= 0: fed through the bus thread, with this hand_over_ms
 
 
 #: ``--sampling``'s client: a SCADA client's publishing interval (ms) and queue size
@@ -140,6 +145,8 @@ class BarePaho:
 def config_of(case: str, ports: Ports, pki: str) -> dict[str, Any]:
     on = front_ends(case)
     config: dict[str, Any] = {}
+    if ports.hand_over_ms >= 0:
+        config["hand_over_ms"] = ports.hand_over_ms
     if "mqtt" in on:
         config["mqtt"] = {"url": f"mqtt://127.0.0.1:{ports.broker}",
                           "homeassistant_discovery": True}
@@ -261,7 +268,7 @@ async def run_case(case: str, ports: Ports, rate: float, seconds: float,
     try:
         delivered, cores, system = await fed(
             config, rate, seconds, _ready(case, bare, ports.broker), _count,
-            (case, ports, settle - 1.0), settle=settle)
+            (case, ports, settle - 1.0), settle=settle, through_bus=ports.hand_over_ms >= 0)
     finally:
         for client in bare:
             client.close()
@@ -424,6 +431,9 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--items", type=int, default=len(FIELDS),
                         help="OPC UA: monitored values per sensor")
+    parser.add_argument("--hand-over-ms", type=int, default=-1,
+                        help="feed the samples through the bus thread, with this "
+                        "hand_over_ms (default: into the cache on the event loop)")
     parser.add_argument("--sampling", type=float, default=0.0,
                         help="OPC UA: the items' sampling interval, ms (> 0: a SCADA "
                         "client's subscription, see above)")
@@ -450,7 +460,7 @@ def main() -> None:
     cases = args.cases.split(",")
     sys.setswitchinterval(GIL_SWITCH_INTERVAL)  # as `imu-gateway run` does
     ports = Ports(free_port(), free_port(), free_port(), free_port(), args.items,
-                  args.sampling)
+                  args.sampling, args.hand_over_ms)
     shares: dict[str, list[float]] = {case: [] for case in cases}
     with tempfile.TemporaryDirectory() as folder:
         broker = _broker(Path(folder), ports.broker)
@@ -459,7 +469,9 @@ def main() -> None:
             print(f"{FED_SENSORS} AH sensors, {args.rate:g} samples/s in all, "
                   f"{args.seconds:g} s per case, {args.rounds} rounds, {os.cpu_count()} CPUs; "
                   f"OPC UA: {args.items} monitored values per sensor, sampled "
-                  f"{f'every {args.sampling:g} ms' if args.sampling > 0 else 'every sample'}")
+                  f"{f'every {args.sampling:g} ms' if args.sampling > 0 else 'every sample'}"
+                  + (f"; through the bus thread, hand_over_ms {args.hand_over_ms}"
+                     if args.hand_over_ms >= 0 else ""))
             print(f"{'round':>5} {'case':>6} {'delivered':>9} {'gw ms/sample':>12} "
                   f"{'system':>7} {'- none':>7} {'system':>7}")
             for n in range(args.rounds):
