@@ -21,11 +21,15 @@ from .normalise import field_values
 T = TypeVar("T")
 
 
+#: (one for all: ``json.dumps`` with options makes an encoder per call, 0.6 of its
+#: 4.6 µs for a reading; ``encode`` keeps no state between calls)
+_ENCODER = json.JSONEncoder(separators=(",", ":"), ensure_ascii=False, allow_nan=False)
+
+
 def json_bytes(value: Any) -> bytes:
     """Compact JSON as the front ends send it.  ``allow_nan=False``: the reading JSON
     has no NaN (``Reading.to_json_groups`` makes it null), and nothing else should."""
-    return json.dumps(value, separators=(",", ":"), ensure_ascii=False,
-                      allow_nan=False).encode()
+    return _ENCODER.encode(value).encode()
 
 
 class _OncePerSnapshot(Generic[T]):
