@@ -296,8 +296,8 @@ class GuardedProcessor(UaProcessor):
     def _check_share(self) -> None:
         """A new subscription within the session's share."""
         assert self.session is not None  # (activated: _check_service)
-        mine = sum(1 for sub in self.iserver.subscription_service.subscriptions.values()
-                   if sub.session_id == self.session.session_id)
+        mine = ownership.subscriptions_of(self.session,
+                                          self.iserver.subscription_service.subscriptions)
         if mine >= MAX_SUBSCRIPTIONS_PER_SESSION:
             raise self._watch.refuse(ua.StatusCodes.BadTooManySubscriptions, f"a subscription over "
                           f"{MAX_SUBSCRIPTIONS_PER_SESSION} of one session", self.name)

@@ -141,9 +141,8 @@ class _Owned:
 
     def publish(self, acks: Iterable[ua.SubscriptionAcknowledgement] | None = None
                 ) -> tuple[int, list[ua.StatusCode]]:
-        if not _NOTICES.get(self.session) and not any(
-                sub.session_id == self.session.session_id
-                for sub in self.subscriptions.values()):
+        if not _NOTICES.get(self.session) and not subscriptions_of(self.session,
+                                                                   self.subscriptions):
             # (asyncua kept it, unanswered: nothing of this session would ever take it;
             # with a notice of a transfer still to tell, ``answer_notice`` answers it)
             raise ServiceError(ua.StatusCodes.BadNoSubscription)
@@ -156,9 +155,8 @@ class _Owned:
         ids = list(params.SubscriptionIds or ())
         refusals = [self._transfer_refusal(i) for i in ids]
         allowed = [i for i, r in zip(ids, refusals, strict=True) if r is None]
-        # (the old session, and its ways to take a publish request and answer it)
-        before = {int(i): (_owner(sub, self.origins), sub.pub_request_callback,
-                           sub.pub_result_callback)
+        # (the old session, and the processor of the connection its requests come on)
+        before = {int(i): (_owner(sub, self.origins), _processor(sub.pub_request_callback))
                   for i in allowed if (sub := self.subscriptions.get(int(i))) is not None}
         moved = await self.real["transfer_subscriptions"](
             ua.TransferSubscriptionsParameters(SubscriptionIds=allowed,
@@ -169,13 +167,12 @@ class _Owned:
             if result.StatusCode.is_good():
                 self._rebind(sub, callback)
                 _forget_notice(self.session, int(sub_id))  # (it has it back)
-                owner, take, answer = before.pop(int(sub_id), (None, None, None))
+                owner, processor = before.pop(int(sub_id), (None, None))
                 # (the same connection: its client has the transfer's answer itself)
-                if owner not in (None, self.session) and \
-                        getattr(take, "__self__", None) is not getattr(callback, "__self__",
-                                                                      None):
-                    await _tell_transferred(sub, owner, take, answer)
-                    _refuse_waiting(owner, take, self.subscriptions)
+                if owner not in (None, self.session) and processor is not None and \
+                        processor is not _processor(callback):
+                    await _tell_transferred(sub, owner, processor)
+                    _refuse_waiting(owner, processor, self.subscriptions)
         done = iter(moved)
         return [next(done) if r is None else ua.TransferResult(StatusCode=ua.StatusCode(r))
                 for r in refusals]
@@ -188,7 +185,7 @@ class _Owned:
         published again.  Both are the new connection's now (as asyncua does for a
         session that moves), and a publish request of another session, queued before
         the transfer, is not answered by it."""
-        processor = getattr(callback, "__self__", None)
+        processor = _processor(callback)
         if processor is not None:
             sub.pub_request_callback = processor.get_publish_request
         if getattr(sub, "owner_checked", False):
@@ -201,7 +198,6 @@ class _Owned:
                 if owner is None or owner.auth_token != requestdata.requesthdr.AuthenticationToken:
                     return False  # (the old session's request: it stays queued there)
             return bool(await publish(requestdata))
-
 
         sub.publish_results, sub.owner_checked = publish_results, True
 
@@ -225,15 +221,13 @@ _NOTICES: weakref.WeakKeyDictionary[Any, list[ua.PublishResult]] = \
     weakref.WeakKeyDictionary()
 
 
-async def _tell_transferred(sub: Any, old: Any, take: Callable[..., Any] | None,
-                            answer: Callable[..., Awaitable[None]] | None) -> None:
+async def _tell_transferred(sub: Any, old: Any, processor: Any) -> None:
     """Tell the session ``old`` a subscription was taken from that it is gone (Part 4
     5.13.7: a StatusChangeNotification of Good_SubscriptionTransferred), on a publish
     request it has waiting; none waiting, on its next one, on whichever connection
     that comes (``answer_notice``).  The message takes no sequence number from the
-    subscription's, which its new session goes on with."""
-    if take is None or answer is None:
-        return
+    subscription's, which its new session goes on with.  ``processor``: that of the
+    connection ``old``'s requests came on."""
     told = ua.PublishResult()
     told.SubscriptionId = sub.data.SubscriptionId
     told.NotificationMessage.SequenceNumber = sub._notification_seq
@@ -241,12 +235,13 @@ async def _tell_transferred(sub: Any, old: Any, take: Callable[..., Any] | None,
         Status=ua.StatusCode(ua.StatusCodes.GoodSubscriptionTransferred))]
     # (a connection lost: a request still queued there would take the notice into a
     # closed socket; the session, kept for its subscriptions, may come back on another)
-    request = None if _gone(getattr(take, "__self__", None)) else take(sub.data.SubscriptionId)
+    request = None if _gone(processor) else \
+        processor.get_publish_request(sub.data.SubscriptionId)
     if request is None:
         _NOTICES.setdefault(old, []).append(told)
         return
     told.NotificationMessage.PublishTime = datetime.now(UTC)
-    await answer(told, request)
+    await processor.forward_publish_response(told, request)
 
 
 async def answer_notice(processor: Any, requesthdr: Any, seqhdr: Any, body: Any) -> bool:
@@ -268,14 +263,12 @@ async def answer_notice(processor: Any, requesthdr: Any, seqhdr: Any, body: Any)
     return True
 
 
-def _refuse_waiting(old: Any, take: Callable[..., Any] | None,
-                    subscriptions: Mapping[int, Any]) -> None:
+def _refuse_waiting(old: Any, processor: Any, subscriptions: Mapping[int, Any]) -> None:
     """The session a subscription was taken from, left with none: the publish requests
-    it still has queued are answered ``BadNoSubscription`` (Part 4, 5.13.5), as its
-    next ones will be (nothing of its own would ever take them)."""
-    processor = getattr(take, "__self__", None)
-    if processor is None or _gone(processor) or processor.session is not old or any(
-            sub.session_id == old.session_id for sub in subscriptions.values()):
+    it still has queued (on ``processor``) are answered ``BadNoSubscription`` (Part 4,
+    5.13.5), as its next ones will be (nothing of its own would ever take them)."""
+    if _gone(processor) or processor.session is not old or \
+            subscriptions_of(old, subscriptions):
         return
     while processor._publish_requests:
         request = processor._publish_requests.popleft()
@@ -284,9 +277,20 @@ def _refuse_waiting(old: Any, take: Callable[..., Any] | None,
         processor.send_response(request.requesthdr.RequestHandle, request.seqhdr, fault)
 
 
+def subscriptions_of(session: Any, subscriptions: Mapping[int, Any]) -> int:
+    """How many of ``subscriptions`` (the server's) are ``session``'s."""
+    return sum(1 for sub in subscriptions.values() if sub.session_id == session.session_id)
+
+
+def _processor(callback: Any) -> Any:
+    """The asyncua processor (a connection's) a subscription's callback is a method of
+    (None: none)."""
+    return getattr(callback, "__self__", None)
+
+
 def _gone(processor: Any) -> bool:
     """An asyncua processor whose connection is lost or closing."""
-    return processor is not None and (processor._closing or processor._transport.is_closing())
+    return bool(processor._closing or processor._transport.is_closing())
 
 
 def _forget_notice(session: Any, sub_id: int) -> None:
