@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import functools
+import itertools
 import multiprocessing
 import resource
 import socket
@@ -19,6 +20,7 @@ from typing import NamedTuple
 
 from imu_gateway.app import Gateway
 from imu_gateway.config import GatewayConfig, config_from_dict
+from imu_gateway.model import Reading
 from imu_gateway.simulator.motion import Motion
 
 
@@ -104,20 +106,19 @@ async def fed(config: GatewayConfig, rate: float, seconds: float,
         await asyncio.sleep(0.05)
 
     async def feed() -> None:
-        motion, period, n, start = Motion.from_seed(1), 1.0 / rate, 0, time.monotonic()
-        while not feeding.is_set():
-            gw.cache.publish(f"s{n % FED_SENSORS}", motion.sample(n * period))
-            n += 1
-            await asyncio.sleep(max(0.0, start + n * period - time.monotonic()))
+        for name, reading, due in _paced(rate):
+            if feeding.is_set():
+                return
+            gw.cache.publish(name, reading)
+            await asyncio.sleep(max(0.0, due - time.monotonic()))
 
     def feed_bus() -> None:  # (a thread of its own: the bus thread's turns it posts)
-        motion, period, n, start = Motion.from_seed(1), 1.0 / rate, 0, time.monotonic()
         writer, reactor = gw.buses.writer, gw.buses.reactor
-        while not feeding.is_set():
-            reading = motion.sample(n * period)
-            reactor.post(functools.partial(writer.publish, f"s{n % FED_SENSORS}", reading))
-            n += 1
-            time.sleep(max(0.0, start + n * period - time.monotonic()))
+        for name, reading, due in _paced(rate):
+            if feeding.is_set():
+                return
+            reactor.post(functools.partial(writer.publish, name, reading))
+            time.sleep(max(0.0, due - time.monotonic()))
 
     feeder = asyncio.create_task(asyncio.to_thread(feed_bus) if through_bus else feed())
     results: multiprocessing.Queue[int] = multiprocessing.Queue()
@@ -135,6 +136,14 @@ async def fed(config: GatewayConfig, rate: float, seconds: float,
     stop.set()
     await task
     return Fed(delivered, cpu / elapsed, system / elapsed)
+
+
+def _paced(rate: float) -> Iterator[tuple[str, Reading, float]]:
+    """The fed readings, round the sensors, moving values: (sensor, reading, when the
+    next one is due)."""
+    motion, period, start = Motion.from_seed(1), 1.0 / rate, time.monotonic()
+    for n in itertools.count():
+        yield f"s{n % FED_SENSORS}", motion.sample(n * period), start + (n + 1) * period
 
 
 def _system() -> float:
