@@ -190,43 +190,10 @@ def test_a_found_sensor_that_never_says_what_it_is_is_unknown() -> None:
     assert line.asked == [250] * (1 + IDENTIFY_TRIES)
 
 
-class StreamAtAnotherRate:
-    """Just enough of a serial port for ``Prober``: a line that carries, asked or not,
-    bytes that make no frame at this rate (a sensor streaming at another: at 9600, its
-    115200-baud frames come as a few bytes of 0x00, 0x80, 0xF8 each), and that nobody
-    answers."""
-
-    baudrate = 9600
-
-    def __init__(self) -> None:
-        self.timeout = 0.0
-        self.written: list[bytes] = []
-
-    in_waiting = 0
-
-    def reset_input_buffer(self) -> None:
-        pass
-
-    def write(self, request: bytes) -> int:
-        self.written.append(request)
-        return len(request)
-
-    def read(self, size: int = 1) -> bytes:
-        time.sleep(min(self.timeout, 0.002))  # (a frame of the stream every 2 ms)
-        return b"\x00\x80\xf8"
-
-
-def test_a_stream_at_another_rate_does_not_send_the_scan_through_every_address() -> None:
-    line = StreamAtAnotherRate()
-    prober = Prober(cast(serial.Serial, line), margin=0.005)
-    assert list(scan_native(prober, range(256))) == []
-    assert line.written == [native.encode_request("read_address")]  # the query alone
-
-
 class TimedLine:
     """Just enough of a serial port for ``Prober``: bytes that come in at their times,
     on the real clock (``due``: the bytes that have come by a time, in order), and
-    nobody answering."""
+    nobody answering what is ``written``."""
 
     baudrate = 9600
 
@@ -235,6 +202,7 @@ class TimedLine:
         self._due = due
         self._start = time.monotonic()
         self._taken = 0
+        self.written: list[bytes] = []
 
     def _now(self) -> bytes:
         return self._due(time.monotonic() - self._start)
@@ -247,6 +215,7 @@ class TimedLine:
         self._taken = len(self._now())
 
     def write(self, request: bytes) -> int:
+        self.written.append(request)
         return len(request)
 
     def read(self, size: int = 1) -> bytes:
@@ -256,6 +225,16 @@ class TimedLine:
         data = self._now()[self._taken:self._taken + size]
         self._taken += len(data)
         return data
+
+
+def test_a_stream_at_another_rate_does_not_send_the_scan_through_every_address() -> None:
+    """A line that carries, asked or not, bytes that make no frame at this rate (a
+    sensor streaming at another: at 9600, its 115200-baud frames come as a few bytes of
+    0x00, 0x80, 0xF8 each, one every 2 ms), and that nobody answers: the query alone."""
+    line = TimedLine(lambda t: b"\x00\x80\xf8" * int(t / 0.002))
+    prober = Prober(cast(serial.Serial, line), margin=0.005)
+    assert list(scan_native(prober, range(256))) == []
+    assert line.written == [native.encode_request("read_address")]
 
 
 def _stream(period: float, phase: float, frame: bytes = b"\x77" + bytes(56)
