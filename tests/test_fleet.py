@@ -140,20 +140,30 @@ async def _fleet(cluster: NatsCluster, lines: contextlib.ExitStack,
     moved = [gw.config.gateway_id for gw in moving]
     failover = max(back[gid] for gid in moved)
 
-    # no retained status is wrong: what a subscriber that comes now to a third node
-    # gets (NATS serves retained messages from JetStream, recovering too: a new
-    # subscriber every second, for up to 30 s)
+    # no retained status is wrong: what a subscriber that comes now gets, on the third
+    # node and on the watcher's (NATS serves retained messages from JetStream,
+    # recovering too: a new subscriber every second, for up to 30 s)
+    online = dict.fromkeys(ids, "online")
     deadline = time.monotonic() + 30
-    while (retained := await _retained_statuses(fresh_node)) != \
-            dict.fromkeys(ids, "online") and time.monotonic() < deadline:
+    retained, watched = await _retained_statuses(fresh_node), \
+        await _retained_statuses(watcher_node)
+    while (retained, watched) != (online, online) and time.monotonic() < deadline:
         await asyncio.sleep(1)
+        retained, watched = await _retained_statuses(fresh_node), \
+            await _retained_statuses(watcher_node)
     history = {g: [(round(m.at - killed_at, 2), m.text) for m in list(rec.messages)
                    if m.topic == f"imu/{g}/status"] for g in ids}
-    # every gateway's last word, as node 2's subscriber heard it, is online: a late will
-    # (NATS publishes a dead node's wills ~5-10 s after the kill) was answered
-    assert all(h and h[-1][1] == "online" for h in history.values()), history
+    # every gateway's last word, as node 2's live subscriber heard it, is online; or it
+    # said online after the kill, and the last word is a late will.  NATS publishes a
+    # dead node's wills 5-10 s after the kill, from another node than the gateway's own
+    # "online", and a live subscriber may get two publishers' messages in either order
+    # (MQTT orders one publisher's only: seen once in CI, the retained status online).
+    # The retained status, what every subscriber gets when it comes, must be right.
+    assert all(h and (h[-1][1] == "online" or any(t > 0 and text == "online"
+                                                  for t, text in h))
+               for h in history.values()), history
     assert len(retained) == GATEWAYS, retained
-    if retained != dict.fromkeys(ids, "online"):
+    if retained != online or watched != online:
         # what node 3 serves to a subscriber of each wrong gateway's own topic, now
         exact = {}
         for g in sorted(g for g, text in retained.items() if text != "online"):
@@ -161,8 +171,9 @@ async def _fleet(cluster: NatsCluster, lines: contextlib.ExitStack,
                 with contextlib.suppress(TimeoutError):
                     await until(lambda: bool(one.messages), 5)
                 exact[g] = [(m.text, m.retain) for m in list(one.messages)]
-        raise AssertionError(f"retained statuses on node 3: {retained}; each wrong one's "
-                             f"own topic there: {exact}; heard on node 2: {history}")
+        raise AssertionError(f"retained statuses on node 3: {retained}, on node 2: "
+                             f"{watched}; each wrong one's own topic on node 3: {exact}; "
+                             f"heard live on node 2: {history}")
 
     # what the failover cost: states of the moved gateways never seen
     mark = len(rec.messages)
