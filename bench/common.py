@@ -87,13 +87,14 @@ class Fed(NamedTuple):
     delivered: int  # what the counter put in its queue
     cores: float  # the gateway's CPU: process time ÷ wall time
     system: float  # of which in the kernel (system calls: sockets, epoll, the loopback)
+    wakeups: float  # the gateway's threads' sleeps a second (voluntary context switches)
 
 
 async def fed(config: GatewayConfig, rate: float, seconds: float,
               ready: Callable[[Gateway], bool], counter: Callable[..., None],
               args: tuple[object, ...], settle: float, through_bus: bool = False) -> Fed:
     """Run the gateway on ``config`` with readings fed at ``rate`` a second (round the
-    sensors, moving values) and ``counter(*args, seconds, queue)`` in a process of its
+    sensors, moving values; none at 0) and ``counter(*args, seconds, queue)`` in a process of its
     own; measured ``settle`` seconds after the counter started, for ``seconds``.
 
     The readings go into the cache on the event loop; with ``through_bus``, they come
@@ -120,22 +121,24 @@ async def fed(config: GatewayConfig, rate: float, seconds: float,
             reactor.post(functools.partial(writer.publish, name, reading))
             time.sleep(max(0.0, due - time.monotonic()))
 
-    feeder = asyncio.create_task(asyncio.to_thread(feed_bus) if through_bus else feed())
+    feeder = asyncio.create_task(asyncio.sleep(0) if rate <= 0 else  # (idle: none)
+                                 asyncio.to_thread(feed_bus) if through_bus else feed())
     results: multiprocessing.Queue[int] = multiprocessing.Queue()
     process = multiprocessing.Process(target=counter, args=(*args, seconds, results))
     process.start()
     await asyncio.sleep(settle)
     # (the total exact; its split into user and system from the kernel's accounting)
-    c0, s0, t0 = time.process_time(), _system(), time.monotonic()
+    c0, u0, t0 = time.process_time(), _usage(), time.monotonic()
     await asyncio.sleep(seconds)
-    cpu, system, elapsed = time.process_time() - c0, _system() - s0, time.monotonic() - t0
+    cpu, u1, elapsed = time.process_time() - c0, _usage(), time.monotonic() - t0
     delivered = await asyncio.to_thread(results.get, True, 120)
     await asyncio.to_thread(process.join, 30)
     feeding.set()
     await feeder
     stop.set()
     await task
-    return Fed(delivered, cpu / elapsed, system / elapsed)
+    return Fed(delivered, cpu / elapsed, (u1.ru_stime - u0.ru_stime) / elapsed,
+               (u1.ru_nvcsw - u0.ru_nvcsw) / elapsed)
 
 
 def _paced(rate: float) -> Iterator[tuple[str, Reading, float]]:
@@ -146,5 +149,5 @@ def _paced(rate: float) -> Iterator[tuple[str, Reading, float]]:
         yield f"s{n % FED_SENSORS}", motion.sample(n * period), start + (n + 1) * period
 
 
-def _system() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_stime
+def _usage() -> resource.struct_rusage:
+    return resource.getrusage(resource.RUSAGE_SELF)

@@ -32,6 +32,9 @@ system calls, the loopback's TCP work, which on 127.0.0.1 includes the receiving
 side's), and the front ends' share: the case minus ``none`` of the same round.  The
 target (issue 29): ``all`` − ``none`` ≤ 0.15 ms.
 ``--rounds`` repeats every case, in turn; the range over the rounds is printed last.
+``--rate 0``: no sample at all: what each front end costs idle, its subscriber
+connected (timers, keep-alives, publishing cycles), in ms of CPU a second; at a rate
+``r``, that much of each second is in the per-sample figure too, ÷ ``r``.
 
 ``--hand-over-ms MS``: the samples come from the bus thread instead, each in a turn of
 its own, handed over to the event loop as a line's answers are: at once with 0, or
@@ -71,7 +74,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import paho.mqtt.client as paho
 from asyncua import Client, ua
@@ -114,6 +117,8 @@ def expected(front_end: str, ports: Ports, rate: float, seconds: float) -> float
     """Messages a subscriber gets in ``seconds``: one state and one event a sample; a
     notification per monitored value and sample, or, sampled, per monitored value and
     the longer of the sampling and the publishing interval."""
+    if rate <= 0:
+        return 0.0
     if front_end == "opcua" and ports.sampling > 0:
         every = max(ports.sampling, SCADA_PUBLISHING_MS) / 1000
         return ports.items * FED_SENSORS * seconds / every
@@ -256,24 +261,33 @@ def _ready(case: str, bare: list[BarePaho], port: int) -> Any:
     return ready
 
 
+class Measured(NamedTuple):
+    """One case of one round; per sample, or per second at ``rate`` 0 (idle)."""
+
+    ratio: float  # delivered ÷ expected
+    ms: float  # the gateway's ms of CPU
+    system: float  # of which in the kernel
+    wakeups: float  # times the gateway's threads slept and were woken
+
+
 async def run_case(case: str, ports: Ports, rate: float, seconds: float,
-                   pki: str) -> tuple[float, float, float]:
-    """(delivered ÷ expected, the gateway's ms of CPU per sample, of which in the
-    kernel)."""
+                   pki: str) -> Measured:
     config = fed_config(**config_of(case, ports, pki))
     bare: list[BarePaho] = []
     # MQTT: measured after the retained sweep of the connect, during which the gateway
     # is subscribed to its own topics and hears its own states (docs/benchmarks.md)
     settle = SWEEP_S + 1.0 if "mqtt" in front_ends(case) else 2.0
     try:
-        delivered, cores, system = await fed(
+        delivered, cores, system, wakeups = await fed(
             config, rate, seconds, _ready(case, bare, ports.broker), _count,
             (case, ports, settle - 1.0), settle=settle, through_bus=ports.hand_over_ms >= 0)
     finally:
         for client in bare:
             client.close()
     wanted = sum(expected(f, ports, rate, seconds) for f in front_ends(case))
-    return (delivered / wanted if wanted else 1.0), 1000 * cores / rate, 1000 * system / rate
+    per = rate if rate > 0 else 1.0
+    return Measured(delivered / wanted if wanted else 1.0, 1000 * cores / per,
+                    1000 * system / per, wakeups / per)
 
 
 async def write_paths(pki: str, writes: int = 300) -> None:
@@ -427,7 +441,8 @@ def main() -> None:
     logging.getLogger("imu_gateway").setLevel(logging.ERROR)  # the port it cannot open
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=5.0)
-    parser.add_argument("--rate", type=float, default=100.0, help="samples/s, all sensors")
+    parser.add_argument("--rate", type=float, default=100.0,
+                        help="samples/s, all sensors (0: idle, CPU per second)")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--items", type=int, default=len(FIELDS),
                         help="OPC UA: monitored values per sensor")
@@ -462,6 +477,7 @@ def main() -> None:
     ports = Ports(free_port(), free_port(), free_port(), free_port(), args.items,
                   args.sampling, args.hand_over_ms)
     shares: dict[str, list[float]] = {case: [] for case in cases}
+    unit = "gw ms/sample" if args.rate > 0 else "gw ms/s"  # (idle: CPU per second)
     with tempfile.TemporaryDirectory() as folder:
         broker = _broker(Path(folder), ports.broker)
         try:
@@ -472,28 +488,30 @@ def main() -> None:
                   f"{f'every {args.sampling:g} ms' if args.sampling > 0 else 'every sample'}"
                   + (f"; through the bus thread, hand_over_ms {args.hand_over_ms}"
                      if args.hand_over_ms >= 0 else ""))
-            print(f"{'round':>5} {'case':>6} {'delivered':>9} {'gw ms/sample':>12} "
-                  f"{'system':>7} {'- none':>7} {'system':>7}")
+            print(f"{'round':>5} {'case':>6} {'delivered':>9} {unit:>12} {'system':>7} "
+                  f"{'wakeups':>7} {'- none':>7} {'system':>7} {'wakeups':>7}")
             for n in range(args.rounds):
-                reference: tuple[float, float] | None = None
+                reference: Measured | None = None
                 for case in cases:
-                    ratio, ms, system = asyncio.run(run_case(case, ports, args.rate,
-                                                             args.seconds, folder))
+                    m = asyncio.run(run_case(case, ports, args.rate, args.seconds, folder))
                     if case == "none":
-                        reference = ms, system
+                        reference = m
                     extra = ""
                     if reference is not None and case != "none":
-                        shares[case].append(ms - reference[0])
-                        extra = f"{ms - reference[0]:7.3f} {system - reference[1]:7.3f}"
-                    print(f"{n + 1:>5} {case:>6} {ratio:>9.2f} {ms:>12.3f} {system:>7.3f} "
-                          f"{extra}", flush=True)
+                        shares[case].append(m.ms - reference.ms)
+                        extra = (f"{m.ms - reference.ms:7.3f} "
+                                 f"{m.system - reference.system:7.3f} "
+                                 f"{m.wakeups - reference.wakeups:7.2f}")
+                    print(f"{n + 1:>5} {case:>6} {m.ratio:>9.2f} {m.ms:>12.3f} "
+                          f"{m.system:>7.3f} {m.wakeups:>7.2f} {extra}", flush=True)
         finally:
             broker.terminate()
             broker.wait(10)
-    print(f"\nfront ends' CPU per sample (case - none), ms, over {args.rounds} rounds:")
+    print(f"\nfront ends' CPU {'per sample' if args.rate > 0 else 'per second, idle'} "
+          f"(case - none), ms, over {args.rounds} rounds:")
     for case, values in shares.items():
         if values:
-            verdict = "" if case != "all" else \
+            verdict = "" if case != "all" or args.rate <= 0 else \
                 ("  target met" if max(values) <= TARGET_MS else
                  f"  over the {TARGET_MS} ms target")
             print(f"{case:>6} {min(values):.3f}-{max(values):.3f}{verdict}")

@@ -73,7 +73,7 @@ async def run_case(case: Case, seconds: float, pki: str) -> tuple[float, float, 
     port = free_port()
     config = fed_config(opcua={"listen": f"127.0.0.1:{port}", "allow_none": True,
                                "pki_dir": pki})
-    delivered, cores, _ = await fed(
+    delivered, cores, *_ = await fed(
         config, case.rate, seconds, lambda gw: gw.opcua is not None and gw.opcua.listening,
         _clients, (f"opc.tcp://127.0.0.1:{port}/", case), settle=1.5)
     return delivered / seconds, cores, cores / case.rate

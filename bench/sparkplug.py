@@ -51,7 +51,7 @@ async def run_case(port: int, mode: str, rate: float, seconds: float) -> tuple[i
         mqtt["sparkplug"] = {"group_id": "bench", "plain_topics": mode == "both"}
     topic = "spBv1.0/bench/DDATA/#" if mode == "sparkplug" else "imu/bench/+/state"
     started = time.monotonic()
-    delivered, cores, _ = await fed(fed_config(mqtt=mqtt), rate, seconds,
+    delivered, cores, *_ = await fed(fed_config(mqtt=mqtt), rate, seconds,
                                     lambda gw: time.monotonic() - started > 1.0,  # connected
                                     _count, (port, topic), settle=1.0)
     return delivered, cores

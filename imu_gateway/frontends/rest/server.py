@@ -8,12 +8,15 @@ import contextlib
 import inspect
 import logging
 import socket
+import time
+from email.utils import formatdate
 from http import HTTPStatus
 from typing import Any, ClassVar
 
 import uvicorn
 from fastapi import FastAPI
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+from uvicorn.server import ServerState
 
 from ...config import HttpConfig, ListenAddress
 from ...errors import KINDS, ErrorKind
@@ -124,6 +127,7 @@ class _GuardedProtocol(HttpToolsProtocol):
     def on_headers_complete(self) -> None:
         _cancel(self._header_timer)
         self._head = None
+        _dated(self.server_state)
         super().on_headers_complete()
         # Disarmed by on_message_complete, which comes at once when there is no body.
         self._body_timer = self.loop.call_later(BODY_DEADLINE_S, self._late, "body",
@@ -182,6 +186,7 @@ class _GuardedProtocol(HttpToolsProtocol):
             return
         row = KINDS[kind]
         body = json_bytes({"error": message, "kind": kind.value})
+        _dated(self.server_state)
         head = [b"HTTP/1.1 %d %s\r\n" % (row.status, HTTPStatus(row.status).phrase.encode()),
                 *(b"%s: %s\r\n" % h for h in self.server_state.default_headers),
                 b"content-type: application/json\r\n",
@@ -231,11 +236,52 @@ def _protocol_for(server_counters: dict[str, int]) -> type[_GuardedProtocol]:
 
 
 class _Server(uvicorn.Server):
-    """uvicorn without its signal handlers: the gateway owns SIGINT and SIGTERM."""
+    """uvicorn without its signal handlers (the gateway owns SIGINT and SIGTERM), and
+    without its tick.  uvicorn's main loop wakes ten times a second, to see whether it
+    should exit and to refresh its Date header: on a small box, idle, that is most of
+    what the REST server costs.  Here the exit is an event (``should_exit`` sets it),
+    and the Date is refreshed when a request needs it (``_dated``)."""
+
+    def __init__(self, config: uvicorn.Config) -> None:
+        self._exit = asyncio.Event()
+        super().__init__(config)
+
+    @property
+    def should_exit(self) -> bool:
+        return self._exit.is_set()
+
+    @should_exit.setter
+    def should_exit(self, value: bool) -> None:
+        if value:
+            self._exit.set()
+        else:
+            self._exit.clear()
+
+    async def main_loop(self) -> None:
+        await self.on_tick(0)  # (uvicorn's first Date header)
+        await self._exit.wait()
 
     @contextlib.contextmanager
     def capture_signals(self) -> Any:
         yield
+
+
+#: The Date header of the second it was made in, shared by the servers (a reload makes
+#: another): (the second, the header).
+_DATE: list[tuple[int, tuple[bytes, bytes]]] = [(0, (b"date", b""))]
+
+
+def _dated(state: ServerState) -> None:
+    """The server's Date header made current, at most once a second (what uvicorn's
+    tick did): the first of its default headers, as uvicorn puts it."""
+    now = int(time.time())
+    second, header = _DATE[0]
+    if now != second:
+        header = (b"date", formatdate(now, usegmt=True).encode())
+        _DATE[0] = (now, header)
+    headers = state.default_headers
+    if headers and headers[0] is not header and headers[0][0] == b"date":
+        state.default_headers = [header, *headers[1:]]
 
 
 class HttpServer(Frontend):

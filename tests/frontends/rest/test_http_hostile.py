@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import email.utils
 import itertools
 import json
 import selectors
@@ -211,8 +212,35 @@ def test_400_idle_connections_leave_health_answered_within_2_s(
         print(f"/health in {took * 1000:.1f} ms with 400 idle connections")
 
 
+def _date(answer: bytes) -> float:
+    """The Date header of a raw answer, as a POSIX time."""
+    head = answer.split(b"\r\n\r\n", 1)[0].decode("latin-1")
+    dates = [line.split(":", 1)[1].strip() for line in head.split("\r\n")[1:]
+             if line.lower().startswith("date:")]
+    assert len(dates) == 1, head
+    return email.utils.parsedate_to_datetime(dates[0]).timestamp()
+
+
+def test_the_date_header_is_the_second_of_the_answer(gateway_process: Address) -> None:
+    """uvicorn refreshes its Date in a tick the gateway does without (it woke an idle
+    gateway ten times a second): each answer's Date is still its own second."""
+    dates = []
+    for _ in range(2):
+        with _connect(gateway_process) as sock:
+            before = time.time()
+            sock.sendall(f"GET {API}/health HTTP/1.1\r\nHost: x\r\n\r\n".encode())
+            answer = _answer(sock)
+            after = time.time()
+        assert answer.startswith(b"HTTP/1.1 200 "), answer
+        dates.append(_date(answer))
+        assert int(before) <= dates[-1] <= after, (before, dates[-1], after)
+        time.sleep(max(0.0, int(after) + 1.05 - time.time()))  # (into the next second)
+    assert dates[1] > dates[0]
+
+
 def test_partial_headers_are_closed_after_the_header_deadline(
         gateway_process: Address) -> None:
+    started = time.time()
     with _sockets() as socks:
         partial_at = time.monotonic()
         partial = _connect(gateway_process)
@@ -242,6 +270,8 @@ def test_partial_headers_are_closed_after_the_header_deadline(
             assert seconds >= HEADER_DEADLINE_S - EARLY, (what, seconds)
             assert data.startswith(b"HTTP/1.1 408 "), (what, data)
             assert b'"kind":"request_timeout"' in data, (what, data)
+            # (the Date of its own second, not of the last request's)
+            assert _date(data) >= int(started + HEADER_DEADLINE_S - EARLY), (what, data)
     assert _get(f"http://{gateway_process[0]}:{gateway_process[1]}{API}/health") == 200
 
 
