@@ -49,6 +49,10 @@ class Subscription:
         self.sensor = sensor
         self.peer = peer  # None: no socket to judge by (the hub used on its own)
         self.events: deque[bytes] = deque()
+        #: the first events (where each sensor stands) are still queued: a queue that
+        #: overflows skips the oldest event after them (a slow sensor's state would not
+        #: come again before its next reading)
+        self.first_queued = False
         self.dropped = False
         self.ended = False  # the client went away, or the hub closed: no more events
         self._loop = asyncio.get_running_loop()
@@ -90,6 +94,7 @@ class Subscription:
             return KEEP_ALIVE
         chunk = self.events[0] if len(self.events) == 1 else b"".join(self.events)
         self.events.clear()
+        self.first_queued = False
         return chunk
 
 
@@ -146,7 +151,10 @@ class StreamHub:
                 if sub.peer is not None and sub.peer.write_stalled:
                     self._drop(sub)
                     continue
-                sub.events.popleft()
+                if sub.first_queued:
+                    del sub.events[1]
+                else:
+                    sub.events.popleft()
                 self.skipped += 1
             sub.events.append(event)
             sub.wake()
@@ -176,6 +184,7 @@ class StreamHub:
             sub.end()
         else:
             sub.events.append(first)
+            sub.first_queued = True
             self.subscribers.add(sub)
         return sub
 

@@ -586,3 +586,36 @@ async def test_the_hub_skips_the_oldest_for_a_client_behind_and_drops_only_a_sta
         await stream.aclose()
     assert hub.open == 0
 
+
+
+@pytest.mark.anyio
+async def test_an_overflow_before_the_first_chunk_keeps_where_each_sensor_stands() -> None:
+    """The first events say where every sensor stands; a fast sensor that fills the
+    queue before the stream sends them skips its own older readings, not them (a slow
+    sensor's state would not come again before its next reading)."""
+    config = config_from_dict({"buses": [{"name": "a", "port": "/dev/null",
+                                          "protocol": "native", "sensors": [
+                                              {"name": "fast", "series": "AH"},
+                                              {"name": "slow", "series": "AH", "address": 1}]}]},
+                              env={})
+    gateway = Gateway(config)
+    motion = Motion.from_seed(3)
+    gateway.cache.publish("slow", motion.sample(0.0))
+    hub = StreamHub(gateway)
+    sub = hub.subscribe(None, _Peer(stalled=False))  # (the stream sends its head first)
+    for n in range(STREAM_QUEUE + 10):
+        gateway.cache.publish("fast", motion.sample(0.01 * n))
+    chunk = await sub.next()
+    assert chunk is not None
+    events = [event for event in chunk.split(b"\n\n") if event]
+    # (the first entry of the queue holds both sensors' events)
+    assert len(events) == STREAM_QUEUE + 1 and hub.skipped >= 10
+    named = [(e.split(b"\n", 1)[0], json.loads(e.split(b"data: ", 1)[1])["sensor"])
+             for e in events]
+    # the first events, whole: each sensor's state, then the newest of the fast one's
+    assert named[:2] == [(b"event: status", "fast"), (b"event: reading", "slow")]
+    assert {name for _, name in named[2:]} == {"fast"}
+    last = gateway.cache.snapshot("fast").seq
+    assert json.loads(events[-1].split(b"data: ", 1)[1])["seq"] == last
+    hub.unsubscribe(sub)
+    hub.close()
