@@ -133,6 +133,10 @@ class _GuardedProtocol(HttpToolsProtocol):
         self._body_timer = self.loop.call_later(BODY_DEADLINE_S, self._late, "body",
                                                 BODY_DEADLINE_S)
 
+    def send_400_response(self, msg: str) -> None:
+        _dated(self.server_state)  # (uvicorn's answer to a request it cannot parse)
+        super().send_400_response(msg)
+
     def on_message_complete(self) -> None:
         _cancel(self._body_timer)
         self._head = 0  # a pipelined request's head may follow at once
@@ -240,9 +244,14 @@ class _Server(uvicorn.Server):
     without its tick.  uvicorn's main loop wakes ten times a second, to see whether it
     should exit and to refresh its Date header: on a small box, idle, that is most of
     what the REST server costs.  Here the exit is an event (``should_exit`` sets it),
-    and the Date is refreshed when a request needs it (``_dated``)."""
+    and the Date is refreshed when an answer needs it (``_dated``).  The tick's other
+    duties are not used here: ``limit_max_requests``, ``callback_notify``.  The
+    event is set from the loop's own thread (the gateway's signal handlers are the
+    loop's): ``should_exit`` set from another thread would not wake it."""
 
     def __init__(self, config: uvicorn.Config) -> None:
+        assert config.limit_max_requests is None and config.callback_notify is None, \
+            "uvicorn's tick did those; this server has no tick"
         self._exit = asyncio.Event()
         super().__init__(config)
 
