@@ -11,7 +11,8 @@ One gateway carries all the lines.  Printed per protocol and line count:
 * the gateway's CPU per exchange (the process's CPU time ÷ exchanges, every thread);
 * with one line, that CPU against its target (issue 29: a native line 0.2 ms, a Modbus
   line 0.3 ms; at most 1.0 meets it), next to the bare loop's of the same run: on a
-  slow ARM core in a quarter-core cgroup a line above its target is throttled;
+  slow ARM core in a quarter-core cgroup a line above its target is throttled; and
+  the times the gateway and the bare loop slept and were woken per exchange;
 * a bare reference measured in the same run against the same simulators: one thread,
   one ``select()`` over every line, each request written when the answer before it is
   in, a half-in answer left alone until its rest could be in, as the gateway does (no
@@ -38,6 +39,7 @@ import asyncio
 import contextlib
 import math
 import os
+import resource
 import select
 import statistics
 import sys
@@ -70,6 +72,7 @@ class Figures:
     per_line_tps: list[float]
     utilisation: list[float]
     cpu_per_exchange: float  # s
+    wakeups_per_exchange: float  # the process's sleeps (voluntary context switches)
 
 
 @contextlib.contextmanager
@@ -106,11 +109,11 @@ async def gateway(protocol: str, ports: list[str], seconds: float,
     masters = list(gw.masters.values())
     while not all(gw.cache.snapshot(f"s{i}").seq for i in range(len(ports))):
         await asyncio.sleep(0.01)
-    t0, c0 = time.monotonic(), time.process_time()
+    t0, c0, w0 = time.monotonic(), time.process_time(), _sleeps()
     n0 = [m.stats.transactions for m in masters]
     b0 = [m.stats.busy_time for m in masters]
     await asyncio.sleep(seconds)
-    t1, c1 = time.monotonic(), time.process_time()
+    t1, c1, w1 = time.monotonic(), time.process_time(), _sleeps()
     n1 = [m.stats.transactions for m in masters]
     b1 = [m.stats.busy_time for m in masters]
     stop.set()
@@ -119,7 +122,7 @@ async def gateway(protocol: str, ports: list[str], seconds: float,
     done = sum(n1) - sum(n0)
     return Figures([(b - a) / elapsed for a, b in zip(n0, n1, strict=True)],
                    [(b - a) / elapsed for a, b in zip(b0, b1, strict=True)],
-                   (c1 - c0) / max(done, 1))
+                   (c1 - c0) / max(done, 1), (w1 - w0) / max(done, 1))
 
 
 def bare(protocol: str, ports: list[str], seconds: float) -> Figures:
@@ -138,7 +141,7 @@ def bare(protocol: str, ports: list[str], seconds: float) -> Figures:
     send_at = {fd: 0.0 for fd in fds}
     rest_at = {fd: 0.0 for fd in fds}
     try:
-        t0, c0 = time.monotonic(), time.process_time()
+        t0, c0, w0 = time.monotonic(), time.process_time(), _sleeps()
         end = t0 + seconds
         for fd in fds:
             os.write(fd, exchange.request)
@@ -161,11 +164,18 @@ def bare(protocol: str, ports: list[str], seconds: float) -> Figures:
                 if send_at[fd] and send_at[fd] <= now:
                     send_at[fd] = 0.0
                     os.write(fd, exchange.request)
-        elapsed, cpu = time.monotonic() - t0, time.process_time() - c0
+        elapsed, cpu, sleeps = time.monotonic() - t0, time.process_time() - c0, _sleeps() - w0
     finally:
         for s in ports_open:
             s.close()
-    return Figures([done[fd] / elapsed for fd in fds], [], cpu / max(sum(done.values()), 1))
+    exchanges = max(sum(done.values()), 1)
+    return Figures([done[fd] / elapsed for fd in fds], [], cpu / exchanges, sleeps / exchanges)
+
+
+def _sleeps() -> int:
+    """Times this process's threads have slept and been woken (on a VM each costs
+    CPU of its own: docs/benchmarks.md)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_nvcsw
 
 
 class _AtOnce(SerialLink):
@@ -295,8 +305,9 @@ def main() -> None:
                 print(f"{'':8} {'':5} cpu per exchange against its target "
                       f"({target * 1000:g} ms): gateway {got.cpu_per_exchange / target:.2f}, "
                       f"bare loop {ref.cpu_per_exchange / target:.2f} "
-                      f"({'met' if got.cpu_per_exchange <= target else 'NOT met'})",
-                      flush=True)
+                      f"({'met' if got.cpu_per_exchange <= target else 'NOT met'}); "
+                      f"wake-ups per exchange: gateway {got.wakeups_per_exchange:.2f}, "
+                      f"bare loop {ref.wakeups_per_exchange:.2f}", flush=True)
 
 
 if __name__ == "__main__":
