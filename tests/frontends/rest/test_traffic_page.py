@@ -14,6 +14,7 @@ from test_dashboard import (
     chromium,
     console_errors,
     gateway,
+    get_json,
     log_in,
     screenshot,
     wait,
@@ -64,7 +65,12 @@ def test_the_traffic_page_shows_frames_pauses_and_the_scan_finds_a_sensor(
             bauds.clear()
             bauds.send_keys(str(FAST))
             driver.find_element("id", "scan-start").click()
-            ended = wait(lambda: scan_end(driver), "the scan ends", timeout=60)
+            try:
+                ended = wait(lambda: scan_end(driver), "the scan ends", timeout=60)
+            except AssertionError as exc:  # (what the scan was doing: its log, REST's)
+                raise AssertionError(
+                    f"{exc}; the page: {driver.find_element('id', 'scan-state').text!r}; "
+                    f"GET /api/v1/scan: {get_json(f'{base}/api/v1/scan', TOKEN)}") from None
             assert ended.startswith("done"), ended
             found = driver.find_element("id", "scan-found").text
             assert "native 115200 baud, address 9, series VG or MINS" in found
