@@ -1117,8 +1117,10 @@
     return `${(n / 1024 / 1024).toFixed(1)} MiB`;
   }
 
-  /** The ZIP with the credential, saved under the link's file name. */
+  /** The ZIP with the credential, saved under the link's file name.  A capture can be
+   *  megabytes: the result says it is coming until the browser has it. */
   async function download(link) {
+    showCaptureResult(`downloading ${link.download}…`, true);
     try {
       const response = await fetch(link.href, { headers, cache: "no-store" });
       if (!response.ok) throw new HttpError(response.status, response.statusText);
@@ -1127,6 +1129,7 @@
       save.href = url;
       save.download = link.download;
       save.click();
+      showCaptureResult(`${link.download}: downloaded`, true);
       setTimeout(() => URL.revokeObjectURL(url), 60000);
     } catch (error) {
       showCaptureResult(`download: ${error.status || ""} ${error.message}`.trim(), false);

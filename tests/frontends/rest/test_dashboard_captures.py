@@ -85,24 +85,35 @@ def page_when(driver: Any, ok: Callable[[dict[str, Any]], bool], what: str,
         raise AssertionError(f"{exc}; the page last showed {last[0]}") from None
 
 
-def take_capture(driver: Any) -> None:
-    """Click "Take a capture" until the page's handler ran (its first act, before any
-    request, is to write "taking a capture…" in the result).  Beside CPU burners a click
-    right after the page's start once landed while the cards above were still growing
-    and reached no button; a click the handler never saw sent nothing, so clicking
-    again cannot take a second capture."""
+def click_until_handled(driver: Any, css: str, what: str,
+                        handled: Callable[[str], bool]) -> None:
+    """Click the element at ``css`` until the page's handler ran: its first act, before
+    any request, is to write in the captures' result (``handled`` knows it).  Beside
+    CPU burners a click once landed while the page was still moving and reached
+    nothing; a click the handler never saw sent nothing, so clicking again cannot take
+    a second capture."""
     def ran() -> bool:
         p = page(driver)
-        return p is not None and p["result"]["text"] != ""
+        return p is not None and handled(p["result"]["text"])
 
     for _ in range(5):
-        driver.find_element("id", "capture-take").click()
+        driver.find_element("css selector", css).click()
         try:
-            wait(ran, "the button's handler", timeout=3.0)
+            wait(ran, f"{what}'s handler", timeout=3.0)
             return
         except AssertionError:
             continue
-    raise AssertionError("five clicks on 'Take a capture' never reached its handler")
+    raise AssertionError(f"five clicks on {what} never reached its handler")
+
+
+def take_capture(driver: Any) -> None:
+    """(The result is empty until the button is used.)"""
+    click_until_handled(driver, "#capture-take", "'Take a capture'", bool)
+
+
+def download(driver: Any) -> None:
+    click_until_handled(driver, "#captures li a.download", "the download link",
+                        lambda text: text.startswith("download") or "downloaded" in text)
 
 
 def config(line: str, folder: Path, http: dict[str, Any], **capture: Any) -> dict[str, Any]:
@@ -202,7 +213,7 @@ def test_with_a_read_token_the_link_downloads_in_the_browser(tmp_path: Path) -> 
             entry = page_when(driver, lambda p: len(p["captures"]) == 1,
                               "the capture listed")["captures"][0]
             assert httpx.get(entry["href"], timeout=10).status_code == 401  # no token
-            driver.find_element("css selector", "#captures li a.download").click()
+            download(driver)
             saved = downloads / entry["file"]
             # (a deadline: beside CPU burners and the rest of the suite, 15 s was short
             # once for Chromium to fetch the ZIP and write it)
