@@ -39,6 +39,7 @@
   const UNIT_SHOWN = { G: "gauss" };
   const TREND_S = 600; // the trends' window (the gateway keeps as much)
   const ERROR_WINDOW_MS = 60000; // errors are shown as a rate over the last minute
+  const DOWNLOAD_MS = 120000; // a capture's download given up after this long
 
   function learnGroups(groups) {
     GROUPS.length = 0;
@@ -1118,21 +1119,29 @@
   }
 
   /** The ZIP with the credential, saved under the link's file name.  A capture can be
-   *  megabytes: the result says it is coming until the browser has it. */
+   *  megabytes: the link says "downloading…" until the browser has it (on the link, so
+   *  that the captures' result keeps what the button said); a download that has not
+   *  come within DOWNLOAD_MS is given up, and says so. */
   async function download(link) {
-    showCaptureResult(`downloading ${link.download}…`, true);
+    if (link.getAttribute("aria-busy") === "true") return; // (one at a time per link)
+    link.setAttribute("aria-busy", "true");
+    link.textContent = "downloading…";
     try {
-      const response = await fetch(link.href, { headers, cache: "no-store" });
+      const response = await fetch(link.href, {
+        headers, cache: "no-store", signal: AbortSignal.timeout(DOWNLOAD_MS),
+      });
       if (!response.ok) throw new HttpError(response.status, response.statusText);
       const url = URL.createObjectURL(await response.blob());
       const save = document.createElement("a");
       save.href = url;
       save.download = link.download;
       save.click();
-      showCaptureResult(`${link.download}: downloaded`, true);
       setTimeout(() => URL.revokeObjectURL(url), 60000);
     } catch (error) {
       showCaptureResult(`download: ${error.status || ""} ${error.message}`.trim(), false);
+    } finally {
+      link.removeAttribute("aria-busy");
+      link.textContent = "download";
     }
   }
 

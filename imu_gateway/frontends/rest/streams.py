@@ -151,7 +151,7 @@ class StreamHub:
                 if sub.peer is not None and sub.peer.write_stalled:
                     self._drop(sub)
                     continue
-                if sub.first_queued:
+                if sub.first_queued and len(sub.events) > 1:
                     del sub.events[1]
                 else:
                     sub.events.popleft()

@@ -22,6 +22,10 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+from selenium.common.exceptions import (
+    ElementClickInterceptedException,
+    StaleElementReferenceException,
+)
 from test_dashboard import (
     FAST,
     bus,
@@ -86,34 +90,44 @@ def page_when(driver: Any, ok: Callable[[dict[str, Any]], bool], what: str,
 
 
 def click_until_handled(driver: Any, css: str, what: str,
-                        handled: Callable[[str], bool]) -> None:
+                        handled: Callable[[dict[str, Any]], bool]) -> None:
     """Click the element at ``css`` until the page's handler ran: its first act, before
-    any request, is to write in the captures' result (``handled`` knows it).  Beside
-    CPU burners a click once landed while the page was still moving and reached
-    nothing; a click the handler never saw sent nothing, so clicking again cannot take
-    a second capture."""
+    any request, shows on the page (``handled`` knows where).  Beside CPU burners a
+    click once landed while the page was still moving and reached nothing; a click the
+    handler never saw sent nothing, so clicking again cannot take a second capture."""
     def ran() -> bool:
         p = page(driver)
-        return p is not None and handled(p["result"]["text"])
+        return p is not None and handled(p)
 
     for _ in range(5):
-        driver.find_element("css selector", css).click()
+        try:
+            driver.find_element("css selector", css).click()
+        except (ElementClickInterceptedException, StaleElementReferenceException):
+            continue  # (the page moved under the click: it reached nothing)
         try:
             wait(ran, f"{what}'s handler", timeout=3.0)
             return
         except AssertionError:
             continue
-    raise AssertionError(f"five clicks on {what} never reached its handler")
+    raise AssertionError(f"five clicks on {what} never reached its handler; the page "
+                         f"last showed {page(driver)}")
 
 
 def take_capture(driver: Any) -> None:
-    """(The result is empty until the button is used.)"""
-    click_until_handled(driver, "#capture-take", "'Take a capture'", bool)
+    """(The result is empty until the button is used: its handler writes "taking a
+    capture…" first.)"""
+    click_until_handled(driver, "#capture-take", "'Take a capture'",
+                        lambda p: bool(p["result"]["text"]))
 
 
-def download(driver: Any) -> None:
+def download(driver: Any, folder: Path) -> None:
+    """The first capture's link: its handler says "downloading…" on it first; a
+    fast download may be over before the page is looked at (a file in ``folder``), a
+    failed one says so in the result."""
     click_until_handled(driver, "#captures li a.download", "the download link",
-                        lambda text: text.startswith("download") or "downloaded" in text)
+                        lambda p: any("downloading…" in c["text"] for c in p["captures"])
+                        or p["result"]["text"].startswith("download:")
+                        or any(folder.iterdir()))
 
 
 def config(line: str, folder: Path, http: dict[str, Any], **capture: Any) -> dict[str, Any]:
@@ -213,11 +227,15 @@ def test_with_a_read_token_the_link_downloads_in_the_browser(tmp_path: Path) -> 
             entry = page_when(driver, lambda p: len(p["captures"]) == 1,
                               "the capture listed")["captures"][0]
             assert httpx.get(entry["href"], timeout=10).status_code == 401  # no token
-            download(driver)
+            download(driver, downloads)
             saved = downloads / entry["file"]
             # (a deadline: beside CPU burners and the rest of the suite, 15 s was short
             # once for Chromium to fetch the ZIP and write it)
-            wait(saved.is_file, "the ZIP in the download folder", timeout=60)
+            try:
+                wait(saved.is_file, "the ZIP in the download folder", timeout=60)
+            except AssertionError as exc:
+                raise AssertionError(f"{exc}; the folder: {list(downloads.iterdir())}; "
+                                     f"the page: {page(driver)}") from None
             archive = opened(saved.read_bytes())
             assert json.loads(archive.read("meta.json"))["trigger"]["reason"] == "manual"
             assert saved.stat().st_size == entry["size"]
