@@ -94,8 +94,9 @@ async def fed(config: GatewayConfig, rate: float, seconds: float,
               ready: Callable[[Gateway], bool], counter: Callable[..., None],
               args: tuple[object, ...], settle: float, through_bus: bool = False) -> Fed:
     """Run the gateway on ``config`` with readings fed at ``rate`` a second (round the
-    sensors, moving values; none at 0) and ``counter(*args, seconds, queue)`` in a process of its
-    own; measured ``settle`` seconds after the counter started, for ``seconds``.
+    sensors, moving values; none at 0) and ``counter(*args, seconds, queue)`` in a
+    process of its own; measured ``settle`` seconds after the counter started, for
+    ``seconds``.
 
     The readings go into the cache on the event loop; with ``through_bus``, they come
     from the bus thread instead, each in a turn of its own, handed over as a line's
@@ -121,8 +122,7 @@ async def fed(config: GatewayConfig, rate: float, seconds: float,
             reactor.post(functools.partial(writer.publish, name, reading))
             time.sleep(max(0.0, due - time.monotonic()))
 
-    feeder = asyncio.create_task(asyncio.sleep(0) if rate <= 0 else  # (idle: none)
-                                 asyncio.to_thread(feed_bus) if through_bus else feed())
+    feeder = asyncio.create_task(asyncio.to_thread(feed_bus) if through_bus else feed())
     results: multiprocessing.Queue[int] = multiprocessing.Queue()
     process = multiprocessing.Process(target=counter, args=(*args, seconds, results))
     process.start()
@@ -143,7 +143,9 @@ async def fed(config: GatewayConfig, rate: float, seconds: float,
 
 def _paced(rate: float) -> Iterator[tuple[str, Reading, float]]:
     """The fed readings, round the sensors, moving values: (sensor, reading, when the
-    next one is due)."""
+    next one is due); none at ``rate`` 0 (idle)."""
+    if rate <= 0:
+        return
     motion, period, start = Motion.from_seed(1), 1.0 / rate, time.monotonic()
     for n in itertools.count():
         yield f"s{n % FED_SENSORS}", motion.sample(n * period), start + (n + 1) * period

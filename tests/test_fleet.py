@@ -145,12 +145,12 @@ async def _fleet(cluster: NatsCluster, lines: contextlib.ExitStack,
     # recovering too: a new subscriber every second, for up to 30 s)
     online = dict.fromkeys(ids, "online")
     deadline = time.monotonic() + 30
-    retained, watched = await _retained_statuses(fresh_node), \
-        await _retained_statuses(watcher_node)
-    while (retained, watched) != (online, online) and time.monotonic() < deadline:
+    while True:
+        retained = await _retained_statuses(fresh_node)
+        watched = await _retained_statuses(watcher_node)
+        if (retained, watched) == (online, online) or time.monotonic() >= deadline:
+            break
         await asyncio.sleep(1)
-        retained, watched = await _retained_statuses(fresh_node), \
-            await _retained_statuses(watcher_node)
     history = {g: [(round(m.at - killed_at, 2), m.text) for m in list(rec.messages)
                    if m.topic == f"imu/{g}/status"] for g in ids}
     # every gateway's last word, as node 2's live subscriber heard it, is online; or it

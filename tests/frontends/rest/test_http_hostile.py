@@ -590,7 +590,6 @@ async def test_the_hub_skips_the_oldest_for_a_client_behind_and_drops_only_a_sta
     assert hub.open == 0
 
 
-
 @pytest.mark.anyio
 async def test_an_overflow_before_the_first_chunk_keeps_where_each_sensor_stands() -> None:
     """The first events say where every sensor stands; a fast sensor that fills the
