@@ -7,7 +7,8 @@ hundred at most), so a client that connects late, or twice, sees the whole scan.
 
 A port one of the gateway's own buses uses is released by that bus for the scan and
 reopened after it (``pause`` and ``resume``, the bus's): nothing else may write to the
-line meanwhile, and the scan's exclusive open would fail on a port the bus holds.
+line meanwhile, and the scan's exclusive open would fail on a port the bus holds.  The
+scan's first request waits until the answer to the bus's last one can no longer come.
 """
 
 from __future__ import annotations
@@ -65,8 +66,9 @@ class _Cancelled(GatewayError):
     leaves this module (a leaf of ``imu_gateway.errors``'s tree all the same)."""
 
 
-#: What pauses the bus on the scanned port, and what resumes it.
-Pause = Callable[[str], Awaitable[None]]
+#: What pauses the bus on the scanned port (it returns when the line is quiet, on the
+#: loop's clock), and what resumes it.
+Pause = Callable[[str], Awaitable[float]]
 Resume = Callable[[], Awaitable[None]]
 
 
@@ -97,8 +99,11 @@ class ScanJob:
         loop = asyncio.get_running_loop()
         try:
             if self.pause is not None:
-                await self.pause(f"polling paused for a scan of {self.request.port} "
-                                 f"(scan {self.id})")
+                quiet = await self.pause(f"polling paused for a scan of "
+                                         f"{self.request.port} (scan {self.id})")
+                # The bus's last request may be answered until then: the scan's first
+                # would meet that answer, or hear it and take it for a stream's frame.
+                await asyncio.sleep(max(0.0, quiet - loop.time()))
             await asyncio.to_thread(self._scan, loop)
         except asyncio.CancelledError:
             # The gateway stops (its loop's last tasks are cancelled, then its threads

@@ -172,6 +172,12 @@ class Line:
         settle = quiet if self.dirty else self.gap
         return max(self.last_rx + settle, self.last_tx_end + self.gap, self.hold_until)
 
+    def quiet_at(self, now: float) -> float:
+        """When nothing more can come in answer to what was sent: the attempt in
+        flight's hold (the bus's own wait for a late answer), else ``free_at``."""
+        held = self.attempt.give_up if self.attempt is not None else now
+        return max(held, self.free_at(now))
+
     def send(self, job: Job, exchange: Exchange, now: float, timeout: float,
              hold: float, latest: float = math.inf, early: float = 0.0,
              placed: str = "") -> Request:

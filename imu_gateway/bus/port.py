@@ -56,20 +56,27 @@ class PortKeeper:
         self._problem_logged = False
         self.paused = False  # released for a scan of the line
 
-    def pause(self, reason: str | None) -> None:
+    def pause(self, reason: str | None) -> float:
         """Release the port for ``reason`` (a scan of the line uses it): the exchange in
         flight and every job waiting fail with it, and nothing goes out until
-        ``pause(None)`` opens it again.  The sensors keep their state and counters."""
+        ``pause(None)`` opens it again.  The sensors keep their state and counters.
+        Returns when the line is quiet (``Line.quiet_at``): the answer to a request in
+        flight may come until then, and whoever writes next must wait for it, as the
+        bus would have (met on the wire, it garbles both; heard, it is a frame nobody
+        asked for)."""
         m = self.master
+        now = m.now()
+        quiet = m.schedule.line.quiet_at(now)
         if m.done or (reason is not None) == self.paused:
-            return
+            return quiet
         self.paused = reason is not None
         log.warning("bus %s: %s", m.name, reason or "polling resumed")
-        self.reopen_at = math.inf if reason else m.now()
+        self.reopen_at = math.inf if reason else now
         if reason:
             m.link.close()
-            m.schedule.close(m.now(), reason)
+            m.schedule.close(now, reason)
             m.dispatch()
+        return quiet
 
     def open(self) -> None:
         m = self.master

@@ -281,9 +281,10 @@ class BusRunner:
 
         return unwatch
 
-    async def pause(self, reason: str) -> None:
-        """Release the line's port (``PortKeeper.pause``)."""
-        await self.call(functools.partial(self.master.port.pause, reason))
+    async def pause(self, reason: str) -> float:
+        """Release the line's port (``PortKeeper.pause``); when the line is quiet, on
+        ``time.monotonic()``'s clock (the loop's)."""
+        return await self.call(functools.partial(self.master.port.pause, reason))
 
     async def resume(self) -> None:
         await self.call(functools.partial(self.master.port.pause, None))

@@ -113,6 +113,37 @@ async def test_a_scan_of_a_line_in_use_pauses_its_polling_and_resumes_it() -> No
     assert sim.bus.stats.masters_overlaps == 0  # the scan and the bus never both wrote
 
 
+
+@pytest.mark.anyio
+async def test_a_scan_waits_out_the_answer_the_paused_bus_was_still_owed() -> None:
+    """A slow sensor polled flat out: when the scan is asked for, the bus has a request
+    in flight and its answer is 30-40 ms away.  The scan's first request goes only
+    after it (else it meets the answer on the wire, and the answer, heard by the scan,
+    looks like another sensor's stream frame)."""
+    slow = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST, answer_delay=0.03,
+                       jitter=0.01)
+    cfg = config("")
+    cfg["buses"][0]["sensors"][0]["poll_hz"] = 0  # flat out: always a request in flight
+    del cfg["buses"][0]["timeout_ms"]  # (learned: the bus's own hold after a request)
+    with simulated([slow]) as sim:
+        cfg["buses"][0]["port"] = sim.path
+        async with running(cfg) as gateway, client(gateway) as http:
+            for _ in range(3):
+                await polled_again(gateway)
+                got = await scan_paused_line(http, sim.path, 255)
+                found = [data for name, data in got if name == "found"]
+                assert found == [{"protocol": "native", "baudrate": FAST, "address": 0,
+                                  "series": "AH"}], got
+                what = "\n".join("\n".join(events) for events in sim.bus.stats.incidents)
+                assert sim.bus.stats.masters_overlaps == 0, what
+
+
+async def polled_again(gateway: Gateway) -> None:
+    """Until the bus has taken three more readings (it polls again)."""
+    seq = gateway.cache.snapshot("boom").seq
+    await until(lambda: gateway.cache.snapshot("boom").seq >= seq + 3)
+
+
 @pytest.mark.anyio
 async def test_a_scan_can_be_cancelled_and_a_missing_port_is_said() -> None:
     polled = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST)
