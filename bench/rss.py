@@ -31,12 +31,15 @@ imu_gateway run``, ``--start`` times bus-only and ``--start`` times with every f
 HTTP, OPC UA), alternately: the time from the process's start to its first reading (the
 log's first "online"), VmRSS then, and, with every front end, VmRSS after ``--hold``
 seconds of two clients of each (Modbus TCP pollers, a REST poller and a live stream,
-MQTT subscribers, OPC UA subscriptions).
+MQTT subscribers, OPC UA subscriptions).  The reference, as often: a bare Python
+process that imports every module of other packages the gateway's code imports
+(asyncua, FastAPI, paho, pymodbus, pydantic, …, found in its sources), its VmRSS.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import asyncio
 import contextlib
 import ctypes
@@ -312,6 +315,33 @@ opcua: {{listen: '{HOST}:{ports['opcua']}', allow_none: true, pki_dir: '{pki}'}}
 """
 
 
+def _third_party_imports() -> list[str]:
+    """Every module of another package that the gateway's modules import as they load
+    (their sources read with ``ast``: the imports at the top level, not those in a
+    function, which may never run, or under ``if TYPE_CHECKING``)."""
+    names: set[str] = set()
+    for source in (Path(__file__).resolve().parents[1] / "imu_gateway").rglob("*.py"):
+        body = ast.parse(source.read_text()).body
+        for node in body + [n for t in body if isinstance(t, ast.Try) for n in t.body]:
+            if isinstance(node, ast.Import):
+                names.update(alias.name for alias in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                names.add(node.module)
+    return sorted(name for name in names if name.split(".")[0] not in
+                  {*sys.stdlib_module_names, "imu_gateway", "__future__"})
+
+
+def libraries_alone() -> float:
+    """VmRSS (MB) of a bare Python process that has imported ``_third_party_imports()``:
+    the floor under the gateway's own figure with every front end on."""
+    code = ("import importlib, sys\nfor name in sys.argv[1:]: importlib.import_module(name)\n"
+            "print(next(line.split()[1] for line in open('/proc/self/status')"
+            " if line.startswith('VmRSS')))")
+    done = subprocess.run([sys.executable, "-c", code, *_third_party_imports()],
+                          capture_output=True, text=True, check=True)
+    return int(done.stdout) / 1024
+
+
 def _start_once(config: Path) -> tuple[subprocess.Popen[str], float, float]:
     """``imu-gateway run`` on ``config`` until its first reading: the process, the
     seconds that took, and its VmRSS (MB) then."""
@@ -384,6 +414,8 @@ async def start_up(args: argparse.Namespace, folder: Path) -> dict[str, list[flo
                 finally:
                     process.send_signal(signal.SIGINT)
                     process.wait(20)
+            figures.setdefault("the libraries alone (a bare process importing them): "
+                               "VmRSS, MB", []).append(libraries_alone())
     return figures
 
 
