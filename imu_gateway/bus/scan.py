@@ -10,7 +10,8 @@ rate, most likely first:
   at once) every address is asked for its zero type instead, unless bytes with no
   frame's start among them keep coming unasked too (a sensor streaming at another
   rate: at this one it is noise, and every address would be asked through it in
-  vain; ``Prober.unreadable_traffic``).  The combined read
+  vain; ``Prober.unreadable_traffic``).  A query garbled with no answer at all is
+  asked once more first: a lone sensor's answer cut short looks the same.  The combined read
   (0x59) then tells the series by the answer's shape: IMU 0x84/LEN 0x16, VG or MINS
   0x59/0x2F (the protocol cannot tell those two apart), AH 0x59/0x38.
 * Modbus: every unit 1-247 (248-255 too with ``all_addresses``) is asked for register
@@ -393,13 +394,19 @@ def scan_native(prober: Prober, addresses: Iterable[int],
     # Every sensor answers the address query: listen for all of them (they may answer
     # one after another without colliding).
     answers, garbled, streaming = _address_query(prober)
+    if garbled and not (answers or streaming):
+        if prober.unreadable_traffic():
+            # Not several sensors answering at once: the line carries what this rate
+            # cannot read, asked or not.  Asking 256 addresses through it would take
+            # the margin each (25 s at the default) and be garbled all the same.
+            return
+        # Or one answer cut short (a port that handed its end over late): asked once
+        # more before every address is; only answers that come clean are taken.
+        again = _address_query(prober)
+        if again[0] and not again[1]:
+            answers, garbled, streaming = again
     if answers and not garbled:
         found = answers
-    elif garbled and not (answers or streaming) and prober.unreadable_traffic():
-        # Not several sensors answering at once: the line carries what this rate
-        # cannot read, asked or not.  Asking 256 addresses through it would take the
-        # margin each (25 s at the default) and be garbled all the same.
-        return
     elif garbled or streaming:  # several sensors at once; or a stream, not answering
         found = []
         for asked, address in enumerate(addresses):

@@ -13,9 +13,10 @@ import pytest
 import serial
 
 from imu_gateway.bus.scan import IDENTIFY_TRIES, scan_native
-from imu_gateway.model import WireProtocol
+from imu_gateway.model import Series, WireProtocol
 from imu_gateway.protocol import modbus_rtu as rtu
 from imu_gateway.protocol import native
+from imu_gateway.simulator import make_sensor
 from imu_gateway.tools.scan import (
     Found,
     Prober,
@@ -188,6 +189,65 @@ def test_a_found_sensor_that_never_says_what_it_is_is_unknown() -> None:
     prober = Prober(cast(serial.Serial, line), margin=0.005)
     assert list(scan_modbus(prober, [250])) == [(250, "unknown")]
     assert line.asked == [250] * (1 + IDENTIFY_TRIES)
+
+
+class CutsAnswers:
+    """Just enough of a serial port for ``Prober``: a lone native sensor (the
+    simulator's) that answers every request at once, but the answers to the requests
+    numbered in ``cut`` (1: the first) come cut short, their first half only (a port
+    that handed the rest over after the wait for it)."""
+
+    baudrate = 115200
+
+    def __init__(self, address: int, cut: set[int]) -> None:
+        self.sensor = make_sensor(WireProtocol.NATIVE, Series.AH, address,
+                                  baud=self.baudrate)
+        self.cut = cut
+        self.timeout = 0.0
+        self.written: list[bytes] = []
+        self._unread = bytearray()
+
+    @property
+    def in_waiting(self) -> int:
+        return len(self._unread)
+
+    def reset_input_buffer(self) -> None:
+        self._unread.clear()
+
+    def write(self, request: bytes) -> int:
+        self.written.append(request)
+        answer = b"".join(out.frame for out in self.sensor.hear(
+            request, time.monotonic(), after_silence=True))
+        self._unread += answer[:len(answer) // 2] if len(self.written) in self.cut \
+            else answer
+        return len(request)
+
+    def read(self, size: int = 1) -> bytes:
+        data = bytes(self._unread[:size])
+        del self._unread[:size]
+        return data
+
+
+QUERY = native.encode_request("read_address")
+
+
+def test_a_lone_sensors_answer_to_the_query_cut_short_is_asked_again_not_swept() -> None:
+    """The query's answer came in half (no answer, a few bytes: garbled): the query is
+    asked once more, and its clean answer finds the sensor with no address asked one by
+    one (256 of them: 25 s at the default margin)."""
+    line = CutsAnswers(7, cut={1})
+    prober = Prober(cast(serial.Serial, line), margin=0.005)
+    assert list(scan_native(prober, range(256))) == [(7, "AH")]
+    assert line.written[:2] == [QUERY, QUERY] and len(line.written) == 3, line.written
+
+
+def test_a_query_garbled_twice_asks_every_address() -> None:
+    """Cut short twice (as answers of several sensors at once are, every time): every
+    address is asked, and the sensor is found so."""
+    line = CutsAnswers(7, cut={1, 2})
+    prober = Prober(cast(serial.Serial, line), margin=0.005)
+    assert list(scan_native(prober, range(16))) == [(7, "AH")]
+    assert line.written[:2] == [QUERY, QUERY] and len(line.written) == 2 + 16 + 1
 
 
 class TimedLine:
