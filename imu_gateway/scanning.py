@@ -32,6 +32,9 @@ log = logging.getLogger("imu_gateway.scan")
 
 #: At most one progress event in this many seconds (each step's start always goes).
 PROGRESS_EVERY = 0.5
+#: The longest the scan waits for the paused bus's last answer (a bus with a learned
+#: timeout holds the line about 0.9 s at most; a fixed ``timeout_ms`` can be longer).
+QUIET_MAX = 2.0
 _ids = itertools.count(1)
 
 
@@ -103,7 +106,7 @@ class ScanJob:
                                          f"{self.request.port} (scan {self.id})")
                 # The bus's last request may be answered until then: the scan's first
                 # would meet that answer, or hear it and take it for a stream's frame.
-                await asyncio.sleep(max(0.0, quiet - loop.time()))
+                await asyncio.sleep(min(max(0.0, quiet - loop.time()), QUIET_MAX))
             await asyncio.to_thread(self._scan, loop)
         except asyncio.CancelledError:
             # The gateway stops (its loop's last tasks are cancelled, then its threads

@@ -174,9 +174,10 @@ class Line:
 
     def quiet_at(self, now: float) -> float:
         """When nothing more can come in answer to what was sent: the attempt in
-        flight's hold (the bus's own wait for a late answer), else ``free_at``."""
-        held = self.attempt.give_up if self.attempt is not None else now
-        return max(held, self.free_at(now))
+        flight's hold (the bus's own wait for a late answer, with the grace for one
+        arriving as it ends), else ``free_at``."""
+        a = self.attempt
+        return max(a.give_up + ARRIVING_GRACE if a is not None else now, self.free_at(now))
 
     def send(self, job: Job, exchange: Exchange, now: float, timeout: float,
              hold: float, latest: float = math.inf, early: float = 0.0,

@@ -10,8 +10,9 @@ rate, most likely first:
   at once) every address is asked for its zero type instead, unless bytes with no
   frame's start among them keep coming unasked too (a sensor streaming at another
   rate: at this one it is noise, and every address would be asked through it in
-  vain; ``Prober.unreadable_traffic``).  A query garbled with no answer at all is
-  asked once more first: a lone sensor's answer cut short looks the same.  The combined read
+  vain; ``Prober.unreadable_traffic``).  A query that heard only part of one answer
+  (fewer bytes than an answer: a lone sensor's answer cut short, not several at once)
+  is asked once more first, and its clean answers taken.  The combined read
   (0x59) then tells the series by the answer's shape: IMU 0x84/LEN 0x16, VG or MINS
   0x59/0x2F (the protocol cannot tell those two apart), AH 0x59/0x38.
 * Modbus: every unit 1-247 (248-255 too with ``all_addresses``) is asked for register
@@ -45,7 +46,7 @@ import os
 import time
 from collections.abc import Callable, Generator, Iterable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import serial
 
@@ -258,6 +259,12 @@ class Prober:
         #: Frames nobody asked for were heard at this rate (a stream): each request
         #: goes right after one of them, not into the next (``after_a_frame``).
         self.stream = False
+        #: Until then (``time.monotonic()``) a request that went unanswered may still
+        #: be answered, a margin late; whoever writes to the line next waits for it.
+        self.quiet_at = 0.0
+
+    def wait_quiet(self) -> None:
+        time.sleep(max(0.0, self.quiet_at - time.monotonic()))
 
     def ask(self, request: bytes, answer_bytes: int, framer: Callable[[], Any],
             gap: float = 0.0, all_answers: bool = False,
@@ -301,6 +308,8 @@ class Prober:
             for frame in framer.feed(data):
                 (answers if wanted(frame) else unasked).append(frame)
         self.stream = self.stream or (bool(unasked) and isinstance(framer, native.NativeFramer))
+        if not answers:
+            self.quiet_at = time.monotonic() + self.margin
         return Heard(answers, len(unasked), heard - sum(map(_wire_size, unasked)))
 
     def unreadable_traffic(self) -> bool:
@@ -375,10 +384,18 @@ def _zero_type_from(address: int) -> Callable[[native.NativeFrame], bool]:
     return lambda f: f.address == address and f.command in _ZERO_TYPE_ANSWERS
 
 
-def _address_query(prober: Prober) -> tuple[list[int], bool, bool]:
-    """The addresses that answered the 2.6 query; whether something garbled it (several
-    sensors answering at once); whether frames nobody asked for came (a stream).  Beside
-    a stream, a garbled query is asked again right after one of its frames."""
+class Query(NamedTuple):
+    """What the 2.6 address query heard."""
+
+    answers: list[int]  # the addresses that answered
+    garbled: bool  # bytes that were not a whole frame came too (several answering at once)
+    streaming: bool  # frames nobody asked for came (a stream)
+    cut: bool  # all it heard was some bytes, fewer than one answer's: one cut short?
+
+
+def _address_query(prober: Prober) -> Query:
+    """The 2.6 query, answered by any sensor.  Beside a stream, a garbled query is
+    asked again right after one of its frames."""
     for _ in range(QUERY_TRIES):
         heard = prober.ask(_QUERY, _QUERY_ANSWER_BYTES, _answer_framer, all_answers=True,
                            wanted=lambda f: f.command == 0x1F)
@@ -386,25 +403,27 @@ def _address_query(prober: Prober) -> tuple[list[int], bool, bool]:
         if not (garbled and heard.unasked):
             break
     answers = sorted({native.interpret(f).values["address"] for f in heard.answers})
-    return answers, garbled, heard.unasked > 0
+    return Query(answers, garbled, heard.unasked > 0,
+                 not (answers or heard.unasked) and 0 < heard.noise < _QUERY_ANSWER_BYTES)
 
 
 def scan_native(prober: Prober, addresses: Iterable[int],
                 tick: Tick = _no_tick) -> Iterator[tuple[int, str]]:
     # Every sensor answers the address query: listen for all of them (they may answer
     # one after another without colliding).
-    answers, garbled, streaming = _address_query(prober)
-    if garbled and not (answers or streaming):
-        if prober.unreadable_traffic():
-            # Not several sensors answering at once: the line carries what this rate
-            # cannot read, asked or not.  Asking 256 addresses through it would take
-            # the margin each (25 s at the default) and be garbled all the same.
-            return
-        # Or one answer cut short (a port that handed its end over late): asked once
-        # more before every address is; only answers that come clean are taken.
+    answers, garbled, streaming, cut = _address_query(prober)
+    if garbled and not (answers or streaming) and prober.unreadable_traffic():
+        # Not several sensors answering at once: the line carries what this rate
+        # cannot read, asked or not.  Asking 256 addresses through it would take the
+        # margin each (25 s at the default) and be garbled all the same.
+        return
+    if cut:
+        # Less than one answer's bytes: one answer cut short (a port that handed its
+        # end over late), not several at once, which garble at least as many bytes as
+        # one.  Asked once more before every address is; taken only if it comes clean.
         again = _address_query(prober)
-        if again[0] and not again[1]:
-            answers, garbled, streaming = again
+        if again.answers and not again.garbled:
+            answers, garbled, streaming = again.answers, False, again.streaming
     if answers and not garbled:
         found = answers
     elif garbled or streaming:  # several sensors at once; or a stream, not answering
@@ -518,16 +537,21 @@ def scan(port: str, protocols: Iterable[WireProtocol], bauds: Iterable[int],
     steps = plan(protocols, bauds, addresses, all_addresses)
     with _open(port) as ser:
         prober = Prober(ser, margin)
-        for index, step in enumerate(steps):
-            ser.baudrate = step.baudrate
-            prober.stream = False  # (a stream at another rate is noise at this one)
-            tick: Tick = _no_tick
-            if progress:
-                progress(Progress(step, None, 0, time_left(steps, index, None, margin)))
-                tick = _ticker(progress, steps, index, margin)
-            scanner = scan_native if step.protocol is WireProtocol.NATIVE else scan_modbus
-            for address, series in scanner(prober, step.addresses, tick):
-                yield Found(step.protocol, step.baudrate, address, series)
+        try:
+            for index, step in enumerate(steps):
+                ser.baudrate = step.baudrate
+                prober.stream = False  # (a stream at another rate is noise at this one)
+                tick: Tick = _no_tick
+                if progress:
+                    progress(Progress(step, None, 0, time_left(steps, index, None, margin)))
+                    tick = _ticker(progress, steps, index, margin)
+                scanner = scan_native if step.protocol is WireProtocol.NATIVE else scan_modbus
+                for address, series in scanner(prober, step.addresses, tick):
+                    yield Found(step.protocol, step.baudrate, address, series)
+        finally:
+            # A paused bus resumes on the port next: the scan's last request, if it
+            # went unanswered, may still be answered into the bus's first.
+            prober.wait_quiet()
 
 
 def port_problem(port: str, exc: serial.SerialException) -> str:

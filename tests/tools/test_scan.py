@@ -195,14 +195,17 @@ class CutsAnswers:
     """Just enough of a serial port for ``Prober``: a lone native sensor (the
     simulator's) that answers every request at once, but the answers to the requests
     numbered in ``cut`` (1: the first) come cut short, their first half only (a port
-    that handed the rest over after the wait for it)."""
+    that handed the rest over after the wait for it), and those in ``garbled`` come
+    whole but garbled (as two sensors' answers at once do)."""
 
     baudrate = 115200
 
-    def __init__(self, address: int, cut: set[int]) -> None:
+    def __init__(self, address: int, cut: frozenset[int], garbled: frozenset[int] = frozenset()
+                 ) -> None:
         self.sensor = make_sensor(WireProtocol.NATIVE, Series.AH, address,
                                   baud=self.baudrate)
         self.cut = cut
+        self.garbled = garbled
         self.timeout = 0.0
         self.written: list[bytes] = []
         self._unread = bytearray()
@@ -218,8 +221,11 @@ class CutsAnswers:
         self.written.append(request)
         answer = b"".join(out.frame for out in self.sensor.hear(
             request, time.monotonic(), after_silence=True))
-        self._unread += answer[:len(answer) // 2] if len(self.written) in self.cut \
-            else answer
+        if len(self.written) in self.cut:
+            answer = answer[:len(answer) // 2]
+        elif len(self.written) in self.garbled:
+            answer = bytes(b ^ 0x5A for b in answer)
+        self._unread += answer
         return len(request)
 
     def read(self, size: int = 1) -> bytes:
@@ -235,7 +241,7 @@ def test_a_lone_sensors_answer_to_the_query_cut_short_is_asked_again_not_swept()
     """The query's answer came in half (no answer, a few bytes: garbled): the query is
     asked once more, and its clean answer finds the sensor with no address asked one by
     one (256 of them: 25 s at the default margin)."""
-    line = CutsAnswers(7, cut={1})
+    line = CutsAnswers(7, cut=frozenset({1}))
     prober = Prober(cast(serial.Serial, line), margin=0.005)
     assert list(scan_native(prober, range(256))) == [(7, "AH")]
     assert line.written[:2] == [QUERY, QUERY] and len(line.written) == 3, line.written
@@ -244,10 +250,20 @@ def test_a_lone_sensors_answer_to_the_query_cut_short_is_asked_again_not_swept()
 def test_a_query_garbled_twice_asks_every_address() -> None:
     """Cut short twice (as answers of several sensors at once are, every time): every
     address is asked, and the sensor is found so."""
-    line = CutsAnswers(7, cut={1, 2})
+    line = CutsAnswers(7, cut=frozenset({1, 2}))
     prober = Prober(cast(serial.Serial, line), margin=0.005)
     assert list(scan_native(prober, range(16))) == [(7, "AH")]
     assert line.written[:2] == [QUERY, QUERY] and len(line.written) == 2 + 16 + 1
+
+
+def test_a_query_garbled_whole_asks_every_address_at_once() -> None:
+    """An answer's worth of garbled bytes is what several sensors answering at once
+    give: a second query that came clean might miss one of them (silent that time, or
+    drowned), so every address is asked, without a second query."""
+    line = CutsAnswers(7, cut=frozenset(), garbled=frozenset({1}))
+    prober = Prober(cast(serial.Serial, line), margin=0.005)
+    assert list(scan_native(prober, range(16))) == [(7, "AH")]
+    assert line.written[0] == QUERY and len(line.written) == 1 + 16 + 1, line.written
 
 
 class TimedLine:

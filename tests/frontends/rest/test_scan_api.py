@@ -138,6 +138,27 @@ async def test_a_scan_waits_out_the_answer_the_paused_bus_was_still_owed() -> No
                 assert sim.bus.stats.masters_overlaps == 0, what
 
 
+@pytest.mark.anyio
+async def test_the_bus_resumes_once_the_scans_last_request_can_no_longer_be_answered(
+        ) -> None:
+    """A sensor slower than the scan's margin (150 ms against 100): the scan hears no
+    answer to its query and ends, but the sensor answers all the same.  The bus's
+    first poll after the scan must not meet that answer."""
+    slow = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST, answer_delay=0.15)
+    cfg = config("")
+    del cfg["buses"][0]["timeout_ms"]
+    with simulated([slow]) as sim:
+        cfg["buses"][0]["port"] = sim.path
+        async with running(cfg) as gateway, client(gateway) as http:
+            for _ in range(2):
+                await polled_again(gateway)
+                got = await scan_paused_line(http, sim.path, 255)
+                assert [name for name, _ in got if name != "progress"] == ["done"], got
+                await polled_again(gateway)
+                what = "\n".join("\n".join(events) for events in sim.bus.stats.incidents)
+                assert sim.bus.stats.masters_overlaps == 0, what
+
+
 async def polled_again(gateway: Gateway) -> None:
     """Until the bus has taken three more readings (it polls again)."""
     seq = gateway.cache.snapshot("boom").seq
