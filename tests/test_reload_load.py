@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import os
 import threading
 from collections.abc import Awaitable, Callable
 from typing import Any
@@ -65,9 +66,11 @@ class Poller:
                 last = seq
             await asyncio.sleep(LOOK_EVERY)
 
-    def longest_gap(self, since: int) -> float:
-        times = self.seen[since:]
-        return max(b - a for a, b in itertools.pairwise(times))
+    def longest_gap(self, since: int, held: LoopWatch) -> float:
+        """The longest wait for a new reading since the ``since``-th, less the time the
+        loop's thread waited for a CPU in it (as ``gap_across``)."""
+        return max((b - a) - held.off_cpu(a, b)
+                   for a, b in itertools.pairwise(self.seen[since:]))
 
     def gap_across(self, began: float, ended: float, held: LoopWatch) -> tuple[float, float]:
         """The longest wait for a new reading that overlaps ``began``-``ended`` (the
@@ -75,7 +78,7 @@ class Poller:
         what the reload cost this poller; and that time.  (A stall of the machine well
         after it is not the reload's: beside CPU burners one came a second late, 20
         readings on.)"""
-        return max(((b - a) - (off := held.off_cpu(a, b)), off)
+        return max((max(0.0, (b - a) - (off := held.off_cpu(a, b))), off)
                    for a, b in itertools.pairwise(self.seen) if b >= began and a <= ended)
 
 
@@ -91,7 +94,11 @@ class LoopWatch:
 
     async def run(self, stop: asyncio.Event) -> None:
         loop = asyncio.get_running_loop()
-        with open(f"/proc/self/task/{threading.get_native_id()}/schedstat") as stat:
+        path = f"/proc/self/task/{threading.get_native_id()}/schedstat"
+        if not os.path.exists(path):  # (a kernel without CONFIG_SCHED_INFO)
+            print(f"no {path}: no wait for a CPU is taken off the gaps")
+            return
+        with open(path) as stat:
             def waited() -> float:
                 stat.seek(0)
                 return int(stat.read().split()[1]) / 1e9
@@ -104,7 +111,9 @@ class LoopWatch:
                 wall, wait = now, then
 
     def off_cpu(self, start: float, end: float) -> float:
-        return sum(w for a, b, w in self.waits if a < end and b > start)
+        """The wait within ``start``-``end``: of a look only partly inside, its share."""
+        return sum(w * (min(b, end) - max(a, start)) / (b - a)
+                   for a, b, w in self.waits if a < end and b > start and b > a)
 
 
 def native_line(addresses: list[int]) -> list[Any]:
@@ -168,7 +177,7 @@ async def test_a_sensor_added_and_removed_under_load_costs_the_others_no_reading
                 start = {p.name: len(p.seen) - 1 for p in pollers}  # (past the start-up)
                 await until(lambda: all(len(p.seen) > start[p.name] + BEFORE
                                         for p in pollers), 60)
-                normal = {p.name: p.longest_gap(start[p.name]) for p in pollers}
+                normal = {p.name: p.longest_gap(start[p.name], held) for p in pollers}
                 for with_arm2 in (True, False):
                     marks = {p.name: len(p.seen) - 1 for p in pollers}
                     began = asyncio.get_running_loop().time()

@@ -248,8 +248,8 @@ def test_a_lone_sensors_answer_to_the_query_cut_short_is_asked_again_not_swept()
 
 
 def test_a_query_garbled_twice_asks_every_address() -> None:
-    """Cut short twice (as answers of several sensors at once are, every time): every
-    address is asked, and the sensor is found so."""
+    """A lone answer cut short twice: every address is asked, and the sensor is found
+    so."""
     line = CutsAnswers(7, cut=frozenset({1, 2}))
     prober = Prober(cast(serial.Serial, line), margin=0.005)
     assert list(scan_native(prober, range(16))) == [(7, "AH")]
