@@ -1044,6 +1044,9 @@ class Final:
     alive: bool = False
     front_ends: dict[str, bool] = field(default_factory=dict)
     lines: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: each bus's requests written past their place next to a stream, as the gateway
+    #: counted them (``late_writes``): a collision after one is the machine's holding
+    late_writes: dict[str, int] = field(default_factory=dict)
     invented_in_log: int = 0
     exit_status: int | None = None
     log_tail: str = ""
@@ -1059,6 +1062,9 @@ async def final_checks(soak: Soak) -> Final:
     mqtt = record.answers[before].latency is not None
     final.front_ends = {"modbus": await modbus_ok(soak, 0.0), "http": await http_ok(soak, 0.0),
                         "mqtt": mqtt and await mqtt_ok(soak, 0.0)}
+    with contextlib.suppress(OSError, TimeoutError, ValueError):
+        final.late_writes = {bus["name"]: bus["late_writes"]
+                             for bus in await h.http_json(soak.http_port, "/api/v1/buses")}
     return final
 
 
@@ -1104,7 +1110,8 @@ def failures(results: list[PhaseResult], trends: list[Trend], final: Final,
         if stats.get("collisions"):
             seen = sorted({during(results, incident_time(i)) for i in stats["incidents"]})
             out.append(f"collision: {stats['collisions']} on {name} (first ones during: "
-                       f"{', '.join(seen)})")
+                       f"{', '.join(seen)}; the gateway's late writes on it: "
+                       f"{final.late_writes.get(name, 'unknown')})")
     unasked, stops = unasked_writes(final.lines, asked)
     if final.invented_in_log or stops:
         out.append(f"invented stream: {final.invented_in_log} in the gateway's log, "
@@ -1172,7 +1179,8 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
                    f"held by the machine {stats.get('holds')} times ({stats.get('held_s')} s), "
                    f"its pty late {stats.get('lags')} times ({stats.get('lagged_s')} s), "
                    f"{stats.get('after_holds')} overlaps and collisions right after "
-                   "(not counted)")
+                   "(not counted); the gateway's writes past their place next to a "
+                   f"stream {final.get('late_writes', {}).get(name, 'unknown')}")
         for incident in stats.get("incidents", [])[:1]:  # what led to the first one
             out += [f"    {event[:100]}" for event in incident[-5:]]
     unasked, stops = summary["unasked_writes"], summary["stream_stops_unasked"]

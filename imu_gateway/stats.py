@@ -49,6 +49,9 @@ class Counters:
     #: answers in sooner than request, gap and answer could cross the wire, and used
     early_answers: int = 0
     stream_stops: int = 0  # stops sent to a sensor found streaming unasked
+    #: (a bus's) requests written after the last moment their place next to a stream
+    #: allowed: each may have met the stream's next frame (``Line.written``)
+    late_writes: int = 0
     busy_time: float = 0.0  # the line was ours: request, answer delay, answer, gaps
     wire_time: float = 0.0  # the bytes of the exchanges done, at the wire's rate
     errors: Counter[str] = field(default_factory=Counter)
@@ -113,6 +116,7 @@ class BusStats:
     errors: Mapping[str, int]
     late_answers: int
     early_answers: int
+    late_writes: int
     transactions_per_s: float
     utilisation: float  # time in exchanges ÷ elapsed
     busy_ms: int

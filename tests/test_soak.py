@@ -43,6 +43,8 @@ def test_a_short_soak_passes_every_check(tmp_path: Path) -> None:
     ran = {phase["name"] for phase in summary["phases"]}
     assert ran == set(summary["phases_planned"]), "every phase runs at least once"
     assert summary["final"]["alive"], report
+    # the gateway's own count of late writes, per line, beside the simulators' view
+    assert set(summary["final"]["late_writes"]) == set(summary["final"]["lines"]), report
     # The failures, one per line, are the message: which check and in which phase.
     assert soak.returncode == 0 and not summary["failures"], report
 

@@ -68,6 +68,8 @@ class Attempt:
     looked: bool = False
     #: why it went when it did, next to a stream (``line.stream_wait``)
     placed: str = ""
+    #: next to a stream, the last moment its place allowed it to go
+    latest: float = math.inf
 
 
 @dataclass(frozen=True, slots=True)

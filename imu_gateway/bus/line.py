@@ -196,7 +196,7 @@ class Line:
         self.attempt = Attempt(job, exchange, now, wire, deadline, deadline + hold,
                                now - self.gap, self.adapter.garbage_seen(self.framer),
                                tx_end_before=self.last_tx_end, looked=early > 0,
-                               placed=placed)
+                               placed=placed, latest=latest)
         self.last_tx_end = now + len(exchange.request) * char_time(self.baud)
         self.heard.clear()
         job.tries += 1
@@ -212,8 +212,15 @@ class Line:
         they left then: its deadline and hold move on by the delay, and the line is
         not used before the request's own end.  The send time stays the earliest it
         could have been, since an answer is recognised by not coming before it, and
-        the answer times nothing: from which moment would it be measured?"""
+        the answer times nothing: from which moment would it be measured?
+
+        Next to a stream, a write that returned after the last moment its place
+        allowed may have met the stream's next frame: counted (``late_writes``).  The
+        place was checked just before the write; the thread was held between the two,
+        or in the write."""
         a = self.attempt
+        if a is not None and at > a.latest:
+            self.stats.late_writes += 1
         if a is None or at - a.sent <= SLOW_WRITE:
             return
         delay = at - a.sent

@@ -407,7 +407,7 @@ def bus_stats_of(master: BusMaster, now: float) -> BusStats:
         protocol=master.config.protocol.name.lower(), port_open=master.port_open,
         transactions=stats.transactions, errors=dict(stats.errors),
         late_answers=stats.late_answers, early_answers=stats.early_answers,
-        transactions_per_s=round(stats.rate.per_second(now), 2),
+        late_writes=stats.late_writes, transactions_per_s=round(stats.rate.per_second(now), 2),
         utilisation=share(stats.busy_time, elapsed), busy_ms=round(stats.busy_time * 1000),
         wire_utilisation=share(stats.wire_time, elapsed),
         queue_depth=master.schedule.queue_depth())

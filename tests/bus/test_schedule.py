@@ -541,6 +541,22 @@ def test_a_request_placed_next_to_a_stream_is_withdrawn_when_written_too_late() 
     assert len(line.readings("po")) > 150 and line.collisions == 0 and line.overlaps == 0
 
 
+@pytest.mark.parametrize("most", [0.0, 0.006])
+def test_a_write_held_past_its_place_next_to_a_stream_is_counted(most: float) -> None:
+    """A driver held after its check of the request's ``latest`` (in the write itself)
+    writes all the same: each write that so went past its place is counted, for the
+    bus's ``late_writes``; one that did not is not."""
+    rng = random.Random(5)
+    line = VirtualLine(bus("native", [
+        {"name": "st", "series": "MINS", "address": 0, "stream_hz": 100},
+        {"name": "po", "series": "AH", "address": 1, "poll_hz": 10}], baudrate=460800),
+        [sim("native", "MINS", 0, baud=460800), sim("native", "AH", 1, baud=460800)],
+        held=lambda: rng.uniform(0, most) if rng.random() < 0.3 else 0.0)
+    line.run(10.0)
+    assert line.schedule.stats.late_writes == line.held_late
+    assert (line.held_late > 5) == (most > 0), line.held_late
+
+
 @pytest.mark.parametrize("protocol", ["native", "modbus"])
 def test_a_write_held_past_the_timeout_is_waited_for_from_when_it_returned(
         protocol: str) -> None:

@@ -69,6 +69,11 @@ class VirtualLine:
     #: much later, and the driver does nothing else until then
     stall: Callable[[], float] = lambda: 0.0
     withdrawn: int = 0
+    #: how long the driver is held after its check of the request's ``latest``, in the
+    #: write (the write goes all the same, that much later); ``held_late``: the writes
+    #: that so went past their ``latest``
+    held: Callable[[], float] = lambda: 0.0
+    held_late: int = 0
     now: float = 0.0
     schedule: Schedule = field(init=False)
     events: list[Event] = field(default_factory=list)
@@ -198,6 +203,8 @@ class VirtualLine:
             self.schedule.withdraw()
             self.withdrawn += 1
             return
+        at += self.held()
+        self.held_late += at > request.latest
         # (a stalled write is heard later; whether it meets a frame is judged at the
         # decision's time, when a frame on the wire is surely an overlap)
         if self._wire or any(o.solicited for o in self._queue) or any(

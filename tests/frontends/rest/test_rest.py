@@ -221,6 +221,7 @@ async def test_health_buses_sensors_and_readings(two_lines: Any) -> None:
         assert buses_out["a"]["baudrate"] == FAST and buses_out["a"]["sensors"] == ["boom"]
         assert buses_out["a"]["transactions"] >= 2 and buses_out["a"]["port_open"] is True
         assert 0 < buses_out["a"]["utilisation"] <= 1.0
+        assert buses_out["a"]["late_writes"] == 0  # (no stream on the line: no place)
         # each sensor's learned answer timing: never less than the simulator's delay
         timing = buses_out["a"]["timing"]["boom"]
         assert timing["latency_ms"] >= 0.9 * ah.answer_delay * 1000
@@ -544,6 +545,7 @@ async def test_metrics(two_lines: Any) -> None:
         tx = samples[("imu_gateway_bus_transactions_total", (("bus", "a"),))]
         assert buses_out["a"]["transactions"] <= tx <= buses_out["a"]["transactions"] + 100
         assert samples[("imu_gateway_bus_port_open", (("bus", "b"),))] == 1
+        assert samples[("imu_gateway_bus_late_writes_total", (("bus", "a"),))] == 0
         assert ("imu_gateway_bus_utilisation", (("bus", "a"),)) in samples
         assert ("imu_gateway_bus_queue_depth", (("bus", "a"),)) in samples
         assert samples[("imu_gateway_bus_errors_total",
