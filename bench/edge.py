@@ -126,6 +126,7 @@ class Counts:
     cpu: float
     transactions: dict[str, int]  # per bus
     seq: dict[str, int]  # per sensor
+    late_writes: int  # all buses': requests written past their place next to a stream
 
 
 @dataclass
@@ -186,7 +187,8 @@ async def counts(http: int, pid: int) -> Counts:
     sensors = await h.http_json(http, "/api/v1/sensors")
     return Counts(time.monotonic(), cpu_seconds(pid),
                   {b["name"]: b["transactions"] for b in buses},
-                  {s["name"]: s["seq"] for s in sensors})
+                  {s["name"]: s["seq"] for s in sensors},
+                  sum(b["late_writes"] for b in buses))
 
 
 async def opcua_subscriber(port: int, stop: asyncio.Event) -> int:
@@ -230,7 +232,8 @@ async def measure(args: argparse.Namespace, gateway: GatewayProcess, http: int,
         print(f"  {'quarter' if quarter else 'free':7} (from {start.at:.1f}): "
               + ", ".join(f"{b} {phases[-1].rate(b):.1f} tx/s" for b in LINES)
               + f", {STREAM} {phases[-1].stream():.1f}/s, {phases[-1].cores():.3f} cores, "
-              f"health ≤ {phases[-1].health_s * 1000:.0f} ms", flush=True)
+              f"health ≤ {phases[-1].health_s * 1000:.0f} ms, "
+              f"late writes {end.late_writes - start.late_writes}", flush=True)
     group.leave(gateway.pid)
     return phases
 
