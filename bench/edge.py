@@ -126,7 +126,7 @@ class Counts:
     cpu: float
     transactions: dict[str, int]  # per bus
     seq: dict[str, int]  # per sensor
-    late_writes: int  # all buses': requests written past their place next to a stream
+    late_writes: int  # all buses': requests written too late to end before a stream frame
 
 
 @dataclass

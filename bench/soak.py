@@ -1179,8 +1179,8 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
                    f"held by the machine {stats.get('holds')} times ({stats.get('held_s')} s), "
                    f"its pty late {stats.get('lags')} times ({stats.get('lagged_s')} s), "
                    f"{stats.get('after_holds')} overlaps and collisions right after "
-                   "(not counted); the gateway's writes past their place next to a "
-                   f"stream {final.get('late_writes', {}).get(name, 'unknown')}")
+                   "(not counted); the gateway's writes too late to end before a "
+                   f"stream's frame {final.get('late_writes', {}).get(name, 'unknown')}")
         for incident in stats.get("incidents", [])[:1]:  # what led to the first one
             out += [f"    {event[:100]}" for event in incident[-5:]]
     unasked, stops = summary["unasked_writes"], summary["stream_stops_unasked"]

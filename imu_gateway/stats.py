@@ -49,8 +49,8 @@ class Counters:
     #: answers in sooner than request, gap and answer could cross the wire, and used
     early_answers: int = 0
     stream_stops: int = 0  # stops sent to a sensor found streaming unasked
-    #: (a bus's) requests written after the last moment their place next to a stream
-    #: allowed: each may have met the stream's next frame (``Line.written``)
+    #: (a bus's) requests written too late, next to a stream, for their exchange to
+    #: end before the stream's next frame: each may have met it (``Line.written``)
     late_writes: int = 0
     busy_time: float = 0.0  # the line was ours: request, answer delay, answer, gaps
     wire_time: float = 0.0  # the bytes of the exchanges done, at the wire's rate

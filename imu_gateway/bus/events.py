@@ -68,8 +68,9 @@ class Attempt:
     looked: bool = False
     #: why it went when it did, next to a stream (``line.stream_wait``)
     placed: str = ""
-    #: next to a stream, the last moment its place allowed it to go
-    latest: float = math.inf
+    #: next to a stream, the last moment it could go and end before the stream's next
+    #: frame, if that frame comes on time (its place's latest, and the room kept)
+    clear_by: float = math.inf
 
 
 @dataclass(frozen=True, slots=True)

@@ -56,11 +56,14 @@ class Due(enum.Enum):
 class Place(NamedTuple):
     """Where an exchange goes next to a stream: not before ``at``; written by ``latest``
     or withdrawn; and why there (shown in the frame trace: a collision with a frame is
-    then explained by the rule that placed the request; "" with no stream)."""
+    then explained by the rule that placed the request; "" with no stream).  ``room``:
+    how much later than ``latest`` it would still end before the next frame, if that
+    frame came on time (the margin kept for the frames' wobble, where one was kept)."""
 
     at: float
     latest: float
     why: str
+    room: float = 0.0
 
 
 def stream_margin(period: float) -> float:
@@ -99,7 +102,8 @@ def stream_wait(now: float, needs: float, last_end: float, period: float,
         return Place(due + period / 2, 0.0, "a frame due")  # it may still be coming in
     next_end = due + period
     if now + needs + margin <= next_end - frame:
-        return Place(now, next_end - frame - needs - margin, "fits before the next frame")
+        return Place(now, next_end - frame - needs - margin, "fits before the next frame",
+                     margin)
     slack = period - frame - needs - margin  # how long after a frame's end it still fits
     if waited >= PATIENCE * period and now + needs <= next_end - frame:
         return Place(now, next_end - frame - needs, "waited long: fits without the margin")
@@ -180,14 +184,16 @@ class Line:
         return max(a.give_up + ARRIVING_GRACE if a is not None else now, self.free_at(now))
 
     def send(self, job: Job, exchange: Exchange, now: float, timeout: float,
-             hold: float, latest: float = math.inf, early: float = 0.0,
-             placed: str = "") -> Request:
+             hold: float, place: Place | None = None, early: float = 0.0) -> Request:
         """``exchange`` goes out now (``free_at`` said the line is free); its answer is
         due ``timeout`` beyond the wire time, and the line is held ``hold`` more for a
         late one.  Half a frame still in the framer has stopped coming (the line has
         been quiet): it is dropped now, not while nothing needed the line (its rest may
         yet come, late, on a busy machine).  ``early``: the answer's latency is rarely
-        less (0: not known, or to be timed); the port is not looked at before."""
+        less (0: not known, or to be timed); the port is not looked at before.
+        ``place``: next to a stream, where it was placed."""
+        latest, placed, room = (math.inf, "", 0.0) if place is None else \
+            (place.latest, place.why, place.room)
         self.flush(now)
         wire = self.wire(exchange)
         if not exchange.answer_bytes:
@@ -196,7 +202,7 @@ class Line:
         self.attempt = Attempt(job, exchange, now, wire, deadline, deadline + hold,
                                now - self.gap, self.adapter.garbage_seen(self.framer),
                                tx_end_before=self.last_tx_end, looked=early > 0,
-                               placed=placed, latest=latest)
+                               placed=placed, clear_by=latest + room)
         self.last_tx_end = now + len(exchange.request) * char_time(self.baud)
         self.heard.clear()
         job.tries += 1
@@ -214,12 +220,12 @@ class Line:
         could have been, since an answer is recognised by not coming before it, and
         the answer times nothing: from which moment would it be measured?
 
-        Next to a stream, a write that returned after the last moment its place
-        allowed may have met the stream's next frame: counted (``late_writes``).  The
-        place was checked just before the write; the thread was held between the two,
-        or in the write."""
+        Next to a stream, a write that returned too late for its exchange to end
+        before the stream's next frame may have met that frame: counted
+        (``late_writes``).  The place was checked just before the write; the thread
+        was held between the two, in the write, or after it."""
         a = self.attempt
-        if a is not None and at > a.latest:
+        if a is not None and at > a.clear_by:
             self.stats.late_writes += 1
         if a is None or at - a.sent <= SLOW_WRITE:
             return

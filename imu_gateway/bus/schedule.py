@@ -236,8 +236,8 @@ class Schedule(Membership):
                 self.jobs.current = None
                 return self.next_request(now, pending)
         exchange = job.plan[job.step]
-        at, latest, placed = self._stream_place(job, exchange, now)
-        if at > now:
+        place = self._stream_place(job, exchange, now)
+        if place.at > now:
             if job.blocked_since is None:
                 job.blocked_since = now
             return None
@@ -247,7 +247,7 @@ class Schedule(Membership):
             probe_times(s, self.sensors.values())
         # A retry, or a sensor that is not answering as it did, is watched for at once.
         early = s.timer.look_after() if s.online and not job.tries else 0.0
-        return self.line.send(job, exchange, now, timeout, hold, latest, early, placed)
+        return self.line.send(job, exchange, now, timeout, hold, place, early)
 
     def written(self, at: float) -> None:
         """The request ``next_request`` handed out was written by ``at``."""

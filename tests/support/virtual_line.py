@@ -71,7 +71,7 @@ class VirtualLine:
     withdrawn: int = 0
     #: how long the driver is held after its check of the request's ``latest``, in the
     #: write (the write goes all the same, that much later); ``held_late``: the writes
-    #: that so went past their ``latest``
+    #: that so went past their ``latest`` (some still clear of the next frame)
     held: Callable[[], float] = lambda: 0.0
     held_late: int = 0
     now: float = 0.0

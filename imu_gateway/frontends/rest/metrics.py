@@ -98,8 +98,8 @@ class GatewayCollector:
         queue = family(GaugeMetricFamily, "bus_queue_depth", "jobs waiting for the line",
                        ["bus"])
         port = family(GaugeMetricFamily, "bus_port_open", "1 when the port is open", ["bus"])
-        late = family(CounterMetricFamily, "bus_late_writes", "requests written after the "
-                      "last moment their place next to a stream allowed", ["bus"])
+        late = family(CounterMetricFamily, "bus_late_writes", "requests written too late "
+                      "to end before a stream's next frame", ["bus"])
         for bus in self.gateway.stats():
             tx.add_metric([bus.name], bus.transactions)
             late.add_metric([bus.name], bus.late_writes)

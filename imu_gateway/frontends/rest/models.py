@@ -165,9 +165,10 @@ class BusOut(_Out):
                               "were used")
     early_answers: int = Field(description="answers sooner than request, RTU gap and "
                                "answer could cross the wire, and used")
-    late_writes: int = Field(description="requests written after the last moment their "
-                             "place next to a stream allowed (the bus thread held by a "
-                             "busy machine): each may have met the stream's next frame")
+    late_writes: int = Field(description="requests written too late, next to a "
+                             "streaming sensor, for their exchange to end before its next "
+                             "frame (the bus thread held by a busy machine): each may have "
+                             "met that frame")
     sensors: list[str]
     timing: dict[str, TimingOut] = Field(description="each sensor's learned answer timing")
 
