@@ -116,16 +116,14 @@ def test_answers_from_a_reserved_unit_are_heard_despite_the_shared_framers_rule(
     assert ReservedUnitAnswers(251).feed(answer) == []
 
 
-class OneReservedSensor:
-    """Just enough of a serial port for ``Prober``: a Modbus sensor at ``unit`` that
-    answers every read at once (the simulator's framing, like the gateway's, drops
-    requests to units above 247, so it cannot play this sensor)."""
+class AnswersAtOnce:
+    """Just enough of a serial port for ``Prober``: what a subclass's ``write`` puts in
+    ``_unread`` is there to read at once."""
 
-    def __init__(self, unit: int) -> None:
-        self.unit = unit
-        self.baudrate = 115200
+    baudrate = 115200
+
+    def __init__(self) -> None:
         self.timeout = 0.0
-        self.asked: list[int] = []
         self._unread = bytearray()
 
     @property
@@ -134,6 +132,22 @@ class OneReservedSensor:
 
     def reset_input_buffer(self) -> None:
         self._unread.clear()
+
+    def read(self, size: int = 1) -> bytes:
+        data = bytes(self._unread[:size])
+        del self._unread[:size]
+        return data
+
+
+class OneReservedSensor(AnswersAtOnce):
+    """A Modbus sensor at ``unit`` that answers every read at once (the simulator's
+    framing, like the gateway's, drops requests to units above 247, so it cannot play
+    this sensor)."""
+
+    def __init__(self, unit: int) -> None:
+        super().__init__()
+        self.unit = unit
+        self.asked: list[int] = []
 
     def write(self, request: bytes) -> int:
         unit, start, count = request[0], request[2:4], int.from_bytes(request[4:6], "big")
@@ -144,11 +158,6 @@ class OneReservedSensor:
                 registers[0] = unit  # register 0x04 is the product address
             self._unread += rtu.encode(rtu.ReadResponse(unit, tuple(registers)))
         return len(request)
-
-    def read(self, size: int = 1) -> bytes:
-        data = bytes(self._unread[:size])
-        del self._unread[:size]
-        return data
 
 
 def test_scan_modbus_finds_a_sensor_at_a_reserved_unit() -> None:
@@ -191,31 +200,21 @@ def test_a_found_sensor_that_never_says_what_it_is_is_unknown() -> None:
     assert line.asked == [250] * (1 + IDENTIFY_TRIES)
 
 
-class CutsAnswers:
-    """Just enough of a serial port for ``Prober``: a lone native sensor (the
-    simulator's) that answers every request at once, but the answers to the requests
-    numbered in ``cut`` (1: the first) come cut short, their first half only (a port
-    that handed the rest over after the wait for it), and those in ``garbled`` come
-    whole but garbled (as two sensors' answers at once do)."""
-
-    baudrate = 115200
+class CutsAnswers(AnswersAtOnce):
+    """A lone native sensor (the simulator's) that answers every request at once, but
+    the answers to the requests numbered in ``cut`` (1: the first) come cut short,
+    their first half only (a port that handed the rest over after the wait for it),
+    and those in ``garbled`` come whole but garbled (as two sensors' answers at once
+    do)."""
 
     def __init__(self, address: int, cut: frozenset[int], garbled: frozenset[int] = frozenset()
                  ) -> None:
+        super().__init__()
         self.sensor = make_sensor(WireProtocol.NATIVE, Series.AH, address,
                                   baud=self.baudrate)
         self.cut = cut
         self.garbled = garbled
-        self.timeout = 0.0
         self.written: list[bytes] = []
-        self._unread = bytearray()
-
-    @property
-    def in_waiting(self) -> int:
-        return len(self._unread)
-
-    def reset_input_buffer(self) -> None:
-        self._unread.clear()
 
     def write(self, request: bytes) -> int:
         self.written.append(request)
@@ -227,11 +226,6 @@ class CutsAnswers:
             answer = bytes(b ^ 0x5A for b in answer)
         self._unread += answer
         return len(request)
-
-    def read(self, size: int = 1) -> bytes:
-        data = bytes(self._unread[:size])
-        del self._unread[:size]
-        return data
 
 
 QUERY = native.encode_request("read_address")

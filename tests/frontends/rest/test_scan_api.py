@@ -12,6 +12,7 @@ import json
 import subprocess
 import sys
 import time
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +22,7 @@ from support.harness import free_port, interrupt, running, until
 
 from imu_gateway.app import Gateway
 from imu_gateway.model import Series, WireProtocol
-from imu_gateway.simulator import make_sensor, simulated
+from imu_gateway.simulator import SimulatorThread, make_sensor, simulated
 
 FAST = 115200
 API = "/api/v1"
@@ -120,22 +121,14 @@ async def test_a_scan_waits_out_the_answer_the_paused_bus_was_still_owed() -> No
     in flight and its answer is 30-40 ms away.  The scan's first request goes only
     after it (else it meets the answer on the wire, and the answer, heard by the scan,
     looks like another sensor's stream frame)."""
-    slow = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST, answer_delay=0.03,
-                       jitter=0.01)
-    cfg = config("")
-    cfg["buses"][0]["sensors"][0]["poll_hz"] = 0  # flat out: always a request in flight
-    del cfg["buses"][0]["timeout_ms"]  # (learned: the bus's own hold after a request)
-    with simulated([slow]) as sim:
-        cfg["buses"][0]["port"] = sim.path
-        async with running(cfg) as gateway, client(gateway) as http:
-            for _ in range(3):
-                await polled_again(gateway)
-                got = await scan_paused_line(http, sim.path, 255)
-                found = [data for name, data in got if name == "found"]
-                assert found == [{"protocol": "native", "baudrate": FAST, "address": 0,
-                                  "series": "AH"}], got
-                what = "\n".join("\n".join(events) for events in sim.bus.stats.incidents)
-                assert sim.bus.stats.masters_overlaps == 0, what
+    async with slow_line(answer_delay=0.03, jitter=0.01) as (sim, gateway, http):
+        for _ in range(3):
+            await polled_again(gateway)
+            got = await scan_paused_line(http, sim.path, 255)
+            found = [data for name, data in got if name == "found"]
+            assert found == [{"protocol": "native", "baudrate": FAST, "address": 0,
+                              "series": "AH"}], got
+            assert sim.bus.stats.masters_overlaps == 0, incidents(sim)
 
 
 @pytest.mark.anyio
@@ -144,19 +137,34 @@ async def test_the_bus_resumes_once_the_scans_last_request_can_no_longer_be_answ
     """A sensor slower than the scan's margin (150 ms against 100): the scan hears no
     answer to its query and ends, but the sensor answers all the same.  The bus's
     first poll after the scan must not meet that answer."""
-    slow = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST, answer_delay=0.15)
+    async with slow_line(answer_delay=0.15) as (sim, gateway, http):
+        for _ in range(2):
+            await polled_again(gateway)
+            got = await scan_paused_line(http, sim.path, 255)
+            assert [name for name, _ in got if name != "progress"] == ["done"], got
+            await polled_again(gateway)
+            assert sim.bus.stats.masters_overlaps == 0, incidents(sim)
+
+
+@contextlib.asynccontextmanager
+async def slow_line(**timing: float) -> AsyncIterator[
+        tuple[SimulatorThread, Gateway, httpx.AsyncClient]]:
+    """Bus a with one slow AH (the simulator's ``answer_delay``, ``jitter``), polled
+    flat out (a request always in flight) with a learned timeout (the bus's own hold
+    after a request): its simulator, the gateway and a client of its REST."""
+    slow = make_sensor(WireProtocol.NATIVE, Series.AH, 0, baud=FAST, **timing)
     cfg = config("")
+    cfg["buses"][0]["sensors"][0]["poll_hz"] = 0
     del cfg["buses"][0]["timeout_ms"]
     with simulated([slow]) as sim:
         cfg["buses"][0]["port"] = sim.path
         async with running(cfg) as gateway, client(gateway) as http:
-            for _ in range(2):
-                await polled_again(gateway)
-                got = await scan_paused_line(http, sim.path, 255)
-                assert [name for name, _ in got if name != "progress"] == ["done"], got
-                await polled_again(gateway)
-                what = "\n".join("\n".join(events) for events in sim.bus.stats.incidents)
-                assert sim.bus.stats.masters_overlaps == 0, what
+            yield sim, gateway, http
+
+
+def incidents(sim: SimulatorThread) -> str:
+    """The simulator's first overlaps and collisions, with what led to each."""
+    return "\n".join("\n".join(events) for events in sim.bus.stats.incidents)
 
 
 async def polled_again(gateway: Gateway) -> None:
