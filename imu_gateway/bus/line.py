@@ -184,16 +184,15 @@ class Line:
         return max(a.give_up + ARRIVING_GRACE if a is not None else now, self.free_at(now))
 
     def send(self, job: Job, exchange: Exchange, now: float, timeout: float,
-             hold: float, place: Place | None = None, early: float = 0.0) -> Request:
+             hold: float, place: Place, early: float = 0.0) -> Request:
         """``exchange`` goes out now (``free_at`` said the line is free); its answer is
         due ``timeout`` beyond the wire time, and the line is held ``hold`` more for a
         late one.  Half a frame still in the framer has stopped coming (the line has
         been quiet): it is dropped now, not while nothing needed the line (its rest may
         yet come, late, on a busy machine).  ``early``: the answer's latency is rarely
         less (0: not known, or to be timed); the port is not looked at before.
-        ``place``: next to a stream, where it was placed."""
-        latest, placed, room = (math.inf, "", 0.0) if place is None else \
-            (place.latest, place.why, place.room)
+        ``place``: where it was placed next to a stream (with none, now, written by
+        whenever)."""
         self.flush(now)
         wire = self.wire(exchange)
         if not exchange.answer_bytes:
@@ -202,12 +201,12 @@ class Line:
         self.attempt = Attempt(job, exchange, now, wire, deadline, deadline + hold,
                                now - self.gap, self.adapter.garbage_seen(self.framer),
                                tx_end_before=self.last_tx_end, looked=early > 0,
-                               placed=placed, clear_by=latest + room)
+                               placed=place.why, clear_by=place.latest + place.room)
         self.last_tx_end = now + len(exchange.request) * char_time(self.baud)
         self.heard.clear()
         job.tries += 1
         look = wire + early if early > 0 else 0.0
-        return Request(exchange.request, exchange.answer_bytes, latest, look)
+        return Request(exchange.request, exchange.answer_bytes, place.latest, look)
 
     def written(self, at: float) -> None:
         """The request handed out was written by ``at`` (when the write returned).

@@ -1124,6 +1124,7 @@
    *  come within DOWNLOAD_MS is given up, and says so. */
   async function download(link) {
     if (link.getAttribute("aria-busy") === "true") return; // (one at a time per link)
+    const label = link.textContent;
     link.setAttribute("aria-busy", "true");
     link.textContent = "downloading…";
     try {
@@ -1141,7 +1142,7 @@
       showCaptureResult(`download: ${error.status || ""} ${error.message}`.trim(), false);
     } finally {
       link.removeAttribute("aria-busy");
-      link.textContent = "download";
+      link.textContent = label;
     }
   }
 
